@@ -1,0 +1,1 @@
+"""Batched two-mass plant, drive, measurement, test signal and records (SI units)."""

@@ -1,0 +1,1 @@
+"""Tensorized self-organizing maps: many maps in parallel, masked inactive components."""

@@ -1,0 +1,1 @@
+"""twomass-som: identification of two-mass drive mechanics (features, maps, CLI)."""
