@@ -1,1 +1,29 @@
-"""Tensorized self-organizing maps: many maps in parallel, masked inactive components."""
+"""Tensorized self-organizing maps: many maps in parallel, masked inactive components.
+
+Domain-free: weights ``*batch x U x C``; components are named; an active mask picks those used
+for the best match (the others, e.g. physical parameters, are trained and read out).
+"""
+
+from ._checkpoint import (FORMAT_VERSION, CheckpointError, file_sha256, load_checkpoint, save_checkpoint,
+                          verify_manifest, write_manifest)
+from ._grid import TOPOLOGIES, Grid
+from ._init import INITS, init_linear, init_random, initialize, map_seeds
+from ._native import available as native_available
+from ._options import NEIGHBOURHOODS, SCHEDULES
+from ._quality import (degree_of_order, hit_counts, quality_report, quantization_error, topographic_error,
+                       u_matrix)
+from ._recall import Recall, best_matching_units, distances, recall
+from ._som import SOM
+from ._tensorboard import log_config, log_images, log_scalars, tensorboard_hook
+from ._train import fit, train_batch, train_online
+
+__all__ = [
+    "SOM", "Grid", "TOPOLOGIES",
+    "initialize", "init_random", "init_linear", "map_seeds", "INITS",
+    "fit", "train_online", "train_batch", "NEIGHBOURHOODS", "SCHEDULES", "native_available",
+    "distances", "best_matching_units", "recall", "Recall",
+    "quantization_error", "topographic_error", "u_matrix", "hit_counts", "degree_of_order", "quality_report",
+    "save_checkpoint", "load_checkpoint", "CheckpointError", "FORMAT_VERSION",
+    "write_manifest", "verify_manifest", "file_sha256",
+    "log_scalars", "log_images", "log_config", "tensorboard_hook",
+]

@@ -1,0 +1,77 @@
+"""Map grids: unit coordinates, squared grid distances and adjacency (rectangular, hexagonal)."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from functools import cached_property
+
+import torch
+
+TOPOLOGIES = ("rectangular", "hexagonal")
+
+
+@dataclass(frozen=True)
+class Grid:
+    """A ``rows x cols`` grid of units; unit ``u = row * cols + col``.
+
+    Rectangular units sit at ``(row, col)``. Hexagonal units sit at
+    ``(row * sqrt(3)/2, col + 0.5 * (row % 2))`` (odd rows shifted right), so every
+    unit has six neighbours at distance 1.
+    """
+
+    rows: int
+    cols: int
+    topology: str = "rectangular"
+
+    def __post_init__(self) -> None:
+        for name in ("rows", "cols"):
+            value = getattr(self, name)
+            if not isinstance(value, int) or isinstance(value, bool) or value < 1:
+                raise ValueError(f"Grid.{name}: expected a positive int, received {value!r}")
+        if self.topology not in TOPOLOGIES:
+            raise ValueError(f"Grid.topology: expected one of {TOPOLOGIES}, received {self.topology!r}")
+
+    @property
+    def n_units(self) -> int:
+        return self.rows * self.cols
+
+    @cached_property
+    def coords(self) -> torch.Tensor:
+        """Unit positions, float64 ``U x 2`` (row axis, column axis)."""
+        r, c = torch.meshgrid(
+            torch.arange(self.rows, dtype=torch.float64),
+            torch.arange(self.cols, dtype=torch.float64),
+            indexing="ij",
+        )
+        if self.topology == "hexagonal":
+            c = c + 0.5 * (r % 2)
+            r = r * (math.sqrt(3.0) / 2.0)
+        return torch.stack([r.reshape(-1), c.reshape(-1)], dim=-1)  # U x 2
+
+    @cached_property
+    def distances2(self) -> torch.Tensor:
+        """Squared grid distances between units, float64 ``U x U``."""
+        diff = self.coords[:, None, :] - self.coords[None, :, :]  # U x U x 2
+        return (diff * diff).sum(-1)
+
+    @cached_property
+    def adjacency(self) -> torch.Tensor:
+        """Bool ``U x U``: neighbours on the grid (rectangular: 8 incl. diagonals, as MiniSom's
+        topographic error; hexagonal: the 6 at distance 1). A unit is not its own neighbour."""
+        limit = 2.0 + 1e-6 if self.topology == "rectangular" else 1.0 + 1e-6
+        adj = self.distances2 <= limit
+        adj.fill_diagonal_(False)
+        return adj
+
+    @cached_property
+    def edges(self) -> torch.Tensor:
+        """Long ``E x 2``: each adjacent pair ``(i, j)`` once, ``i < j``."""
+        return torch.triu(self.adjacency, diagonal=1).nonzero()
+
+    def to_dict(self) -> dict:
+        return {"rows": self.rows, "cols": self.cols, "topology": self.topology}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "Grid":
+        return cls(int(d["rows"]), int(d["cols"]), str(d["topology"]))

@@ -1,0 +1,92 @@
+"""Recall: masked distances, best-matching units, read-out of the inactive components."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from ._som import SOM
+
+
+def _features(som: SOM, features: torch.Tensor) -> torch.Tensor:
+    """Accept ``... x C`` or, when all maps share one active mask, ``... x n_active``;
+    return raw ``*batch x M x C`` (inactive columns NaN when they were not given)."""
+    f = torch.as_tensor(features, dtype=torch.float64)
+    C = som.n_components
+    act = som.active.reshape(-1, C)
+    n_act = int(act[0].sum())
+    if f.dim() >= 1 and f.shape[-1] != C and f.shape[-1] == n_act and bool((act == act[0]).all()):
+        full = torch.full((*f.shape[:-1], C), torch.nan, dtype=torch.float64)
+        full[..., act[0]] = f
+        f = full
+    if f.dim() == 1:
+        f = f.unsqueeze(0)  # 1 x C
+    if f.shape[-1] != C:
+        raise ValueError(f"features: expected ... x C (C={C}) or ... x n_active ({n_act}), received {tuple(f.shape)}")
+    return som.check_data(f, "features")
+
+
+def distances(som: SOM, features: torch.Tensor) -> torch.Tensor:
+    """Squared distances over the active, non-NaN components (normalized units),
+    float64 ``*batch x M x U``. ``features``: raw ``M x C`` or ``*batch x M x C``."""
+    x = som.normalize(_features(som, features))  # *batch x M x C
+    B, C, U = som.batch_shape.numel(), som.n_components, som.n_units
+    x = x.reshape(B, -1, C)  # B x M x C
+    m = (som.active.reshape(B, 1, C) & ~torch.isnan(x)).to(torch.float64)  # B x M x C
+    x = torch.where(torch.isnan(x), 0.0, x) * m
+    w = som.weights.reshape(B, U, C).to(torch.float64)  # B x U x C
+    d2 = m @ (w * w).transpose(1, 2) - 2.0 * (x @ w.transpose(1, 2)) + (x * x).sum(-1, keepdim=True)  # B x M x U
+    return d2.clamp_min(0.0).reshape(*som.batch_shape, -1, U)  # *batch x M x U
+
+
+def best_matching_units(som: SOM, features: torch.Tensor, k: int = 1) -> tuple[torch.Tensor, torch.Tensor]:
+    """Best matches on the active components only (paper eq. 2), NaN features skipped.
+
+    Returns ``(units, dist2)``: long and float64 ``*batch x M`` (``k == 1``) or
+    ``*batch x M x k`` (``k > 1``, nearest first)."""
+    if not isinstance(k, int) or not 1 <= k <= som.n_units:
+        raise ValueError(f"k: expected an int in 1..{som.n_units}, received {k!r}")
+    d2 = distances(som, features)  # *batch x M x U
+    if k == 1:
+        dist, idx = d2.min(-1)
+        return idx, dist
+    dist, idx = torch.topk(d2, k, dim=-1, largest=False, sorted=True)
+    return idx, dist
+
+
+@dataclass
+class Recall:
+    """Result of :func:`recall`.
+
+    units: long ``*batch x M`` best-matching units; distance: float64 ``*batch x M``
+    (Euclidean, active components, normalized units); values: float64 ``*batch x M x C``
+    raw-unit weights read out (interpolated if asked); the inactive columns are the
+    identified parameters; ``component_names`` names the columns."""
+
+    units: torch.Tensor
+    distance: torch.Tensor
+    values: torch.Tensor
+    component_names: list[str]
+
+    def __getitem__(self, name: str) -> torch.Tensor:
+        """Read-out of one component by name, ``*batch x M``."""
+        return self.values[..., self.component_names.index(name)]
+
+
+def recall(som: SOM, features: torch.Tensor, *, interpolate: int = 1, eps: float = 1e-12) -> Recall:
+    """Recall: best match on active components, read-out of all components (raw units).
+
+    ``interpolate = k > 1`` averages the ``k`` nearest units weighted by ``1 / (distance + eps)``.
+    ``features``: raw ``M x C``, ``*batch x M x C`` or ``... x n_active`` (see :func:`distances`).
+    """
+    units, d2 = best_matching_units(som, features, k=interpolate)
+    w = som.raw_weights  # *batch x U x C
+    flat = units.reshape(*som.batch_shape, -1)  # *batch x (M*k)
+    picked = torch.gather(w, -2, flat.unsqueeze(-1).expand(*flat.shape, som.n_components))  # *batch x (M*k) x C
+    if interpolate == 1:
+        return Recall(units, d2.sqrt(), picked, list(som.component_names))
+    picked = picked.reshape(*units.shape, som.n_components)  # *batch x M x k x C
+    wt = 1.0 / (d2.sqrt() + eps)  # *batch x M x k
+    values = (wt.unsqueeze(-1) * picked).sum(-2) / wt.sum(-1, keepdim=True)  # *batch x M x C
+    return Recall(units[..., 0], d2[..., 0].sqrt(), values, list(som.component_names))

@@ -1,0 +1,319 @@
+"""Training: the paper's online rule (eq. 3, masked best match eq. 2) and batch SOM."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterable, Sequence
+from typing import Union
+
+import torch
+
+from . import _native
+from ._init import initialize, map_seeds
+from ._options import NEIGHBOURHOODS, SCHEDULES, lookup
+from ._som import SOM
+
+Hook = Callable[[int, SOM, dict], None]
+"""``hook(epoch, som, info)`` after each epoch; ``info``: ``step``, ``epochs``,
+``learning_rate`` and ``sigma`` (float64 ``*batch``, the values used last)."""
+Value = Union[float, torch.Tensor]
+Range = Union[Value, tuple[Value, Value]]
+
+
+def _start_end(value: Range | None, default: tuple[float, float], batch: torch.Size, name: str) -> tuple[torch.Tensor, torch.Tensor]:
+    """``value`` (start or (start, end), each a float or ``*batch`` tensor) -> two float64 ``B`` tensors."""
+    if value is None:
+        value = default
+    start, end = value if isinstance(value, tuple) else (value, default[1])
+    out = []
+    for v, what in ((start, "start"), (end, "end")):
+        t = torch.as_tensor(v, dtype=torch.float64)
+        try:
+            out.append(t.expand(batch).reshape(-1))  # B
+        except RuntimeError:
+            raise ValueError(f"{name} {what}: expected a float or *batch = {tuple(batch)}, received shape {tuple(t.shape)}") from None
+    if bool((out[0] <= 0).any()):
+        raise ValueError(f"{name}: expected a positive start value, received {start!r}")
+    return out[0], out[1]
+
+
+def _table(schedule: str, start: torch.Tensor, end: torch.Tensor, steps: torch.Tensor, total: int) -> torch.Tensor:
+    """Schedule values, float64 ``len(steps) x B``."""
+    return lookup(SCHEDULES, schedule, "schedule")(start, end, steps.to(torch.float64)[:, None], total)
+
+
+def _progress(enabled: bool, total: int, desc: str):
+    if not enabled:
+        return None
+    from tqdm import tqdm
+
+    return tqdm(total=total, desc=desc, unit="step", leave=False)
+
+
+def _orders(gens: list[torch.Generator], n: int, shuffle: bool) -> torch.Tensor:
+    """Sample order of one epoch, long ``N x B``."""
+    if not shuffle:
+        return torch.arange(n)[:, None].expand(n, len(gens))
+    return torch.stack([torch.randperm(n, generator=g) for g in gens], dim=1)
+
+
+def train_online(
+    som: SOM,
+    data: torch.Tensor,
+    *,
+    epochs: int = 10,
+    learning_rate: Range = (0.5, 0.01),
+    sigma: Range | None = None,
+    schedule: str = "asymptotic",
+    neighbourhood: str = "gaussian",
+    seed: int | Sequence[int] | torch.Tensor = 0,
+    shuffle: bool = True,
+    method: str = "fast",
+    refresh_every: int = 256,
+    num_threads: int | None = 1,
+    progress: bool = False,
+    hooks: Iterable[Hook] = (),
+) -> SOM:
+    """Train in place with the online rule, one sample per step, all maps of the batch at once.
+
+    Step ``t`` (global, ``0 .. epochs*N - 1``), for each map: best match ``c`` over the active,
+    non-NaN components (eq. 2); then every component of every unit moves,
+    ``w_u += lr(t) * h(|r_u - r_c|^2, sigma(t)) * (x - w_u)`` (eq. 3; NaN components of ``x``
+    stay put). Each epoch visits each sample once, in a random order per map drawn from a
+    generator seeded with the map's seed (``shuffle=False``: in order).
+
+    Args:
+        som: weights ``*batch x U x C`` (initialize first; see :func:`fit`).
+        data: raw ``N x C`` (shared) or ``*batch x N x C`` (per map); inactive columns carry
+            the parameters; NaN = missing.
+        learning_rate, sigma: ``start`` or ``(start, end)``, each a float or ``*batch`` tensor
+            (per-map schedules). ``sigma`` (grid radius) defaults to ``(max(rows, cols)/2, 1)``.
+        schedule: one of :data:`SCHEDULES` (default ``"asymptotic"``: MiniSom's default decay).
+        neighbourhood: one of :data:`NEIGHBOURHOODS`.
+        seed: int (maps get ``seed, seed+1, ...``) or ``*batch`` seeds.
+        method: ``"fast"`` = ``"native"`` where the C kernel is available (see ``_native``: one
+            call per epoch, weights' dtype), else ``"torch"`` (one batched tensor step per sample,
+            weights' dtype, incremental norms refreshed every ``refresh_every`` steps);
+            ``"reference"``: float64, one map and one sample at a time, plain formulas.
+        num_threads: torch intra-op threads during the epochs (restored afterwards); the
+            per-step tensors are small, so 1 is fastest on a shared CPU; ``None`` leaves it.
+        hooks: called after each epoch as ``hook(epoch, som, info)``.
+    """
+    if not isinstance(epochs, int) or epochs < 1:
+        raise ValueError(f"epochs: expected a positive int, received {epochs!r}")
+    nb = lookup(NEIGHBOURHOODS, neighbourhood, "neighbourhood")
+    native_ok = (method in ("fast", "native") and isinstance(neighbourhood, str)
+                 and _native.kernel(som.weights.dtype) is not None)  # builds the kernel on first use
+    if method == "native" and not native_ok:
+        raise ValueError("method 'native': no C compiler/kernel here (or a custom neighbourhood); use 'torch'")
+    methods = {"fast": _online_native if native_ok else _online_fast, "native": _online_native,
+               "torch": _online_fast, "reference": _online_reference}
+    step_fn = lookup(methods, method, "method")
+    x = som.normalize(data)  # *batch x N x C
+    B, C, U, N = som.batch_shape.numel(), som.n_components, som.n_units, x.shape[-2]
+    if N < 1:
+        raise ValueError("data: expected at least one sample, received N=0")
+    lr0, lr1 = _start_end(learning_rate, (0.5, 0.01), som.batch_shape, "learning_rate")
+    sg0, sg1 = _start_end(sigma, (max(som.grid.rows, som.grid.cols) / 2.0, 1.0), som.batch_shape, "sigma")
+    lookup(SCHEDULES, schedule, "schedule")
+    total = epochs * N
+    gens = [torch.Generator().manual_seed(s) for s in map_seeds(seed, som.batch_shape)]
+    ctx = dict(x=x.reshape(B, N, C), active=som.active.reshape(B, C), nb=nb,  # B x N x C
+               refresh=max(int(refresh_every), 1), kind=_native.KINDS.get(neighbourhood, -1) if native_ok else -1)
+    bar = _progress(progress, total, "som online")
+    weights = som.weights.reshape(B, U, C)  # B x U x C
+    for epoch in range(epochs):
+        steps = torch.arange(epoch * N, (epoch + 1) * N)
+        lr = _table(schedule, lr0, lr1, steps, total)  # N x B
+        sg = _table(schedule, sg0, sg1, steps, total)  # N x B
+        order = _orders(gens, N, shuffle)  # N x B
+        threads = torch.get_num_threads()
+        try:
+            if num_threads is not None:
+                torch.set_num_threads(int(num_threads))
+            weights = step_fn(weights, som.grid.distances2, order, lr, sg, **ctx)
+        finally:
+            torch.set_num_threads(threads)
+        som.weights = weights.reshape(*som.batch_shape, U, C)  # *batch x U x C
+        if bar is not None:
+            bar.update(N)
+        info = {"step": (epoch + 1) * N, "epochs": epochs,
+                "learning_rate": lr[-1].reshape(som.batch_shape), "sigma": sg[-1].reshape(som.batch_shape)}
+        for hook in hooks:
+            hook(epoch, som, info)
+    if bar is not None:
+        bar.close()
+    return som
+
+
+def _online_native(w, d2grid, order, lr, sg, *, x, active, nb, refresh, kind):
+    """One epoch in the native C kernel (see ``_native``). w: B x U x C; returns B x U x C."""
+    B, U, C = w.shape
+    dt = w.dtype
+    fn = _native.kernel(dt)
+    N = order.shape[0]
+    wt = w.transpose(1, 2).contiguous()  # B x C x U
+    xe = x[torch.arange(B)[None, :], order].to(dt)  # N x B x C
+    valid = ~torch.isnan(xe)
+    vv = valid.to(dt).contiguous() if bool((~valid).any()) else None  # N x B x C or none
+    xe = torch.where(valid, xe, 0.0).contiguous()
+    act = active.to(dt).contiguous()  # B x C
+    d2 = d2grid.to(dt).contiguous()  # U x U
+    lr, sg = lr.to(dt).contiguous(), sg.to(dt).contiguous()  # N x B each
+    dist, h = torch.empty(U, dtype=dt), torch.empty(U, dtype=dt)
+    bmus = torch.empty(N, B, dtype=torch.long)
+    fn(B, U, C, N, wt.data_ptr(), xe.data_ptr(), None if vv is None else vv.data_ptr(), act.data_ptr(),
+       d2.data_ptr(), lr.data_ptr(), sg.data_ptr(), kind, dist.data_ptr(), h.data_ptr(), bmus.data_ptr())
+    return wt.transpose(1, 2).contiguous()  # B x U x C
+
+
+def _online_fast(w, d2grid, order, lr, sg, *, x, active, nb, refresh, kind=-1):
+    """One epoch, all maps per tensor step. w: B x U x C; returns the trained B x U x C.
+
+    Works on the transposed weights ``B x C x U`` (unit axis contiguous: the per-step matmul
+    and update are several times faster), keeps the squared norms of the active parts
+    incrementally and refreshes them exactly every ``refresh`` steps."""
+    B, U, C = w.shape
+    dt = w.dtype
+    wt = w.transpose(1, 2).contiguous()  # B x C x U
+    d2grid = d2grid.to(dt)  # U x U
+    xe = x[torch.arange(B)[None, :], order].to(dt)  # N x B x C
+    valid = ~torch.isnan(xe)
+    has_nan = bool((~valid).any())
+    xe = torch.where(valid, xe, 0.0)
+    act = active.to(dt)  # B x C
+    m = act * valid.to(dt)  # N x B x C: distance mask per sample
+    xm = (xe * m).unsqueeze(-2)  # N x B x 1 x C
+    xsq = (xe * xe * m).sum(-1, keepdim=True)  # N x B x 1
+    m = m.unsqueeze(-2)  # N x B x 1 x C
+    lr = lr.to(dt).unsqueeze(-1)  # N x B x 1
+    sg = sg.to(dt).unsqueeze(-1)  # N x B x 1
+    vcol = valid.to(dt).unsqueeze(-1)  # N x B x C x 1
+    xcol = xe.unsqueeze(-1)  # N x B x C x 1
+    act_row = act.unsqueeze(1)  # B x 1 x C
+    gauss = (-0.5 / (sg * sg), lr.log()) if nb is NEIGHBOURHOODS["gaussian"] else None  # N x B x 1 each
+    nrm = torch.bmm(act_row, wt * wt).squeeze(1)  # B x U
+    for i in range(order.shape[0]):
+        s = torch.bmm(xm[i], wt).squeeze(1)  # B x U
+        if has_nan:
+            nrm = torch.bmm(m[i], wt * wt).squeeze(1)  # B x U
+        e = torch.add(nrm, s, alpha=-2.0)  # B x U: |w - x|^2 - |x|^2 (active components)
+        bmu = e.argmin(1)  # B
+        if gauss is not None:  # exp(-d2 / (2 sigma^2) + log lr): two ops
+            h = torch.addcmul(gauss[1][i], d2grid.index_select(0, bmu), gauss[0][i]).exp_()  # B x U
+        else:
+            h = nb(d2grid.index_select(0, bmu), sg[i]).mul_(lr[i])  # B x U
+        if has_nan:
+            wt.lerp_(xcol[i], h.unsqueeze(1) * vcol[i])  # weight B x C x U
+            continue
+        wt.lerp_(xcol[i], h.unsqueeze(1))  # weight B x 1 x U
+        if (i + 1) % refresh == 0:
+            nrm = torch.bmm(act_row, wt * wt).squeeze(1)  # B x U
+        else:  # |w + h (x - w)|^2 = |w|^2 + 2 h (w.x - |w|^2) + h^2 |x - w|^2 (active components)
+            inner = torch.addcmul(s.sub_(nrm), h, e.add_(xsq[i]), value=0.5)  # B x U
+            nrm = nrm.addcmul_(h, inner, value=2.0)
+    return wt.transpose(1, 2).contiguous()  # B x U x C
+
+
+def _online_reference(w, d2grid, order, lr, sg, *, x, active, nb, refresh, kind=-1):
+    """One epoch, plain formulas in float64, one map and one sample at a time."""
+    dtype = w.dtype
+    w = w.to(torch.float64).clone()  # B x U x C
+    B = w.shape[0]
+    for i in range(order.shape[0]):
+        for b in range(B):
+            v = x[b, order[i, b]]  # C
+            ok = ~torch.isnan(v)
+            m = active[b] & ok
+            dist = torch.where(m, (v - w[b]) ** 2, 0.0).sum(-1)  # U (inactive and NaN columns skipped)
+            c = int(torch.argmin(dist))
+            h = nb(d2grid[c], sg[i, b]) * lr[i, b]  # U
+            w[b] += h[:, None] * torch.where(ok, v - w[b], 0.0)
+    return w.to(dtype)
+
+
+def train_batch(
+    som: SOM,
+    data: torch.Tensor,
+    *,
+    epochs: int = 10,
+    sigma: Range | None = None,
+    schedule: str = "linear",
+    neighbourhood: str = "gaussian",
+    num_threads: int | None = None,
+    progress: bool = False,
+    hooks: Iterable[Hook] = (),
+) -> SOM:
+    """Train in place with the batch SOM: per epoch, every unit becomes the neighbourhood-weighted
+    mean of the samples (per component, NaN skipped) given the best matches (active, non-NaN
+    components) under the current weights. Units that no sample reaches keep their weights.
+    ``sigma`` per epoch ``e`` follows ``schedule`` over ``e = 0 .. epochs-1`` (total ``epochs``).
+    Computes in the weights' dtype; deterministic (no seed). ``data``: raw ``N x C`` or
+    ``*batch x N x C``. ``num_threads``: torch threads during training (``None``: unchanged)."""
+    if not isinstance(epochs, int) or epochs < 1:
+        raise ValueError(f"epochs: expected a positive int, received {epochs!r}")
+    nb = lookup(NEIGHBOURHOODS, neighbourhood, "neighbourhood")
+    sg0, sg1 = _start_end(sigma, (max(som.grid.rows, som.grid.cols) / 2.0, 1.0), som.batch_shape, "sigma")
+    sg = _table(schedule, sg0, sg1, torch.arange(epochs), epochs)  # E x B
+    x = som.normalize(data)
+    B, C, U, N = som.batch_shape.numel(), som.n_components, som.n_units, x.shape[-2]
+    dt = som.weights.dtype
+    x = x.reshape(B, N, C)  # B x N x C
+    valid = ~torch.isnan(x)
+    has_nan = bool((~valid).any())
+    xv = torch.where(valid, x, 0.0).to(dt)  # B x N x C
+    m = (valid & som.active.reshape(B, 1, C)).to(dt)  # B x N x C: distance mask
+    xm = xv * m
+    counts_src = valid.to(dt) if has_nan else torch.ones(B, N, 1, dtype=dt)  # B x N x (C or 1)
+    d2grid = som.grid.distances2.to(dt)[None]  # 1 x U x U
+    w = som.weights.reshape(B, U, C)  # B x U x C
+    bar = _progress(progress, epochs, "som batch")
+    threads = torch.get_num_threads()
+    try:
+        if num_threads is not None:
+            torch.set_num_threads(int(num_threads))
+        for epoch in range(epochs):
+            wT = w.transpose(1, 2)  # B x C x U
+            d = torch.baddbmm(torch.bmm(m, wT * wT), xm, wT, alpha=-2.0)  # B x N x U (+ |x|^2 omitted)
+            idx = d.argmin(-1, keepdim=True)  # B x N x 1
+            sums = torch.zeros(B, U, C, dtype=dt).scatter_add_(1, idx.expand(B, N, C), xv)  # B x U x C
+            counts = torch.zeros(B, U, counts_src.shape[-1], dtype=dt).scatter_add_(
+                1, idx.expand(B, N, counts_src.shape[-1]), counts_src)  # B x U x (C or 1)
+            h = nb(d2grid, sg[epoch].to(dt)[:, None, None])  # B x U x U
+            num, den = torch.bmm(h, sums), torch.bmm(h, counts)  # B x U x C, B x U x (C or 1)
+            w = torch.where(den > 1e-12, num / den.clamp_min(1e-30), w)
+            som.weights = w.reshape(*som.batch_shape, U, C)  # *batch x U x C
+            if bar is not None:
+                bar.update(1)
+            info = {"step": epoch + 1, "epochs": epochs,
+                    "learning_rate": torch.ones(som.batch_shape, dtype=torch.float64),
+                    "sigma": sg[epoch].reshape(som.batch_shape)}
+            for hook in hooks:
+                hook(epoch, som, info)
+    finally:
+        torch.set_num_threads(threads)
+    if bar is not None:
+        bar.close()
+    return som
+
+
+def fit(
+    som: SOM,
+    data: torch.Tensor,
+    *,
+    mode: str = "online",
+    init: str | None = "random",
+    normalization: str | None = None,
+    seed: int | Sequence[int] | torch.Tensor = 0,
+    **train_options,
+) -> SOM:
+    """Normalize (optional: ``"range"``/``"standard"``), initialize (``"random"``/``"linear"``,
+    ``None`` keeps the weights) and train (``mode``: ``"online"`` or ``"batch"``) in place.
+    ``train_options`` go to :func:`train_online` / :func:`train_batch`."""
+    trainer = lookup({"online": train_online, "batch": train_batch}, mode, "mode")
+    if normalization is not None:
+        som.fit_normalization(data, normalization)
+    if init is not None:
+        initialize(som, data, init, seed)
+    if mode == "online":
+        train_options["seed"] = seed
+    return trainer(som, data, **train_options)
