@@ -1,0 +1,294 @@
+"""Validation of an identification result (knowledge base, SPEC 8).
+
+* :func:`validate_model` — re-simulate the identified model under the recorded test signal
+  (``mode="replay"``: the recorded ``torque_ref`` sequence, open loop; ``mode="switching"``: the
+  same switching law with the record's ``M_star``/``w_max``) and compare with the measured speed:
+  normalized RMS error of the speed (``nrmse``) and of its oscillating part (``osc_nrmse``, the
+  speed minus its moving average over one period of the model's ``f_e``), each with a threshold.
+* :func:`may_propose_controller` — the refusal rules (V1-V6, docs/commissioning.md): whether a
+  controller may be proposed from an identification result, and why not.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import torch
+
+__all__ = [
+    "ValidationResult",
+    "ReplayController",
+    "validate_model",
+    "Permission",
+    "may_propose_controller",
+    "BLOCKING_WARNING_WORDS",
+]
+
+
+# --------------------------------------------------------------------------- re-simulation
+
+
+class ReplayController:
+    """Replays a recorded ``torque_ref`` (``N`` [Nm]; ``torque_ref[k]`` acts during sample ``k``).
+
+    Contract: ``reset(batch_shape)``; ``step(k, w_meas)`` returns ``torque_ref[k+1]`` (it acts
+    from sample ``k+1``), held at its last value beyond the record, broadcast to the batch.
+    """
+
+    def __init__(self, torque_ref: Any) -> None:
+        t = torch.as_tensor(np.asarray(torque_ref, dtype=np.float64)).reshape(-1)
+        if t.numel() < 2 or not torch.isfinite(t).all():
+            raise ValueError(f"torque_ref: expected >= 2 finite samples, received {t.numel()}")
+        self.torque_ref = t
+        self._shape: tuple[int, ...] = ()
+
+    def reset(self, batch_shape: tuple[int, ...] | torch.Size) -> None:
+        self._shape = tuple(batch_shape)
+
+    def step(self, k: int, w_meas: torch.Tensor) -> torch.Tensor:
+        v = self.torque_ref[min(k + 1, self.torque_ref.numel() - 1)]
+        return v.expand(self._shape).to(w_meas.dtype) if self._shape else v.to(w_meas.dtype)
+
+
+@dataclass
+class ValidationResult:
+    """``passed``; ``nrmse`` = RMS(w_sim - w_meas)/RMS(w_meas) over the common length;
+    ``osc_nrmse`` (None when the measured oscillation is below ``osc_min_quanta``) for the
+    oscillating parts; thresholds; ``simulated`` / ``measured`` speed ``N`` [rad/s]; ``reason``."""
+
+    passed: bool
+    nrmse: float
+    osc_nrmse: float | None
+    threshold: float
+    osc_threshold: float
+    simulated: np.ndarray
+    measured: np.ndarray
+    mode: str
+    reason: str
+
+
+def _get(obj: Any, name: str) -> Any:
+    if isinstance(obj, Mapping):
+        return obj.get(name)
+    return getattr(obj, name, None)
+
+
+def _one(x: Any) -> np.ndarray:
+    a = x.detach().to(torch.float64).cpu().numpy() if isinstance(x, torch.Tensor) else np.asarray(x, dtype=np.float64)
+    a = a.reshape(-1, a.shape[-1]) if a.ndim > 1 else a.reshape(1, -1)
+    if a.shape[0] != 1:
+        raise ValueError(f"record: expected one system, received a batch of {a.shape[0]}")
+    return a[0]
+
+
+def _measured(record: Any) -> tuple[np.ndarray, np.ndarray | None, dict[str, Any]]:
+    """(speed N, torque_ref N or None, meta) from a sim Response or a Record."""
+    speed = _get(record, "speed")
+    if speed is None:
+        raise TypeError(f"record: expected a Record/Response with 'speed', received {type(record).__name__}")
+    w = _one(speed)
+    n = len(w)
+    length = _get(record, "length")
+    if length is not None:
+        n = int(np.asarray(length.detach().cpu() if isinstance(length, torch.Tensor) else length).reshape(-1)[0])
+    tr = _get(record, "torque_ref")
+    meta = _get(record, "meta") or {}
+    return w[:n], (_one(tr)[:n] if tr is not None else None), dict(meta)
+
+
+def _stiff_surrogate(params: Any, drive: Any) -> dict[str, float]:
+    """A one-mass model as sim parameters: tiny ``V_J`` (0.01), ``f_e = min(1000, 0.25/T_s)`` Hz."""
+    return {"V_J": 0.01, "f_e": min(1000.0, 0.25 / float(drive.T_s)), "d": 0.1}
+
+
+def _as_sim_params(params: Any, drive: Any) -> Any:
+    import sim
+
+    if isinstance(params, sim.TwoMassParams):
+        return params
+    if not isinstance(params, Mapping):
+        raise TypeError(f"params: expected TwoMassParams or a dict, received {type(params).__name__}")
+    row = {k: params.get(k) for k in ("J_sigma", "V_J", "f_e", "d", "backlash", "M_FC", "mu_F")}
+    if row["V_J"] is None or row["f_e"] is None:
+        row.update(_stiff_surrogate(params, drive))
+    row = {k: (0.0 if v is None else float(v)) for k, v in row.items()}
+    return sim.TwoMassParams.from_dicts(row)
+
+
+def _moving_average(x: np.ndarray, W: int) -> np.ndarray:
+    if W <= 1:
+        return x.copy()
+    k = np.ones(W) / W
+    pad = np.concatenate([np.full(W // 2, x[0]), x, np.full(W - 1 - W // 2, x[-1])])
+    return np.convolve(pad, k, mode="valid")
+
+
+def validate_model(
+    params: Any,
+    drive: Any,
+    record: Any,
+    *,
+    mode: str = "replay",
+    threshold: float = 0.1,
+    osc_threshold: float = 0.5,
+    osc_min_quanta: float = 3.0,
+    signal: Any = None,
+    seed: int = 0,
+) -> ValidationResult:
+    """Re-simulate ``params`` under ``record``'s test signal and compare with its measured speed.
+
+    Args:
+        params: identified model: ``sim.TwoMassParams`` (one system) or a dict of the seven
+            parameters (``V_J``/``f_e`` None: one-mass surrogate).
+        drive: DriveConfig.
+        record: sim Response (one system) or Record: ``speed`` ``N`` [rad/s], ``torque_ref`` ``N``
+            [Nm] (needed for ``mode="replay"``), for ``"switching"`` ``meta`` with ``M_star``,
+            ``w_max`` (or pass ``signal``).
+        mode: "replay" (open loop, recorded ``torque_ref``) or "switching" (same switching law).
+        threshold: largest accepted ``nrmse``; osc_threshold: largest accepted ``osc_nrmse``.
+        osc_min_quanta: the oscillation check runs when the measured oscillating part has an RMS
+            of at least this many speed quanta ``q_w`` (else it is noise).
+
+    Returns :class:`ValidationResult`.
+    """
+    import sim
+
+    if mode not in ("replay", "switching"):
+        raise ValueError(f"mode: expected 'replay' or 'switching', received {mode!r}")
+    if not (threshold > 0 and osc_threshold > 0):
+        raise ValueError(f"threshold, osc_threshold: expected > 0, received {threshold}, {osc_threshold}")
+    w_meas, torque_ref, meta = _measured(record)
+    p = _as_sim_params(params, drive)
+    if p.J_sigma.numel() != 1:
+        raise ValueError(f"params: expected one system, received batch {tuple(p.batch_shape)}")
+    p = p.reshape(1)
+    n = len(w_meas)
+    if mode == "replay":
+        if torque_ref is None:
+            raise ValueError("mode='replay' needs the recorded torque_ref")
+        resp = sim.simulate(p, drive, ReplayController(torque_ref), n, seed=seed)
+        w_sim = _one(resp.speed)[:n]
+    else:
+        if signal is None:
+            if "M_star" not in meta or "w_max" not in meta:
+                raise ValueError("mode='switching' needs signal= or record meta with M_star and w_max")
+            signal = sim.TestSignalConfig(M_star=float(meta["M_star"]), w_max=float(meta["w_max"]),
+                                          timeout=float(meta.get("timeout", 10.0)), tail=float(meta.get("tail", 0.05)))
+        resp = sim.simulate_test(p, drive, signal, seed=seed)
+        w_sim = _one(resp.speed)
+        L = _get(resp, "length")
+        if L is not None:
+            w_sim = w_sim[: int(torch.as_tensor(L).reshape(-1)[0])]
+    m = min(len(w_sim), n)
+    a, b = w_sim[:m], w_meas[:m]
+    rms = float(np.sqrt(np.mean(b**2))) or 1e-300
+    nrmse = float(np.sqrt(np.mean((a - b) ** 2)) / rms) if np.isfinite(a).all() else math.inf
+    if mode == "switching" and max(len(w_sim), n) > 0:
+        nrmse = max(nrmse, abs(len(w_sim) - n) / max(n, 1))  # a different test length is an error too
+    f_e = _get(params, "f_e")
+    f_e = float(f_e.reshape(-1)[0]) if isinstance(f_e, torch.Tensor) else (None if f_e is None else float(f_e))
+    W = int(round(1.0 / (f_e * float(drive.T_s)))) if f_e else int(round(0.01 / float(drive.T_s)))
+    W = int(min(max(W, 3), max(m // 4, 3)))
+    hp_b = b - _moving_average(b, W)
+    hp_a = a - _moving_average(a, W)
+    osc_rms = float(np.sqrt(np.mean(hp_b**2)))
+    osc_nrmse = None
+    if osc_rms >= osc_min_quanta * float(drive.q_w):
+        osc_nrmse = float(np.sqrt(np.mean((hp_a - hp_b) ** 2)) / osc_rms) if np.isfinite(hp_a).all() else math.inf
+    reasons = []
+    if not nrmse <= threshold:
+        reasons.append(f"speed error {nrmse:.3g} > {threshold:g}")
+    if osc_nrmse is not None and not osc_nrmse <= osc_threshold:
+        reasons.append(f"oscillation error {osc_nrmse:.3g} > {osc_threshold:g}")
+    return ValidationResult(
+        passed=not reasons, nrmse=nrmse, osc_nrmse=osc_nrmse, threshold=threshold, osc_threshold=osc_threshold,
+        simulated=a, measured=b, mode=mode, reason="; ".join(reasons) if reasons else "model reproduces the record",
+    )
+
+
+# --------------------------------------------------------------------------- refusal rules
+
+BLOCKING_WARNING_WORDS: tuple[str, ...] = ("timed out", "timeout", "not informative", "saturat", "clipped", "diverg", "failed")
+
+_REQUIRED = {
+    "stiff": ("J_sigma",),
+    "stiff_backlash": ("J_sigma",),
+    "elastic": ("J_sigma", "V_J", "f_e"),
+    "elastic_backlash": ("J_sigma", "V_J", "f_e"),
+}
+
+
+@dataclass(frozen=True)
+class Permission:
+    """``allowed``; ``reason`` (one line: why not, or what was checked); ``notes``: non-blocking warnings."""
+
+    allowed: bool
+    reason: str
+    notes: tuple[str, ...] = ()
+
+    def __bool__(self) -> bool:
+        return self.allowed
+
+
+def may_propose_controller(
+    result: Mapping[str, Any],
+    *,
+    max_validation_error: float = 0.1,
+    max_quantization_error: float | None = None,
+    blocking_words: Sequence[str] = BLOCKING_WARNING_WORDS,
+) -> Permission:
+    """Decide whether a speed controller may be proposed from an identification result.
+
+    ``result``: ``{"structure": str, "parameters": {...}, "quality": {...}, "warnings": [...]}``
+    (the ``twomass identify`` object). Refused (rules V1-V6) when:
+    V1 ``error`` is present or the structure is missing/unknown; V2 a parameter the structure
+    needs is missing, not finite or not positive (``J_sigma``; plus ``V_J``, ``f_e`` for elastic);
+    V3 ``quality.validation_error`` is missing, not finite or above ``max_validation_error``
+    (or ``quality.validation_passed`` is false); V4 ``quality.outside_training`` is true (the maps
+    have not seen such a record); V5 ``quality.quantization_error`` above
+    ``max_quantization_error`` (when given); V6 a warning names a blocking condition
+    (``blocking_words``: timed-out sections, saturation, ...). Other warnings are passed on.
+    """
+    if not isinstance(result, Mapping):
+        raise TypeError(f"result: expected a dict, received {type(result).__name__}")
+    if result.get("error"):
+        return Permission(False, f"V1 identification failed: {result['error']}")
+    structure = result.get("structure")
+    if structure not in _REQUIRED:
+        return Permission(False, f"V1 unknown structure {structure!r}: expected one of {tuple(_REQUIRED)}")
+    params = result.get("parameters") or {}
+    if not isinstance(params, Mapping):
+        return Permission(False, f"V2 parameters: expected a dict, received {type(params).__name__}")
+    for key in _REQUIRED[structure]:
+        v = params.get(key)
+        try:
+            ok = v is not None and math.isfinite(float(v)) and float(v) > 0
+        except (TypeError, ValueError):
+            ok = False
+        if not ok:
+            return Permission(False, f"V2 parameter {key} = {v!r} not usable for structure {structure!r}")
+    quality = result.get("quality") or {}
+    if quality.get("validation_passed") is False:
+        return Permission(False, "V3 validation failed: the identified model does not reproduce the record")
+    ve = quality.get("validation_error")
+    try:
+        ve_f = float(ve)
+    except (TypeError, ValueError):
+        return Permission(False, f"V3 no validation error in quality (received {ve!r}): validate the model first")
+    if not math.isfinite(ve_f) or ve_f > max_validation_error:
+        return Permission(False, f"V3 validation error {ve_f:.3g} above {max_validation_error:g}")
+    if quality.get("outside_training"):
+        return Permission(False, "V4 the record lies outside what the maps were trained on")
+    qe = quality.get("quantization_error")
+    if max_quantization_error is not None and qe is not None and float(qe) > max_quantization_error:
+        return Permission(False, f"V5 quantization error {float(qe):.3g} above {max_quantization_error:g}")
+    warnings = [str(w) for w in (result.get("warnings") or [])]
+    for w in warnings:
+        low = w.lower()
+        if any(word in low for word in blocking_words):
+            return Permission(False, f"V6 blocking warning: {w}")
+    return Permission(True, f"structure {structure}, validation error {ve_f:.3g} <= {max_validation_error:g}", tuple(warnings))
