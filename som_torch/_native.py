@@ -137,7 +137,7 @@ def _library() -> ctypes.CDLL | None:
     if compiler is None:
         return None
     src = _source()
-    key = hashlib.sha256(" ".join([src, *_FLAGS, platform.machine(), platform.node(), compiler]).encode()).hexdigest()[:16]
+    key = hashlib.sha256(" ".join([src, *_FLAGS, "link-v2", platform.machine(), platform.node(), compiler]).encode()).hexdigest()[:16]
     folder = _cache_dir()
     if folder is None:
         return None
@@ -146,9 +146,15 @@ def _library() -> ctypes.CDLL | None:
         if not lib.is_file():
             c_file = folder / f"som_{key}.c"
             c_file.write_text(src)
+            obj = folder / f".som_{key}.{os.getpid()}.o"
             tmp = folder / f".som_{key}.{os.getpid()}.so"
-            subprocess.run([compiler, *_FLAGS, "-shared", "-fPIC",
-                            str(c_file), "-o", str(tmp), "-lm"], check=True, capture_output=True, timeout=120)
+            # compile with the fast-math flags, but link without them: a -ffast-math link adds
+            # crtfastmath.o, which flushes subnormals to zero for the whole process on load
+            subprocess.run([compiler, *_FLAGS, "-fPIC", "-c", str(c_file), "-o", str(obj)],
+                           check=True, capture_output=True, timeout=120)
+            subprocess.run([compiler, "-shared", str(obj), "-o", str(tmp), "-lm", "-lmvec"],
+                           check=True, capture_output=True, timeout=120)
+            obj.unlink()
             os.replace(tmp, lib)
         cdll = ctypes.CDLL(str(lib))
     except (OSError, subprocess.SubprocessError):

@@ -1,0 +1,113 @@
+"""Accurate reference path: adaptive Dormand-Prince (torchdiffeq) with event restarts, float64.
+
+Per system and per sample interval the ODE is integrated with ``dopri5`` (``rtol=1e-10``,
+``atol=1e-12``) and restarted at every discontinuity:
+
+* sample instants (the torque reference steps there: every interval is its own solve);
+* contact / separation of the backlash (``|dphi| = s``; the damping term switches);
+* stick -> slip (``|M_S - M_ext|`` reaches ``M_FC``) and slip -> stick (``w_L`` reaches 0;
+  the load is then set to rest and stick or slip is decided from the shaft torque).
+
+The friction mode is a discrete state carried between segments, so stiction is exact up to the
+event-time tolerance. Slow (Python loop per system and segment): meant for tests and checks.
+"""
+
+from __future__ import annotations
+
+import torch
+from torchdiffeq import odeint
+
+from sim._integrate_fast import FastState
+from sim.params import DriveConfig, TwoMassParams
+
+_EPS_W = 1e-12  # rad/s: a sliding load counts as stopped once it passes this past zero
+_EPS_M = 1e-12  # Nm: break-away margin over M_FC
+
+
+class ReferenceIntegrator:
+    """Advances a :class:`FastState` (float64) by one sample interval with torchdiffeq."""
+
+    def __init__(self, params: TwoMassParams, drive: DriveConfig, M_ext: torch.Tensor | None = None,
+                 rtol: float = 1e-10, atol: float = 1e-12):
+        f = lambda t: t.reshape(-1).to(torch.float64).tolist()  # noqa: E731
+        self.J_M, self.J_L, self.C_F, self.D_F = f(params.J_M), f(params.J_L), f(params.C_F), f(params.D_F)
+        self.s, self.M_FC, self.mu_F = f(params.s), f(params.M_FC), f(params.mu_F)
+        n = len(self.J_M)
+        self.M_ext = [0.0] * n if M_ext is None else f(torch.as_tensor(M_ext, dtype=torch.float64).expand(params.batch_shape))
+        self.T_s, self.T_Ei = drive.T_s, drive.T_Ei
+        self.rtol, self.atol = rtol, atol
+        self.segments = 0
+
+    def _shaft(self, i: int, dphi: torch.Tensor, dw: torch.Tensor) -> torch.Tensor:
+        s = self.s[i]
+        e = dphi - torch.clamp(dphi, -s, s)
+        return self.C_F[i] * e + torch.where(e != 0, self.D_F[i] * dw, torch.zeros_like(e))
+
+    def _advance_one(self, i: int, y: torch.Tensor, M_ref: float) -> torch.Tensor:
+        """y = [w_M, w_L, dphi, M_M, phi_M] at the start of the interval -> at its end."""
+        T, t = self.T_s, 0.0
+        J_M, J_L, s, M_FC, mu_F, M_ext = self.J_M[i], self.J_L[i], self.s[i], self.M_FC[i], self.mu_F[i], self.M_ext[i]
+        forced_sgn = None
+        while T - t > 1e-15:
+            M_S0 = float(self._shaft(i, y[2], y[0] - y[1]))
+            net0 = M_S0 - M_ext
+            w_L0 = float(y[1])
+            if forced_sgn is not None:
+                stuck, sgn = False, forced_sgn
+            elif w_L0 == 0.0 and abs(net0) <= M_FC:
+                stuck, sgn = True, 0.0
+            else:
+                stuck = False
+                sgn = (1.0 if w_L0 > 0 else -1.0) if w_L0 != 0.0 else (1.0 if net0 > 0 else -1.0)
+            forced_sgn = None
+            fric = M_FC * sgn
+
+            def rhs(_t, yy, stuck=stuck, fric=fric):
+                M_S = self._shaft(i, yy[2], yy[0] - yy[1])
+                dwL = torch.zeros_like(M_S) if stuck else (M_S - M_ext - fric - mu_F * yy[1]) / J_L
+                return torch.stack([(yy[3] - M_S) / J_M, dwL, yy[0] - yy[1], (M_ref - yy[3]) / self.T_Ei, yy[0]])
+
+            def g_fric(yy, stuck=stuck, sgn=sgn):
+                if stuck:
+                    net = self._shaft(i, yy[2], yy[0] - yy[1]) - M_ext
+                    return M_FC + _EPS_M - net.abs()
+                return yy[1] * sgn + _EPS_W
+
+            g_c0 = float(y[2].abs() - s) if s > 0 else 0.0
+            sign_c = 1.0 if g_c0 > 0 else (-1.0 if g_c0 < 0 else 0.0)
+            t_start = t
+
+            def event_fn(tt, yy, sign_c=sign_c, t_start=t_start):
+                parts = [g_fric(yy), (T - t_start) - tt]
+                if sign_c != 0.0:
+                    parts.append(sign_c * (yy[2].abs() - s))
+                return torch.min(torch.stack([torch.as_tensor(p, dtype=torch.float64) for p in parts]))
+
+            tt = torch.tensor([0.0, 2.0 * T], dtype=torch.float64)
+            t_ev, sol = odeint(rhs, y, tt, event_fn=event_fn, method="dopri5", rtol=self.rtol, atol=self.atol,
+                               options={"first_step": min(T, 1e-5)})
+            self.segments += 1
+            dt_seg = min(float(t_ev), T - t)
+            y = sol[-1].clone()
+            t += dt_seg
+            if T - t <= 1e-15:
+                break
+            if stuck:
+                y[1] = 0.0
+                if float(g_fric(y)) <= 0.0:  # break-away: slide in the direction of the net torque
+                    net = float(self._shaft(i, y[2], y[0] - y[1])) - M_ext
+                    forced_sgn = 1.0 if net > 0 else -1.0
+            elif float(g_fric(y)) <= 0.0:  # the load stopped: rest; stick or slip decided next
+                y[1] = 0.0
+        if stuck:
+            y[1] = 0.0
+        return y
+
+    def advance(self, x: FastState, M_ref_applied: torch.Tensor) -> None:
+        """One sample for every system, in place (``x`` in float64)."""
+        M = M_ref_applied.reshape(-1).tolist()
+        with torch.no_grad():
+            for i in range(x.w_M.numel()):
+                y = torch.stack([x.w_M[i], x.w_L[i], x.dphi[i], x.M_M[i], x.phi[i]]).to(torch.float64)
+                y = self._advance_one(i, y, M[i])
+                x.w_M[i], x.w_L[i], x.dphi[i], x.M_M[i], x.phi[i] = y[0], y[1], y[2], y[3], y[4]

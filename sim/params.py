@@ -1,0 +1,246 @@
+"""Drive configuration, two-mass parameters (batched float64 tensors), derived values, classes.
+
+All quantities in SI units; symbols as in SPEC section 1. A :class:`TwoMassParams` holds seven
+float64 tensors of one common ``batch_shape`` (any number of leading dimensions, ``()`` for one
+system); every derived value has the same shape.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass, fields
+from typing import Any
+
+import torch
+
+STRUCTURE_CLASSES: tuple[str, ...] = ("stiff", "elastic", "elastic_backlash", "stiff_backlash")
+
+PARAM_NAMES: tuple[str, ...] = ("J_sigma", "V_J", "f_e", "d", "backlash", "M_FC", "mu_F")
+DERIVED_NAMES: tuple[str, ...] = ("J_M", "J_L", "w_0", "w_e", "C_F", "D_F", "s")
+
+
+@dataclass(frozen=True)
+class DriveConfig:
+    """The known drive: torque limits, current loop, sampling, encoder, current noise."""
+
+    M_max: float = 20.0  # torque limit [Nm]
+    M_N: float = 10.0  # rated torque [Nm]
+    K_M: float = 1.0  # torque constant [Nm/A]
+    T_Ei: float = 5e-4  # current-loop time constant [s]
+    T_s: float = 2.5e-4  # sample time [s]
+    encoder_counts: int = 2**20  # counts per revolution
+    current_noise_std: float = 0.01  # white noise on the measured current [A]
+
+    def __post_init__(self) -> None:
+        for f in fields(self):
+            v = getattr(self, f.name)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+                raise TypeError(f"DriveConfig.{f.name}: expected a finite number, received {v!r}")
+            if f.name == "current_noise_std":
+                if v < 0:
+                    raise ValueError(f"DriveConfig.current_noise_std: expected >= 0, received {v}")
+            elif v <= 0:
+                raise ValueError(f"DriveConfig.{f.name}: expected > 0, received {v}")
+        if int(self.encoder_counts) != self.encoder_counts:
+            raise ValueError(f"DriveConfig.encoder_counts: expected an integer, received {self.encoder_counts}")
+
+    @property
+    def q_phi(self) -> float:
+        """Angle quantum [rad]: one encoder count."""
+        return 2.0 * math.pi / self.encoder_counts
+
+    @property
+    def q_w(self) -> float:
+        """Speed quantum [rad/s]: one count per sample time."""
+        return 2.0 * math.pi / (self.encoder_counts * self.T_s)
+
+    def to_dict(self) -> dict[str, float]:
+        return {f.name: getattr(self, f.name) for f in fields(self)}
+
+
+def _as_tensor(name: str, value: Any) -> torch.Tensor:
+    if isinstance(value, torch.Tensor):
+        t = value.detach().to(torch.float64)
+    elif isinstance(value, (int, float)) and not isinstance(value, bool):
+        t = torch.tensor(float(value), dtype=torch.float64)
+    else:
+        try:
+            t = torch.as_tensor(value, dtype=torch.float64)
+        except (TypeError, ValueError, RuntimeError) as err:
+            raise TypeError(f"TwoMassParams.{name}: expected a number or tensor, received {type(value).__name__}") from err
+    if not bool(torch.isfinite(t).all()):
+        raise ValueError(f"TwoMassParams.{name}: expected finite values, received {t}")
+    return t
+
+
+@dataclass(frozen=True)
+class TwoMassParams:
+    """Two-mass mechanic, population parameterization; tensors of shape ``*batch``.
+
+    ``J_sigma`` total inertia [kg m^2], ``V_J = J_L/J_M``, ``f_e`` eigenfrequency [Hz],
+    ``d`` relative damping, ``backlash`` total width ``2s`` [rad], ``M_FC`` load Coulomb friction
+    [Nm], ``mu_F`` load viscous friction [Nm s/rad].
+    """
+
+    J_sigma: torch.Tensor
+    V_J: torch.Tensor
+    f_e: torch.Tensor
+    d: torch.Tensor
+    backlash: torch.Tensor
+    M_FC: torch.Tensor
+    mu_F: torch.Tensor
+
+    def __post_init__(self) -> None:
+        ts = {n: _as_tensor(n, getattr(self, n)) for n in PARAM_NAMES}
+        try:
+            shape = torch.broadcast_shapes(*(t.shape for t in ts.values()))
+        except RuntimeError as err:
+            raise ValueError(f"TwoMassParams: parameter shapes do not broadcast: "
+                             f"{ {n: tuple(t.shape) for n, t in ts.items()} }") from err
+        for n, t in ts.items():
+            object.__setattr__(self, n, t.expand(shape).contiguous())
+        for n in ("J_sigma", "V_J", "f_e"):
+            if bool((ts[n] <= 0).any()):
+                raise ValueError(f"TwoMassParams.{n}: expected > 0, received min {float(ts[n].min())}")
+        if bool(((ts["d"] < 0) | (ts["d"] >= 1)).any()):
+            raise ValueError(f"TwoMassParams.d: expected 0 <= d < 1, received range "
+                             f"[{float(ts['d'].min())}, {float(ts['d'].max())}]")
+        for n in ("backlash", "M_FC", "mu_F"):
+            if bool((ts[n] < 0).any()):
+                raise ValueError(f"TwoMassParams.{n}: expected >= 0, received min {float(ts[n].min())}")
+
+    # -- shape handling -------------------------------------------------------------------
+    @property
+    def batch_shape(self) -> torch.Size:
+        return self.J_sigma.shape
+
+    def __len__(self) -> int:
+        if self.J_sigma.dim() == 0:
+            raise TypeError("len() of a single-system TwoMassParams")
+        return self.J_sigma.shape[0]
+
+    def __getitem__(self, index: Any) -> "TwoMassParams":
+        return TwoMassParams(**{n: getattr(self, n)[index] for n in PARAM_NAMES})
+
+    def reshape(self, *shape: int) -> "TwoMassParams":
+        return TwoMassParams(**{n: getattr(self, n).reshape(*shape) for n in PARAM_NAMES})
+
+    # -- derived values (SPEC 1) ----------------------------------------------------------
+    @property
+    def J_M(self) -> torch.Tensor:
+        return self.J_sigma / (1.0 + self.V_J)
+
+    @property
+    def J_L(self) -> torch.Tensor:
+        return self.J_sigma * self.V_J / (1.0 + self.V_J)
+
+    @property
+    def w_e(self) -> torch.Tensor:
+        return 2.0 * math.pi * self.f_e
+
+    @property
+    def w_0(self) -> torch.Tensor:
+        return self.w_e / torch.sqrt(1.0 - self.d**2)
+
+    @property
+    def C_F(self) -> torch.Tensor:
+        """Stiffness [Nm/rad]: ``w_0^2 J_M J_L / J_sigma``."""
+        return self.w_0**2 * self.J_M * self.J_L / self.J_sigma
+
+    @property
+    def D_F(self) -> torch.Tensor:
+        """Shaft damping [Nm s/rad]: ``2 d C_F / w_0``."""
+        return 2.0 * self.d * self.C_F / self.w_0
+
+    @property
+    def s(self) -> torch.Tensor:
+        """Backlash half width [rad]."""
+        return 0.5 * self.backlash
+
+    def s_N(self, drive: DriveConfig) -> torch.Tensor:
+        """Normalized backlash ``s C_F / M_N``."""
+        return self.s * self.C_F / drive.M_N
+
+    def r_osc(self, drive: DriveConfig, M_star: float) -> torch.Tensor:
+        """Oscillation-to-resolution ratio ``V_J M_star / (J_sigma w_0 q_w)``."""
+        return self.V_J * M_star / (self.J_sigma * self.w_0 * drive.q_w)
+
+    # -- construction / conversion ----------------------------------------------------------
+    @classmethod
+    def from_physical(cls, *, J_M: Any, J_L: Any, C_F: Any, D_F: Any = 0.0, backlash: Any = 0.0,
+                      M_FC: Any = 0.0, mu_F: Any = 0.0) -> "TwoMassParams":
+        """From ``J_M, J_L`` [kg m^2], ``C_F`` [Nm/rad], ``D_F`` [Nm s/rad] (and the rest as is)."""
+        J_M, J_L, C_F, D_F = (_as_tensor(n, v) for n, v in
+                              (("J_M", J_M), ("J_L", J_L), ("C_F", C_F), ("D_F", D_F)))
+        if bool((J_M <= 0).any() | (J_L <= 0).any() | (C_F <= 0).any()):
+            raise ValueError("TwoMassParams.from_physical: expected J_M, J_L, C_F > 0")
+        J_sigma = J_M + J_L
+        w_0 = torch.sqrt(C_F * J_sigma / (J_M * J_L))
+        d = w_0 * D_F / (2.0 * C_F)
+        w_e = w_0 * torch.sqrt(1.0 - d**2)
+        return cls(J_sigma=J_sigma, V_J=J_L / J_M, f_e=w_e / (2.0 * math.pi), d=d,
+                   backlash=backlash, M_FC=M_FC, mu_F=mu_F)
+
+    def to_dicts(self) -> list[dict[str, float]]:
+        """One dict of the seven parameters per system (flattened batch order)."""
+        cols = {n: getattr(self, n).reshape(-1).tolist() for n in PARAM_NAMES}
+        return [{n: cols[n][i] for n in PARAM_NAMES} for i in range(self.J_sigma.numel())]
+
+    @classmethod
+    def from_dicts(cls, items: Mapping[str, Any] | Iterable[Mapping[str, Any]]) -> "TwoMassParams":
+        """From one dict (a single system) or a list of dicts (batch ``(n,)``).
+
+        Each dict holds the seven parameters (``backlash``, ``M_FC``, ``mu_F``, ``d`` default to 0)
+        or the physical set ``J_M, J_L, C_F`` (+ optional ``D_F``)."""
+        single = isinstance(items, Mapping)
+        rows = [items] if single else list(items)
+        if not rows:
+            raise ValueError("TwoMassParams.from_dicts: expected at least one system, received none")
+        parts = []
+        for i, row in enumerate(rows):
+            if not isinstance(row, Mapping):
+                raise TypeError(f"TwoMassParams.from_dicts: system {i}: expected a dict, received {type(row).__name__}")
+            known = set(PARAM_NAMES) | {"J_M", "J_L", "C_F", "D_F"}
+            unknown = sorted(set(row) - known)
+            if unknown:
+                raise ValueError(f"TwoMassParams.from_dicts: system {i}: unknown keys {unknown}; "
+                                 f"expected {list(PARAM_NAMES)} or J_M, J_L, C_F, D_F")
+            rest = {k: row.get(k, 0.0) for k in ("backlash", "M_FC", "mu_F")}
+            if {"J_M", "J_L", "C_F"} <= set(row):
+                parts.append(cls.from_physical(J_M=row["J_M"], J_L=row["J_L"], C_F=row["C_F"],
+                                               D_F=row.get("D_F", 0.0), **rest))
+            else:
+                missing = [k for k in ("J_sigma", "V_J", "f_e") if k not in row]
+                if missing:
+                    raise ValueError(f"TwoMassParams.from_dicts: system {i}: missing keys {missing}")
+                parts.append(cls(J_sigma=row["J_sigma"], V_J=row["V_J"], f_e=row["f_e"],
+                                 d=row.get("d", 0.0), **rest))
+        if single:
+            return parts[0]
+        return cls(**{n: torch.stack([getattr(p, n) for p in parts]) for n in PARAM_NAMES})
+
+    def truth(self, drive: DriveConfig, M_star: float) -> list[dict[str, Any]]:
+        """Per system: the parameters, the derived values and the structure class name."""
+        cls_idx = structure_class(self, drive, M_star).reshape(-1).tolist()
+        cols = {n: getattr(self, n).reshape(-1).tolist() for n in PARAM_NAMES + DERIVED_NAMES}
+        cols["s_N"] = self.s_N(drive).reshape(-1).tolist()
+        cols["r_osc"] = self.r_osc(drive, M_star).reshape(-1).tolist()
+        out = []
+        for i, c in enumerate(cls_idx):
+            row: dict[str, Any] = {n: v[i] for n, v in cols.items()}
+            row["structure"] = STRUCTURE_CLASSES[c]
+            out.append(row)
+        return out
+
+
+def structure_class(params: TwoMassParams, drive: DriveConfig, M_star: float) -> torch.Tensor:
+    """Ground-truth class index into :data:`STRUCTURE_CLASSES` (LongTensor ``*batch``), SPEC 1."""
+    s_N = params.s_N(drive)
+    soft = params.w_e * drive.T_Ei < 1.0
+    visible = params.r_osc(drive, M_star) >= 1.0
+    cls = torch.full(params.batch_shape, 0, dtype=torch.long)
+    cls = torch.where((s_N < 0.1) & soft & visible, 1, cls)
+    cls = torch.where(soft & (s_N >= 0.1) & (s_N < 1.0), 2, cls)
+    cls = torch.where((s_N >= 1.0) | (~soft & (s_N >= 0.1)), 3, cls)
+    return cls

@@ -1,0 +1,276 @@
+"""Closed-loop simulation of the batched plant (SPEC 1) under a sampled controller (SPEC 2).
+
+Timing per sample ``k`` (``t_k = k T_s``): measure the encoder speed ``w_m[k]``, record
+``speed, torque (= M_M), torque_ref`` (the reference applied over ``[t_k, t_{k+1})``) and the
+section label; the controller decides ``M_ref = step(k, w_m[k])`` (clamped to ``+-M_max``), which
+applies from sample ``k+1``; the plant advances over the interval with the previous reference.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Protocol, runtime_checkable
+
+import torch
+
+from sim._integrate_fast import (FastParams, FastState, TestState, advance, default_substeps, new_test_buffers,
+                                  run_test_chunk)
+from sim._integrate_reference import ReferenceIntegrator
+from sim._kernel import load_kernel
+from sim.measurement import measure_speed, noisy_current
+from sim.params import DriveConfig, TwoMassParams
+from sim.test_signal import SwitchingController, TestSignalConfig
+
+
+@runtime_checkable
+class Controller(Protocol):
+    """A sampled control law: ``reset(batch_shape)``; ``step(k, w_meas *batch) -> M_ref *batch``.
+
+    Optional: ``label() -> int8 *batch`` (recorded as ``section``), ``finished() -> bool *batch``
+    (the run stops when all are finished; ``length`` then gives each record's length)."""
+
+    def reset(self, batch_shape: torch.Size) -> None: ...
+
+    def step(self, k: int, w_meas: torch.Tensor) -> torch.Tensor: ...
+
+
+@runtime_checkable
+class Plant(Protocol):
+    """What stands where the simulator stands (a real drive can implement it too)."""
+
+    T_s: float
+
+    def reset(self) -> None: ...
+
+    def measure(self) -> torch.Tensor:
+        """Measured motor speed now [rad/s], ``*batch``."""
+        ...
+
+    def apply(self, M_ref: torch.Tensor) -> None:
+        """Apply the torque reference for the next sample interval and wait for it to pass."""
+        ...
+
+
+@dataclass
+class Response:
+    """Padded responses ``*batch x N`` (``N`` = longest record), ``t`` is ``N`` [s].
+
+    ``speed`` measured [rad/s], ``current`` measured [A], ``torque`` air-gap torque ``M_M`` [Nm]
+    at the samples, ``torque_ref`` applied reference [Nm], ``section`` int8 (1..6, 0 tail, -1
+    padding), ``length`` int64 ``*batch``, ``timed_out`` bool ``*batch x 6``; optional ``states``
+    (``w_M, w_L, dphi, M_M, phi_M`` at the samples, same padding)."""
+
+    t: torch.Tensor
+    speed: torch.Tensor
+    current: torch.Tensor
+    torque: torch.Tensor
+    torque_ref: torch.Tensor
+    section: torch.Tensor
+    length: torch.Tensor
+    timed_out: torch.Tensor
+    substeps: int
+    states: dict[str, torch.Tensor] = field(default_factory=dict)
+
+    @property
+    def batch_shape(self) -> torch.Size:
+        return self.length.shape
+
+
+def _check(params: TwoMassParams, drive: DriveConfig, method: str, dtype: torch.dtype) -> None:
+    if not isinstance(params, TwoMassParams):
+        raise TypeError(f"params: expected TwoMassParams, received {type(params).__name__}")
+    if not isinstance(drive, DriveConfig):
+        raise TypeError(f"drive: expected DriveConfig, received {type(drive).__name__}")
+    if method not in ("fast", "reference"):
+        raise ValueError(f"method: expected 'fast' or 'reference', received {method!r}")
+    if dtype not in (torch.float32, torch.float64):
+        raise TypeError(f"dtype: expected torch.float32 or torch.float64, received {dtype}")
+
+
+def simulate(params: TwoMassParams, drive: DriveConfig, controller: Controller, n_samples: int, *,
+             method: str = "fast", dtype: torch.dtype = torch.float32, substeps: int | None = None,
+             load_torque: torch.Tensor | float | None = None, seed: int = 0, return_states: bool = False,
+             use_kernel: bool = True, progress: Callable[[int], None] | None = None) -> Response:
+    """Run ``controller`` in closed loop around the plant for up to ``n_samples`` samples.
+
+    ``load_torque``: external load torque ``M_ext`` on the load side [Nm], ``*batch`` or scalar
+    (constant). ``method="reference"`` integrates with torchdiffeq in float64 (slow).
+    ``use_kernel=False`` forces the torch eager twin of the fused kernel."""
+    if method == "reference":
+        dtype = torch.float64
+    _check(params, drive, method, dtype)
+    if isinstance(n_samples, bool) or not isinstance(n_samples, int) or n_samples < 1:
+        raise ValueError(f"n_samples: expected an int >= 1, received {n_samples!r}")
+    shape = params.batch_shape
+    n = params.J_sigma.numel()
+    S = default_substeps(params, drive) if substeps is None else substeps
+    fp = FastParams.build(params, drive, S, dtype, load_torque)
+    ref = ReferenceIntegrator(params, drive, load_torque) if method == "reference" else None
+    x = FastState.zeros(n, dtype)
+    controller.reset(shape)
+    rec: dict[str, list[torch.Tensor]] = {k: [] for k in ("speed", "torque", "torque_ref", "section")}
+    st: dict[str, list[torch.Tensor]] = {k: [] for k in ("w_M", "w_L", "dphi", "M_M", "phi_M")}
+    has_label, has_fin = hasattr(controller, "label"), hasattr(controller, "finished")
+    for k in range(n_samples):
+        w = measure_speed(x, drive, dtype)
+        rec["speed"].append(w)
+        rec["torque"].append(x.M_M.clone())
+        rec["torque_ref"].append(x.M_ref.clone())
+        rec["section"].append(controller.label().reshape(-1) if has_label else torch.zeros(n, dtype=torch.int8))
+        if return_states:
+            for name, v in (("w_M", x.w_M), ("w_L", x.w_L), ("dphi", x.dphi), ("M_M", x.M_M), ("phi_M", x.phi)):
+                st[name].append(v.clone())
+        M_new = torch.as_tensor(controller.step(k, w.reshape(shape)))
+        M_new = torch.clamp(M_new.to(dtype).expand(shape).reshape(-1), -drive.M_max, drive.M_max).contiguous()
+        if ref is not None:
+            ref.advance(x, x.M_ref)
+        else:
+            advance(x, fp, use_kernel)
+        x.M_ref = M_new
+        if progress is not None:
+            progress(1)
+        if has_fin and bool(controller.finished().all()):
+            break
+    N = len(rec["speed"])
+    out = {k: torch.stack(v, -1) for k, v in rec.items()}
+    if has_fin:
+        fin = controller.finished().reshape(-1)
+        length = torch.where(fin, controller.length.reshape(-1).to(torch.int64), torch.full((n,), N))
+    else:
+        length = torch.full((n,), N, dtype=torch.int64)
+    timed_out = getattr(controller, "timed_out", torch.zeros(shape + (6,), dtype=torch.bool))
+    states = {k: torch.stack(v, -1) for k, v in st.items()} if return_states else {}
+    return _finish(out, states, length, timed_out, shape, N, drive, S, seed)
+
+
+def _finish(out: dict[str, torch.Tensor], states: dict[str, torch.Tensor], length: torch.Tensor,
+            timed_out: torch.Tensor, shape: torch.Size, N: int, drive: DriveConfig, S: int, seed: int) -> Response:
+    """Pad beyond each length, add current noise, reshape to ``*batch x N``."""
+    pad = torch.arange(N) >= length.unsqueeze(-1)
+    for k in ("speed", "torque", "torque_ref"):
+        out[k] = out[k].masked_fill(pad, 0.0)
+    out["section"] = out["section"].masked_fill(pad, -1)
+    g = torch.Generator().manual_seed(seed)
+    current = noisy_current(out["torque"], drive, g).masked_fill(pad, 0.0)
+    r = lambda v: v.reshape(*shape, N)  # noqa: E731
+    return Response(t=torch.arange(N, dtype=torch.float64) * drive.T_s, speed=r(out["speed"]), current=r(current),
+                    torque=r(out["torque"]), torque_ref=r(out["torque_ref"]), section=r(out["section"]),
+                    length=length.reshape(shape), timed_out=timed_out.reshape(*shape, 6), substeps=S,
+                    states={k: r(v.masked_fill(pad, 0.0)) for k, v in states.items()})
+
+
+def simulate_test(params: TwoMassParams, drive: DriveConfig | None = None, signal: TestSignalConfig | None = None, *,
+                  method: str = "fast", seed: int = 0, dtype: torch.dtype = torch.float32,
+                  substeps: int | None = None, chunk_systems: int = 1024, chunk_samples: int = 2048,
+                  use_kernel: bool = True, return_states: bool = False,
+                  progress: Callable[[int], None] | None = None) -> Response:
+    """The SPEC 2 test for every system; stops when all finished (tail done) -> :class:`Response`.
+
+    Fast path: the fused C kernel runs the controller, the encoder and the RK4 substeps in one
+    loop; systems are sorted by expected duration and run in groups of ``chunk_systems``.
+    ``progress(n)`` is called with the number of systems finished. Without the kernel (or with
+    ``method="reference"`` / ``return_states``) the generic :func:`simulate` loop runs instead."""
+    drive = drive or DriveConfig()
+    signal = signal or TestSignalConfig()
+    if method == "reference":
+        dtype = torch.float64
+    _check(params, drive, method, dtype)
+    shape = params.batch_shape
+    N_max = signal.max_samples(drive)
+    lib = load_kernel() if use_kernel else None
+    if method == "reference" or lib is None or return_states:
+        ctl = SwitchingController(signal, drive, dtype)
+        resp = simulate(params, drive, ctl, N_max, method=method, dtype=dtype, substeps=substeps, seed=seed,
+                        return_states=return_states, use_kernel=use_kernel)
+        if progress is not None:
+            progress(int(params.J_sigma.numel()))
+        return resp
+    flat = params.reshape(-1)
+    n = flat.J_sigma.numel()
+    S = default_substeps(params, drive) if substeps is None else substeps
+    order = torch.argsort(signal.expected_duration(flat.J_sigma))
+    parts = []
+    for g0 in range(0, n, chunk_systems):
+        idx = order[g0:g0 + chunk_systems]
+        parts.append((idx, *run_test_group(lib, flat[idx], drive, signal, S, dtype, chunk_samples, progress)))
+    N = max(int(p[2].max()) for p in parts)
+    out = {k: torch.zeros(n, N, dtype=dtype) for k in ("speed", "torque", "torque_ref")}
+    out["section"] = torch.full((n, N), -1, dtype=torch.int8)
+    length = torch.zeros(n, dtype=torch.int64)
+    tmo = torch.zeros(n, dtype=torch.int32)
+    for idx, buf, ln, tm in parts:
+        m = min(N, buf["speed"].shape[-1])
+        for k in out:
+            out[k][idx, :m] = buf[k][:, :m]
+        length[idx] = ln
+        tmo[idx] = tm
+    timed_out = ((tmo.unsqueeze(-1) >> torch.arange(6, dtype=torch.int32)) & 1).bool()
+    return _finish(out, {}, length, timed_out, shape, N, drive, S, seed)
+
+
+def run_test_group(lib, flat: TwoMassParams, drive: DriveConfig, signal: TestSignalConfig, S: int,
+                   dtype: torch.dtype, chunk_samples: int = 2048,
+                   progress: Callable[[int], None] | None = None) -> tuple[dict[str, torch.Tensor], torch.Tensor, torch.Tensor]:
+    """The fused test for one flat group: buffers ``n x N`` (valid up to each length, rest
+    undefined), lengths (int64 ``n``) and the timeout bit masks (int32 ``n``)."""
+    n = flat.J_sigma.numel()
+    N_max = signal.max_samples(drive)
+    fp = FastParams.build(flat, drive, S, dtype)
+    x = FastState.zeros(n, dtype)
+    c = TestState.start(n)
+    est = float(signal.expected_duration(flat.J_sigma).max()) / drive.T_s
+    cap = min(N_max, int(1.25 * est) + chunk_samples)
+    buf = new_test_buffers(n, cap, dtype)
+    k0, left = 0, n
+    while left > 0 and k0 < N_max:
+        nk = min(chunk_samples, N_max - k0)
+        if k0 + nk > buf["speed"].shape[1]:
+            bigger = new_test_buffers(n, min(N_max, 2 * buf["speed"].shape[1] + nk), dtype)
+            for k in buf:
+                bigger[k][:, :k0] = buf[k][:, :k0]
+            buf = bigger
+        before = left
+        left = run_test_chunk(lib, x, fp, c, drive, signal.levels(drive), signal.n_timeout(drive),
+                              signal.n_tail(drive), k0, nk, buf)
+        k0 += nk
+        if progress is not None and before > left:
+            progress(before - left)
+    length = torch.where(c.sec >= 8, c.length.to(torch.int64), torch.full((n,), k0, dtype=torch.int64))
+    N = int(length.max())
+    return {k: v[:, :N] for k, v in buf.items()}, length, c.tmo
+
+
+def sample_time_grid(n: int, drive: DriveConfig) -> torch.Tensor:
+    return torch.arange(n, dtype=torch.float64) * drive.T_s
+
+
+class SimulatedPlant:
+    """The simulator behind the :class:`Plant` interface (fast path, one sample per ``apply``)."""
+
+    def __init__(self, params: TwoMassParams, drive: DriveConfig | None = None, *, dtype: torch.dtype = torch.float32,
+                 substeps: int | None = None, load_torque: torch.Tensor | float | None = None):
+        self.params, self.drive, self.dtype = params, drive or DriveConfig(), dtype
+        self.T_s = self.drive.T_s
+        S = default_substeps(params, self.drive) if substeps is None else substeps
+        self._fp = FastParams.build(params, self.drive, S, dtype, load_torque)
+        self.reset()
+
+    def reset(self) -> None:
+        self._x = FastState.zeros(self.params.J_sigma.numel(), self.dtype)
+        self._w = torch.zeros(self.params.batch_shape, dtype=self.dtype)
+
+    def measure(self) -> torch.Tensor:
+        self._w = measure_speed(self._x, self.drive, self.dtype).reshape(self.params.batch_shape)
+        return self._w
+
+    def apply(self, M_ref: torch.Tensor) -> None:
+        M = torch.as_tensor(M_ref, dtype=self.dtype).expand(self.params.batch_shape).reshape(-1)
+        self._x.M_ref = torch.clamp(M, -self.drive.M_max, self.drive.M_max).contiguous()
+        advance(self._x, self._fp)
+
+    @property
+    def motor_angle(self) -> torch.Tensor:
+        return self._x.phi.reshape(self.params.batch_shape)
+
+

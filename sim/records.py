@@ -1,0 +1,311 @@
+"""Records in the SPEC section 3 format: ``NAME.csv`` (uniform samples) + ``NAME.json`` (metadata).
+
+CSV header: ``t, speed`` and ``current`` or ``torque``; optional ``torque_ref``, ``section``.
+A header cell may carry its unit as ``name [unit]``; it must then be the SI unit of the column.
+JSON keys: ``K_M`` (required when only ``current`` is given), ``T_Ei`` (required), optional
+``T_s`` (else from ``t``; must agree with it), ``encoder_counts``, ``M_star``, ``w_max``,
+``M_max``, ``M_N``, ``current_noise_std``, ``timed_out``, ``units``, ``format``, ``notes``,
+``truth`` (simulated records: the true parameters, derived values and the class name).
+Every problem raises :class:`RecordError` with a one-line message naming the file.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import math
+import os
+import tempfile
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from sim.params import DriveConfig, TwoMassParams
+from sim.test_signal import TestSignalConfig
+
+FORMAT = "twomass-record/1"
+UNITS: dict[str, str] = {"t": "s", "speed": "rad/s", "current": "A", "torque": "Nm", "torque_ref": "Nm", "section": "1"}
+COLUMNS: tuple[str, ...] = ("t", "speed", "current", "torque", "torque_ref", "section")
+META_KEYS: frozenset[str] = frozenset({"K_M", "T_Ei", "T_s", "encoder_counts", "M_star", "w_max", "M_max", "M_N",
+                                       "current_noise_std", "timed_out", "units", "format", "notes", "truth"})
+_POSITIVE_META = ("K_M", "T_Ei", "T_s", "encoder_counts", "M_star", "w_max", "M_max", "M_N")
+MIN_SAMPLES = 32
+UNIFORM_TOL = 0.01  # largest deviation from the uniform time grid [samples]
+
+
+class RecordError(ValueError):
+    """A record that cannot be read or written; the message is one line naming the file."""
+
+
+@dataclass
+class Record:
+    """One test run. Arrays are float64 ``N`` (``section`` int64 ``N``, 1..6 and 0 for the tail)."""
+
+    t: np.ndarray
+    speed: np.ndarray
+    meta: dict[str, Any]
+    current: np.ndarray | None = None
+    torque: np.ndarray | None = None
+    torque_ref: np.ndarray | None = None
+    section: np.ndarray | None = None
+    name: str = "record"
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def T_s(self) -> float:
+        return float(self.meta["T_s"])
+
+    def __len__(self) -> int:
+        return int(self.t.shape[0])
+
+    def columns(self) -> dict[str, np.ndarray]:
+        return {c: getattr(self, c) for c in COLUMNS if getattr(self, c) is not None}
+
+
+def _err(where: Path | str, msg: str) -> RecordError:
+    return RecordError(f"{where}: {msg}")
+
+
+def validate(rec: Record, where: Path | str = "record") -> Record:
+    """Check a record (arrays, time grid, metadata); returns it with ``meta['T_s']`` filled in."""
+    with np.errstate(all="ignore"):  # independent of a caller's np.seterr
+        return _validate(rec, where)
+
+
+def _validate(rec: Record, where: Path | str) -> Record:
+    cols = rec.columns()
+    for c in ("t", "speed"):
+        if c not in cols:
+            raise _err(where, f"missing column '{c}'")
+    if rec.current is None and rec.torque is None:
+        raise _err(where, "missing column 'current' or 'torque' (one is required)")
+    n = len(rec.t)
+    for c, v in cols.items():
+        if not isinstance(v, np.ndarray) or v.ndim != 1:
+            raise _err(where, f"column '{c}': expected a 1-D numpy array")
+        if len(v) != n:
+            raise _err(where, f"column '{c}' has {len(v)} samples, 't' has {n}")
+        bad = ~np.isfinite(v.astype(np.float64))
+        if bad.any():
+            raise _err(where, f"column '{c}' has NaN/inf at row {int(np.argmax(bad)) + 1}")
+    if n < MIN_SAMPLES:
+        raise _err(where, f"too few samples: {n} (expected >= {MIN_SAMPLES})")
+    dt = np.diff(rec.t)
+    if (dt <= 0).any():
+        i = int(np.argmax(dt <= 0))
+        raise _err(where, f"time is not increasing at row {i + 2} (t={rec.t[i + 1]!r} after {rec.t[i]!r})")
+    T_s_t = float((rec.t[-1] - rec.t[0]) / (n - 1))
+    dev = np.abs(rec.t - (rec.t[0] + np.arange(n) * T_s_t))  # against the ideal uniform grid
+    if dev.max() > UNIFORM_TOL * T_s_t:
+        i = int(np.argmax(dev))
+        raise _err(where, f"non-uniform time step near row {i + 2}: t={float(rec.t[i])!r} s is "
+                          f"{float(dev[i]) / T_s_t:.3g} samples off the uniform grid (T_s={T_s_t!r} s)")
+    if rec.section is not None:
+        s = rec.section
+        if not np.all(np.isin(s, np.arange(0, 7))):
+            raise _err(where, f"column 'section': expected integers 0..6, received {sorted(set(np.unique(s).tolist()) - set(range(7)))[:5]}")
+    meta = dict(rec.meta)
+    unknown = sorted(set(meta) - META_KEYS)
+    if unknown:
+        raise _err(where, f"unknown metadata key(s) {unknown}; expected some of {sorted(META_KEYS)}")
+    for k in _POSITIVE_META:
+        if k in meta:
+            v = meta[k]
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
+                raise _err(where, f"metadata '{k}': expected a finite number > 0, received {v!r}")
+    if "encoder_counts" in meta and int(meta["encoder_counts"]) != meta["encoder_counts"]:
+        raise _err(where, f"metadata 'encoder_counts': expected an integer, received {meta['encoder_counts']!r}")
+    if "T_Ei" not in meta:
+        raise _err(where, "metadata 'T_Ei' (current-loop time constant) is missing")
+    if rec.torque is None and "K_M" not in meta:
+        raise _err(where, "metadata 'K_M' is missing (needed when only 'current' is given)")
+    if "T_s" in meta:
+        if abs(meta["T_s"] - T_s_t) > 1e-6 * T_s_t + UNIFORM_TOL * T_s_t / n:
+            raise _err(where, f"metadata T_s={meta['T_s']!r} disagrees with the time column ({T_s_t!r} s)")
+    else:
+        meta["T_s"] = T_s_t
+    units = meta.get("units", {})
+    if not isinstance(units, dict):
+        raise _err(where, f"metadata 'units': expected an object, received {type(units).__name__}")
+    for c, u in units.items():
+        if c not in UNITS:
+            raise _err(where, f"metadata 'units': unknown column '{c}'")
+        if u != UNITS[c]:
+            raise _err(where, f"unknown unit '{u}' for column '{c}' (expected '{UNITS[c]}')")
+    if "truth" in meta and not isinstance(meta["truth"], dict):
+        raise _err(where, "metadata 'truth': expected an object")
+    rec.meta = meta
+    return rec
+
+
+def _paths(path: str | os.PathLike[str]) -> tuple[Path, Path, str]:
+    p = Path(path)
+    if p.suffix in (".csv", ".json"):
+        p = p.with_suffix("")
+    return p.with_name(p.name + ".csv"), p.with_name(p.name + ".json"), p.name
+
+
+def _parse_header(cells: list[str], where: Path) -> list[str]:
+    names = []
+    for cell in cells:
+        c = cell.strip()
+        unit = None
+        if c.endswith("]") and "[" in c:
+            c, unit = c[: c.index("[")].strip(), c[c.index("[") + 1: -1].strip()
+        if c not in UNITS:
+            raise _err(where, f"unknown column '{c}'; expected some of {list(COLUMNS)}")
+        if unit is not None and unit != UNITS[c]:
+            raise _err(where, f"unknown unit '{unit}' for column '{c}' (expected '{UNITS[c]}')")
+        if c in names:
+            raise _err(where, f"duplicate column '{c}'")
+        names.append(c)
+    return names
+
+
+def read_record(path: str | os.PathLike[str]) -> Record:
+    """Read ``NAME.csv`` + ``NAME.json`` (path with or without suffix), validated."""
+    csv_path, json_path, name = _paths(path)
+    try:
+        text = csv_path.read_text()
+    except FileNotFoundError:
+        raise _err(csv_path, "file not found") from None
+    except (OSError, UnicodeDecodeError) as err:
+        raise _err(csv_path, f"cannot read ({err.__class__.__name__})") from None
+    lines = text.splitlines()
+    if not lines or not lines[0].strip():
+        raise _err(csv_path, "empty file (expected a header row)")
+    names = _parse_header(lines[0].split(","), csv_path)
+    rows = [ln for ln in lines[1:] if ln.strip()]
+    try:
+        data = np.loadtxt(io.StringIO("\n".join(rows)), delimiter=",", dtype=np.float64, ndmin=2) if rows \
+            else np.zeros((0, len(names)))
+    except ValueError as err:
+        raise _err(csv_path, f"unreadable data ({str(err).splitlines()[0]})") from None
+    if data.shape[1] != len(names):
+        raise _err(csv_path, f"rows have {data.shape[1]} fields, header has {len(names)}")
+    cols = {c: data[:, i].copy() for i, c in enumerate(names)}
+    if not json_path.exists():
+        raise _err(json_path, "metadata file not found (expected beside the CSV)")
+    try:
+        meta = json.loads(json_path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
+        raise _err(json_path, f"invalid JSON ({str(err).splitlines()[0]})") from None
+    if not isinstance(meta, dict):
+        raise _err(json_path, "expected a JSON object")
+    section = cols.pop("section", None)
+    if section is not None:
+        if np.isfinite(section).all() and not np.all(section == np.round(section)):
+            raise _err(csv_path, "column 'section': expected integers 0..6")
+        section = np.nan_to_num(section, nan=-1.0).astype(np.int64) if np.isfinite(section).all() else section
+    rec = Record(t=cols.pop("t", None), speed=cols.pop("speed", None), meta=meta, current=cols.pop("current", None),
+                 torque=cols.pop("torque", None), torque_ref=cols.pop("torque_ref", None), section=section, name=name)
+    try:
+        return validate(rec, csv_path)
+    except RecordError as err:
+        if "metadata" in str(err) or "unit" in str(err):
+            raise _err(json_path, str(err).split(": ", 1)[1]) from None
+        raise
+
+
+_FMT = {"t": "%.17g", "speed": "%.12g", "current": "%.7g", "torque": "%.7g", "torque_ref": "%.7g", "section": "%d"}
+
+
+def write_record(path: str | os.PathLike[str], record: Record, overwrite: bool = False) -> tuple[Path, Path]:
+    """Write ``NAME.csv`` and ``NAME.json``; refuses to overwrite unless ``overwrite=True``."""
+    csv_path, json_path, _ = _paths(path)
+    validate(record, csv_path)
+    if not overwrite:
+        for p in (csv_path, json_path):
+            if p.exists():
+                raise _err(p, "exists (pass overwrite=True to replace it)")
+    cols = record.columns()
+    names = list(cols)
+    mat = np.column_stack([cols[c].astype(np.float64) for c in names])
+    buf = io.StringIO()
+    np.savetxt(buf, mat, fmt=[_FMT[c] for c in names], delimiter=",", header=",".join(names), comments="")
+    meta = dict(record.meta)
+    meta.setdefault("format", FORMAT)
+    meta.setdefault("units", {c: UNITS[c] for c in names})
+    csv_path.parent.mkdir(parents=True, exist_ok=True)
+    for p, text in ((csv_path, buf.getvalue()), (json_path, json.dumps(meta, indent=1) + "\n")):
+        fd, tmp = tempfile.mkstemp(dir=p.parent, prefix=f".{p.name}.", suffix=".tmp")
+        with os.fdopen(fd, "w") as f:
+            f.write(text)
+        os.replace(tmp, p)
+    return csv_path, json_path
+
+
+def responses_to_records(response: Any, params: TwoMassParams, drive: DriveConfig, signal: TestSignalConfig,
+                         names: list[str] | None = None) -> list[Record]:
+    """One :class:`Record` per system of a :class:`sim.plant.Response` (flattened batch order),
+    trimmed to its length, with ``meta['truth']`` holding the true parameters and class."""
+    n = int(response.length.numel())
+    L = response.length.reshape(-1).tolist()
+    flat = lambda v: v.reshape(n, -1).to(torch.float64).numpy() if v.dtype.is_floating_point else v.reshape(n, -1).numpy()  # noqa: E731
+    speed, current, tref, section = (flat(v) for v in (response.speed, response.current, response.torque_ref, response.section))
+    t = response.t.numpy()
+    truths = params.reshape(-1).truth(drive, signal.M_star)
+    tmo = response.timed_out.reshape(n, 6).tolist()
+    base = _base_meta(drive, signal)
+    out = []
+    for i in range(n):
+        m = L[i]
+        meta = dict(base)
+        meta["timed_out"] = [bool(b) for b in tmo[i]]
+        meta["truth"] = truths[i]
+        out.append(Record(t=t[:m].copy(), speed=speed[i, :m].copy(), current=current[i, :m].copy(),
+                          torque_ref=tref[i, :m].copy(), section=section[i, :m].astype(np.int64), meta=meta,
+                          name=names[i] if names else f"sys{i:05d}"))
+    return out
+
+
+def iter_records(params: TwoMassParams, drive: DriveConfig | None = None, signal: TestSignalConfig | None = None, *,
+                 seed: int = 0, group: int = 512, dtype: torch.dtype = torch.float32, substeps: int | None = None,
+                 use_kernel: bool = True, progress: Any = None) -> Iterator[Record]:
+    """Simulate the test for every system in duration-sorted groups and yield their records
+    (named ``sysNNNNN`` by flattened input index; memory bounded by one group). Current noise
+    per record from a generator seeded with ``seed + index``."""
+    from sim._integrate_fast import default_substeps
+    from sim._kernel import load_kernel
+    from sim.plant import run_test_group, simulate_test
+
+    drive = drive or DriveConfig()
+    signal = signal or TestSignalConfig()
+    flat = params.reshape(-1)
+    S = default_substeps(flat, drive) if substeps is None else substeps
+    lib = load_kernel() if use_kernel else None
+    order = torch.argsort(signal.expected_duration(flat.J_sigma)).tolist()
+    for g0 in range(0, len(order), group):
+        idx = order[g0:g0 + group]
+        sub = flat[torch.tensor(idx)]
+        if lib is None:
+            resp = simulate_test(sub, drive, signal, seed=seed + g0, dtype=dtype, substeps=S, use_kernel=False)
+            yield from responses_to_records(resp, sub, drive, signal, names=[f"sys{i:05d}" for i in idx])
+        else:
+            buf, length, tmo = run_test_group(lib, sub, drive, signal, S, dtype)
+            truths = sub.truth(drive, signal.M_star)
+            L = length.tolist()
+            t_all = np.arange(int(length.max()), dtype=np.float64) * drive.T_s
+            b = {k: v.numpy() for k, v in buf.items()}
+            for j, i in enumerate(idx):
+                m = L[j]
+                meta = _base_meta(drive, signal)
+                meta["timed_out"] = [bool((int(tmo[j]) >> q) & 1) for q in range(6)]
+                meta["truth"] = truths[j]
+                noise = np.random.default_rng(seed + i).standard_normal(m, dtype=np.float32)
+                current = b["torque"][j, :m].astype(np.float64) / drive.K_M + drive.current_noise_std * noise.astype(np.float64)
+                yield Record(t=t_all[:m].copy(), speed=b["speed"][j, :m].astype(np.float64), current=current,
+                             torque_ref=b["torque_ref"][j, :m].astype(np.float64),
+                             section=b["section"][j, :m].astype(np.int64), meta=meta, name=f"sys{i:05d}")
+        if progress is not None:
+            progress(len(idx))
+
+
+def _base_meta(drive: DriveConfig, signal: TestSignalConfig) -> dict[str, Any]:
+    return {"K_M": drive.K_M, "T_Ei": drive.T_Ei, "T_s": drive.T_s, "encoder_counts": drive.encoder_counts,
+            "M_star": signal.M_star, "w_max": signal.w_max, "M_max": drive.M_max, "M_N": drive.M_N,
+            "current_noise_std": drive.current_noise_std}

@@ -1,0 +1,130 @@
+"""Records (SPEC 3): round trip, refusal to overwrite, and one clear error per bad-record case."""
+
+import json
+import math
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from sim import (DriveConfig, Record, RecordError, TestSignalConfig, TwoMassParams, read_record,
+                 responses_to_records, simulate_test, write_record)
+from sim.records import MIN_SAMPLES
+
+
+def _record(n: int = 100, with_section: bool = True) -> Record:
+    t = np.arange(n) * 2.5e-4
+    return Record(t=t, speed=np.sin(t * 50) * 10, current=np.cos(t * 30), torque_ref=np.full(n, 2.0),
+                  section=(np.arange(n) * 7 // n).astype(np.int64) if with_section else None,
+                  meta={"K_M": 1.0, "T_Ei": 5e-4, "T_s": 2.5e-4, "encoder_counts": 2**20, "M_star": 10.0, "w_max": 100.0})
+
+
+def test_simulated_records_round_trip(tmp_path):
+    drive, signal = DriveConfig(), TestSignalConfig()
+    p = TwoMassParams(J_sigma=[0.01, 0.012], V_J=[1.0, 2.0], f_e=[30.0, 100.0], d=[0.02, 0.05],
+                      backlash=[0.0, math.radians(0.3)], M_FC=[0.1, 0.2], mu_F=[0.001, 0.0])
+    recs = responses_to_records(simulate_test(p, drive, signal), p, drive, signal)
+    for rec in recs:
+        write_record(tmp_path / rec.name, rec)
+        back = read_record(tmp_path / f"{rec.name}.csv")
+        assert np.array_equal(back.section, rec.section)
+        assert np.allclose(back.t, rec.t, rtol=1e-8, atol=0)
+        assert np.allclose(back.speed, rec.speed, rtol=1e-8, atol=1e-9)
+        assert np.allclose(back.current, rec.current, rtol=1e-6, atol=1e-9)
+        assert np.allclose(back.torque_ref, rec.torque_ref)
+        assert back.meta["truth"]["structure"] in ("stiff", "elastic", "elastic_backlash", "stiff_backlash")
+        truth = back.meta["truth"]
+        # derived values in the truth are consistent: f_e back from C_F, J_M, J_L, D_F
+        q = TwoMassParams.from_physical(J_M=truth["J_M"], J_L=truth["J_L"], C_F=truth["C_F"], D_F=truth["D_F"])
+        assert float(q.f_e) == pytest.approx(truth["f_e"], rel=1e-12)
+        assert back.meta["T_Ei"] == drive.T_Ei and back.meta["K_M"] == drive.K_M
+        assert back.t.dtype == np.float64 and back.section.dtype == np.int64
+
+
+def test_write_refuses_to_overwrite(tmp_path):
+    rec = _record()
+    write_record(tmp_path / "a", rec)
+    with pytest.raises(RecordError, match="exists"):
+        write_record(tmp_path / "a", rec)
+    write_record(tmp_path / "a", rec, overwrite=True)
+
+
+def _write_raw(tmp_path, csv_text: str, meta: dict | None) -> str:
+    (tmp_path / "r.csv").write_text(csv_text)
+    if meta is not None:
+        (tmp_path / "r.json").write_text(json.dumps(meta))
+    return str(tmp_path / "r.csv")
+
+
+META = {"K_M": 1.0, "T_Ei": 5e-4}
+
+
+def _csv(rows: int = 50, cols: str = "t,speed,current", fn=None) -> str:
+    lines = [cols]
+    for k in range(rows):
+        vals = [k * 2.5e-4, 1.0, 0.5][: len(cols.split(","))]
+        if fn:
+            vals = fn(k, vals)
+        lines.append(",".join(repr(v) for v in vals))
+    return "\n".join(lines) + "\n"
+
+
+@pytest.mark.parametrize("csv_text, meta, message", [
+    (_csv(cols="t,current"), META, "missing column 'speed'"),
+    (_csv(cols="t,speed"), META, "missing column 'current' or 'torque'"),
+    (_csv(fn=lambda k, v: [v[0], float("nan") if k == 7 else v[1], v[2]]), META, "NaN/inf at row 8"),
+    (_csv(fn=lambda k, v: [v[0], float("inf") if k == 3 else v[1], v[2]]), META, "NaN/inf"),
+    (_csv(fn=lambda k, v: [v[0] + (0.3e-4 if k == 10 else 0.0), v[1], v[2]]), META, "non-uniform time step"),
+    (_csv(fn=lambda k, v: [(k + (k >= 20)) * 2.5e-4, v[1], v[2]]), META, "non-uniform time step"),
+    (_csv(fn=lambda k, v: [(k if k != 5 else 3) * 2.5e-4, v[1], v[2]]), META, "time is not increasing"),
+    (_csv(rows=MIN_SAMPLES - 1), META, "too few samples"),
+    (_csv(cols="t,speed [rpm],current"), META, "unknown unit 'rpm'"),
+    (_csv(cols="t,speed,current,temperature"), META, "unknown column 'temperature'"),
+    (_csv(), {**META, "colour": "red"}, "unknown metadata key"),
+    (_csv(), {**META, "units": {"speed": "rpm"}}, "unknown unit 'rpm'"),
+    (_csv(), {"T_Ei": 5e-4}, "'K_M' is missing"),
+    (_csv(), {"K_M": 1.0}, "'T_Ei'"),
+    (_csv(), {**META, "T_s": 1e-3}, "disagrees"),
+    (_csv(), {**META, "K_M": -1}, "'K_M'"),
+    (_csv(), None, "metadata file not found"),
+    ("", META, "empty file"),
+    (_csv(cols="t,speed,current,section", fn=lambda k, v: v + [9]), META, "section"),
+])
+def test_bad_records_give_clear_one_line_errors(tmp_path, csv_text, meta, message):
+    path = _write_raw(tmp_path, csv_text, meta)
+    with pytest.raises(RecordError) as exc:
+        read_record(path)
+    msg = str(exc.value)
+    assert message in msg and "\n" not in msg, msg
+    assert "r.csv" in msg or "r.json" in msg
+
+
+def test_missing_file(tmp_path):
+    with pytest.raises(RecordError, match="file not found"):
+        read_record(tmp_path / "nope.csv")
+
+
+@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(n=st.integers(MIN_SAMPLES, 300), T_s=st.floats(1e-5, 1e-2),
+       speed=st.lists(st.floats(-1e4, 1e4, allow_nan=False, allow_subnormal=False), min_size=1, max_size=5), torque=st.booleans())
+def test_round_trip_property(tmp_path, n, T_s, speed, torque):
+    t = np.arange(n) * T_s
+    sp = np.resize(np.array(speed), n)
+    rec = Record(t=t, speed=sp, meta={"T_Ei": 5e-4, "K_M": 0.5},
+                 **({"torque": sp * 0.1} if torque else {"current": sp * 0.2}))
+    write_record(tmp_path / "p", rec, overwrite=True)
+    back = read_record(tmp_path / "p")
+    assert np.allclose(back.speed, rec.speed, rtol=1e-8, atol=1e-8)
+    assert back.meta["T_s"] == pytest.approx(T_s, rel=1e-6)
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(text=st.text(alphabet="tsped,curn0123456789.-e\n[]/ ", max_size=400))
+def test_parser_only_raises_record_error_on_garbage(tmp_path, text):
+    (tmp_path / "g.csv").write_text(text)
+    (tmp_path / "g.json").write_text(json.dumps(META))
+    try:
+        read_record(tmp_path / "g")
+    except RecordError as err:
+        assert "\n" not in str(err)

@@ -1,0 +1,223 @@
+"""Section detection (training.sections) on a small numpy two-mass plant under the SPEC 2 test signal.
+
+``simulate_switching`` is a stand-alone reference of the test run (plant SPEC 1, signal SPEC 2),
+used here and by tests/test_one_mass.py and tests/test_features.py so that those tests do not
+depend on ``sim``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+import pytest
+
+from training.sections import SectionSplit, detect_sections
+
+LEVELS = (1.0, 0.0, -0.7, -1.0, 0.0, 0.7)
+
+
+@dataclass
+class SimRecord:
+    """Minimal record: attributes like ``sim.Record`` (numpy arrays, ``meta`` dict)."""
+
+    t: np.ndarray
+    speed: np.ndarray
+    current: np.ndarray
+    torque_ref: np.ndarray
+    section: np.ndarray
+    meta: dict = field(default_factory=dict)
+    torque: np.ndarray | None = None
+
+
+def simulate_switching(J_sigma=0.05, V_J=1.0, f_e=30.0, d=0.02, backlash_deg=0.0, M_FC=0.2, mu_F=0.002,
+                       M_star=10.0, w_max=100.0, T_s=2.5e-4, T_Ei=5e-4, counts=2**20, noise=0.01,
+                       substeps=8, seed=0, tail=0.05, timeout=10.0, elastic=True):
+    """Simulate the switching-speed-controller test run; returns a :class:`SimRecord`.
+
+    Semi-implicit Euler with ``substeps`` per sample; shaft with dead zone; Coulomb friction with
+    stiction at the load. ``elastic=False`` gives a rigid one-mass plant (J_sigma only).
+    """
+    rng = np.random.default_rng(seed)
+    J_M = J_sigma / (1.0 + V_J)
+    J_L = J_sigma - J_M
+    w0 = 2 * math.pi * f_e / math.sqrt(max(1 - d * d, 1e-12))
+    C_F = w0 ** 2 * J_M * J_L / J_sigma
+    D_F = 2 * d * C_F / w0
+    s = math.radians(backlash_deg) / 2
+    h = T_s / substeps
+    wM = wL = dphi = MM = phiM = 0.0
+    sec, k_sec, dur = 1, 0, {}
+    M_ref = M_star
+    out_w, out_i, out_ref, out_sec = [], [], [], []
+    q = 2 * math.pi / counts
+    last_count = 0
+    k = 0
+    tail_left = None
+    while True:
+        # measure at t_k (speed: encoder difference over the last sample; current: M_M(t_k));
+        # the sample is labelled with the section of the M_ref applied from t_k on
+        count = math.floor(phiM / q)
+        w_m = (count - last_count) * q / T_s
+        last_count = count
+        out_w.append(w_m)
+        out_i.append(MM + noise * rng.standard_normal())
+        out_ref.append(M_ref)
+        out_sec.append(sec if tail_left is None else 0)
+        k += 1
+        # plant over one sample with M_ref held
+        for _ in range(substeps):
+            MM += h * (M_ref - MM) / T_Ei
+            if elastic:
+                if abs(dphi) <= s:
+                    MS = 0.0
+                else:
+                    MS = C_F * (dphi - s * math.copysign(1.0, dphi)) + D_F * (wM - wL)
+                wM += h * (MM - MS) / J_M
+                if wL == 0.0 and abs(MS) <= M_FC:
+                    wL_new = 0.0
+                else:
+                    wL_new = wL + h * (MS - M_FC * math.copysign(1.0, wL if wL != 0 else MS) - mu_F * wL) / J_L
+                    if wL != 0.0 and wL * wL_new < 0:
+                        wL_new = 0.0
+                wL = wL_new
+                dphi += h * (wM - wL)
+            else:
+                if wM == 0.0 and abs(MM) <= M_FC:
+                    new = 0.0
+                else:
+                    new = wM + h * (MM - M_FC * math.copysign(1.0, wM if wM != 0 else MM) - mu_F * wM) / J_sigma
+                    if wM != 0.0 and wM * new < 0:
+                        new = 0.0
+                wM = new
+            phiM += h * wM
+        # controller (applies from the next sample)
+        if tail_left is not None:
+            tail_left -= 1
+            if tail_left <= 0:
+                break
+            continue
+        k_sec += 1
+        t_sec = k_sec * T_s
+        end = t_sec >= timeout
+        if sec == 1:
+            end |= w_m >= w_max
+        elif sec == 2:
+            end |= k_sec >= dur[1] or w_m <= 0.2 * w_max
+        elif sec == 3:
+            end |= w_m <= 0
+        elif sec == 4:
+            end |= w_m <= -w_max
+        elif sec == 5:
+            end |= k_sec >= dur[4] or w_m >= -0.2 * w_max
+        elif sec == 6:
+            end |= w_m >= 0
+        if end:
+            dur[sec] = k_sec
+            if sec == 6:
+                tail_left = int(round(tail / T_s))
+                M_ref = 0.0
+            else:
+                sec += 1
+                M_ref = LEVELS[sec - 1] * M_star
+            k_sec = 0
+    n = len(out_w)
+    t = np.arange(1, n + 1) * T_s
+    meta = {"K_M": 1.0, "T_Ei": T_Ei, "T_s": T_s, "encoder_counts": counts, "M_star": M_star, "w_max": w_max,
+            "truth": {"J_sigma": J_sigma, "V_J": V_J, "f_e": f_e, "d": d, "M_FC": M_FC, "mu_F": mu_F,
+                      "backlash": 2 * s}}
+    return SimRecord(t, np.array(out_w), np.array(out_i), np.array(out_ref), np.array(out_sec, dtype=int), meta)
+
+
+def true_bounds(section: np.ndarray) -> np.ndarray:
+    """(6, 2) start/stop indices from a section column."""
+    return np.array([[np.flatnonzero(section == k)[0], np.flatnonzero(section == k)[-1] + 1] for k in range(1, 7)])
+
+
+@pytest.fixture(scope="module")
+def elastic_record():
+    return simulate_switching(J_sigma=0.03, V_J=2.0, f_e=40.0, d=0.02, M_FC=0.2, seed=1)
+
+
+def _no_column(rec: SimRecord) -> SimRecord:
+    meta = {k: v for k, v in rec.meta.items() if k != "M_star"}
+    return SimRecord(rec.t, rec.speed, rec.current, None, None, meta)
+
+
+def test_detects_sections_from_current_within_two_samples(elastic_record):
+    split = detect_sections(_no_column(elastic_record))
+    assert isinstance(split, SectionSplit)
+    err = np.abs(split.bounds - true_bounds(elastic_record.section))
+    assert err.max() <= 2, (split.bounds, true_bounds(elastic_record.section))
+    assert split.M_star == pytest.approx(10.0, rel=0.02)
+    assert split.M_star_estimated
+
+
+def test_uses_torque_ref_exactly_when_given(elastic_record):
+    rec = SimRecord(elastic_record.t, elastic_record.speed, elastic_record.current, elastic_record.torque_ref,
+                    None, dict(elastic_record.meta))
+    split = detect_sections(rec)
+    assert np.array_equal(split.bounds, true_bounds(elastic_record.section))
+    assert split.source == "torque_ref"
+
+
+def test_arrays_interface_and_known_M_star(elastic_record):
+    split = detect_sections(speed=elastic_record.speed, torque=elastic_record.current, T_s=2.5e-4, M_star=10.0)
+    assert not split.M_star_estimated
+    assert np.abs(split.bounds - true_bounds(elastic_record.section)).max() <= 2
+    lab = split.labels()
+    assert lab.shape == elastic_record.speed.shape
+    assert set(np.unique(lab)) <= set(range(8))
+
+
+def test_scaled_torque_and_backlash_ringing():
+    rec = simulate_switching(J_sigma=0.02, V_J=4.0, f_e=15.0, d=0.01, backlash_deg=0.5, M_FC=0.4, M_star=3.0,
+                             w_max=40.0, seed=3)
+    split = detect_sections(_no_column(rec))
+    assert np.abs(split.bounds - true_bounds(rec.section)).max() <= 3
+    assert split.M_star == pytest.approx(3.0, rel=0.03)
+
+
+def test_rejects_constant_speed():
+    n = 4000
+    with pytest.raises(ValueError, match="constant"):
+        detect_sections(speed=np.full(n, 3.0), torque=np.zeros(n), T_s=2.5e-4)
+
+
+def test_rejects_saturated_speed(elastic_record):
+    w = np.clip(elastic_record.speed, -30, 30)
+    with pytest.raises(ValueError, match="saturat"):
+        detect_sections(speed=w, torque=elastic_record.current, T_s=2.5e-4)
+
+
+def test_rejects_unrelated_signals():
+    rng = np.random.default_rng(0)
+    n = 4000
+    with pytest.raises(ValueError, match="section"):
+        detect_sections(speed=np.cumsum(rng.standard_normal(n)), torque=rng.standard_normal(n), T_s=2.5e-4)
+    with pytest.raises(ValueError):
+        detect_sections(speed=np.sin(np.arange(n) / 100) * 50, torque=np.full(n, 5.0), T_s=2.5e-4)
+
+
+def test_rejects_bad_input():
+    with pytest.raises(ValueError, match="same length"):
+        detect_sections(speed=np.zeros(10), torque=np.zeros(11), T_s=1e-3)
+    with pytest.raises(ValueError, match="T_s"):
+        detect_sections(speed=np.arange(100.0), torque=np.ones(100), T_s=-1.0)
+    with pytest.raises(ValueError):
+        detect_sections(speed=np.arange(100.0), torque=np.full(100, np.nan), T_s=1e-3)
+
+
+def test_torque_ringing_and_noise():
+    """A damped 80 Hz ringing of 10 % M* after every step and 5x the current noise."""
+    rec = simulate_switching(J_sigma=0.03, V_J=2.0, f_e=40.0, d=0.02, M_FC=0.2, seed=4, noise=0.05)
+    true = true_bounds(rec.section)
+    ring = np.zeros_like(rec.current)
+    t = np.arange(ring.size) * rec.meta["T_s"]
+    for a in true[:, 0]:
+        tt = t[a:] - t[a]
+        ring[a:] += 0.1 * 10.0 * np.exp(-tt / 0.02) * np.sin(2 * np.pi * 80.0 * tt)
+    split = detect_sections(speed=rec.speed, torque=rec.current + ring, T_s=rec.meta["T_s"], T_Ei=rec.meta["T_Ei"])
+    assert np.abs(split.bounds - true).max() <= 2, (split.bounds, true)
+    assert split.M_star == pytest.approx(10.0, rel=0.03)

@@ -1,0 +1,54 @@
+"""The simulator's subcommands: simulate, bench (dispatch and errors), demo."""
+
+import json
+
+from sim import read_record
+from training.cli import main
+
+
+def test_simulate_from_json_writes_records(tmp_path, capsys):
+    params = [{"name": "a", "J_sigma": 0.01, "V_J": 1.0, "f_e": 40.0, "d": 0.05, "backlash": 0.002, "M_FC": 0.1,
+               "mu_F": 0.001},
+              {"J_M": 0.005, "J_L": 0.006, "C_F": 300.0, "D_F": 0.1}]
+    (tmp_path / "p.json").write_text(json.dumps(params))
+    out = tmp_path / "rec"
+    assert main(["simulate", "--params", str(tmp_path / "p.json"), "--out", str(out), "--no-progress"]) == 0
+    rec = read_record(out / "a.csv")
+    assert rec.meta["truth"]["f_e"] == 40.0 and set(rec.section.tolist()) == {0, 1, 2, 3, 4, 5, 6}
+    assert abs(read_record(out / "sys00001").meta["truth"]["J_M"] - 0.005) < 1e-12
+    # refuses to overwrite, one-line error, exit code 2
+    assert main(["simulate", "--params", str(tmp_path / "p.json"), "--out", str(out), "--no-progress"]) == 2
+    assert "exists" in capsys.readouterr().err
+
+
+def test_simulate_population(tmp_path):
+    assert main(["simulate", "--population", "3", "--seed", "4", "--out", str(tmp_path), "--no-progress"]) == 0
+    assert len(list(tmp_path.glob("*.csv"))) == 3 and len(list(tmp_path.glob("*.json"))) == 3
+
+
+def test_simulate_bad_params_file(tmp_path, capsys):
+    (tmp_path / "p.json").write_text('{"J_sigma": 0.01}')
+    assert main(["simulate", "--params", str(tmp_path / "p.json"), "--out", str(tmp_path)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "missing keys" in err and len(err.splitlines()) == 1
+
+
+def test_bench_without_or_with_unknown_target(capsys):
+    assert main(["bench"]) == 2
+    assert "valid targets: sim" in capsys.readouterr().err
+    assert main(["bench", "nope"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "unknown bench target 'nope'" in err and "sim" in err and len(err.splitlines()) == 1
+
+
+def test_bench_sim_small(capsys):
+    assert main(["bench", "sim", "--sizes", "1,64", "--work", "1e5", "--baseline-systems", "1",
+                 "--baseline-samples", "20", "--records", "4"]) == 0
+    out = capsys.readouterr().out
+    assert "system-substeps/s" in out and "solve_ivp" in out and "records for 4" in out
+
+
+def test_demo_runs_without_arguments(capsys):
+    assert main(["demo"]) == 0
+    out = capsys.readouterr().out
+    assert "section  VI" in out and "class elastic" in out

@@ -1,0 +1,198 @@
+"""Training data: simulate a population, analyse each record, store features and truth in shards.
+
+A dataset is a folder::
+
+    dataset.json          config (n, seed, shard size, population ranges, drive, test signal,
+                          feature version) -- written first, checked on resume
+    shard_00000.npz ...   per shard: features (S x F), truth columns (S), STEP-2 estimates (S),
+                          ok (S; False where the analysis failed), written atomically
+
+Generation is resumable: an interrupted run continues with the missing shards; a folder made
+with another config is refused rather than mixed or overwritten.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import multiprocessing
+import json
+import os
+import tempfile
+from collections.abc import Callable, Iterator
+from concurrent.futures import ProcessPoolExecutor
+from contextlib import contextmanager
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from sim import DriveConfig, PopulationRanges, TestSignalConfig, iter_records, sample_population
+from sim.params import DERIVED_NAMES, PARAM_NAMES, STRUCTURE_CLASSES
+from training.analysis import FEATURE_NAMES, FEATURE_VERSION, analyze
+from training.errors import UserError
+
+#: Truth columns stored per system (SI units; ``structure`` as index into STRUCTURE_CLASSES).
+TRUTH_NAMES: tuple[str, ...] = PARAM_NAMES + DERIVED_NAMES + ("s_N", "r_osc", "w_e_T_Ei", "structure")
+#: STEP-2 estimates and context figures stored per system.
+ESTIMATE_NAMES: tuple[str, ...] = ("J_sigma", "M_FC", "mu_F", "M_0", "M_star", "osc_quanta", "rel_residual")
+
+
+@dataclass(frozen=True)
+class GenerateConfig:
+    """What a dataset is made of. Equal configs make equal datasets."""
+
+    n: int
+    seed: int
+    shard_size: int = 500
+    ranges: PopulationRanges = field(default_factory=PopulationRanges)
+    drive: DriveConfig = field(default_factory=DriveConfig)
+    signal: TestSignalConfig = field(default_factory=TestSignalConfig)
+
+    def __post_init__(self) -> None:
+        if self.n < 1 or self.shard_size < 1:
+            raise ValueError(f"GenerateConfig: expected n >= 1 and shard_size >= 1, received {self.n}, {self.shard_size}")
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"n": self.n, "seed": self.seed, "shard_size": self.shard_size, "ranges": asdict(self.ranges),
+                "drive": asdict(self.drive), "signal": asdict(self.signal), "feature_version": FEATURE_VERSION,
+                "feature_names": list(FEATURE_NAMES)}
+
+    @property
+    def n_shards(self) -> int:
+        return -(-self.n // self.shard_size)
+
+
+@dataclass
+class Dataset:
+    """A loaded dataset: ``features`` (N x F), ``truth``/``estimate`` dicts of (N,) arrays, ``ok`` (N,)."""
+
+    features: np.ndarray
+    truth: dict[str, np.ndarray]
+    estimate: dict[str, np.ndarray]
+    ok: np.ndarray
+    config: dict[str, Any]
+    sha256: str
+
+    def __len__(self) -> int:
+        return int(self.ok.shape[0])
+
+
+def _analyze_one(record: Any) -> tuple[np.ndarray, np.ndarray] | None:
+    try:
+        a = analyze(record)
+    except ValueError:
+        return None
+    f = a.fit
+    est = np.array([f.J_sigma, f.M_FC, f.mu_F, f.M_0, a.M_star, a.osc_quanta, f.rel_residual])
+    return a.features, est
+
+
+@contextmanager
+def _worker_pool(workers: int) -> Iterator[ProcessPoolExecutor]:
+    """Spawned workers with one BLAS thread each: the analysis is many small least-squares
+    problems, and several BLAS threads per worker on a few cores thrash (10x slower, measured)."""
+    keys = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
+    saved = {k: os.environ.get(k) for k in keys}
+    os.environ.update(dict.fromkeys(keys, "1"))  # workers start lazily: keep it set while the pool lives
+    try:
+        with ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn")) as pool:
+            yield pool
+    finally:
+        for k, v in saved.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+
+
+def _truth_row(truth: dict[str, Any], drive: DriveConfig) -> np.ndarray:
+    row = dict(truth)
+    row["w_e_T_Ei"] = truth["w_e"] * drive.T_Ei
+    row["structure"] = STRUCTURE_CLASSES.index(truth["structure"])
+    return np.array([float(row[k]) for k in TRUTH_NAMES])
+
+
+def _save_npz_atomic(path: Path, **arrays: np.ndarray) -> None:
+    fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".tmp.npz")
+    os.close(fd)
+    try:
+        np.savez(tmp, **arrays)
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+
+
+def generate(out_dir: str | os.PathLike[str], config: GenerateConfig, *, workers: int | None = None,
+             progress: Callable[[int], None] | None = None) -> Path:
+    """Make (or complete) the dataset of ``config`` in ``out_dir``; returns the folder.
+
+    ``progress(k)`` is called with the number of systems finished since the last call.
+    """
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    cfg_path = out / "dataset.json"
+    want = config.to_dict()
+    if cfg_path.exists():
+        have = json.loads(cfg_path.read_text())
+        if have != want:
+            raise UserError(f"{out} holds a dataset of another config (n/seed/ranges/features differ); "
+                            "choose a new folder or remove it")
+    else:
+        cfg_path.write_text(json.dumps(want, indent=1))
+    params = sample_population(config.n, config.seed, config.ranges)
+    workers = workers or max(1, os.cpu_count() or 1)
+    with _worker_pool(workers) as pool:
+        for k in range(config.n_shards):
+            path = out / f"shard_{k:05d}.npz"
+            lo, hi = k * config.shard_size, min(config.n, (k + 1) * config.shard_size)
+            if path.exists():
+                if progress:
+                    progress(hi - lo)
+                continue
+            sub = params[torch.arange(lo, hi)]
+            records = list(iter_records(sub, config.drive, config.signal, seed=config.seed * 1_000_003 + lo))
+            records.sort(key=lambda r: int(r.name[3:]))  # iter_records yields duration-sorted groups
+            F = np.zeros((hi - lo, len(FEATURE_NAMES)))
+            E = np.full((hi - lo, len(ESTIMATE_NAMES)), np.nan)
+            T = np.stack([_truth_row(r.meta["truth"], config.drive) for r in records])
+            ok = np.zeros(hi - lo, dtype=bool)
+            for i, res in enumerate(pool.map(_analyze_one, records, chunksize=8)):
+                if res is not None:
+                    F[i], E[i], ok[i] = res[0], res[1], True
+                if progress:
+                    progress(1)
+            _save_npz_atomic(path, features=F, estimate=E, truth=T, ok=ok)
+    return out
+
+
+def load_dataset(folder: str | os.PathLike[str]) -> Dataset:
+    """Read a complete dataset folder (all shards present, feature version current)."""
+    folder = Path(folder)
+    cfg_path = folder / "dataset.json"
+    if not cfg_path.exists():
+        raise UserError(f"{folder}: no dataset.json; make one with `twomass generate`")
+    config = json.loads(cfg_path.read_text())
+    if config.get("feature_version") != FEATURE_VERSION:
+        raise UserError(f"{folder}: features of version {config.get('feature_version')!r}, "
+                        f"this toolkit computes {FEATURE_VERSION!r}; generate the data anew")
+    n_shards = -(-int(config["n"]) // int(config["shard_size"]))
+    paths = [folder / f"shard_{k:05d}.npz" for k in range(n_shards)]
+    missing = [p.name for p in paths if not p.exists()]
+    if missing:
+        raise UserError(f"{folder}: {len(missing)} of {n_shards} shards missing (first {missing[0]}); "
+                        "rerun the same `twomass generate` command to complete it")
+    h = hashlib.sha256()
+    parts: dict[str, list[np.ndarray]] = {"features": [], "estimate": [], "truth": [], "ok": []}
+    for p in paths:
+        h.update(p.read_bytes())
+        with np.load(p) as z:
+            for key in parts:
+                parts[key].append(z[key])
+    cat = {k: np.concatenate(v) for k, v in parts.items()}
+    truth = {n: cat["truth"][:, i] for i, n in enumerate(TRUTH_NAMES)}
+    truth["structure"] = truth["structure"].astype(int)
+    estimate = {n: cat["estimate"][:, i] for i, n in enumerate(ESTIMATE_NAMES)}
+    return Dataset(cat["features"], truth, estimate, cat["ok"], config, h.hexdigest())

@@ -1,0 +1,144 @@
+"""Identification of a record with the shipped maps (SPEC sections 4 and 9).
+
+An app needs three lines::
+
+    from training.identify import Identifier
+    ident = Identifier.load()                   # shipped maps, checked against the manifest
+    result = ident.identify_file("run.csv")     # or ident.identify(record) / identify_records([...])
+
+The result is a JSON-able dict: ``structure`` (a class of ``sim.STRUCTURE_CLASSES``),
+``parameters`` (SI units, ``backlash`` = total width ``2s`` [rad]; ``None`` where not identified),
+``quality`` (figures that say how far to trust it) and ``warnings``.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from collections.abc import Iterable, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+import som_torch as st
+from sim import Record, read_record
+from sim.params import STRUCTURE_CLASSES
+from training.analysis import FEATURE_NAMES, Analysis, analyze
+from training.maps import MAP_SPECS, TrainedMap, load_map, recall_targets
+
+#: Where the shipped maps lie (override with ``$TWOMASS_CHECKPOINTS`` or ``Identifier.load(folder)``).
+DEFAULT_CHECKPOINTS = Path(os.environ.get("TWOMASS_CHECKPOINTS", Path(__file__).resolve().parents[1] / "checkpoints"))
+
+PARAMETER_NAMES: tuple[str, ...] = ("J_sigma", "V_J", "J_M", "J_L", "f_e", "C_F", "d", "backlash", "M_FC", "mu_F")
+_BACKLASH_CLASSES = ("elastic_backlash", "stiff_backlash")
+
+
+class Identifier:
+    """Trained maps, loaded once; identifies records (one at a time or many in one batch)."""
+
+    def __init__(self, maps: dict[str, TrainedMap]) -> None:
+        missing = [n for n in MAP_SPECS if n not in maps]
+        if missing:
+            raise ValueError(f"Identifier: maps missing: {missing}; expected {list(MAP_SPECS)}")
+        self.maps = maps
+
+    @classmethod
+    def load(cls, folder: str | os.PathLike[str] | None = None) -> "Identifier":
+        """Load every map of ``folder`` (default: the shipped ``checkpoints/``) after checking
+        the manifest's SHA-256 of each file."""
+        folder = Path(folder) if folder is not None else DEFAULT_CHECKPOINTS
+        st.verify_manifest(folder)
+        return cls({name: load_map(folder / f"{name}.pt") for name in MAP_SPECS})
+
+    def identify(self, record: Record) -> dict[str, Any]:
+        """Identify one record; raises ValueError (one line) when it cannot be analysed."""
+        return self.identify_analyses([analyze(record)])[0]
+
+    def identify_records(self, records: Sequence[Record]) -> list[dict[str, Any]]:
+        """One result per record, in order; a record that cannot be analysed gets ``{"error": ...}``."""
+        analyses: list[Analysis | str] = []
+        for r in records:
+            try:
+                analyses.append(analyze(r))
+            except ValueError as err:
+                analyses.append(_one_line(err))
+        good = [a for a in analyses if isinstance(a, Analysis)]
+        results = iter(self.identify_analyses(good))
+        return [next(results) if isinstance(a, Analysis) else {"error": a} for a in analyses]
+
+    def identify_file(self, path: str | os.PathLike[str]) -> dict[str, Any]:
+        """Read and identify one record file; errors become ``{"error": ...}``."""
+        return self.identify_files([path])[0]
+
+    def identify_files(self, paths: Iterable[str | os.PathLike[str]]) -> list[dict[str, Any]]:
+        """``{"record": path, ...result}`` per path, in the order given (errors per record)."""
+        paths = [str(p) for p in paths]
+        records: list[Record | str] = []
+        for p in paths:
+            try:
+                records.append(read_record(p))
+            except (ValueError, OSError) as err:
+                records.append(_one_line(err))
+        good = [r for r in records if isinstance(r, Record)]
+        results = iter(self.identify_records(good))
+        out = []
+        for p, r in zip(paths, records):
+            res = next(results) if isinstance(r, Record) else {"error": r}
+            out.append({"record": p, **res})
+        return out
+
+    def identify_analyses(self, analyses: Sequence[Analysis]) -> list[dict[str, Any]]:
+        """Recall all maps for a batch of analysed records (one tensor computation per map)."""
+        if not analyses:
+            return []
+        F = np.stack([a.features for a in analyses])  # M x F
+        recalled = {}
+        for name, m in self.maps.items():
+            cols = [FEATURE_NAMES.index(f) for f in m.spec.features]
+            recalled[name] = recall_targets(m, F[:, cols], int(m.metadata["train_config"]["interpolate"]))
+        return [self._assemble(a, {n: {k: float(v[i]) for k, v in r.items()} for n, r in recalled.items()})
+                for i, a in enumerate(analyses)]
+
+    def _assemble(self, a: Analysis, r: dict[str, dict[str, float]]) -> dict[str, Any]:
+        warnings = list(a.warnings)
+        probs = {c: r["structure"][f"p_{c}"] for c in STRUCTURE_CLASSES}
+        structure = max(probs, key=probs.get)
+        fit = a.fit
+        p: dict[str, float | None] = dict.fromkeys(PARAMETER_NAMES)
+        p.update(J_sigma=fit.J_sigma, M_FC=max(fit.M_FC, 0.0), mu_F=max(fit.mu_F, 0.0))
+        if structure != "stiff":
+            f_e = 10.0 ** r["f_e"]["log10_f_e"]
+            V_J = 10.0 ** r["V_J"]["log10_V_J"]
+            d = min(max(r["f_e"]["d"], 0.0), 0.99)
+            J_M = fit.J_sigma / (1.0 + V_J)
+            J_L = fit.J_sigma - J_M
+            w_0 = 2 * math.pi * f_e / math.sqrt(1.0 - d * d)
+            p.update(f_e=f_e, V_J=V_J, d=d, J_M=J_M, J_L=J_L, C_F=w_0 * w_0 * J_M * J_L / fit.J_sigma)
+        p["backlash"] = 10.0 ** r["backlash"]["log10_backlash"] if structure in _BACKLASH_CLASSES else 0.0
+        # how far each recall lies from the training data: distance over the training 99 % quantile
+        unseen = {}
+        for name, m in self.maps.items():
+            q99 = m.metadata["distance_quantiles"]["0.99"]
+            unseen[name] = r[name]["distance"] / q99 if q99 > 0 else float("inf")
+        used = ["structure"] + (["f_e", "V_J"] if structure != "stiff" else []) + \
+               (["backlash"] if structure in _BACKLASH_CLASSES else [])
+        for name in used:
+            if unseen[name] > 1.0:
+                warnings.append(f"record unlike the training data of the {name} map "
+                                f"(distance {unseen[name]:.2f} x its 99 % quantile)")
+        quality = {
+            "structure_probabilities": probs,
+            "map_distance_ratio": unseen,
+            "osc_quanta": a.osc_quanta,
+            "one_mass_rel_residual": fit.rel_residual,
+            "outside_training": any(unseen[n] > 1.0 for n in used),
+        }
+        if a.osc_quanta < 1.0 and structure != "stiff":
+            warnings.append(f"oscillation only {a.osc_quanta:.2f} speed quanta rms: elastic parameters uncertain")
+        return {"structure": structure, "parameters": p, "quality": quality, "warnings": warnings}
+
+
+def _one_line(err: BaseException) -> str:
+    text = str(err).strip().splitlines()
+    return text[0] if text else type(err).__name__

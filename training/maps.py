@@ -1,0 +1,190 @@
+"""The identification maps: which features each map sees, which parameters it stores, training.
+
+Each map is a :class:`som_torch.SOM` whose active components are named features
+(:data:`training.analysis.FEATURE_NAMES`) and whose inactive components are *targets*:
+transformed physical parameters (paper section 3.4). A map is trained as an ensemble of
+``E`` maps with different seeds in one batch (``batch_shape = (E,)``); recall takes the median
+of the members' interpolated read-outs, which is smoother than one map's quantized answer.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+import som_torch as st
+from sim.params import STRUCTURE_CLASSES
+from training.analysis import FEATURE_NAMES, FEATURE_VERSION
+from training.dataset import Dataset
+
+_EIG = tuple(n for n in FEATURE_NAMES if n.startswith("eig_"))
+_HARM = tuple(n for n in FEATURE_NAMES if n.startswith("harm_"))
+
+
+def _log10(x: np.ndarray, floor: float = 1e-6) -> np.ndarray:
+    return np.log10(np.maximum(x, floor))
+
+
+#: Inactive components: name -> transform of the truth columns (``Dataset.truth``).
+TARGETS: dict[str, Callable[[dict[str, np.ndarray]], np.ndarray]] = {
+    "log10_f_e": lambda t: _log10(t["f_e"]),
+    "log10_V_J": lambda t: _log10(t["V_J"]),
+    "d": lambda t: t["d"],
+    "log10_s_N": lambda t: _log10(t["s_N"], 1e-4),
+    "log10_w_e_T_Ei": lambda t: _log10(t["w_e_T_Ei"]),
+    "log10_r_osc": lambda t: _log10(t["r_osc"], 1e-3),
+    "log10_backlash": lambda t: _log10(t["backlash"], 1e-7),
+    **{f"p_{c}": (lambda t, i=i: (t["structure"] == i).astype(float)) for i, c in enumerate(STRUCTURE_CLASSES)},
+}
+
+#: Training subsets: name -> mask over the dataset's systems (``ok`` is always required).
+SUBSETS: dict[str, Callable[[dict[str, np.ndarray]], np.ndarray]] = {
+    "all": lambda t: np.ones_like(t["f_e"], dtype=bool),
+    "visible": lambda t: t["r_osc"] >= 1.0,  # the elastic mode shows in the measured speed
+    "backlash": lambda t: t["s_N"] >= 0.1,
+}
+
+
+@dataclass(frozen=True)
+class MapSpec:
+    """One map: its active ``features``, inactive ``targets`` and training ``subset``."""
+
+    name: str
+    features: tuple[str, ...]
+    targets: tuple[str, ...]
+    subset: str = "all"
+
+    def __post_init__(self) -> None:
+        unknown = [f for f in self.features if f not in FEATURE_NAMES]
+        if unknown:
+            raise ValueError(f"MapSpec {self.name}: unknown features {unknown}; valid: {list(FEATURE_NAMES)}")
+        unknown = [t for t in self.targets if t not in TARGETS]
+        if unknown:
+            raise ValueError(f"MapSpec {self.name}: unknown targets {unknown}; valid: {sorted(TARGETS)}")
+        if self.subset not in SUBSETS:
+            raise ValueError(f"MapSpec {self.name}: subset {self.subset!r}; valid: {sorted(SUBSETS)}")
+
+    @property
+    def components(self) -> tuple[str, ...]:
+        return self.features + self.targets
+
+
+_OSC = ("log10_f_zc", "log10_f_peak", "log10_osc_quanta")
+MAP_SPECS: dict[str, MapSpec] = {
+    s.name: s for s in (
+        MapSpec("structure", _HARM + ("thd", "log2_f_ratio_zero", "log2_f_ratio_07", "log10_f_peak", "log10_osc_quanta"),
+                ("log10_s_N", "log10_w_e_T_Ei", "log10_r_osc") + tuple(f"p_{c}" for c in STRUCTURE_CLASSES)),
+        MapSpec("f_e", _EIG + _OSC, ("log10_f_e", "d"), "visible"),
+        MapSpec("V_J", ("log10_V_J_amp",) + _OSC + ("thd",), ("log10_V_J",), "visible"),
+        MapSpec("backlash", _HARM + ("thd", "log2_f_ratio_zero", "log2_f_ratio_07", "log10_V_J_amp") + _OSC,
+                ("log10_backlash", "log10_s_N"), "backlash"),
+    )
+}
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """How maps are trained (the paper: 40 x 40, online rule, 10 epochs)."""
+
+    rows: int = 40
+    cols: int = 40
+    topology: str = "rectangular"
+    ensemble: int = 4
+    epochs: int = 10
+    learning_rate: tuple[float, float] = (0.5, 0.01)
+    sigma: tuple[float, float] = (8.0, 0.5)
+    schedule: str = "asymptotic"
+    neighbourhood: str = "gaussian"
+    normalization: str = "standard"
+    interpolate: int = 4
+    seed: int = 0
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+@dataclass
+class TrainedMap:
+    """A trained ensemble with the metadata that makes its checkpoint self-contained."""
+
+    spec: MapSpec
+    som: st.SOM
+    metadata: dict[str, Any] = field(default_factory=dict)
+
+
+def training_matrix(spec: MapSpec, dataset: Dataset) -> np.ndarray:
+    """``N' x C`` rows of the subset: active features then targets (raw units)."""
+    mask = dataset.ok & SUBSETS[spec.subset](dataset.truth)
+    cols = [dataset.features[:, FEATURE_NAMES.index(f)] for f in spec.features]
+    cols += [TARGETS[t](dataset.truth) for t in spec.targets]
+    return np.stack(cols, axis=1)[mask]
+
+
+def train_map(spec: MapSpec, dataset: Dataset, config: TrainConfig, *, progress: bool = False,
+              hooks: Sequence[Any] = ()) -> TrainedMap:
+    """Train the ensemble of ``spec`` on its subset of ``dataset``."""
+    rows = training_matrix(spec, dataset)
+    if rows.shape[0] < 10:
+        raise ValueError(f"map {spec.name}: expected >= 10 training systems, received {rows.shape[0]}")
+    data = torch.as_tensor(rows, dtype=torch.float32).expand(config.ensemble, *rows.shape)  # E x N x C
+    active = [True] * len(spec.features) + [False] * len(spec.targets)
+    som = st.SOM(st.Grid(config.rows, config.cols, config.topology), spec.components, active,
+                 batch_shape=(config.ensemble,))
+    t0 = time.perf_counter()
+    st.fit(som, data, mode="online", init="random", normalization=config.normalization,
+           seed=config.seed, epochs=config.epochs, learning_rate=config.learning_rate, sigma=config.sigma,
+           schedule=config.schedule, neighbourhood=config.neighbourhood, progress=progress, hooks=hooks)
+    seconds = time.perf_counter() - t0
+    qe = st.quantization_error(som, data)  # E
+    # training-data QE distribution per member: recall flags records beyond it as unseen
+    d = recall_distance(som, rows[:, : len(spec.features)])  # E x N
+    quality = st.quality_report(som, data)
+    metadata = {
+        "map": spec.name, "spec": {"features": list(spec.features), "targets": list(spec.targets),
+                                   "subset": spec.subset},
+        "feature_version": FEATURE_VERSION, "train_config": config.to_dict(),
+        "dataset": {"sha256": dataset.sha256, "n": int(dataset.config["n"]), "seed": int(dataset.config["seed"]),
+                    "n_used": int(rows.shape[0])},
+        "quality": quality, "qe": qe.tolist(), "train_seconds": seconds,
+        "distance_quantiles": {q: float(np.quantile(d.median(0).values.numpy(), float(q))) for q in ("0.5", "0.95", "0.99")},
+    }
+    return TrainedMap(spec, som, metadata)
+
+
+def recall_distance(som: st.SOM, features: np.ndarray) -> torch.Tensor:
+    """``E x M`` distance of each feature row to its best match in each member (normalized units)."""
+    feats = torch.as_tensor(features, dtype=torch.float32)
+    return st.best_matching_units(som, feats, k=1)[1][..., 0].sqrt()
+
+
+def recall_targets(trained: TrainedMap, features: np.ndarray, interpolate: int) -> dict[str, np.ndarray]:
+    """Median over the ensemble of the interpolated read-out of each target (``M`` per target),
+    plus ``"distance"``: the median best-match distance (``M``)."""
+    feats = torch.as_tensor(np.asarray(features, dtype=np.float64), dtype=torch.float32)  # M x n_active
+    r = st.recall(trained.som, feats, interpolate=interpolate)  # values: E x M x C
+    out = {t: r.values[..., trained.spec.components.index(t)].median(0).values.double().numpy()
+           for t in trained.spec.targets}
+    out["distance"] = r.distance.median(0).values.double().numpy()
+    return out
+
+
+def save_map(folder: Path, trained: TrainedMap) -> str:
+    """Write ``folder/<name>.pt`` atomically; returns its SHA-256."""
+    return st.save_checkpoint(folder / f"{trained.spec.name}.pt", trained.som, trained.metadata)
+
+
+def load_map(path: Path) -> TrainedMap:
+    """Load one map checkpoint (safe loading; version, hash and feature version checked)."""
+    som, meta = st.load_checkpoint(path)
+    if meta.get("feature_version") != FEATURE_VERSION:
+        raise st.CheckpointError(f"{path}: trained on features {meta.get('feature_version')!r}, "
+                                 f"this toolkit computes {FEATURE_VERSION!r}; retrain with `twomass train`")
+    spec = MapSpec(meta["map"], tuple(meta["spec"]["features"]), tuple(meta["spec"]["targets"]),
+                   meta["spec"]["subset"])
+    return TrainedMap(spec, som, meta)

@@ -1,0 +1,462 @@
+"""STEP 2: one-mass approximation of a drive record by least squares (paper section 3.1).
+
+Model (SI units; linear units kg, N, m work the same way)::
+
+    M(t) = J_sigma * dw/dt + mu_F * w + M_FC * sign(w) + M_0
+
+with ``M`` the motor (air-gap) torque [Nm], ``w`` the motor speed [rad/s], ``J_sigma`` the total
+inertia [kg m^2], ``mu_F`` the viscous friction [Nm s/rad], ``M_FC`` the Coulomb friction [Nm] and
+``M_0`` an optional constant offset torque [Nm] (the EMPS benchmark's ``offset``).
+
+Three formulations estimate the four numbers from one record:
+
+- ``"trajectory"`` (default when sections are given): output error of the integrated model,
+  ``w(t) = w0_k + (1/J_sigma) int_{t_k}^t (M - mu_F w - M_FC sign(w) - M_0) dt`` in section ``k``,
+  linear in ``(1/J_sigma, mu_F/J_sigma, M_FC/J_sigma, M_0/J_sigma, w0_1..w0_K)``. The elastic
+  oscillation (zero mean after each torque step, eq. 1) and the quantization are output noise.
+
+- ``"integral"`` (default without sections): the torque balance integrated over windows ``[a, b]``::
+
+      int_a^b M dt = J_sigma*(w(b) - w(a)) + mu_F*int_a^b w dt + M_FC*int_a^b sign(w) dt + M_0*(b - a)
+
+  It needs no derivative of the (quantized) speed. Windows of lengths ``window * 2**j``
+  (``j < n_scales``, hop half a window) are stacked, and the speed increment is the dependent
+  variable (``w(b) - w(a)`` regressed on the integrals of torque, speed, sign and time): the
+  elastic mode's oscillation and the speed quantization then sit in the equation error only,
+  not in a regressor, so they do not bias ``J_sigma`` towards zero (errors-in-variables).
+- ``"derivative"``: torque and speed through the same zero-phase low-pass (parallel filtering), the
+  acceleration by central differences, then ordinary least squares sample by sample (the inverse
+  dynamic model of the EMPS benchmark).
+
+Near zero speed the sign term is undefined (stiction); rows (samples or windows) in which the
+low-passed speed comes within ``speed_deadband`` of zero are left out of the fit.
+
+Per section the smooth response ``w_bar`` is the one-mass model driven by the measured torque with
+the overall parameters, started from a fitted initial speed and (``section_drift=True``) corrected
+by a fitted constant torque per section (fitted together with the damped sin/cos of the
+oscillation, which are then left out of ``w_bar``), so that ``w_osc = w_m - w_bar`` (paper eq. 1) keeps the
+elastic oscillation and little else.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from scipy import signal as _signal
+
+__all__ = ["OneMassFit", "SectionFit", "fit_one_mass", "speed_from_position", "section_bounds"]
+
+
+@dataclass(frozen=True)
+class SectionFit:
+    """One section's part of the fit.
+
+    ``start``/``stop``: sample indices, half open. ``w_bar0`` [rad/s]: fitted initial speed of
+    ``w_bar``. ``M_drift`` [Nm]: fitted constant torque correction of this section (0 when
+    ``section_drift=False``). ``J_sigma`` [kg m^2]: this section's own inertia estimate with the
+    overall friction and offset (nan when the section's net torque is too small to tell).
+    ``osc_rms`` [rad/s]: rms of ``w_osc`` in the section.
+    """
+
+    start: int
+    stop: int
+    w_bar0: float
+    M_drift: float
+    J_sigma: float
+    osc_rms: float
+
+
+@dataclass(frozen=True)
+class OneMassFit:
+    """Result of :func:`fit_one_mass`.
+
+    Scalars in SI units (see module docstring). ``w_bar``, ``w_osc``: shape ``(N,)`` [rad/s];
+    zero outside the sections. ``speed``: the speed used (``(N,)``; the differentiated position
+    when a position was given). ``sections``: one :class:`SectionFit` per section.
+    ``rel_residual``: rms equation error over the rms of the dependent variable (dimensionless):
+    speed for ``"trajectory"`` (below 2 % for a good test-run fit), speed increments over short
+    windows for ``"integral"`` (noise dominated: 7 % on EMPS), filtered torque for ``"derivative"``.
+    ``std``: standard deviations of ``(J_sigma, mu_F, M_FC, M_0)`` from the least squares.
+    ``warnings``: reasons to distrust a ``"trajectory"`` fit (residual above 5 %, sections
+    shorter than two periods of the oscillation); empty when none.
+    """
+
+    J_sigma: float
+    M_FC: float
+    mu_F: float
+    M_0: float
+    w_bar: np.ndarray
+    w_osc: np.ndarray
+    speed: np.ndarray
+    sections: tuple[SectionFit, ...]
+    rel_residual: float
+    std: tuple[float, float, float, float]
+    n_rows: int
+    method: str
+    warnings: tuple[str, ...] = ()
+
+    def as_dict(self) -> dict[str, float]:
+        """The identified scalars as a JSON-able dict."""
+        return {"J_sigma": self.J_sigma, "M_FC": self.M_FC, "mu_F": self.mu_F, "M_0": self.M_0,
+                "rel_residual": self.rel_residual}
+
+
+def _as_1d(name: str, x: Any) -> np.ndarray:
+    arr = np.asarray(x, dtype=np.float64)
+    if arr.ndim != 1:
+        raise ValueError(f"{name}: expected a 1-D array (N,), received shape {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        raise ValueError(f"{name}: expected finite values, received {int(np.sum(~np.isfinite(arr)))} NaN/inf")
+    return arr
+
+
+def _lowpass(x: np.ndarray, cutoff: float, T_s: float, order: int = 4) -> np.ndarray:
+    """Zero-phase Butterworth low-pass; returns ``x`` unchanged when the cutoff is at Nyquist."""
+    wn = 2.0 * cutoff * T_s
+    if wn >= 0.99 or x.size < 3 * (2 * order + 1):
+        return x.copy()
+    sos = _signal.butter(order, wn, output="sos")
+    return _signal.sosfiltfilt(sos, x)
+
+
+def speed_from_position(position: Any, T_s: float, cutoff: float | None = None) -> np.ndarray:
+    """Speed ``(N,)`` [rad/s or m/s] from a position ``(N,)`` [rad or m] sampled at ``T_s`` [s].
+
+    Zero-phase 4th-order Butterworth low-pass at ``cutoff`` [Hz] (default ``0.04/T_s``, i.e.
+    40 Hz at 1 kHz), then central differences, as the EMPS benchmark does.
+    """
+    q = _as_1d("position", position)
+    _check_T_s(T_s)
+    if q.size < 3:
+        raise ValueError(f"position: expected at least 3 samples, received {q.size}")
+    fc = 0.04 / T_s if cutoff is None else float(cutoff)
+    return np.gradient(_lowpass(q, fc, T_s), T_s)
+
+
+def _check_T_s(T_s: Any) -> None:
+    if not isinstance(T_s, (int, float, np.floating)) or not np.isfinite(T_s) or T_s <= 0:
+        raise ValueError(f"T_s: expected a positive sample time [s], received {T_s!r}")
+
+
+def section_bounds(sections: Any, n: int) -> list[tuple[int, int]]:
+    """Normalize ``sections`` to a list of ``(start, stop)`` sample indices within ``0..n``.
+
+    Accepts ``None`` (the whole record), an object with a ``bounds`` attribute (a
+    :class:`training.sections.SectionSplit`), or a sequence of ``(start, stop)`` pairs / an
+    array of shape ``(K, 2)``.
+    """
+    if sections is None:
+        return [(0, n)]
+    if hasattr(sections, "bounds"):
+        sections = sections.bounds
+    arr = np.asarray(sections)
+    if arr.ndim != 2 or arr.shape[1] != 2 or arr.shape[0] == 0:
+        raise ValueError(f"sections: expected (start, stop) pairs of shape (K, 2), received shape {arr.shape}")
+    out = []
+    for a, b in arr.tolist():
+        a, b = int(a), int(b)
+        if not 0 <= a < b <= n:
+            raise ValueError(f"sections: expected 0 <= start < stop <= {n}, received ({a}, {b})")
+        out.append((a, b))
+    return out
+
+
+def _cumint(x: np.ndarray, T_s: float) -> np.ndarray:
+    """Trapezoidal cumulative integral, ``out[0] = 0``, shape ``(N,)``."""
+    out = np.zeros_like(x)
+    out[1:] = np.cumsum(0.5 * (x[1:] + x[:-1])) * T_s
+    return out
+
+
+def _windows(n: int, window: int, n_scales: int) -> tuple[np.ndarray, np.ndarray]:
+    """Start/stop sample indices of windows of lengths ``window * 2**j``, ``j < n_scales``, hop half a window."""
+    starts, stops = [], []
+    L = max(1, window)
+    for _ in range(n_scales):
+        if L >= n:
+            break
+        a = np.arange(0, n - L, max(1, L // 2))
+        starts.append(a)
+        stops.append(a + L)
+        L *= 2
+    if not starts:
+        return np.array([0]), np.array([n - 1])
+    return np.concatenate(starts), np.concatenate(stops)
+
+
+def _residual_frequency(r: np.ndarray, bounds: list[tuple[int, int]], T_s: float) -> float:
+    """Median over sections of the dominant frequency [Hz] of ``r`` (sections concatenated)."""
+    out, pos = [], 0
+    for a, b in bounds:
+        seg = r[pos:pos + b - a]
+        pos += b - a
+        if seg.size < 16:
+            continue
+        seg = (seg - seg.mean()) * np.hanning(seg.size)
+        nfft = 1 << int(np.ceil(np.log2(4 * seg.size)))
+        A = np.abs(np.fft.rfft(seg, nfft))
+        f = np.fft.rfftfreq(nfft, T_s)
+        band = (f >= 0.5 / (seg.size * T_s)) & (f <= 0.45 / T_s)
+        if band.any() and A[band].max() > 0:
+            out.append(float(f[band][np.argmax(A[band])]))
+    return float(np.median(out)) if out else 0.0
+
+
+def _osc_columns(bounds: list[tuple[int, int]], T_s: float, f: float, d: float) -> np.ndarray:
+    """Damped sin/cos at ``f`` [Hz], relative damping ``d``, restarted per section: ``(sum N_k, 2K)``."""
+    n_tot = sum(b - a for a, b in bounds)
+    out = np.zeros((n_tot, 2 * len(bounds)))
+    w_d = 2 * np.pi * f
+    sigma = d * w_d / np.sqrt(1 - d * d)
+    pos = 0
+    for k, (a, b) in enumerate(bounds):
+        tt = np.arange(b - a) * T_s
+        env = np.exp(-sigma * tt)
+        out[pos:pos + b - a, 2 * k] = env * np.sin(w_d * tt)
+        out[pos:pos + b - a, 2 * k + 1] = env * np.cos(w_d * tt)
+        pos += b - a
+    return out
+
+
+def _lstsq(X: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+    """Column-scaled least squares by Householder QR; returns parameters, their std, rms residual."""
+    scale = np.sqrt(np.sum(X * X, axis=0))
+    scale[scale == 0] = 1.0
+    Xs = X / scale
+    if Xs.shape[0] < Xs.shape[1]:
+        raise ValueError(f"one-mass fit: expected at least {Xs.shape[1]} rows, received {Xs.shape[0]}")
+    Q, R = np.linalg.qr(Xs)
+    d = np.abs(np.diag(R))
+    rank = int(np.sum(d > 1e-10 * max(float(d.max(initial=0.0)), 1e-300)))
+    if rank < X.shape[1]:
+        raise ValueError(
+            f"one-mass fit: expected an informative record (regressor rank {X.shape[1]}), received rank {rank}; "
+            "the speed must change sign or vary enough to separate inertia, friction and offset "
+            "(try offset=False)")
+    theta_s = np.linalg.solve(R, Q.T @ y)
+    theta = theta_s / scale
+    r = y - X @ theta
+    dof = max(1, X.shape[0] - X.shape[1])
+    sigma2 = float(r @ r) / dof
+    Rinv = np.linalg.inv(R)
+    std = np.sqrt(sigma2 * np.sum(Rinv * Rinv, axis=1)) / scale
+    return theta, std, float(np.sqrt(np.mean(r * r)))
+
+
+def fit_one_mass(
+    torque: Any,
+    speed: Any,
+    T_s: float,
+    *,
+    sections: Any = None,
+    offset: bool = True,
+    position: Any = None,
+    method: str = "auto",
+    window: int | None = None,
+    speed_deadband: float | None = None,
+    cutoff: float | None = None,
+    n_scales: int = 2,
+    section_drift: bool = True,
+    oscillation: bool = True,
+) -> OneMassFit:
+    """Least-squares one-mass approximation (STEP 2) of one record.
+
+    Args:
+        torque: ``(N,)`` motor torque [Nm] (or ``current * K_M``; force [N] for linear axes).
+        speed: ``(N,)`` measured motor speed [rad/s], or ``None`` when ``position`` is given.
+        T_s: sample time [s].
+        sections: ``None`` (one section: the whole record), a ``SectionSplit``, or ``(K, 2)``
+            ``(start, stop)`` sample indices. The overall fit uses the samples of all sections.
+        offset: estimate the constant offset torque ``M_0`` (else ``M_0 = 0``).
+        position: ``(N,)`` position [rad or m]; used for the speed (see
+            :func:`speed_from_position`) when ``speed`` is ``None``.
+        method: ``"trajectory"`` (output error of the integrated model per section with a free
+            initial speed per section; best on test-signal records), ``"integral"`` (windows of the
+            integrated torque balance; best on long records with many reversals such as EMPS),
+            ``"derivative"`` (filtered, differentiated speed), or ``"auto"``: ``"trajectory"``
+            when ``sections`` is given, else ``"integral"``.
+        window: shortest integration window [samples] (default ``round(5 ms / T_s)``, at least 4).
+        speed_deadband: rows whose low-passed speed is within this of zero are left out [rad/s]
+            (default 0.5 % of the largest low-passed speed).
+        cutoff: low-pass cutoff [Hz] for the sign of the speed and the derivative formulation
+            (default ``0.02/T_s``: 80 Hz at 4 kHz, 20 Hz at 1 kHz).
+        n_scales: number of window lengths (``window * 2**j``, ``j < n_scales``) in the
+            integral formulation; longer windows average an elastic mode better, shorter ones
+            follow unmodelled friction effects less (EMPS: 2 is best).
+        oscillation: (``"trajectory"`` only) add damped sin/cos regressors per section at the
+            first pass's residual frequency, so that a strong elastic oscillation does not bias the
+            friction estimates; they are not part of ``w_bar``.
+        section_drift: fit a constant torque correction per section for ``w_bar``.
+
+    Returns:
+        :class:`OneMassFit`.
+
+    Raises:
+        ValueError: bad shapes, non-finite input, too few samples, or an uninformative record.
+    """
+    _check_T_s(T_s)
+    M = _as_1d("torque", torque)
+    if speed is None:
+        if position is None:
+            raise ValueError("fit_one_mass: expected speed or position, received neither")
+        w = speed_from_position(position, T_s)
+        if w.size != M.size:
+            raise ValueError(f"position: expected {M.size} samples like torque, received {w.size}")
+    else:
+        w = _as_1d("speed", speed)
+        if w.size != M.size:
+            raise ValueError(f"speed: expected {M.size} samples like torque, received {w.size}")
+    n = M.size
+    if n < 16:
+        raise ValueError(f"fit_one_mass: expected at least 16 samples, received {n}")
+    if method == "auto":
+        method = "integral" if sections is None else "trajectory"
+    if method not in ("integral", "trajectory", "derivative"):
+        raise ValueError(f"method: expected 'integral', 'trajectory' or 'derivative', received {method!r}")
+    if not np.ptp(w) > 0:
+        raise ValueError("fit_one_mass: expected a varying speed, received a constant speed")
+    bounds = section_bounds(sections, n)
+    fc = 0.02 / T_s if cutoff is None else float(cutoff)
+    w_lp = _lowpass(w, fc, T_s)
+    dead = 0.005 * float(np.max(np.abs(w_lp))) if speed_deadband is None else float(speed_deadband)
+    sgn = np.where(np.abs(w_lp) > dead, np.sign(w_lp), 0.0)
+    moving = np.abs(w_lp) > dead
+    in_sec = np.zeros(n, dtype=bool)
+    for a, b in bounds:
+        in_sec[a:b] = True
+
+    n_par = 4 if offset else 3
+    f_osc = 0.0
+    if method == "integral":
+        L = max(4, int(round(0.005 / T_s))) if window is None else int(window)
+        if L < 1:
+            raise ValueError(f"window: expected >= 1 samples, received {window}")
+        C_M, C_w, C_s, C_1 = _cumint(M, T_s), _cumint(w, T_s), _cumint(sgn, T_s), np.arange(n) * T_s
+        # a window is usable when every sample in it is moving and belongs to a section
+        bad = np.concatenate([[0], np.cumsum(~(moving & in_sec))])
+        ia, ib = _windows(n, L, n_scales)
+        ok = (bad[ib + 1] - bad[ia]) == 0
+        ia, ib = ia[ok], ib[ok]
+        if ia.size < n_par:
+            raise ValueError(f"one-mass fit: expected >= {n_par} usable windows away from zero speed, received {ia.size}")
+        X = np.stack([C_M[ib] - C_M[ia], C_w[ib] - C_w[ia], C_s[ib] - C_s[ia], C_1[ib] - C_1[ia]], axis=1)
+        y = w[ib] - w[ia]
+        X = X[:, :n_par]
+        # speed-increment regression: the elastic oscillation enters the dependent variable only
+        theta, std, rms = _lstsq(X, y)
+        if not theta[0] > 0:
+            raise ValueError(f"one-mass fit: expected a positive inertia, received 1/J_sigma = {theta[0]:.4g}; "
+                             "the record does not excite the inertia")
+        J_sigma = float(1.0 / theta[0])
+        p = -theta * J_sigma
+        rel_std = np.sqrt((std / np.where(theta == 0, 1, theta)) ** 2 + (std[0] / theta[0]) ** 2)
+        mu_F, M_FC = float(p[1]), float(p[2])
+        M_0 = float(p[3]) if offset else 0.0
+        std_p = np.abs(p) * rel_std
+        std_p[0] = std[0] / theta[0] ** 2
+        std_t = tuple(float(v) for v in std_p) + ((0.0,) if not offset else ())
+        rel = rms / max(float(np.sqrt(np.mean(y * y))), 1e-300)
+    elif method == "trajectory":
+        # output error per section: w(t) = w0_k + (1/J) int_{t_k}^t (M - mu_F w - M_FC sgn - M_0) dt
+        C_M, C_w, C_1 = _cumint(M, T_s), _cumint(w, T_s), np.arange(n) * T_s
+        K = len(bounds)
+        idx = np.concatenate([np.arange(a0, b0) for a0, b0 in bounds])
+        f_osc, d_osc = 0.0, 0.0
+        for _pass in range(2):
+            # pass 2: the sign of the fitted smooth speed (a proxy of the load speed, which the
+            # friction acts on) and, with ``oscillation``, damped sin/cos nuisance regressors per
+            # section at the residual's dominant frequency (the eq.-1 oscillation, so that it does
+            # not leak into the slopes that carry inertia and friction)
+            C_s = _cumint(sgn, T_s)
+            rows_X, rows_y = [], []
+            for k, (a0, b0) in enumerate(bounds):
+                e = np.zeros((b0 - a0, K))
+                e[:, k] = 1.0
+                cols = np.stack([C_M[a0:b0] - C_M[a0], -(C_w[a0:b0] - C_w[a0]), -(C_s[a0:b0] - C_s[a0]),
+                                 -(C_1[a0:b0] - C_1[a0])], axis=1)[:, :n_par]
+                rows_X.append(np.concatenate([cols, e], axis=1))
+                rows_y.append(w[a0:b0])
+            X, y = np.concatenate(rows_X), np.concatenate(rows_y)
+            n_lin = X.shape[1]
+            if _pass == 1 and f_osc > 0:
+                best = None
+                for d_try in (0.0, 0.03, 0.1):
+                    Xo = np.concatenate([X, _osc_columns(bounds, T_s, f_osc, d_try)], axis=1)
+                    th_o, sd_o, rms_o = _lstsq(Xo, y)
+                    if best is None or rms_o < best[2]:
+                        best = (th_o, sd_o, rms_o, d_try, Xo)
+                theta, std, rms, d_osc, Xo = best
+                w_model = np.array(w_lp)
+                w_model[idx] = X @ theta[:n_lin]
+            else:
+                theta, std, rms = _lstsq(X, y)
+                w_model = np.array(w_lp)
+                w_model[idx] = X @ theta
+                if oscillation:
+                    f_osc = _residual_frequency(y - w_model[idx], bounds, T_s)
+            sgn = np.where(np.abs(w_model) > dead, np.sign(w_model), 0.0)
+        if not theta[0] > 0:
+            raise ValueError(f"one-mass fit: expected a positive inertia, received 1/J_sigma = {theta[0]:.4g}; "
+                             "the record does not excite the inertia")
+        J_sigma = float(1.0 / theta[0])
+        p = theta[:n_par] * J_sigma
+        mu_F, M_FC = float(p[1]), float(p[2])
+        M_0 = float(p[3]) if offset else 0.0
+        sd = std[:n_par]
+        std_p = np.abs(p) * np.sqrt((sd / np.where(theta[:n_par] == 0, 1, theta[:n_par])) ** 2 + (sd[0] / theta[0]) ** 2)
+        std_p[0] = sd[0] / theta[0] ** 2
+        std_t = tuple(float(v) for v in std_p) + ((0.0,) if not offset else ())
+        rel = rms / max(float(np.sqrt(np.mean((y - y.mean()) ** 2))), 1e-300)
+    else:
+        Mf = _lowpass(M, fc, T_s)
+        acc = np.gradient(w_lp, T_s)
+        use = moving & in_sec
+        if int(use.sum()) < n_par:
+            raise ValueError(f"one-mass fit: expected >= {n_par} samples away from zero speed, received {int(use.sum())}")
+        X = np.stack([acc, w_lp, sgn, np.ones(n)], axis=1)[use][:, :n_par]
+        y = Mf[use]
+        theta, std, rms = _lstsq(X, y)
+        J_sigma, mu_F, M_FC = (float(v) for v in theta[:3])
+        M_0 = float(theta[3]) if offset else 0.0
+        std_t = tuple(float(v) for v in std) + ((0.0,) if not offset else ())
+        rel = rms / max(float(np.sqrt(np.mean(y * y))), 1e-300)
+    if not J_sigma > 0:
+        raise ValueError(f"one-mass fit: expected a positive inertia, received J_sigma = {J_sigma:.4g}; "
+                         "the record does not excite the inertia")
+
+    # smooth response per section
+    w_bar = np.zeros(n)
+    acc_torque = M - mu_F * w_lp - M_FC * sgn - M_0          # accelerating torque [Nm]
+    C_acc = _cumint(acc_torque, T_s)
+    sec_fits = []
+    for a, b in bounds:
+        tt = np.arange(b - a) * T_s
+        base = (C_acc[a:b] - C_acc[a]) / J_sigma
+        cols = [np.ones(b - a)] + ([tt / J_sigma] if section_drift and b - a > 2 else [])
+        A = np.stack(cols, axis=1)
+        # the oscillation's sin/cos take part in the fit (so the drift cannot absorb it) but not in w_bar
+        extra = _osc_columns([(a, b)], T_s, f_osc, d_osc) if f_osc > 0 and b - a > 8 else np.zeros((b - a, 0))
+        coef, *_ = np.linalg.lstsq(np.concatenate([A, extra], axis=1), w[a:b] - base, rcond=None)
+        coef = coef[:A.shape[1]]
+        w_bar[a:b] = base + A @ coef
+        drift = float(coef[1]) if len(coef) > 1 else 0.0
+        # section's own inertia with the overall friction
+        dw = w[b - 1] - w[a]
+        num = C_acc[b - 1] - C_acc[a]
+        J_k = float(num / dw) if abs(dw) > 1e-6 * max(float(np.max(np.abs(w))), 1e-300) else float("nan")
+        osc = w[a:b] - w_bar[a:b]
+        sec_fits.append(SectionFit(a, b, float(coef[0]), drift, J_k, float(np.sqrt(np.mean(osc * osc)))))
+    w_osc = np.where(in_sec, w - w_bar, 0.0)
+    warns = []
+    if method == "trajectory" and rel > 0.05:
+        warns.append(f"one-mass fit residual is {100 * rel:.1f} % of the signal: the record is not "
+                     "well described by one mass (oscillation too large?)")
+    if method == "trajectory" and f_osc > 0 and rel > 0.01:
+        shortest = min(b - a for a, b in bounds) * T_s
+        if shortest * f_osc < 2.0:
+            warns.append(f"shortest section ({1e3 * shortest:.0f} ms) holds fewer than two periods of the "
+                         f"{f_osc:.3g} Hz oscillation: lower M* or raise w_max")
+    return OneMassFit(J_sigma, M_FC, mu_F, M_0, w_bar, w_osc, w, tuple(sec_fits), float(rel),
+                      std_t, int(X.shape[0]), method, tuple(warns))
