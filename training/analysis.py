@@ -46,6 +46,7 @@ class Analysis:
     T_s: float
     osc_quanta: float
     warnings: list[str] = field(default_factory=list)
+    section_flags: list[str] = field(default_factory=list)
 
     def feature(self, name: str) -> float:
         return float(self.features[FEATURE_NAMES.index(name)])
@@ -82,4 +83,4 @@ def analyze(record: Any) -> Analysis:
     osc_quanta = float(np.sqrt(np.mean(sel * sel))) / q_w if sel.size else 0.0
     features = np.concatenate([eig, struct, extra, [math.log10(max(osc_quanta, 1e-3))]])
     return Analysis(sections=split, fit=fit, features=features, M_star=float(split.M_star), T_s=T_s,
-                    osc_quanta=osc_quanta, warnings=list(fit.warnings) + list(split.flags))
+                    osc_quanta=osc_quanta, warnings=list(fit.warnings), section_flags=list(split.flags))

@@ -133,6 +133,7 @@ class Identifier:
             "osc_quanta": a.osc_quanta,
             "one_mass_rel_residual": fit.rel_residual,
             "outside_training": any(unseen[n] > 1.0 for n in used),
+            "section_flags": a.section_flags,
         }
         if a.osc_quanta < 1.0 and structure != "stiff":
             warnings.append(f"oscillation only {a.osc_quanta:.2f} speed quanta rms: elastic parameters uncertain")

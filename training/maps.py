@@ -10,7 +10,7 @@ of the members' interpolated read-outs, which is smoother than one map's quantiz
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -127,8 +127,9 @@ def training_matrix(spec: MapSpec, dataset: Dataset) -> np.ndarray:
 
 
 def train_map(spec: MapSpec, dataset: Dataset, config: TrainConfig, *, progress: bool = False,
-              hooks: Sequence[Any] = ()) -> TrainedMap:
-    """Train the ensemble of ``spec`` on its subset of ``dataset``."""
+              writer: Any = None) -> TrainedMap:
+    """Train the ensemble of ``spec`` on its subset of ``dataset``; with a TensorBoard ``writer``,
+    log QE/TE/learning rate/radius per epoch and U-matrix, hit and parameter maps (tag prefix = map name)."""
     rows = training_matrix(spec, dataset)
     if rows.shape[0] < 10:
         raise ValueError(f"map {spec.name}: expected >= 10 training systems, received {rows.shape[0]}")
@@ -136,6 +137,7 @@ def train_map(spec: MapSpec, dataset: Dataset, config: TrainConfig, *, progress:
     active = [True] * len(spec.features) + [False] * len(spec.targets)
     som = st.SOM(st.Grid(config.rows, config.cols, config.topology), spec.components, active,
                  batch_shape=(config.ensemble,))
+    hooks = [st.tensorboard_hook(writer, data, prefix=spec.name)] if writer is not None else []
     t0 = time.perf_counter()
     st.fit(som, data, mode="online", init="random", normalization=config.normalization,
            seed=config.seed, epochs=config.epochs, learning_rate=config.learning_rate, sigma=config.sigma,
