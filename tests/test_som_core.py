@@ -289,3 +289,14 @@ def test_progress_and_hooks(capsys):
            hooks=[lambda epoch, s, info: seen.append((epoch, info["step"], float(info["sigma"])))])
     assert [e for e, _, _ in seen] == [0, 1, 2] and [s for _, s, _ in seen] == [20, 40, 60]
     assert seen[0][2] > seen[-1][2]
+
+
+def test_loading_the_native_kernel_keeps_subnormals():
+    """A library linked with -ffast-math would flush subnormals for the whole process on load."""
+    import numpy as np
+
+    import som_torch as st
+
+    st.native_available()  # builds/loads the kernel when a compiler is present
+    tiny = np.float64(5e-324)
+    assert tiny > 0 and tiny / 2 == 0 and np.nextafter(0.0, 1.0) > 0

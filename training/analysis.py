@@ -14,15 +14,17 @@ import numpy as np
 
 from training.features import EXTRA_NAMES, FEATURE_SETS, eigenfrequency_features, extra_features, structure_features
 from training.one_mass import OneMassFit, fit_one_mass
+from training.oscillation import fit_oscillation
+from training.plausibility import check_record
 from training.sections import SectionSplit, detect_sections
 
 #: Version of the whole feature vector below; stored in checkpoints and checked at recall.
-FEATURE_VERSION = "twomass-features-v1"
+FEATURE_VERSION = "twomass-features-v2"
 
 #: Names of the feature vector's components, in order.
 FEATURE_NAMES: tuple[str, ...] = (
     FEATURE_SETS["paper-eig-v1"].components + FEATURE_SETS["paper-struct-v1"].components + EXTRA_NAMES
-    + ("log10_osc_quanta",)
+    + ("log10_osc_quanta", "log10_f_fit", "log10_V_J_fit", "d_fit", "r2_fit")
 )
 
 #: Default encoder resolution when a record's metadata does not give one (SPEC reference drive).
@@ -67,6 +69,7 @@ def analyze(record: Any) -> Analysis:
     Raises:
         ValueError: one line, when the record has no recognisable test run.
     """
+    check_record(record)  # units and metadata against the signals (training/plausibility.py)
     T_s = float(record.meta["T_s"])
     torque = _torque(record)
     split = detect_sections(record)
@@ -81,6 +84,13 @@ def analyze(record: Any) -> Analysis:
     q_w = 2.0 * math.pi / (counts * T_s)
     sel = np.concatenate([w_osc[a:b] for a, b in split.bounds.tolist()])
     osc_quanta = float(np.sqrt(np.mean(sel * sel))) / q_w if sel.size else 0.0
-    features = np.concatenate([eig, struct, extra, [math.log10(max(osc_quanta, 1e-3))]])
+    f_peak = 10.0 ** extra[EXTRA_NAMES.index("log10_f_peak")] if extra[EXTRA_NAMES.index("log10_f_peak")] else 0.0
+    osc = fit_oscillation(torque, w_osc, split.bounds, T_s, f_peak)
+    V_J_fit = osc.gain * fit.J_sigma  # eq. 1: gain = V_J / J_sigma
+    features = np.concatenate([eig, struct, extra, [
+        math.log10(max(osc_quanta, 1e-3)),
+        math.log10(osc.f_0) if osc.f_0 > 0 else 0.0,
+        math.log10(V_J_fit) if V_J_fit > 1e-3 else -3.0,
+        osc.d, osc.r2]])
     return Analysis(sections=split, fit=fit, features=features, M_star=float(split.M_star), T_s=T_s,
                     osc_quanta=osc_quanta, warnings=list(fit.warnings), section_flags=list(split.flags))

@@ -134,7 +134,7 @@ def generate(out_dir: str | os.PathLike[str], config: GenerateConfig, *, workers
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     cfg_path = out / "dataset.json"
-    want = config.to_dict()
+    want = json.loads(json.dumps(config.to_dict()))  # as it reads back (tuples become lists)
     if cfg_path.exists():
         have = json.loads(cfg_path.read_text())
         if have != want:

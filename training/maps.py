@@ -75,14 +75,16 @@ class MapSpec:
         return self.features + self.targets
 
 
-_OSC = ("log10_f_zc", "log10_f_peak", "log10_osc_quanta")
+_FIT = ("log10_f_fit", "log10_V_J_fit", "d_fit", "r2_fit")
+_SHAPE = _HARM + ("thd", "log2_f_ratio_zero", "log2_f_ratio_07")
 MAP_SPECS: dict[str, MapSpec] = {
     s.name: s for s in (
-        MapSpec("structure", _HARM + ("thd", "log2_f_ratio_zero", "log2_f_ratio_07", "log10_f_peak", "log10_osc_quanta"),
+        MapSpec("structure", _SHAPE + _FIT + ("log10_osc_quanta",),
                 ("log10_s_N", "log10_w_e_T_Ei", "log10_r_osc") + tuple(f"p_{c}" for c in STRUCTURE_CLASSES)),
-        MapSpec("f_e", _EIG + _OSC, ("log10_f_e", "d"), "visible"),
-        MapSpec("V_J", ("log10_V_J_amp",) + _OSC + ("thd",), ("log10_V_J",), "visible"),
-        MapSpec("backlash", _HARM + ("thd", "log2_f_ratio_zero", "log2_f_ratio_07", "log10_V_J_amp") + _OSC,
+        MapSpec("f_e", _FIT + ("log10_f_peak", "log10_f_zc", "thd", "log2_f_ratio_zero", "log2_f_ratio_07"),
+                ("log10_f_e", "d"), "visible"),
+        MapSpec("V_J", _FIT + ("log10_V_J_amp", "thd", "log10_osc_quanta"), ("log10_V_J",), "visible"),
+        MapSpec("backlash", _SHAPE + _FIT + ("log10_V_J_amp", "log10_osc_quanta"),
                 ("log10_backlash", "log10_s_N"), "backlash"),
     )
 }
