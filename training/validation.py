@@ -127,6 +127,23 @@ def _moving_average(x: np.ndarray, W: int) -> np.ndarray:
     return np.convolve(pad, k, mode="valid")
 
 
+def _spectrum_error(a: np.ndarray, b: np.ndarray, T_s: float, rel_width: float = 0.2) -> float:
+    """``||A - B|| / ||B||`` of the amplitude spectra of ``a`` (model) and ``b`` (measured),
+    summed in bins of constant relative width ``rel_width`` (equal width on a log axis) from
+    1 Hz to Nyquist: insensitive to the phase drift that a small frequency error accumulates."""
+    n = len(b)
+    f = np.fft.rfftfreq(n, T_s)
+    A, B = np.abs(np.fft.rfft(a)), np.abs(np.fft.rfft(b))
+    f_lo, f_hi = max(1.0, f[1] if n > 1 else 1.0), 0.5 / T_s
+    edges = f_lo * (1.0 + rel_width) ** np.arange(int(math.log(f_hi / f_lo) / math.log1p(rel_width)) + 2)
+    idx = np.digitize(f, edges)
+    keep = (f >= f_lo) & (f <= f_hi)
+    Ab = np.bincount(idx[keep], weights=A[keep] ** 2, minlength=len(edges) + 1) ** 0.5
+    Bb = np.bincount(idx[keep], weights=B[keep] ** 2, minlength=len(edges) + 1) ** 0.5
+    den = float(np.sqrt(np.sum(Bb**2)))
+    return float(np.sqrt(np.sum((Ab - Bb) ** 2)) / den) if den > 0 else 0.0
+
+
 def validate_model(
     params: Any,
     drive: Any,
@@ -138,6 +155,7 @@ def validate_model(
     osc_min_quanta: float = 3.0,
     signal: Any = None,
     seed: int = 0,
+    osc_metric: str = "time",
 ) -> ValidationResult:
     """Re-simulate ``params`` under ``record``'s test signal and compare with its measured speed.
 
@@ -152,11 +170,17 @@ def validate_model(
         threshold: largest accepted ``nrmse``; osc_threshold: largest accepted ``osc_nrmse``.
         osc_min_quanta: the oscillation check runs when the measured oscillating part has an RMS
             of at least this many speed quanta ``q_w`` (else it is noise).
+        osc_metric: "time" (sample by sample: phase-sensitive, a few % of ``f_e`` error over a
+            long record already reads ~1.3) or "spectrum" (:func:`_spectrum_error`: amplitude
+            spectra of the oscillating parts in bins of 20 % relative width, phase-insensitive;
+            a model without oscillation reads 1, one at a clearly wrong frequency ~1.4).
 
     Returns :class:`ValidationResult`.
     """
     import sim
 
+    if osc_metric not in ("time", "spectrum"):
+        raise ValueError(f"osc_metric: expected 'time' or 'spectrum', received {osc_metric!r}")
     if mode not in ("replay", "switching"):
         raise ValueError(f"mode: expected 'replay' or 'switching', received {mode!r}")
     if not (threshold > 0 and osc_threshold > 0):
@@ -198,7 +222,12 @@ def validate_model(
     osc_rms = float(np.sqrt(np.mean(hp_b**2)))
     osc_nrmse = None
     if osc_rms >= osc_min_quanta * float(drive.q_w):
-        osc_nrmse = float(np.sqrt(np.mean((hp_a - hp_b) ** 2)) / osc_rms) if np.isfinite(hp_a).all() else math.inf
+        if not np.isfinite(hp_a).all():
+            osc_nrmse = math.inf
+        elif osc_metric == "spectrum":
+            osc_nrmse = _spectrum_error(hp_a, hp_b, float(drive.T_s))
+        else:
+            osc_nrmse = float(np.sqrt(np.mean((hp_a - hp_b) ** 2)) / osc_rms)
     reasons = []
     if not nrmse <= threshold:
         reasons.append(f"speed error {nrmse:.3g} > {threshold:g}")
