@@ -48,7 +48,3 @@ def test_bench_sim_small(capsys):
     assert "system-substeps/s" in out and "solve_ivp" in out and "records for 4" in out
 
 
-def test_demo_runs_without_arguments(capsys):
-    assert main(["demo"]) == 0
-    out = capsys.readouterr().out
-    assert "section  VI" in out and "class elastic" in out

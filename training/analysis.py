@@ -29,6 +29,7 @@ FEATURE_NAMES: tuple[str, ...] = (
 
 #: Default encoder resolution when a record's metadata does not give one (SPEC reference drive).
 _DEFAULT_ENCODER_COUNTS = 2**20
+_DEFAULT_T_Ei = 5e-4
 
 
 @dataclass
@@ -38,7 +39,8 @@ class Analysis:
     ``features``: ``(F,)`` float64 in the order of :data:`FEATURE_NAMES`.
     ``fit``: the STEP 2 one-mass fit (``J_sigma``, ``M_FC``, ``mu_F``, ``M_0``, ``w_osc``).
     ``M_star``: the test's torque amplitude [Nm] (metadata, else estimated from the record).
-    ``osc_quanta``: rms of ``w_osc`` over the speed quantum ``q_w`` (how visible the oscillation is).
+    ``osc_quanta``: rms of ``w_osc`` over the speed quantum ``q_w`` [rad/s] (how visible the oscillation is).
+    ``T_Ei``: current-loop time constant [s] (metadata, else the reference drive's).
     """
 
     sections: SectionSplit
@@ -47,6 +49,8 @@ class Analysis:
     M_star: float
     T_s: float
     osc_quanta: float
+    q_w: float
+    T_Ei: float
     warnings: list[str] = field(default_factory=list)
     section_flags: list[str] = field(default_factory=list)
 
@@ -93,4 +97,5 @@ def analyze(record: Any) -> Analysis:
         math.log10(V_J_fit) if V_J_fit > 1e-3 else -3.0,
         osc.d, osc.r2]])
     return Analysis(sections=split, fit=fit, features=features, M_star=float(split.M_star), T_s=T_s,
-                    osc_quanta=osc_quanta, warnings=list(fit.warnings), section_flags=list(split.flags))
+                    osc_quanta=osc_quanta, q_w=q_w,
+                    T_Ei=float(record.meta.get("T_Ei") or _DEFAULT_T_Ei), warnings=list(fit.warnings), section_flags=list(split.flags))

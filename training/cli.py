@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import sys
 from collections.abc import Sequence
 
@@ -57,6 +58,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    # The work is many small least-squares and FFT problems: several BLAS threads per process on a
+    # few cores thrash (measured 10x slower under load). Set before numpy loads; a user's value wins.
+    for var in ("OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):  # not OMP: the simulator kernel uses OpenMP
+        os.environ.setdefault(var, "1")
     parser = build_parser()
     args = parser.parse_args(argv)
     if getattr(args, "_run", None) is None:

@@ -1,46 +1,131 @@
-"""``twomass demo``: simulate the reference drive with a default elastic plant and summarize the record."""
+"""``twomass demo``: the main job on built-in defaults.
+
+Simulates the SPEC test run on the reference drive for two plants (the default elastic plant and
+one with clear backlash), identifies both records with the shipped maps exactly as
+``twomass identify`` would, and prints identified against true values side by side, with the
+quality figures and warnings. ``--params`` replaces the plants; ``--seed`` the noise.
+"""
 
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import sys
+from pathlib import Path
+from typing import Any, TextIO
 
-HELP = "simulate the reference drive with a default elastic plant and print a summary (no arguments needed)"
+from training.errors import UserError
+
+HELP = ("simulate two default plants, identify them with the shipped maps, print identified vs true "
+        "(no arguments needed)")
+
+#: The built-in plants: (label, parameters; backlash = total width 2s [rad]).
+DEFAULT_PLANTS: tuple[tuple[str, dict[str, float]], ...] = (
+    ("elastic plant", dict(J_sigma=0.05, V_J=1.0, f_e=30.0, d=0.02, backlash=math.radians(0.1), M_FC=0.2, mu_F=0.001)),
+    ("plant with backlash", dict(J_sigma=0.05, V_J=1.0, f_e=40.0, d=0.02, backlash=math.radians(0.5), M_FC=0.2,
+                                 mu_F=0.001)),
+)
+
+#: Rows of the table: parameter, unit, factor from SI to the shown unit.
+_ROWS: tuple[tuple[str, str, float], ...] = (
+    ("J_sigma", "kg*m^2", 1.0), ("V_J", "-", 1.0), ("J_M", "kg*m^2", 1.0), ("J_L", "kg*m^2", 1.0),
+    ("f_e", "Hz", 1.0), ("C_F", "Nm/rad", 1.0), ("d", "-", 1.0), ("backlash", "deg", 180.0 / math.pi),
+    ("M_FC", "Nm", 1.0), ("mu_F", "Nm*s/rad", 1.0),
+)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--f-e", type=float, default=30.0, help="eigenfrequency [Hz] (default 30)")
-    parser.add_argument("--backlash-deg", type=float, default=0.1, help="total backlash [degree] (default 0.1)")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seed", type=int, default=0, help="current-noise seed (default 0)")
+    parser.add_argument("--params", metavar="JSON",
+                        help="plants instead of the built-in two: a JSON object or list of objects (text or a file "
+                             "path) with J_sigma, V_J, f_e, d, backlash [rad, total], M_FC, mu_F (or J_M, J_L, C_F, "
+                             "D_F), optional name")
+    parser.add_argument("--checkpoints", type=Path, metavar="DIR",
+                        help="maps folder (default: the shipped checkpoints/)")
+
+
+def _plants(text: str | None) -> list[tuple[str, dict[str, Any]]]:
+    if text is None:
+        return [(label, dict(p)) for label, p in DEFAULT_PLANTS]
+    src = "--params"
+    if not text.lstrip().startswith(("{", "[")):
+        try:
+            text, src = Path(text).read_text(), text
+        except OSError as err:
+            raise UserError(f"--params: expected JSON text or a JSON file, received {text!r} "
+                            f"({err.strerror})") from None
+    try:
+        data = json.loads(text)
+    except json.JSONDecodeError as err:
+        raise UserError(f"{src}: invalid JSON ({err.msg} at line {err.lineno} column {err.colno})") from None
+    rows = [data] if isinstance(data, dict) else data
+    if not isinstance(rows, list) or not rows or not all(isinstance(r, dict) for r in rows):
+        raise UserError(f"{src}: expected an object or a non-empty list of objects")
+    return [(str(r.get("name", f"plant {i + 1}")), {k: v for k, v in r.items() if k != "name"})
+            for i, r in enumerate(rows)]
+
+
+def _num(x: float | None) -> str:
+    if x is None or (isinstance(x, float) and not math.isfinite(x)):
+        return "-"
+    return f"{x:.4g}"
+
+
+def _rel(ident: float | None, true: float) -> str:
+    if ident is None:
+        return "n/a"
+    if true == 0:
+        return "exact" if ident == 0 else "-"
+    return f"{100.0 * (ident - true) / abs(true):+.1f} %"
+
+
+def print_result(label: str, truth: dict[str, Any], res: dict[str, Any], n_samples: int, T_s: float,
+                 out: TextIO) -> None:
+    """One plant: true vs identified table, quality line, warnings."""
+    print(f"\n{label}: record {n_samples} samples ({n_samples * T_s:.2f} s), true class {truth['structure']}, "
+          f"s_N {truth['s_N']:.3g}, r_osc {truth['r_osc']:.3g}", file=out)
+    if "error" in res:
+        print(f"  identification failed: {res['error']}", file=out)
+        return
+    print(f"  {'':10} {'unit':>9} {'true':>16} {'identified':>16} {'error':>9}", file=out)
+    ok = "ok" if res["structure"] == truth["structure"] else "WRONG"
+    print(f"  {'structure':10} {'-':>9} {truth['structure']:>16} {res['structure']:>16} {ok:>9}", file=out)
+    p = res["parameters"]
+    for name, unit, k in _ROWS:
+        t = float(truth[name]) * k
+        v = None if p.get(name) is None else float(p[name]) * k
+        print(f"  {name:10} {unit:>9} {_num(t):>16} {_num(v):>16} {_rel(v, t):>9}", file=out)
+    q = res["quality"]
+    dist = ", ".join(f"{n} {_num(v)}" for n, v in q["map_distance_ratio"].items())
+    print(f"  quality: P({res['structure']}) {q['structure_probabilities'][res['structure']]:.2f}; "
+          f"map distance / training 99 % quantile: {dist}; oscillation {q['osc_quanta']:.3g} speed quanta rms; "
+          f"one-mass residual {100.0 * q['one_mass_rel_residual']:.2g} %", file=out)
+    warnings = res["warnings"] or ["none"]
+    print("  warnings: " + "; ".join(warnings), file=out)
 
 
 def run(args: argparse.Namespace) -> int:
-    import numpy as np
-
     from sim import DriveConfig, TestSignalConfig, TwoMassParams, responses_to_records, simulate_test
-    from sim.test_signal import SECTION_NAMES
+    from training.cmd_identify import _load_identifier, limit_blas_threads
 
+    plants = _plants(args.params)
+    try:
+        params = TwoMassParams.from_dicts([p for _, p in plants])
+    except (TypeError, ValueError) as err:
+        raise UserError(f"--params: {err}") from None
+    limit_blas_threads(1)
     drive, signal = DriveConfig(), TestSignalConfig()
-    params = TwoMassParams(J_sigma=0.05, V_J=1.0, f_e=args.f_e, d=0.02, backlash=math.radians(args.backlash_deg),
-                           M_FC=0.2, mu_F=0.001)
+    ident = _load_identifier(args.checkpoints)
     resp = simulate_test(params, drive, signal, seed=args.seed)
-    rec = responses_to_records(resp, params.reshape(1), drive, signal, names=["demo"])[0]
-    truth = rec.meta["truth"]
+    records = responses_to_records(resp, params, drive, signal, names=[f"demo{i}" for i in range(len(plants))])
+    results = ident.identify_records(records)
     out = sys.stdout
-    print("twomass demo: reference drive (M_max 20 Nm, T_Ei 0.5 ms, T_s 250 us, 20-bit encoder)", file=out)
-    print(f"plant: J_sigma {truth['J_sigma']:.3g} kg m^2, V_J {truth['V_J']:.3g}, f_e {truth['f_e']:.3g} Hz, "
-          f"d {truth['d']:.3g}, backlash {math.degrees(truth['backlash']):.3g} deg, M_FC {truth['M_FC']:.3g} Nm, "
-          f"mu_F {truth['mu_F']:.3g} Nm s/rad", file=out)
-    print(f"derived: C_F {truth['C_F']:.4g} Nm/rad, s_N {truth['s_N']:.3g}, w_e*T_Ei {2 * math.pi * truth['f_e'] * drive.T_Ei:.3g}, "
-          f"r_osc {truth['r_osc']:.3g} -> class {truth['structure']}", file=out)
-    print(f"test: M* {signal.M_star} Nm, w_max {signal.w_max} rad/s; record {len(rec)} samples, "
-          f"{len(rec) * drive.T_s:.3f} s", file=out)
-    for q, name in enumerate(SECTION_NAMES, start=1):
-        n = int(np.sum(rec.section == q))
-        flag = "  (timed out)" if rec.meta["timed_out"][q - 1] else ""
-        print(f"  section {name:>3}: {n * drive.T_s * 1e3:8.1f} ms{flag}", file=out)
-    print(f"  tail     : {np.sum(rec.section == 0) * drive.T_s * 1e3:8.1f} ms", file=out)
-    print(f"speed range {rec.speed.min():.2f} .. {rec.speed.max():.2f} rad/s, final speed {rec.speed[-1]:.3f} rad/s, "
-          f"current range {rec.current.min():.2f} .. {rec.current.max():.2f} A", file=out)
-    return 0
+    print(f"twomass demo: reference drive (M_max {drive.M_max:g} Nm, K_M {drive.K_M:g} Nm/A, T_Ei "
+          f"{drive.T_Ei * 1e3:g} ms, T_s {drive.T_s * 1e6:g} us, {round(math.log2(drive.encoder_counts))}-bit "
+          f"encoder); test signal M* {signal.M_star:g} Nm, w_max {signal.w_max:g} rad/s; "
+          "identified with the shipped maps", file=out)
+    for (label, _), rec, res in zip(plants, records, results):
+        print_result(label, rec.meta["truth"], res, len(rec), drive.T_s, out)
+    failed = sum("error" in r for r in results)
+    return 1 if failed else 0

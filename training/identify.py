@@ -102,20 +102,24 @@ class Identifier:
 
     def _assemble(self, a: Analysis, r: dict[str, dict[str, float]]) -> dict[str, Any]:
         warnings = list(a.warnings)
-        probs = {c: r["structure"][f"p_{c}"] for c in STRUCTURE_CLASSES}
-        structure = max(probs, key=probs.get)
         fit = a.fit
+        f_fit, V_J_fit = a.feature("log10_f_fit"), a.feature("log10_V_J_fit")
+        # the maps store corrections to the eq.-1 fit (training.maps.TARGETS)
+        f_e = 10.0 ** (f_fit + r["f_e"]["dlog10_f_e"])
+        V_J = 10.0 ** (V_J_fit + r["V_J"]["dlog10_V_J"])
+        d = min(max(r["f_e"]["d"], 0.0), 0.9)
+        J_M = fit.J_sigma / (1.0 + V_J)
+        J_L = fit.J_sigma - J_M
+        w_0 = 2 * math.pi * f_e / math.sqrt(1.0 - d * d)
+        C_F = w_0 * w_0 * J_M * J_L / fit.J_sigma
+        structure, probs = self._structure(a, r, f_e, V_J, w_0)
+        M_N = float(self.maps["backlash"].metadata["dataset"]["drive"]["M_N"])
         p: dict[str, float | None] = dict.fromkeys(PARAMETER_NAMES)
-        p.update(J_sigma=fit.J_sigma, M_FC=max(fit.M_FC, 0.0), mu_F=max(fit.mu_F, 0.0))
+        p.update(J_sigma=fit.J_sigma, M_FC=max(fit.M_FC, 0.0), mu_F=max(fit.mu_F, 0.0), backlash=0.0)
         if structure != "stiff":
-            f_e = 10.0 ** r["f_e"]["log10_f_e"]
-            V_J = 10.0 ** r["V_J"]["log10_V_J"]
-            d = min(max(r["f_e"]["d"], 0.0), 0.99)
-            J_M = fit.J_sigma / (1.0 + V_J)
-            J_L = fit.J_sigma - J_M
-            w_0 = 2 * math.pi * f_e / math.sqrt(1.0 - d * d)
-            p.update(f_e=f_e, V_J=V_J, d=d, J_M=J_M, J_L=J_L, C_F=w_0 * w_0 * J_M * J_L / fit.J_sigma)
-        p["backlash"] = 10.0 ** r["backlash"]["log10_backlash"] if structure in _BACKLASH_CLASSES else 0.0
+            p.update(f_e=f_e, V_J=V_J, d=d, J_M=J_M, J_L=J_L, C_F=C_F)
+        if structure in _BACKLASH_CLASSES:  # s_N = s C_F / M_N, backlash = 2 s
+            p["backlash"] = 2.0 * 10.0 ** r["backlash"]["log10_s_N"] * M_N / C_F
         # how far each recall lies from the training data: distance over the training 99 % quantile
         unseen = {}
         for name, m in self.maps.items():
@@ -131,6 +135,7 @@ class Identifier:
             "structure_probabilities": probs,
             "map_distance_ratio": unseen,
             "osc_quanta": a.osc_quanta,
+            "oscillation_fit_r2": a.feature("r2_fit"),
             "one_mass_rel_residual": fit.rel_residual,
             "outside_training": any(unseen[n] > 1.0 for n in used),
             "section_flags": a.section_flags,
@@ -138,6 +143,18 @@ class Identifier:
         if a.osc_quanta < 1.0 and structure != "stiff":
             warnings.append(f"oscillation only {a.osc_quanta:.2f} speed quanta rms: elastic parameters uncertain")
         return {"structure": structure, "parameters": p, "quality": quality, "warnings": warnings}
+
+    def _structure(self, a: Analysis, r: dict[str, dict[str, float]], f_e: float, V_J: float,
+                   w_0: float) -> tuple[str, dict[str, float]]:
+        """SPEC's stiff rule on the identified values (``w_e T_Ei >= 1`` or ``r_osc < 1``, and the
+        map's ``s_N < 0.1``); otherwise the structure map's most likely of the other classes."""
+        probs = {c: r["structure"][f"p_{c}"] for c in STRUCTURE_CLASSES}
+        s_N = 10.0 ** r["structure"]["log10_s_N"]
+        r_osc = V_J * a.M_star / (a.fit.J_sigma * w_0 * a.q_w)
+        if s_N < 0.1 and (2 * math.pi * f_e * a.T_Ei >= 1.0 or r_osc < 1.0):
+            return "stiff", probs
+        others = [c for c in STRUCTURE_CLASSES if c != "stiff"]
+        return max(others, key=probs.get), probs
 
 
 def _one_line(err: BaseException) -> str:

@@ -1,0 +1,265 @@
+"""``twomass identify``: JSON Lines per record, per-record errors, --out, exit codes; README example."""
+
+from __future__ import annotations
+
+import copy
+import json
+import math
+import re
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from sim import DriveConfig, Record, TestSignalConfig, TwoMassParams, responses_to_records, simulate_test, write_record
+from sim.params import STRUCTURE_CLASSES
+from training.cli import main
+from training.cmd_identify import json_safe
+from training.identify import DEFAULT_CHECKPOINTS, PARAMETER_NAMES
+
+REPO = Path(__file__).resolve().parents[1]
+RPM = 60.0 / (2.0 * math.pi)
+
+
+def _strict_loads(line: str) -> dict:
+    def no_constants(name: str):
+        raise AssertionError(f"invalid JSON constant {name}")
+    return json.loads(line, parse_constant=no_constants)
+
+
+@pytest.fixture(scope="module")
+def good() -> Record:
+    drive, signal = DriveConfig(), TestSignalConfig()
+    params = TwoMassParams(J_sigma=0.02, V_J=1.0, f_e=30.0, d=0.02, backlash=math.radians(0.1), M_FC=0.2, mu_F=0.001)
+    resp = simulate_test(params, drive, signal, seed=0)
+    return responses_to_records(resp, params.reshape(1), drive, signal, names=["good"])[0]
+
+
+def _meta(rec: Record, drop: tuple[str, ...] = ()) -> dict:
+    return {k: v for k, v in rec.meta.items() if k not in drop}
+
+
+def _write_raw(folder: Path, name: str, cols: dict[str, np.ndarray], meta: dict | None) -> None:
+    """CSV + JSON by hand (no validation): for records that write_record would refuse."""
+    names = list(cols)
+    rows = np.column_stack([np.asarray(cols[c], dtype=np.float64) for c in names])
+    np.savetxt(folder / f"{name}.csv", rows, fmt="%.12g", delimiter=",", header=",".join(names), comments="")
+    if meta is not None:
+        (folder / f"{name}.json").write_text(json.dumps(meta))
+
+
+def _variant(rec: Record, **changes) -> Record:
+    new = copy.deepcopy(rec)
+    for k, v in changes.items():
+        setattr(new, k, v)
+    return new
+
+
+def _random_torque(rec: Record) -> dict[str, np.ndarray]:
+    rng = np.random.default_rng(1)
+    n = 8000
+    levels = rng.uniform(-10.0, 10.0, size=n // 80 + 1)
+    current = np.repeat(levels, 80)[:n]  # a new random level every 20 ms
+    speed = np.cumsum(current) * 2.5e-4 / 0.02
+    return {"t": np.arange(n) * 2.5e-4, "speed": speed, "current": current}
+
+
+#: name -> expected one-line error (regex); "good" must be answered.
+CASES: dict[str, str] = {
+    "missing_column": r"missing column 'speed'",
+    "nan": r"column 'speed' has NaN/inf at row 1[01]",
+    "non_uniform": r"non-uniform time step near row",
+    "random_torque": r"no recognisable test-signal sections",
+    "ramp": r"no recognisable test-signal sections",
+    "saturated": r"saturated at 60 rad/s",
+    "constant": r"constant speed",
+    "current_in_mA": r"current looks like wrong units \(.*M_star",
+    "speed_in_rpm": r"speed looks like wrong units \(.*w_max.*rpm",
+    "t_in_ms": r"metadata T_s=0\.00025 disagrees with the time column",
+    "t_in_ms_no_T_s": r"time looks like wrong units \(sample time T_s = 0\.25 s",
+    "no_metadata": r"metadata file not found",
+    "no_such_file": r"file not found",
+}
+
+
+@pytest.fixture(scope="module")
+def records(good, tmp_path_factory) -> Path:
+    d = tmp_path_factory.mktemp("records")
+    write_record(d / "good", good)
+    n = len(good)
+    cols = good.columns()
+    _write_raw(d, "missing_column", {"t": good.t, "current": good.current}, _meta(good))
+    nan_speed = good.speed.copy()
+    nan_speed[9] = np.nan
+    _write_raw(d, "nan", {**cols, "speed": nan_speed}, _meta(good))
+    t_bad = good.t.copy()
+    t_bad[n // 2:] += 0.3 * good.T_s
+    _write_raw(d, "non_uniform", {**cols, "t": t_bad}, _meta(good))
+    basic = {"K_M": 1.0, "T_Ei": 5e-4}
+    _write_raw(d, "random_torque", _random_torque(good), basic)
+    _write_raw(d, "ramp", {"t": good.t, "speed": np.linspace(0.0, 100.0, n), "current": np.full(n, 10.0)},
+               {**basic, "M_star": 10.0, "w_max": 100.0})
+    write_record(d / "saturated", _variant(good, speed=np.clip(good.speed, -60.0, 60.0)))
+    write_record(d / "constant", _variant(good, speed=np.zeros(n)))
+    write_record(d / "current_in_mA", _variant(good, current=good.current * 1000.0))
+    write_record(d / "speed_in_rpm", _variant(good, speed=good.speed * RPM))
+    no_ts = {k: v for k, v in cols.items() if k != "section"}
+    _write_raw(d, "t_in_ms", {**no_ts, "t": good.t * 1000.0}, _meta(good))
+    _write_raw(d, "t_in_ms_no_T_s", {**no_ts, "t": good.t * 1000.0}, _meta(good, drop=("T_s",)))
+    _write_raw(d, "no_metadata", cols, None)
+    return d
+
+
+@pytest.fixture(scope="module")
+def batch(records) -> tuple[int, list[dict], list[str]]:
+    """One ``twomass identify`` over all cases, the good record in the middle."""
+    names = list(CASES)
+    names.insert(len(names) // 2, "good")
+    paths = [str(records / f"{n}.csv") for n in names]
+    out = records / "out.jsonl"
+    rc = main(["identify", *paths, "--out", str(out), "--no-progress"])
+    lines = out.read_text().splitlines()
+    return rc, [_strict_loads(x) for x in lines], paths
+
+
+def test_batch_exit_code_and_order(batch):
+    rc, results, paths = batch
+    assert rc == 1  # some records have errors
+    assert [r["record"] for r in results] == paths
+
+
+def test_good_record_is_answered_among_bad_ones(batch):
+    _, results, paths = batch
+    res = next(r for r in results if r["record"].endswith("good.csv"))
+    assert "error" not in res
+    assert res["structure"] in STRUCTURE_CLASSES
+    assert list(res["parameters"]) == list(PARAMETER_NAMES)
+    assert isinstance(res["quality"], dict) and isinstance(res["warnings"], list)
+    assert res["parameters"]["J_sigma"] == pytest.approx(0.02, rel=0.2)  # the one-mass fit, not a map
+
+
+@pytest.mark.parametrize("name", list(CASES))
+def test_bad_record_gets_a_clear_one_line_error(batch, name):
+    _, results, _ = batch
+    res = next(r for r in results if Path(r["record"]).stem == name)
+    assert set(res) == {"record", "error"}
+    assert "\n" not in res["error"]
+    assert re.search(CASES[name], res["error"]), res["error"]
+
+
+def test_stdout_and_name_forms(records, tmp_path, capsys):
+    for name in ("a", "b", "c"):
+        for ext in (".csv", ".json"):
+            shutil.copy(records / f"good{ext}", tmp_path / f"{name}{ext}")
+    args = [str(tmp_path / "a.csv"), str(tmp_path / "b.json"), str(tmp_path / "c"), str(tmp_path / "a.json")]
+    assert main(["identify", *args, "--no-progress"]) == 0
+    cap = capsys.readouterr()
+    lines = [_strict_loads(x) for x in cap.out.splitlines()]
+    assert [r["record"] for r in lines] == args[:3]  # a.json names a record already given: answered once
+    assert all("structure" in r for r in lines)
+    for r in lines[1:]:  # same record: same answer (to rounding: the recall is batched)
+        assert r["parameters"] == pytest.approx(lines[0]["parameters"], rel=1e-9)
+    assert "3 of 3 record(s) identified" in cap.err
+
+
+def test_jobs_give_the_same_answers(records, capsys):
+    paths = [str(records / "good.csv"), str(records / "constant.csv"), str(records / "speed_in_rpm")]
+    assert main(["identify", *paths, "--jobs", "1", "--no-progress"]) == 1
+    one = capsys.readouterr().out
+    assert main(["identify", *paths, "--jobs", "2", "--no-progress"]) == 1
+    assert capsys.readouterr().out == one
+
+
+def test_out_is_atomic_and_not_overwritten(records, tmp_path, capsys):
+    out = tmp_path / "res.jsonl"
+    good = str(records / "good.csv")
+    assert main(["identify", good, "--out", str(out), "--no-progress"]) == 0
+    first = out.read_text()
+    assert len(first.splitlines()) == 1 and capsys.readouterr().out == ""
+    assert main(["identify", good, "--out", str(out), "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert "exists" in err and "--overwrite" in err and len(err.strip().splitlines()) == 1
+    assert out.read_text() == first
+    assert main(["identify", str(records / "constant.csv"), "--out", str(out), "--overwrite", "--no-progress"]) == 1
+    assert "constant speed" in out.read_text()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["res.jsonl"]  # no temporary files left
+
+
+def test_bad_usage_exits_2(records, tmp_path, capsys):
+    assert main(["identify"]) == 2
+    assert "expected at least one record FILE" in capsys.readouterr().err
+    good = str(records / "good.csv")
+    assert main(["identify", good, "--checkpoints", str(tmp_path / "none")]) == 2
+    assert "--checkpoints" in capsys.readouterr().err
+    assert main(["identify", good, "--out", str(tmp_path / "no" / "dir.jsonl")]) == 2
+    assert "does not exist" in capsys.readouterr().err
+    assert main(["identify", good, "--jobs", "0"]) == 2
+    capsys.readouterr()
+
+
+def test_changed_checkpoint_is_refused(records, tmp_path, capsys):
+    ck = tmp_path / "ck"
+    shutil.copytree(DEFAULT_CHECKPOINTS, ck)
+    with open(ck / "f_e.pt", "ab") as f:
+        f.write(b"\0")
+    assert main(["identify", str(records / "good.csv"), "--checkpoints", str(ck)]) == 2
+    err = capsys.readouterr().err
+    assert "SHA-256" in err and len(err.strip().splitlines()) == 1
+
+
+def test_help_documents_exit_codes(capsys):
+    with pytest.raises(SystemExit) as e:
+        main(["identify", "--help"])
+    assert e.value.code == 0
+    out = " ".join(capsys.readouterr().out.split())
+    assert "0 all records identified, 1 some records have an 'error'" in out
+
+
+def test_json_safe():
+    x = {"a": float("nan"), "b": np.float64("inf"), "c": (1, np.int64(2)), "d": np.bool_(True), "e": -np.inf,
+         "f": [np.float32(0.5)], "g": None}
+    text = json.dumps(json_safe(x), allow_nan=False)
+    assert _strict_loads(text) == {"a": None, "b": None, "c": [1, 2], "d": True, "e": None, "f": [0.5], "g": None}
+
+
+def test_readme_python_example_runs(records, tmp_path, monkeypatch):
+    readme = (REPO / "README.md").read_text()
+    section = readme[readme.index("## Identify your own record"):]
+    code = re.search(r"```python\n(.*?)```", section, re.S).group(1)
+    for ext in (".csv", ".json"):
+        shutil.copy(records / f"good{ext}", tmp_path / f"run{ext}")
+    monkeypatch.chdir(tmp_path)
+    ns: dict = {}
+    exec(compile(code, "README.md", "exec"), ns)  # noqa: S102 - our own README
+    result = ns["result"]
+    assert result["structure"] in STRUCTURE_CLASSES and set(result["parameters"]) == set(PARAMETER_NAMES)
+
+
+def test_readme_sample_line_has_the_output_keys():
+    readme = (REPO / "README.md").read_text()
+    section = readme[readme.index("## Identify your own record"):]
+    line = next(x for x in section.splitlines() if x.startswith('{"record"'))
+    res = _strict_loads(line)
+    assert {"record", "structure", "parameters", "quality", "warnings"} <= set(res)
+    assert list(res["parameters"]) == list(PARAMETER_NAMES)
+
+
+def test_a_failing_recall_costs_only_its_record(records):
+    from training.cmd_identify import identify_paths
+
+    class Stub:
+        calls = 0
+
+        def identify_analyses(self, analyses):
+            Stub.calls += 1
+            if len(analyses) > 1 or Stub.calls == 3:  # the batch fails, then the second record alone
+                raise RuntimeError("boom\nsecond line")
+            return [{"structure": "stiff"} for _ in analyses]
+
+    paths = [str(records / "good.csv"), str(records / "good"), str(records / "constant.csv")]
+    res = list(identify_paths(Stub(), paths))
+    assert [r["record"] for r in res] == paths
+    assert res[0] == {"record": paths[0], "structure": "stiff"}
+    assert res[1] == {"record": paths[1], "error": "recall failed: RuntimeError: boom"}
+    assert "constant speed" in res[2]["error"]

@@ -1,0 +1,133 @@
+"""training.plausibility: units and metadata checked against the signals (one-line messages)."""
+
+from __future__ import annotations
+
+import copy
+import math
+
+import numpy as np
+import pytest
+
+from sim import (DriveConfig, Record, TestSignalConfig, TwoMassParams, iter_records, responses_to_records,
+                 sample_population, simulate_test)
+from training.plausibility import check_record
+
+RPM = 60.0 / (2.0 * math.pi)
+
+
+@pytest.fixture(scope="module")
+def good() -> Record:
+    drive, signal = DriveConfig(), TestSignalConfig()
+    params = TwoMassParams(J_sigma=0.02, V_J=1.0, f_e=30.0, d=0.02, backlash=math.radians(0.1), M_FC=0.2, mu_F=0.001)
+    resp = simulate_test(params, drive, signal, seed=0)
+    return responses_to_records(resp, params.reshape(1), drive, signal, names=["good"])[0]
+
+
+def variant(rec: Record, *, drop_meta: tuple[str, ...] = (), **changes) -> Record:
+    new = copy.deepcopy(rec)
+    for k in drop_meta:
+        new.meta.pop(k, None)
+    for k, v in changes.items():
+        if k in new.meta:
+            new.meta[k] = v
+        else:
+            setattr(new, k, v)
+    return new
+
+
+def test_good_record_passes(good):
+    check_record(good)
+
+
+def test_minimal_metadata_passes(good):
+    check_record(variant(good, drop_meta=("M_star", "w_max", "M_max", "M_N", "encoder_counts", "timed_out", "truth")))
+
+
+def test_simulated_population_passes():
+    records = list(iter_records(sample_population(12, seed=3), seed=3))
+    for r in records:
+        check_record(r)
+
+
+def test_torque_column_passes(good):
+    check_record(variant(good, current=None, torque=good.current * good.meta["K_M"]))
+
+
+def test_current_in_mA(good):
+    with pytest.raises(ValueError, match=r"^current looks like wrong units \(.*1e\+03 x metadata M_star.*mA") as e:
+        check_record(variant(good, current=good.current * 1000.0))
+    assert "\n" not in str(e.value)
+
+
+def test_current_in_mA_without_M_star_uses_M_max(good):
+    with pytest.raises(ValueError, match=r"current looks like wrong units .*M_max"):
+        check_record(variant(good, drop_meta=("M_star",), current=good.current * 1000.0))
+
+
+def test_current_far_too_small(good):
+    with pytest.raises(ValueError, match=r"current looks like wrong units .*0\.001 x metadata M_star"):
+        check_record(variant(good, current=good.current / 1000.0))
+
+
+def test_torque_in_wrong_units(good):
+    with pytest.raises(ValueError, match=r"^torque looks like wrong units"):
+        check_record(variant(good, current=None, torque=good.current * 100.0))
+
+
+def test_speed_in_rpm_against_w_max(good):
+    with pytest.raises(ValueError, match=r"^speed looks like wrong units \(peak \|speed\| .* x metadata w_max .*rpm"):
+        check_record(variant(good, speed=good.speed * RPM))
+
+
+def test_speed_in_rpm_from_the_encoder_quantum(good):
+    # no w_max: the speed is still exactly quantized, in steps of the speed quantum in rpm
+    with pytest.raises(ValueError, match=r"speed looks like wrong units \(its values are multiples of .* in rpm"):
+        check_record(variant(good, drop_meta=("w_max",), speed=good.speed * RPM))
+
+
+def test_speed_in_counts_per_second(good):
+    counts_per_s = good.meta["encoder_counts"] / (2.0 * math.pi)
+    with pytest.raises(ValueError, match=r"speed looks like wrong units .*counts/s"):
+        check_record(variant(good, speed=good.speed * counts_per_s))
+    with pytest.raises(ValueError, match=r"speed looks like wrong units .*in counts/s"):
+        check_record(variant(good, drop_meta=("w_max",), speed=good.speed * counts_per_s))
+
+
+def test_speed_too_small_unless_timed_out(good):
+    slow = good.speed / (2.0 * math.pi)  # rev/s
+    with pytest.raises(ValueError, match=r"speed looks like wrong units .*0\.1\d* x metadata w_max.*rev/s"):
+        check_record(variant(good, speed=slow, drop_meta=("encoder_counts",)))
+    check_record(variant(good, speed=slow, drop_meta=("encoder_counts",), timed_out=[True] + [False] * 5))
+
+
+def test_time_in_ms_without_T_s(good):
+    rec = variant(good, t=good.t * 1000.0)
+    rec.meta["T_s"] = good.meta["T_s"] * 1000.0  # what validate() infers from t when the metadata has no T_s
+    with pytest.raises(ValueError, match=r"^time looks like wrong units \(sample time T_s = 0\.25 s.*ms instead of s"):
+        check_record(rec)
+
+
+def test_T_Ei_in_ms(good):
+    with pytest.raises(ValueError, match=r"^metadata T_Ei looks like wrong units \(T_Ei = 0\.5 s"):
+        check_record(variant(good, T_Ei=0.5))
+
+
+def test_T_s_far_above_T_Ei(good):
+    with pytest.raises(ValueError, match=r"time looks like wrong units \(T_s = .* x T_Ei"):
+        check_record(variant(good, T_Ei=1e-6))
+
+
+def test_speed_sign_flipped(good):
+    with pytest.raises(ValueError, match=r"^speed does not follow the current .*check the sign"):
+        check_record(variant(good, speed=-good.speed, drop_meta=("w_max",)))
+
+
+def test_absurd_inertia(good):
+    pattern = r"^speed/current look like wrong units \(one-mass inertia estimate .* kg m\^2"
+    with pytest.raises(ValueError, match=pattern):
+        check_record(variant(good, speed=good.speed * 1e6, drop_meta=("w_max", "encoder_counts")))
+
+
+def test_degenerate_signals_are_left_to_the_section_detection(good):
+    check_record(variant(good, speed=np.zeros_like(good.speed)))
+    check_record(variant(good, current=np.zeros_like(good.current)))

@@ -1,0 +1,120 @@
+"""``twomass evaluate``: SOM vs IV4 on the paper's grid and a random population (SPEC section 7)."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from pathlib import Path
+
+HELP = "evaluate the SOM identification against IV4 on the paper's grid and a random set (tables + figures)"
+
+DEFAULT_OUT = Path("docs/results")
+DEFAULT_CACHE = Path("data/evaluate-cache")
+
+
+def _floats(text: str) -> tuple[float, ...]:
+    try:
+        vals = tuple(float(v) for v in text.split(",") if v.strip())
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated numbers, received {text!r}") from None
+    if not vals:
+        raise argparse.ArgumentTypeError(f"expected at least one number, received {text!r}")
+    return vals
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from training.evaluation import GRID_BACKLASH_DEG, GRID_F_E
+
+    parser.add_argument("--out", type=Path, default=DEFAULT_OUT, help=f"report folder (default {DEFAULT_OUT})")
+    parser.add_argument("--seed", type=int, default=5,
+                        help="seed of the grid draw; the random set uses seed + 1 (default 5)")
+    parser.add_argument("--per-cell", type=int, default=20, help="systems per grid cell (default 20; 0 = no grid)")
+    parser.add_argument("--population", type=int, default=1000, metavar="N",
+                        help="systems of the random set from the default population (default 1000; 0 = none)")
+    parser.add_argument("--f-e", type=_floats, default=GRID_F_E, metavar="LIST",
+                        help="grid eigenfrequencies [Hz], comma-separated (default 10,20,30,50,80,120)")
+    parser.add_argument("--backlash", type=_floats, default=GRID_BACKLASH_DEG, metavar="LIST",
+                        help="grid backlash widths [degree, total 2s], comma-separated (default 0,0.2,0.5)")
+    parser.add_argument("--checkpoints", type=Path, default=None, help="map folder (default: the shipped maps)")
+    parser.add_argument("--cache", type=Path, default=DEFAULT_CACHE,
+                        help=f"cache of per-system results, keyed by config (default {DEFAULT_CACHE})")
+    parser.add_argument("--no-cache", action="store_true", help="neither read nor write the cache")
+    parser.add_argument("--workers", type=int, default=None,
+                        help="analysis processes (default: CPU count; 0 = in this process)")
+    only = parser.add_mutually_exclusive_group()
+    only.add_argument("--no-iv4", action="store_true", help="SOM only")
+    only.add_argument("--no-som", action="store_true", help="IV4 only (e.g. while the maps are being retrained)")
+    parser.add_argument("--no-plots", action="store_true", help="skip the PNG figures")
+    parser.add_argument("--no-progress", action="store_true")
+
+
+def command_line(args: argparse.Namespace) -> str:
+    """The command that reproduces this run (every option that changes the results)."""
+    parts = ["twomass evaluate", f"--out {args.out}", f"--seed {args.seed}", f"--per-cell {args.per_cell}",
+             f"--population {args.population}", "--f-e " + ",".join(f"{v:g}" for v in args.f_e),
+             "--backlash " + ",".join(f"{v:g}" for v in args.backlash)]
+    if args.checkpoints is not None:
+        parts.append(f"--checkpoints {args.checkpoints}")
+    if args.no_iv4:
+        parts.append("--no-iv4")
+    if args.no_som:
+        parts.append("--no-som")
+    return " ".join(parts)
+
+
+def run(args: argparse.Namespace) -> int:
+    from tqdm import tqdm
+
+    from sim import DriveConfig, TestSignalConfig
+    from training.evaluation import grid_set, population_set, run_set, summarize
+    from training.report import write_report
+
+    if args.per_cell < 0 or args.population < 0:
+        raise ValueError(f"--per-cell and --population: expected >= 0, received {args.per_cell}, {args.population}")
+    if args.per_cell == 0 and args.population == 0:
+        raise ValueError("--per-cell and --population: expected at least one > 0, received both 0")
+    workers = (os.cpu_count() or 1) if args.workers is None else args.workers
+    if workers < 0:
+        raise ValueError(f"--workers: expected >= 0, received {workers}")
+    methods = ("som",) if args.no_iv4 else ("iv4",) if args.no_som else ("som", "iv4")
+    drive, signal = DriveConfig(), TestSignalConfig()
+    sets = {}
+    if args.per_cell:
+        sets["grid"] = grid_set(args.per_cell, args.seed, f_e=args.f_e, backlash_deg=args.backlash)
+    if args.population:
+        sets["population"] = population_set(args.population, args.seed + 1)
+    cache = None if args.no_cache else args.cache
+    t0 = time.perf_counter()
+    rows_by_set, timing = {}, {}
+    with tqdm(total=sum(s.size for s in sets.values()), unit="sys", desc="evaluate", file=sys.stderr,
+              disable=args.no_progress) as bar:
+        for name, s in sets.items():
+            t = time.perf_counter()
+            bar.set_postfix_str(name)
+            rows_by_set[name], info = run_set(s, methods=methods, drive=drive, signal=signal,
+                                              checkpoints=args.checkpoints, cache_dir=cache, workers=workers,
+                                              progress=bar.update)
+            timing[name] = {"s": time.perf_counter() - t, "n": s.size, "methods": info}
+    summary = summarize(rows_by_set, sets, methods)
+    summary["config"] = {name: s.to_dict() for name, s in sets.items()}
+    summary["workers"] = workers
+    summary["timing"] = {"total_s": time.perf_counter() - t0, "sets": timing}
+    written = write_report(summary, rows_by_set, args.out, command=command_line(args), plots=not args.no_plots)
+    summary["timing"]["total_s"] = time.perf_counter() - t0
+    if written["note"]:
+        print(written["note"])
+    for name, s in summary["sets"].items():
+        rates = "; ".join(f"{m.upper()} E_30 {_fmt(s['overall'][m]['E_30'])} %, E_50 {_fmt(s['overall'][m]['E_50'])} %"
+                          for m in summary["methods"])
+        print(f"{name}: {s['n']} systems: {rates}")
+    for c in summary["checks"]:
+        print(f"check {'PASS' if c['passed'] else 'FAIL' if c['passed'] is False else 'n/a'}: {c['name']} ({c['detail']})")
+    print(f"wrote {args.out / 'report.md'} and {len(written['files']) - 1} more files in "
+          f"{summary['timing']['total_s']:.0f} s")
+    return 0
+
+
+def _fmt(x: float | None) -> str:
+    return "–" if x is None else f"{x:.0f}"

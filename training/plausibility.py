@@ -1,0 +1,191 @@
+"""Plausibility of a test-run record: do the signals agree with the metadata and with physics?
+
+:mod:`sim.records` checks the *format* (columns, NaN, uniform time, metadata types). This module
+checks what a well-formed record can still get wrong, mostly units off by orders of magnitude,
+before the analysis turns it into confident nonsense. :func:`check_record` raises ``ValueError``
+with one line that names what looks wrong, the figures, and the likely cause.
+
+Checks (each only when the data it needs is present; thresholds far outside what the SPEC test
+signal produces on the default population, measured on 800 simulated systems):
+
+- timing: ``T_s`` at most 20 ms (a speed loop's sample time; ``t`` in ms gives 1000x),
+  ``T_Ei`` at most 50 ms (a current loop), ``T_s`` at most 50 x ``T_Ei``;
+- torque scale: the 99th percentile of ``|torque|`` (``|current| * K_M``) within 0.3..3 x
+  ``M_star`` (simulated: 1.00), else at most 1.5 x ``M_max`` (mA give 1000x);
+- speed scale: the peak ``|speed|`` within 0.3..3 x ``w_max`` (simulated: 1.00..1.61; the lower
+  bound only when no section timed out); rpm give 9.5x, deg/s 57x, counts/s ``counts/2pi`` x;
+- speed quantum: when ``encoder_counts`` is given and the speed is exactly quantized, but in
+  steps of the encoder's speed quantum expressed in another unit (rpm, deg/s, counts/s...);
+- inertia: a one-mass estimate (``J = int M dt / delta w``, least squares over the record;
+  simulated: 0.8..1.02 x the true ``J_sigma``) must be positive (else speed and current have
+  opposite signs) and within 1e-7..1e4 kg m^2.
+
+A record whose speed is constant or whose torque is zero passes here: the section detection
+reports those with a more specific message.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+__all__ = ["check_record", "T_S_MAX", "T_EI_MAX", "T_S_OVER_T_EI_MAX", "TORQUE_RATIO", "SPEED_RATIO", "J_RANGE"]
+
+T_S_MAX = 0.02  # largest plausible sample time of a speed loop [s]
+T_EI_MAX = 0.05  # largest plausible current-loop time constant [s]
+T_S_OVER_T_EI_MAX = 50.0
+TORQUE_RATIO = (0.3, 3.0)  # 99th percentile of |torque| over M_star
+TORQUE_OVER_M_MAX = 1.5  # 99th percentile of |torque| over M_max (when M_star is not given)
+SPEED_RATIO = (0.3, 3.0)  # peak |speed| over w_max
+J_RANGE = (1e-7, 1e4)  # plausible one-mass inertia [kg m^2]
+_MIN_CORRELATION = 0.5  # |correlation| of torque integral and speed change needed to judge the inertia
+_QUANTIZED_SHARE = 0.99  # share of nonzero speed samples on a quantum grid to call the speed quantized
+
+
+def check_record(record: Any) -> None:
+    """Raise ``ValueError`` (one line) when the record's signals and metadata are implausible.
+
+    Args:
+        record: a ``sim.Record`` (or an object with ``t``, ``speed``, ``current`` or ``torque``
+            and a ``meta`` dict), normally already validated by ``sim.records.validate``.
+    """
+    meta = dict(getattr(record, "meta", None) or {})
+    speed = np.asarray(record.speed, dtype=np.float64)
+    torque, name = _torque(record, meta)
+    if torque is None or speed.size < 2 or not (np.all(np.isfinite(speed)) and np.all(np.isfinite(torque))):
+        return  # format problems: sim.records / the analysis report them
+    T_s = _sample_time(record, meta)
+    _check_timing(T_s, meta.get("T_Ei"))
+    if not np.any(torque != 0) or not np.ptp(speed) > 0:
+        return  # zero torque / constant speed: the section detection says so
+    _check_torque_scale(torque, name, meta)
+    _check_speed_scale(speed, meta)
+    if T_s is not None:
+        _check_speed_quantum(speed, T_s, meta)
+        _check_inertia(torque, speed, T_s, name)
+
+
+def _torque(record: Any, meta: dict[str, Any]) -> tuple[np.ndarray | None, str]:
+    if getattr(record, "torque", None) is not None:
+        return np.asarray(record.torque, dtype=np.float64), "torque"
+    if getattr(record, "current", None) is None or meta.get("K_M") is None:
+        return None, ""
+    return np.asarray(record.current, dtype=np.float64) * float(meta["K_M"]), "current"
+
+
+def _sample_time(record: Any, meta: dict[str, Any]) -> float | None:
+    if meta.get("T_s") is not None:
+        return float(meta["T_s"])
+    t = getattr(record, "t", None)
+    if t is None or len(t) < 2:
+        return None
+    return float((t[-1] - t[0]) / (len(t) - 1))
+
+
+def _check_timing(T_s: float | None, T_Ei: Any) -> None:
+    if T_s is not None and T_s > T_S_MAX:
+        raise ValueError(f"time looks like wrong units (sample time T_s = {T_s:.4g} s, expected <= {T_S_MAX:g} s "
+                         f"for a drive's speed loop; t in ms instead of s?)")
+    if T_Ei is None:
+        return
+    T_Ei = float(T_Ei)
+    if T_Ei > T_EI_MAX:
+        raise ValueError(f"metadata T_Ei looks like wrong units (T_Ei = {T_Ei:.4g} s, expected a current-loop "
+                         f"time constant <= {T_EI_MAX:g} s; given in ms instead of s?)")
+    if T_s is not None and T_Ei > 0 and T_s > T_S_OVER_T_EI_MAX * T_Ei:
+        raise ValueError(f"time looks like wrong units (T_s = {T_s:.4g} s is {T_s / T_Ei:.3g} x T_Ei = {T_Ei:.4g} s, "
+                         f"expected <= {T_S_OVER_T_EI_MAX:g} x; t and T_Ei in different units?)")
+
+
+def _check_torque_scale(torque: np.ndarray, name: str, meta: dict[str, Any]) -> None:
+    peak = float(np.percentile(np.abs(torque), 99.0))
+    what = "|current| * K_M" if name == "current" else "|torque|"
+    hint = "expected A with K_M in Nm/A; mA would give 1000 x" if name == "current" else "expected Nm"
+    M_star = meta.get("M_star")
+    if M_star is not None:
+        ratio = peak / float(M_star)
+        lo, hi = TORQUE_RATIO
+        if not lo <= ratio <= hi:
+            raise ValueError(f"{name} looks like wrong units ({what} reaches {peak:.4g} Nm, {ratio:.3g} x metadata "
+                             f"M_star = {float(M_star):.4g} Nm, expected {lo:g}..{hi:g} x; {hint})")
+        return
+    M_max = meta.get("M_max")
+    if M_max is not None and peak > TORQUE_OVER_M_MAX * float(M_max):
+        raise ValueError(f"{name} looks like wrong units ({what} reaches {peak:.4g} Nm, {peak / float(M_max):.3g} x "
+                         f"metadata M_max = {float(M_max):.4g} Nm, expected <= {TORQUE_OVER_M_MAX:g} x; {hint})")
+
+
+def _speed_units(meta: dict[str, Any], T_s: float | None) -> dict[str, float]:
+    """Speed units a record might wrongly use, as multiples of rad/s."""
+    units = {"rpm": 60.0 / (2.0 * math.pi), "deg/s": 180.0 / math.pi, "rev/s": 1.0 / (2.0 * math.pi)}
+    counts = meta.get("encoder_counts")
+    if counts is not None:
+        units["counts/s"] = float(counts) / (2.0 * math.pi)
+        if T_s is not None:
+            units["counts per sample"] = float(counts) * T_s / (2.0 * math.pi)
+    return units
+
+
+def _guess(ratio: float, units: dict[str, float]) -> str:
+    """``"; rpm?"`` when ``ratio`` lies near one unit's factor (the test overshoots w_max by up to 1.6)."""
+    best = min(units, key=lambda u: abs(math.log(ratio / units[u]) - 0.2))
+    return f"; {best} instead of rad/s?" if abs(math.log(ratio / units[best]) - 0.2) < 0.6 else ""
+
+
+def _check_speed_scale(speed: np.ndarray, meta: dict[str, Any]) -> None:
+    w_max = meta.get("w_max")
+    if w_max is None:
+        return
+    peak = float(np.max(np.abs(speed)))
+    ratio = peak / float(w_max)
+    lo, hi = SPEED_RATIO
+    timed_out = any(bool(x) for x in (meta.get("timed_out") or []))
+    if ratio > hi or (ratio < lo and not timed_out):
+        guess = _guess(ratio, _speed_units(meta, meta.get("T_s")))
+        raise ValueError(f"speed looks like wrong units (peak |speed| {peak:.4g} is {ratio:.3g} x metadata "
+                         f"w_max = {float(w_max):.4g} rad/s, expected {lo:g}..{hi:g} x{guess})")
+
+
+def _on_grid(x: np.ndarray, quantum: float) -> float:
+    """Share of ``x`` within rounding of an integer multiple of ``quantum`` (float32 speeds included;
+    at most 0.01 quanta off, so that huge multiples do not pass by their relative rounding)."""
+    u = x / quantum
+    return float(np.mean(np.abs(u - np.round(u)) <= np.minimum(0.01, 1e-3 + 2e-7 * np.abs(u))))
+
+
+def _check_speed_quantum(speed: np.ndarray, T_s: float, meta: dict[str, Any]) -> None:
+    counts = meta.get("encoder_counts")
+    if counts is None:
+        return
+    x = speed[speed != 0]
+    if x.size < 32:
+        return
+    q_w = 2.0 * math.pi / (float(counts) * T_s)
+    if _on_grid(x, q_w) >= 0.9:
+        return  # quantized in rad/s, or not quantized at all (filtered speed): nothing to say
+    for unit, factor in _speed_units(meta, T_s).items():
+        if _on_grid(x, q_w * factor) >= _QUANTIZED_SHARE:
+            raise ValueError(f"speed looks like wrong units (its values are multiples of {q_w * factor:.6g}, the "
+                             f"encoder's speed quantum 2*pi/(encoder_counts*T_s) = {q_w:.6g} rad/s in {unit}; "
+                             f"expected rad/s)")
+
+
+def _check_inertia(torque: np.ndarray, speed: np.ndarray, T_s: float, name: str) -> None:
+    impulse = np.cumsum(torque) * T_s  # int M dt [Nm s]
+    dw = speed - speed[0]
+    den = float(dw @ dw) * float(impulse @ impulse)
+    if not den > 0:
+        return
+    corr = float(impulse @ dw) / math.sqrt(den)
+    if corr < -_MIN_CORRELATION:
+        raise ValueError(f"speed does not follow the {name} (it falls under positive {name}: correlation "
+                         f"{corr:.2f} of speed change and {name} integral); check the sign of speed or {name}")
+    if corr < _MIN_CORRELATION:
+        return  # no clear one-mass behaviour: the section detection and fit judge it
+    J = float(impulse @ dw) / float(dw @ dw)
+    lo, hi = J_RANGE
+    if not lo <= J <= hi:
+        raise ValueError(f"speed/{name} look like wrong units (one-mass inertia estimate {J:.3g} kg m^2, "
+                         f"expected {lo:g}..{hi:g} kg m^2)")

@@ -1,0 +1,318 @@
+"""Evaluation report: markdown + JSON (always), per-system CSV, PNG figures (when matplotlib imports).
+
+Input is the JSON-able summary of :func:`training.evaluation.summarize` plus the per-system
+rows of :func:`training.evaluation.run_set`. Files written into the output folder:
+
+- ``report.md``: the tables (paper Fig. 10 as ``E_30``/``E_50`` grids, SOM / IV4 side by side),
+- ``report.json``: the summary, the run's config and timing,
+- ``systems.csv``: one line per system (truth, SOM and IV4 estimates),
+- ``fig9_<set>.png``: relative ``f_e`` error of each system, systems sorted by ``s_N`` (paper Fig. 9),
+- ``fig10_recognition.png``: ``E_50`` (left) and ``E_30`` (right) over ``f_e`` per backlash (paper Fig. 10).
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import os
+import tempfile
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from training.evaluation import TOLERANCES, TRUTH_KEYS, METHOD_PARAMS, relative_errors
+
+METHOD_TITLES = {"som": "SOM", "iv4": "IV4"}
+NO_MATPLOTLIB = "figures skipped: matplotlib is not installed (pip install 'twomass-som[plot]')"
+
+
+def _write_atomic(path: Path, text: str) -> None:
+    fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".tmp")
+    try:
+        with os.fdopen(fd, "w") as fh:
+            fh.write(text)
+        os.chmod(tmp, 0o644)
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+
+
+def _pct(x: float | None) -> str:
+    return "–" if x is None or (isinstance(x, float) and math.isnan(x)) else f"{x:.0f}"
+
+
+def _sig(x: float | None, digits: int = 3) -> str:
+    return "–" if x is None else f"{x:.{digits}g}"
+
+
+def _table(header: Sequence[str], rows: Sequence[Sequence[str]]) -> list[str]:
+    out = ["| " + " | ".join(header) + " |", "| " + " | ".join("---" for _ in header) + " |"]
+    out += ["| " + " | ".join(r) + " |" for r in rows]
+    return out
+
+
+def _side_by_side(rates: Mapping[str, Mapping[str, float | None]], key: str, methods: Sequence[str]) -> str:
+    return " / ".join(_pct(rates[m][key]) for m in methods)
+
+
+def grid_tables(grid: Mapping[str, Any], methods: Sequence[str]) -> list[str]:
+    """Markdown lines: one ``f_e`` x backlash table per tolerance, cells ``SOM / IV4`` in %."""
+    cells = grid["cells"]
+    f_es = sorted({c["f_e"] for c in cells})
+    bls = sorted({c["backlash_deg"] for c in cells})
+    by = {(c["f_e"], c["backlash_deg"]): c for c in cells}
+    means = {b["backlash_deg"]: b for b in grid["backlash_means"]}
+    label = " / ".join(METHOD_TITLES[m] for m in methods)
+    lines: list[str] = []
+    for x in TOLERANCES:
+        key = f"E_{x}"
+        lines += [f"**E_{x} [%] ({label})**, {cells[0]['n']} systems per cell", ""]
+        body = [[f"{f:g}"] + [_side_by_side(by[(f, b)], key, methods) for b in bls] for f in f_es]
+        body.append(["**mean**"] + [_side_by_side(means[b], key, methods) for b in bls])
+        lines += _table(["f_e [Hz]"] + [f"backlash {b:g}°" for b in bls], body) + [""]
+    lines += ["**Cell context**: median `s_N`, share of systems with `s_N > 1`, systems with `r_osc < 1` "
+              "(oscillation below one speed quantum), true classes (stiff/elastic/elastic_backlash/stiff_backlash)", ""]
+    body = []
+    for f in f_es:
+        row = [f"{f:g}"]
+        for b in bls:
+            c = by[(f, b)]
+            cl = "/".join(str(v) for v in c["classes"].values())
+            row.append(f"{_sig(c['s_N_median'], 2)}; {_pct(100 * c['s_N_above_1'])} %; {c['r_osc_below_1']}; {cl}")
+        body.append(row)
+    lines += _table(["f_e [Hz]"] + [f"backlash {b:g}°" for b in bls], body) + [""]
+    return lines
+
+
+def set_tables(name: str, s: Mapping[str, Any], methods: Sequence[str]) -> list[str]:
+    """Markdown lines for one set: overall and per-class ``E_x``, parameter errors, confusion, failures."""
+    titles = [METHOD_TITLES[m] for m in methods]
+    lines = [f"### {name}: {s['n']} systems ({s['r_osc_below_1']} with `r_osc < 1`)", ""]
+    header = ["systems", "n"] + [f"{t} E_{x}" for x in TOLERANCES for t in titles]
+    body = [["all", str(s["n"])] + [_pct(s["overall"][m][f"E_{x}"]) for x in TOLERANCES for m in methods]]
+    for c in s["per_class"]:
+        body.append([f"true {c['class']}", str(c["n"])] + [_pct(c[m][f"E_{x}"]) for x in TOLERANCES for m in methods])
+    lines += _table(header, body) + [""]
+    lines += ["Parameter errors: signed relative error (absolute for `M_FC` [Nm], `mu_F` [Nm s/rad]) over the "
+              "systems with an estimate; missing = not identified (stiff class, failed or invalid); "
+              "within x %: share of all systems in scope (missing = outside)", ""]
+    body = []
+    for m in methods:
+        for p, st in s["parameters"][m].items():
+            fmt = (lambda v: "–" if v is None else f"{100 * v:+.1f} %") if st["kind"] == "relative" else _sig
+            med = "–" if st["median_abs"] is None else (f"{100 * st['median_abs']:.1f} %" if st["kind"] == "relative"
+                                                         else _sig(st["median_abs"]))
+            std = "–" if st["std"] is None else (f"{100 * st['std']:.1f} %" if st["kind"] == "relative"
+                                                 else _sig(st["std"]))
+            within = [_pct(st.get(f"within_{x}")) for x in TOLERANCES]
+            body.append([METHOD_TITLES[m], f"`{p}`", str(st["n"]), str(st["n_missing"]), fmt(st["mean"]), std, med]
+                        + within)
+    lines += _table(["method", "parameter", "n", "missing", "mean", "std", "median abs"]
+                    + [f"within {x} % [%]" for x in TOLERANCES], body) + [""]
+    if "confusion" in s:
+        conf = s["confusion"]
+        lines += ["SOM structure confusion (rows: true class, columns: identified class)", ""]
+        body = [[f"**{t}**"] + [str(v) for v in row] for t, row in zip(conf["true"], conf["matrix"])]
+        lines += _table(["true \\ identified"] + conf["predicted"], body)
+        total = sum(sum(r) for r in conf["matrix"])
+        diag = sum(conf["matrix"][i][i] for i in range(len(conf["true"])))
+        lines += ["", f"Structure accuracy: {diag} of {total} ({100 * diag / max(total, 1):.0f} %).", ""]
+    f = s["failures"]
+    notes = []
+    if "som" in f:
+        notes.append(f"SOM: {f['som']['n_error']} records failed the analysis"
+                     + (f" (e.g. {f['som']['examples'][0]})" if f["som"]["examples"] else "")
+                     + f"; {f['som']['n_stiff_no_f_e']} identified as stiff (no `f_e`, `V_J`: misses)")
+    if "iv4" in f:
+        notes.append(f"IV4: {f['iv4']['n_invalid']} invalid results (misses)"
+                     + (f", e.g. {f['iv4']['examples'][0]}" if f["iv4"]["examples"] else ""))
+    lines += [f"- {n}" for n in notes] + [""]
+    return lines
+
+
+def timing_lines(timing: Mapping[str, Any], workers: int | None) -> list[str]:
+    """Markdown lines: this run's wall time, and how long the (possibly cached) results took to compute."""
+    sets = timing["sets"]
+    lines = [f"Wall time of this run: {timing['total_s']:.0f} s ("
+             + ", ".join(f"{k} {v['s']:.0f} s" for k, v in sets.items()) + f"), {workers} workers."]
+    done = []
+    for name, v in sets.items():
+        seen = set()
+        for m, info in v["methods"].items():
+            key = (info.get("compute_s"), tuple(info.get("methods_together", [m])))
+            if key in seen:
+                continue
+            seen.add(key)
+            if info.get("compute_s") is None:
+                done.append(f"{name} {m}: from a cache without timing")
+                continue
+            load = info.get("loadavg") or [None, None]
+            load_txt = "" if None in load else f", 1-min load average {load[0]:.1f} -> {load[1]:.1f} on {os.cpu_count()} cores"
+            done.append(f"{name} ({'+'.join(key[1])}, {v['n']} systems): {info['compute_s']:.0f} s"
+                        f"{' (cached)' if info.get('cached') else ''} with {info.get('workers')} workers{load_txt}"
+                        f"{', ' + info['date'] if info.get('date') else ''}")
+    lines += ["", "Simulation + identification time: " + "; ".join(done) + ".", ""]
+    return lines
+
+
+def render_markdown(summary: Mapping[str, Any], *, command: str = "", figures: Sequence[str] = (),
+                    figure_note: str = "") -> str:
+    """The whole report as markdown (figures linked by file name, relative to the report)."""
+    methods = summary["methods"]
+    lines = ["# twomass evaluate: SOM identification vs IV4", ""]
+    if command:
+        lines += ["Command:", "", "```", command, "```", ""]
+    t = summary.get("timing")
+    if t:
+        lines += timing_lines(t, summary.get("workers"))
+    lines += ["`E_x` = share of systems whose `f_e`, `V_J` and `J_sigma` are all within x % relative error "
+              "(paper section 4). A missing estimate is a miss: the SOM's `stiff` class has no `f_e`/`V_J`, "
+              "IV4 results with `valid=False` count as misses.", ""]
+    if summary.get("checks"):
+        lines += ["## Acceptance checks (issue 5)", ""]
+        for c in summary["checks"]:
+            mark = {True: "PASS", False: "FAIL", None: "n/a"}[c["passed"]]
+            lines.append(f"- **{mark}** {c['name']}: {c['detail']}")
+        lines.append("")
+    if "grid" in summary["sets"] and "cells" in summary["sets"]["grid"]:
+        lines += ["## Paper grid (Fig. 10)", ""] + grid_tables(summary["sets"]["grid"], methods)
+    lines += ["## Per set", ""]
+    for name, s in summary["sets"].items():
+        lines += set_tables(name, s, methods)
+    lines += ["## Figures", ""]
+    if figure_note:
+        lines += [figure_note, ""]
+    for f in figures:
+        lines += [f"![{f}]({f})", ""]
+    return "\n".join(lines).rstrip() + "\n"
+
+
+def _csv_rows(rows: Sequence[Mapping[str, Any]], methods: Sequence[str]) -> tuple[list[str], list[list[Any]]]:
+    header = ["set", "index", "cell_f_e", "cell_backlash_deg"] + [f"true_{k}" for k in TRUTH_KEYS]
+    extra = {"som": ["structure", "error"], "iv4": ["valid", "reason"]}
+    for m in methods:
+        header += [f"{m}_{k}" for k in METHOD_PARAMS[m] + tuple(extra[m])]
+    out = []
+    for r in rows:
+        line = [r["set"], r["index"], r["cell_f_e"], r["cell_backlash_deg"]] + [r["truth"][k] for k in TRUTH_KEYS]
+        for m in methods:
+            line += [r[m].get(k) for k in METHOD_PARAMS[m] + tuple(extra[m])]
+        out.append(["" if v is None else (f"{v:.6g}" if isinstance(v, float) else v) for v in line])
+    return header, out
+
+
+def _plot(summary: Mapping[str, Any], rows_by_set: Mapping[str, Sequence[Mapping[str, Any]]],
+          out: Path) -> list[str]:
+    """Fig. 9 per set and Fig. 10 for the grid; raises ImportError without matplotlib."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.ticker import NullFormatter
+
+    methods = summary["methods"]
+    style = {"som": dict(color="tab:blue", marker="o"), "iv4": dict(color="tab:red", marker="x")}
+    files = []
+    ceiling = 10.0  # misses drawn at 1000 %
+    for name, rows in rows_by_set.items():
+        if not rows:
+            continue
+        s_N = np.array([r["truth"]["s_N"] for r in rows])
+        order = np.argsort(s_N, kind="stable")
+        fig, (ax, ax2) = plt.subplots(2, 1, figsize=(9, 6), sharex=True, gridspec_kw={"height_ratios": [3, 1]})
+        x = np.arange(len(rows))
+        for m in methods:
+            e = np.abs(relative_errors(rows, m, ("f_e",))["f_e"])[order]
+            miss = ~np.isfinite(e)
+            ax.scatter(x[~miss], np.maximum(e[~miss], 1e-5), s=8, label=f"{METHOD_TITLES[m]}", **style[m])
+            if miss.any():
+                ax.scatter(x[miss], np.full(miss.sum(), ceiling), s=14, facecolors="none", edgecolors=style[m]["color"],
+                           marker="^", label=f"{METHOD_TITLES[m]}: no f_e ({miss.sum()})")
+        ax.axhline(0.3, color="k", lw=0.8, ls="--")
+        ax.set_yscale("log")
+        ax.set_ylim(1e-5, ceiling * 1.5)
+        ax.set_ylabel("|relative f_e error|")
+        ax.set_title(f"{name}: relative f_e error, systems sorted by s_N (paper Fig. 9); dashed: 30 %")
+        ax.legend(loc="upper left", fontsize=8)
+        ax2.plot(x, s_N[order], color="k", lw=1)
+        ax2.set_yscale("symlog", linthresh=1e-2)
+        ax2.axhline(1.0, color="gray", lw=0.8, ls=":")
+        ax2.set_ylabel("s_N")
+        ax2.set_xlabel("system (sorted by s_N)")
+        fig.tight_layout()
+        fname = f"fig9_{name}.png"
+        fig.savefig(out / fname, dpi=110)
+        plt.close(fig)
+        files.append(fname)
+    grid = summary["sets"].get("grid")
+    if grid and "cells" in grid:
+        cells = grid["cells"]
+        bls = sorted({c["backlash_deg"] for c in cells})
+        means = {b["backlash_deg"]: b for b in grid["backlash_means"]}
+        fig, axes = plt.subplots(1, 2, figsize=(11, 4.2), sharey=True)
+        colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+        for ax, x in zip(axes, sorted(TOLERANCES, reverse=True)):
+            key = f"E_{x}"
+            for i, b in enumerate(bls):
+                sub = sorted((c for c in cells if c["backlash_deg"] == b), key=lambda c: c["f_e"])
+                f = [c["f_e"] for c in sub]
+                for m, ls in zip(methods, ("-", "--")):
+                    y = [np.nan if c[m][key] is None else c[m][key] for c in sub]
+                    mean = means[b][m][key]
+                    ax.plot(f, y, ls=ls, marker=style[m]["marker"], color=colors[i],
+                            label=f"{METHOD_TITLES[m]} {b:g}° (mean {_pct(mean)} %)")
+            ax.set_xscale("log")
+            ax.set_xticks(sorted({c["f_e"] for c in cells}))
+            ax.set_xticklabels([f"{c:g}" for c in sorted({c["f_e"] for c in cells})])
+            ax.xaxis.set_minor_formatter(NullFormatter())
+            ax.set_ylim(-3, 103)
+            ax.set_xlabel("f_e [Hz]")
+            ax.set_title(f"recognition rate E_{x} (f_e & V_J & J_sigma within {x} %)")
+            ax.grid(alpha=0.3)
+            ax.legend(fontsize=7, loc="lower left")
+        axes[0].set_ylabel("E_x [%]")
+        fig.tight_layout()
+        fig.savefig(out / "fig10_recognition.png", dpi=110)
+        plt.close(fig)
+        files.append("fig10_recognition.png")
+    return files
+
+
+def write_report(summary: Mapping[str, Any], rows_by_set: Mapping[str, Sequence[Mapping[str, Any]]],
+                 out_dir: str | os.PathLike[str], *, command: str = "", plots: bool = True) -> dict[str, Any]:
+    """Write ``report.md``, ``report.json``, ``systems.csv`` and (if matplotlib imports) the PNGs.
+
+    Returns ``{"files": [paths], "note": str}``; ``note`` is the one-line reason when figures were skipped.
+    """
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    figures: list[str] = []
+    note = ""
+    if plots:
+        try:
+            figures = _plot(summary, rows_by_set, out)
+        except ImportError:
+            note = NO_MATPLOTLIB
+    md = render_markdown(summary, command=command, figures=figures, figure_note=note)
+    _write_atomic(out / "report.md", md)
+    _write_atomic(out / "report.json", json.dumps({**summary, "command": command, "figures": figures},
+                                                  indent=1, allow_nan=False) + "\n")
+    methods = summary["methods"]
+    header, lines = _csv_rows([r for rows in rows_by_set.values() for r in rows], methods)
+    fd, tmp = tempfile.mkstemp(dir=out, suffix=".tmp")
+    try:
+        with os.fdopen(fd, "w", newline="") as fh:
+            w = csv.writer(fh)
+            w.writerow(header)
+            w.writerows(lines)
+        os.chmod(tmp, 0o644)
+        os.replace(tmp, out / "systems.csv")
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+    files = [out / "report.md", out / "report.json", out / "systems.csv"] + [out / f for f in figures]
+    return {"files": [str(f) for f in files], "note": note}
