@@ -5,6 +5,7 @@ import math
 import pytest
 import torch
 
+from _helpers import Profile
 from sim import DriveConfig, TestSignalConfig, TwoMassParams, sample_population, simulate, simulate_test
 from sim._kernel import load_kernel
 
@@ -117,17 +118,6 @@ def test_bad_arguments():
     with pytest.raises(ValueError, match="n_samples"):
         simulate(p, DRIVE, Profile([1.0], 1), 0)
 
-class Profile:
-    """Open-loop torque reference: ``levels[(k // every) % len]``, the same for every system."""
-
-    def __init__(self, levels: list[float], every: int):
-        self.levels, self.every = levels, every
-
-    def reset(self, batch_shape):
-        self.shape = tuple(batch_shape)
-
-    def step(self, k, w_meas):
-        return torch.full(self.shape, float(self.levels[(k // self.every) % len(self.levels)]))
 
 
 

@@ -4,6 +4,7 @@ import math
 
 import torch
 
+from _helpers import Profile
 from sim import DriveConfig, TwoMassParams, encoder_count, simulate
 
 
@@ -56,15 +57,4 @@ def test_encoder_exact_to_one_count_in_float32_over_hundreds_of_radians():
     assert torch.equal(r.speed, w.to(torch.float32))
     assert math.isclose(drive.q_w, 2 * math.pi / (drive.encoder_counts * drive.T_s))
 
-class Profile:
-    """Open-loop torque reference: ``levels[(k // every) % len]``, the same for every system."""
-
-    def __init__(self, levels: list[float], every: int):
-        self.levels, self.every = levels, every
-
-    def reset(self, batch_shape):
-        self.shape = tuple(batch_shape)
-
-    def step(self, k, w_meas):
-        return torch.full(self.shape, float(self.levels[(k // self.every) % len(self.levels)]))
 

@@ -2,6 +2,7 @@
 
 import torch
 
+from _helpers import Profile
 from sim import DriveConfig, TwoMassParams, simulate
 
 # stated tolerance (docs/simulator.md): with the default 4 substeps the fast path stays within
@@ -23,17 +24,6 @@ def test_fast_path_agrees_with_reference_on_backlash_and_stiction():
     # both see the load stuck for a while (stiction really holds)
     assert int((ref.states["w_L"] == 0).sum()) > 10 and int((fast.states["w_L"] == 0).sum()) > 10
 
-class Profile:
-    """Open-loop torque reference: ``levels[(k // every) % len]``, the same for every system."""
-
-    def __init__(self, levels: list[float], every: int):
-        self.levels, self.every = levels, every
-
-    def reset(self, batch_shape):
-        self.shape = tuple(batch_shape)
-
-    def step(self, k, w_meas):
-        return torch.full(self.shape, float(self.levels[(k // self.every) % len(self.levels)]))
 
 
 def nonlinear_pair() -> TwoMassParams:

@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import Any
 
 from training.errors import UserError
+from training.params_file import read_params_file
 
 HELP = "run the self-commissioning chain (test signal, identify, validate, propose, tune) on simulated plants"
 
@@ -49,32 +50,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--checkpoints", type=Path, help="folder with the maps (default: the shipped checkpoints/)")
     parser.add_argument("--quiet", action="store_true", help="print only the summary with --population")
     parser.add_argument("--no-progress", action="store_true")
-
-
-def _load_params(path: Path) -> tuple[Any, list[str]]:
-    from sim import TwoMassParams
-
-    try:
-        data = json.loads(path.read_text())
-    except FileNotFoundError:
-        raise UserError(f"{path}: file not found") from None
-    except json.JSONDecodeError as err:
-        raise UserError(f"{path}: invalid JSON ({err.msg} at line {err.lineno})") from None
-    rows = [data] if isinstance(data, dict) else data
-    if not isinstance(rows, list) or not rows or not all(isinstance(r, dict) for r in rows):
-        raise UserError(f"{path}: expected an object or a non-empty list of objects")
-    names = [str(r.get("name", f"plant{i:03d}")) for i, r in enumerate(rows)]
-    try:
-        params = TwoMassParams.from_dicts([{k: v for k, v in r.items() if k != "name"} for r in rows])
-    except (TypeError, ValueError) as err:
-        raise UserError(f"{path}: {err}") from None
-    for name, p in zip(names, params.to_dicts()):
-        bad = [k for k in ("J_sigma", "V_J", "f_e") if not (math.isfinite(p[k]) and p[k] > 0)] + \
-              [k for k in ("backlash", "M_FC", "mu_F") if not (math.isfinite(p[k]) and p[k] >= 0)] + \
-              (["d"] if not 0 <= p["d"] < 1 else [])
-        if bad:
-            raise UserError(f"{path}: plant {name!r}: invalid value(s) for {', '.join(bad)}")
-    return params, names
 
 
 def _check_positive(name: str, v: float | None) -> None:
@@ -193,7 +168,7 @@ def run(args: argparse.Namespace) -> int:
         params = sim.sample_population(args.population, args.seed)
         names = [f"plant{i:03d}" for i in range(args.population)]
     elif args.params is not None:
-        params, names = _load_params(args.params)
+        params, names = read_params_file(args.params, "plant")
     else:
         raise UserError("give --params JSON or --population N")
     if args.checkpoints is not None and not args.checkpoints.is_dir():

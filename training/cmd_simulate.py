@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
@@ -11,6 +10,7 @@ import torch
 from tqdm import tqdm
 
 from training.errors import UserError
+from training.params_file import read_params_file
 
 HELP = "simulate the SPEC test run for given or sampled systems and write records (CSV + JSON)"
 
@@ -31,35 +31,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-progress", action="store_true")
 
 
-def _load_params(path: Path):
-    from sim import TwoMassParams
-
-    try:
-        data = json.loads(path.read_text())
-    except FileNotFoundError:
-        raise UserError(f"{path}: file not found") from None
-    except json.JSONDecodeError as err:
-        raise UserError(f"{path}: invalid JSON ({err.msg} at line {err.lineno})") from None
-    rows = [data] if isinstance(data, dict) else data
-    if not isinstance(rows, list) or not rows or not all(isinstance(r, dict) for r in rows):
-        raise UserError(f"{path}: expected an object or a non-empty list of objects")
-    names = [str(r.get("name", f"sys{i:05d}")) for i, r in enumerate(rows)]
-    if len(set(names)) != len(names):
-        raise UserError(f"{path}: duplicate system names")
-    try:
-        params = TwoMassParams.from_dicts([{k: v for k, v in r.items() if k != "name"} for r in rows])
-    except (TypeError, ValueError) as err:
-        raise UserError(f"{path}: {err}") from None
-    return params, names
-
-
 def run(args: argparse.Namespace) -> int:
     from sim import DriveConfig, TestSignalConfig, iter_records, sample_population, write_record
 
     drive = DriveConfig()
     signal = TestSignalConfig(M_star=args.M_star, w_max=args.w_max, timeout=args.timeout)
     if args.params is not None:
-        params, names = _load_params(args.params)
+        params, names = read_params_file(args.params, "sys")
     else:
         if args.population < 1:
             raise UserError(f"--population: expected N >= 1, received {args.population}")
