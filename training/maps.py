@@ -145,7 +145,7 @@ def train_map(spec: MapSpec, dataset: Dataset, config: TrainConfig, *, progress:
     those unseen rows give the quantiles against which identification flags records unlike the
     training data (distances of training rows themselves are much smaller: measured 3x)."""
     rows = training_matrix(spec, dataset)
-    n_cal = max(10, int(round(calibration_share * rows.shape[0])))
+    n_cal = max(5, int(round(calibration_share * rows.shape[0])))
     if rows.shape[0] < n_cal + 10:
         raise ValueError(f"map {spec.name}: expected >= {n_cal + 10} training systems, received {rows.shape[0]}")
     perm = np.random.default_rng(config.seed).permutation(rows.shape[0])
