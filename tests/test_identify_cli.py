@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from sim import DriveConfig, Record, TestSignalConfig, TwoMassParams, responses_to_records, simulate_test, write_record
+from sim import Record, write_record
 from sim.params import STRUCTURE_CLASSES
 from training.cli import main
 from training.cmd_identify import json_safe
@@ -28,12 +28,6 @@ def _strict_loads(line: str) -> dict:
     return json.loads(line, parse_constant=no_constants)
 
 
-@pytest.fixture(scope="module")
-def good() -> Record:
-    drive, signal = DriveConfig(), TestSignalConfig()
-    params = TwoMassParams(J_sigma=0.02, V_J=1.0, f_e=30.0, d=0.02, backlash=math.radians(0.1), M_FC=0.2, mu_F=0.001)
-    resp = simulate_test(params, drive, signal, seed=0)
-    return responses_to_records(resp, params.reshape(1), drive, signal, names=["good"])[0]
 
 
 def _meta(rec: Record, drop: tuple[str, ...] = ()) -> dict:

@@ -8,19 +8,12 @@ import math
 import numpy as np
 import pytest
 
-from sim import (DriveConfig, Record, TestSignalConfig, TwoMassParams, iter_records, responses_to_records,
-                 sample_population, simulate_test)
+from sim import Record, iter_records, sample_population
 from training.plausibility import check_record
 
 RPM = 60.0 / (2.0 * math.pi)
 
 
-@pytest.fixture(scope="module")
-def good() -> Record:
-    drive, signal = DriveConfig(), TestSignalConfig()
-    params = TwoMassParams(J_sigma=0.02, V_J=1.0, f_e=30.0, d=0.02, backlash=math.radians(0.1), M_FC=0.2, mu_F=0.001)
-    resp = simulate_test(params, drive, signal, seed=0)
-    return responses_to_records(resp, params.reshape(1), drive, signal, names=["good"])[0]
 
 
 def variant(rec: Record, *, drop_meta: tuple[str, ...] = (), **changes) -> Record:
