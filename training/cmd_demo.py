@@ -107,14 +107,13 @@ def print_result(label: str, truth: dict[str, Any], res: dict[str, Any], n_sampl
 
 def run(args: argparse.Namespace) -> int:
     from sim import DriveConfig, TestSignalConfig, TwoMassParams, responses_to_records, simulate_test
-    from training.cmd_identify import _load_identifier, limit_blas_threads
+    from training.cmd_identify import _load_identifier
 
     plants = _plants(args.params)
     try:
         params = TwoMassParams.from_dicts([p for _, p in plants])
     except (TypeError, ValueError) as err:
         raise UserError(f"--params: {err}") from None
-    limit_blas_threads(1)
     drive, signal = DriveConfig(), TestSignalConfig()
     ident = _load_identifier(args.checkpoints)
     resp = simulate_test(params, drive, signal, seed=args.seed)

@@ -13,7 +13,6 @@ answered); 2 bad usage (no files, unusable checkpoints, ``--out`` exists, ...).
 from __future__ import annotations
 
 import argparse
-import ctypes
 import json
 import math
 import multiprocessing
@@ -47,39 +46,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--jobs", type=int, metavar="N", help="worker processes for the analysis (default: 1 for "
                         "fewer than 8 records, else 2 where 2 CPUs are available)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
-
-
-def limit_blas_threads(n: int = 1) -> int:
-    """Set the thread count of every OpenBLAS already loaded in this process (numpy's, scipy's).
-
-    The analysis solves many small least-squares problems; with several BLAS threads on a few
-    busy cores they spin against each other (measured 13x slower on a shared 2-core machine).
-    Loads numpy's and scipy's BLAS first (a library loaded later would keep its default).
-    Returns how many libraries were set (0 where none is found: nothing happens).
-    """
-    import numpy  # noqa: F401
-    import scipy.linalg  # noqa: F401
-
-    try:
-        with open("/proc/self/maps") as f:
-            libs = sorted(set(re.findall(r"(/\S*openblas\S*\.so\S*)", f.read())))
-    except OSError:
-        return 0
-    done = 0
-    for path in libs:
-        try:
-            lib = ctypes.CDLL(path)
-        except OSError:
-            continue
-        for sym in ("scipy_openblas_set_num_threads64_", "scipy_openblas_set_num_threads",
-                    "openblas_set_num_threads64_", "openblas_set_num_threads"):
-            fn = getattr(lib, sym, None)
-            if fn is not None:
-                fn.argtypes, fn.restype = [ctypes.c_int], None
-                fn(int(n))
-                done += 1
-                break
-    return done
 
 
 def json_safe(x: Any) -> Any:
@@ -133,7 +99,7 @@ def _analyses(paths: Sequence[str], jobs: int) -> Iterator[Any]:
     # fork: the workers inherit the imported modules (no start-up cost); they run numpy/scipy only,
     # never torch ops (not fork-safe once torch's thread pool has started in the parent)
     # the child's OpenBLAS re-initialises after fork with its default thread count: set it again
-    with multiprocessing.get_context("fork").Pool(min(jobs, len(paths)), initializer=limit_blas_threads) as pool:
+    with multiprocessing.get_context("fork").Pool(min(jobs, len(paths))) as pool:
         yield from pool.imap(analyze_path, paths, chunksize=2)
 
 
@@ -231,7 +197,6 @@ def run(args: argparse.Namespace) -> int:
     if args.jobs is not None and args.jobs < 1:
         raise UserError(f"--jobs: expected N >= 1, received {args.jobs}")
     jobs = args.jobs if args.jobs is not None else default_jobs(len(paths))
-    limit_blas_threads(1)
     ident = _load_identifier(args.checkpoints)
     bar = tqdm(total=len(paths), desc="identify", unit="rec", file=sys.stderr,
                disable=args.no_progress or len(paths) < 2)
