@@ -38,6 +38,8 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.linalg import expm, solve_toeplitz
 from scipy.signal import lfilter
 
+from training._checks import as_signal
+
 __all__ = [
     "ARXResult",
     "IV4Result",
@@ -109,17 +111,6 @@ class IV4Result(ARXResult):
 # ----------------------------------------------------------------------------- checks
 
 
-def _as_signal(x: ArrayLike, name: str) -> FloatArray:
-    if isinstance(x, (str, bytes)):
-        raise TypeError(f"{name}: expected a 1-D array of numbers, received {type(x).__name__}")
-    arr = np.asarray(x, dtype=np.float64)
-    if arr.ndim != 1:
-        raise ValueError(f"{name}: expected a 1-D array, received shape {arr.shape}")
-    if not np.all(np.isfinite(arr)):
-        raise ValueError(f"{name}: expected finite values, received {np.sum(~np.isfinite(arr))} NaN/inf")
-    return arr
-
-
 def _as_order(x: Any, name: str, minimum: int) -> int:
     if isinstance(x, bool) or not isinstance(x, (int, np.integer)):
         raise TypeError(f"{name}: expected an int, received {type(x).__name__}")
@@ -129,7 +120,7 @@ def _as_order(x: Any, name: str, minimum: int) -> int:
 
 
 def _check_data(u: ArrayLike, y: ArrayLike, na: Any, nb: Any, nk: Any) -> tuple[FloatArray, FloatArray, int, int, int]:
-    u_arr, y_arr = _as_signal(u, "u"), _as_signal(y, "y")
+    u_arr, y_arr = as_signal("u", u), as_signal("y", y)
     if u_arr.shape != y_arr.shape:
         raise ValueError(f"u and y: expected the same length, received {u_arr.size} and {y_arr.size}")
     na_i, nb_i, nk_i = _as_order(na, "na", 0), _as_order(nb, "nb", 1), _as_order(nk, "nk", 0)
@@ -416,8 +407,8 @@ def two_mass_from_discrete(
         [Nm s/rad], ``integrator_pole`` (in ``z``), ``valid`` and ``reason`` (``valid=False``,
         NaN values and a reason where the model has no resonance pair or is non-physical).
     """
-    A_a = _as_signal(A, "A")
-    B_a = _as_signal(B, "B")
+    A_a = as_signal("A", A)
+    B_a = as_signal("B", B)
     if not isinstance(T_s, (int, float)) or isinstance(T_s, bool) or not T_s > 0:
         raise ValueError(f"T_s: expected a positive sample time in s, received {T_s!r}")
     if output not in OUTPUTS:
@@ -527,7 +518,7 @@ def mean_torque(torque: ArrayLike, T_s: float, T_Ei: float, *, is_reference: boo
 
     Measurement noise is amplified by about ``sqrt(1 + a^2)/(1 - a)`` (2.3 for the reference drive).
     """
-    M = _as_signal(torque, "torque")
+    M = as_signal("torque", torque)
     if T_Ei <= 0:
         return M[:-1].copy() if is_reference else M[1:].copy()
     a = float(np.exp(-T_s / T_Ei))
@@ -592,8 +583,8 @@ def identify_iv4(
         dict of :func:`two_mass_from_discrete` plus ``T_model`` [s],
         ``A``, ``B`` (lists, the ``Delta w`` model), ``iterations``, ``converged``, ``noise_variance``.
     """
-    M = _as_signal(torque, "torque")
-    w = _as_signal(speed, "speed")
+    M = as_signal("torque", torque)
+    w = as_signal("speed", speed)
     if M.shape != w.shape:
         raise ValueError(f"torque and speed: expected the same length, received {M.size} and {w.size}")
     for name, val, positive in (("T_s", T_s, True), ("T_Ei", T_Ei, False)):

@@ -46,6 +46,8 @@ from typing import Any
 import numpy as np
 from scipy import signal as _signal
 
+from training._checks import as_signal
+
 __all__ = ["OneMassFit", "SectionFit", "fit_one_mass", "speed_from_position", "section_bounds"]
 
 
@@ -103,15 +105,6 @@ class OneMassFit:
                 "rel_residual": self.rel_residual}
 
 
-def _as_1d(name: str, x: Any) -> np.ndarray:
-    arr = np.asarray(x, dtype=np.float64)
-    if arr.ndim != 1:
-        raise ValueError(f"{name}: expected a 1-D array (N,), received shape {arr.shape}")
-    if not np.all(np.isfinite(arr)):
-        raise ValueError(f"{name}: expected finite values, received {int(np.sum(~np.isfinite(arr)))} NaN/inf")
-    return arr
-
-
 def _lowpass(x: np.ndarray, cutoff: float, T_s: float, order: int = 4) -> np.ndarray:
     """Zero-phase Butterworth low-pass; returns ``x`` unchanged when the cutoff is at Nyquist."""
     wn = 2.0 * cutoff * T_s
@@ -127,7 +120,7 @@ def speed_from_position(position: Any, T_s: float, cutoff: float | None = None) 
     Zero-phase 4th-order Butterworth low-pass at ``cutoff`` [Hz] (default ``0.04/T_s``, i.e.
     40 Hz at 1 kHz), then central differences, as the EMPS benchmark does.
     """
-    q = _as_1d("position", position)
+    q = as_signal("position", position)
     _check_T_s(T_s)
     if q.size < 3:
         raise ValueError(f"position: expected at least 3 samples, received {q.size}")
@@ -297,7 +290,7 @@ def fit_one_mass(
         ValueError: bad shapes, non-finite input, too few samples, or an uninformative record.
     """
     _check_T_s(T_s)
-    M = _as_1d("torque", torque)
+    M = as_signal("torque", torque)
     if speed is None:
         if position is None:
             raise ValueError("fit_one_mass: expected speed or position, received neither")
@@ -305,7 +298,7 @@ def fit_one_mass(
         if w.size != M.size:
             raise ValueError(f"position: expected {M.size} samples like torque, received {w.size}")
     else:
-        w = _as_1d("speed", speed)
+        w = as_signal("speed", speed)
         if w.size != M.size:
             raise ValueError(f"speed: expected {M.size} samples like torque, received {w.size}")
     n = M.size

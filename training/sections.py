@@ -20,6 +20,8 @@ from typing import Any
 import numpy as np
 from scipy.ndimage import median_filter
 
+from training._checks import as_signal
+
 __all__ = ["SectionSplit", "detect_sections", "sections_from_column", "SECTION_LEVELS"]
 
 #: ``M_ref / M*`` of sections I..VI.
@@ -62,15 +64,6 @@ class SectionSplit:
     def durations(self, T_s: float) -> np.ndarray:
         """``(6,)`` section durations [s]."""
         return (self.bounds[:, 1] - self.bounds[:, 0]) * float(T_s)
-
-
-def _arr(name: str, x: Any) -> np.ndarray:
-    a = np.asarray(x, dtype=np.float64)
-    if a.ndim != 1:
-        raise ValueError(f"{name}: expected a 1-D array, received shape {a.shape}")
-    if not np.all(np.isfinite(a)):
-        raise ValueError(f"{name}: expected finite values, received NaN/inf")
-    return a
 
 
 def _from_record(record: Any) -> dict[str, Any]:
@@ -185,8 +178,8 @@ def detect_sections(
         raise ValueError("detect_sections: expected speed and torque (or a record), received "
                          f"speed={'set' if info.get('speed') is not None else 'None'}, "
                          f"torque={'set' if info.get('torque') is not None else 'None'}")
-    w = _arr("speed", info["speed"])
-    y = _arr("torque", info["torque"])
+    w = as_signal("speed", info["speed"])
+    y = as_signal("torque", info["torque"])
     if w.size != y.size:
         raise ValueError(f"speed and torque: expected the same length, received {w.size} and {y.size}")
     Ts = info.get("T_s")
@@ -202,7 +195,7 @@ def detect_sections(
 
     ref = info.get("torque_ref")
     if ref is not None:
-        ref = _arr("torque_ref", ref)
+        ref = as_signal("torque_ref", ref)
         if ref.size != n:
             raise ValueError(f"torque_ref: expected {n} samples, received {ref.size}")
         ys, source, lag = ref, "torque_ref", 0.0
