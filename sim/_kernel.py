@@ -94,4 +94,7 @@ def load_kernel() -> ctypes.CDLL | None:
         run.restype = _I64
         run.argtypes = ([_I64, _INT, real, real, real, real, _INT] + [_P] * 22
                         + [_D, _D, real, real, real, real, real, _I32, _I32, _I64, _I64, _I64, _I64] + [_P] * 4)
+        rep = getattr(lib, f"run_replay_{sfx}")
+        rep.restype = None
+        rep.argtypes = [_I64, _INT, real, real, real, real, _INT] + [_P] * 16 + [_D, _D, _I32, _I32, _P, _P, _I64, _I64, _P]
     return lib

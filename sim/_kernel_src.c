@@ -194,3 +194,45 @@ int64_t run_test_SFX(int64_t n, int S, REAL dt, REAL h, REAL k6, REAL iTE, int n
     }
     return left;
 }
+
+/* Open-loop replay of a piecewise-constant torque reference for n systems, fused: measure,
+   record the speed, set M_ref, advance. System i applies lev[i*K + j] over samples
+   start[i*K + j] <= k < start[i*K + j + 1] (start ascending; the last segment runs to the end).
+   Writes the speed of samples k0 .. k0+nk-1 time-major to o_speed[(k - k0)*n + i]: the encoder's
+   (quantized) when quantize is set, else the mean motor speed over the past sample interval
+   (the expected value of the encoder's, for fits). */
+void run_replay_SFX(int64_t n, int S, REAL dt, REAL h, REAL k6, REAL iTE, int nthreads,
+                    const REAL *iJM, const REAL *iJL, const REAL *CF, const REAL *DF, const REAL *s,
+                    const REAL *MFC, const REAL *muF, const REAL *Mext,
+                    REAL *wM, REAL *wL, REAL *dp, REAL *MM, REAL *Mref, double *phi, double *cntp, REAL *comp,
+                    double qw, double scale, int32_t quantize, int32_t K, const int32_t *start, const REAL *lev,
+                    int64_t k0, int64_t nk, REAL *o_speed) {
+    int64_t nb = (n + BLK - 1) / BLK;
+#pragma omp parallel for schedule(dynamic, 1) num_threads(nthreads)
+    for (int64_t b = 0; b < nb; ++b) {
+        block_t B;
+        int64_t i0 = b * BLK;
+        int m = load_block(&B, i0, n, iJM, iJL, CF, DF, s, MFC, muF, Mext, wM, wL, dp, MM, Mref, phi, cntp, comp);
+        int32_t seg[BLK];
+        for (int l = 0; l < BLK; ++l) {
+            int64_t i = i0 + (l < m ? l : 0);
+            int32_t j = 0;
+            while (j + 1 < K && start[i * K + j + 1] <= k0) ++j;
+            seg[l] = j;
+        }
+        for (int64_t kk = 0; kk < nk; ++kk) {
+            int64_t k = k0 + kk;
+            for (int l = 0; l < BLK; ++l) {
+                int64_t i = i0 + (l < m ? l : 0);
+                double c = quantize ? floor(B.phi[l] * scale) : B.phi[l] * scale;
+                REAL w = (REAL)((c - B.cntp[l]) * qw);
+                B.cntp[l] = c;
+                if (l < m) o_speed[kk * n + i0 + l] = w;
+                while (seg[l] + 1 < K && start[i * K + seg[l] + 1] <= k) ++seg[l];
+                B.Mref[l] = lev[i * K + seg[l]];
+            }
+            advance_block(&B, S, dt, h, k6, iTE);
+        }
+        store_block(&B, i0, m, wM, wL, dp, MM, Mref, phi, cntp, comp);
+    }
+}

@@ -44,7 +44,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--workers", type=int, default=None,
                         help="analysis processes (default: CPU count; 0 = in this process)")
     only = parser.add_mutually_exclusive_group()
-    only.add_argument("--no-iv4", action="store_true", help="SOM only")
+    only.add_argument("--no-iv4", action="store_true", help="SOM only (with and without the refinement)")
     only.add_argument("--no-som", action="store_true", help="IV4 only (e.g. while the maps are being retrained)")
     parser.add_argument("--no-plots", action="store_true", help="skip the PNG figures")
     parser.add_argument("--no-progress", action="store_true")
@@ -78,7 +78,7 @@ def run(args: argparse.Namespace) -> int:
     workers = (os.cpu_count() or 1) if args.workers is None else args.workers
     if workers < 0:
         raise ValueError(f"--workers: expected >= 0, received {workers}")
-    methods = ("som",) if args.no_iv4 else ("iv4",) if args.no_som else ("som", "iv4")
+    methods = ("som", "maps") if args.no_iv4 else ("iv4",) if args.no_som else ("som", "maps", "iv4")
     drive, signal = DriveConfig(), TestSignalConfig()
     sets = {}
     if args.per_cell:

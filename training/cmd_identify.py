@@ -29,7 +29,7 @@ from training.errors import UserError
 HELP = "identify records (NAME.csv + NAME.json) with the shipped maps; JSON Lines out, one object per record"
 
 EXIT_OK, EXIT_SOME_ERRORS = 0, 1
-CHUNK = 64  # records analysed before one batched recall (bounds memory on long lists)
+CHUNK = 16  # records analysed before one batched recall + refinement (overlaps the analysis workers)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -45,6 +45,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "or $TWOMASS_CHECKPOINTS)")
     parser.add_argument("--jobs", type=int, metavar="N", help="worker processes for the analysis (default: 1 for "
                         "fewer than 8 records, else 2 where 2 CPUs are available)")
+    parser.add_argument("--no-refine", action="store_true",
+                        help="the maps' answer alone, without the model-based refinement (faster, coarser)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
 
 
@@ -146,14 +148,15 @@ def default_jobs(n_records: int) -> int:
     return 1 if n_records < 8 else max(1, min(2, cpus))
 
 
-def _load_identifier(folder: Path | None) -> Any:
+def _load_identifier(folder: Path | None, refine: bool = True) -> Any:
     from training.identify import DEFAULT_CHECKPOINTS, Identifier
+    from training.refine import RefineConfig
 
     where = folder if folder is not None else DEFAULT_CHECKPOINTS
     if not Path(where).is_dir():
         raise UserError(f"--checkpoints: expected a folder with the trained maps, received {str(where)!r} (not found)")
     try:
-        return Identifier.load(where)
+        return Identifier.load(where, refine=RefineConfig() if refine else None)
     except Exception as err:  # CheckpointError, unreadable or foreign files: one line, exit 2
         raise UserError(f"cannot load the maps from {where}: {_one_line(err)}") from None
 
@@ -197,7 +200,7 @@ def run(args: argparse.Namespace) -> int:
     if args.jobs is not None and args.jobs < 1:
         raise UserError(f"--jobs: expected N >= 1, received {args.jobs}")
     jobs = args.jobs if args.jobs is not None else default_jobs(len(paths))
-    ident = _load_identifier(args.checkpoints)
+    ident = _load_identifier(args.checkpoints, refine=not args.no_refine)
     bar = tqdm(total=len(paths), desc="identify", unit="rec", file=sys.stderr,
                disable=args.no_progress or len(paths) < 2)
     try:

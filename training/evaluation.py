@@ -48,7 +48,9 @@ from training.errors import UserError
 GRID_F_E: tuple[float, ...] = (10.0, 20.0, 30.0, 50.0, 80.0, 120.0)
 GRID_BACKLASH_DEG: tuple[float, ...] = (0.0, 0.2, 0.5)
 
-METHODS: tuple[str, ...] = ("som", "iv4")
+#: ``som``: our identifier (maps + model-based refinement); ``maps``: the maps' answer alone (the
+#: paper's method); ``iv4``: the instrumental-variable baseline.
+METHODS: tuple[str, ...] = ("som", "maps", "iv4")
 #: Recognition tolerances reported [%].
 TOLERANCES: tuple[int, ...] = (30, 50)
 #: Parameters with relative error statistics (``backlash`` only over systems with backlash).
@@ -58,6 +60,7 @@ ABSOLUTE_PARAMS: tuple[str, ...] = ("M_FC", "mu_F")
 #: Estimates each method delivers (the rest are reported as not available).
 METHOD_PARAMS: dict[str, tuple[str, ...]] = {
     "som": ("J_sigma", "V_J", "f_e", "d", "backlash", "M_FC", "mu_F"),
+    "maps": ("J_sigma", "V_J", "f_e", "d", "backlash", "M_FC", "mu_F"),
     "iv4": ("J_sigma", "V_J", "f_e", "d"),
 }
 #: Predicted-class labels of the confusion matrix: the four classes plus a failed analysis.
@@ -154,16 +157,17 @@ def population_set(n: int = 1000, seed: int = 6, ranges: PopulationRanges | None
 # ----------------------------------------------------------------------------- per record
 
 
-_IDENTIFIERS: dict[str, Any] = {}
+_IDENTIFIERS: dict[tuple[str, bool], Any] = {}
 
 
-def _identifier(checkpoints: str) -> Any:
-    """The loaded maps of ``checkpoints``, once per process."""
-    if checkpoints not in _IDENTIFIERS:
+def _identifier(checkpoints: str, refine: bool = True) -> Any:
+    """The loaded maps of ``checkpoints`` (with or without the refinement), once per process."""
+    if (checkpoints, refine) not in _IDENTIFIERS:
         from training.identify import Identifier
+        from training.refine import RefineConfig
 
-        _IDENTIFIERS[checkpoints] = Identifier.load(checkpoints)
-    return _IDENTIFIERS[checkpoints]
+        _IDENTIFIERS[checkpoints, refine] = Identifier.load(checkpoints, refine=RefineConfig() if refine else None)
+    return _IDENTIFIERS[checkpoints, refine]
 
 
 def _num(x: Any) -> float | None:
@@ -179,8 +183,9 @@ def _one_line(err: BaseException) -> str:
     return f"{type(err).__name__}: {text[0] if text else ''}".rstrip(": ")
 
 
-def som_result(record: Any, checkpoints: str) -> dict[str, Any]:
-    """SOM identification of one record, reduced to what the evaluation needs (JSON-able).
+def som_result(record: Any, checkpoints: str, refine: bool = True) -> dict[str, Any]:
+    """SOM identification of one record (``refine=False``: the maps' answer alone), reduced to
+    what the evaluation needs (JSON-able).
 
     Keys: ``structure`` (class name or ``None``), ``J_sigma``, ``V_J``, ``f_e`` [Hz], ``d``,
     ``backlash`` [rad], ``M_FC`` [Nm], ``mu_F`` [Nm s/rad] (``None`` where not identified),
@@ -190,7 +195,7 @@ def som_result(record: Any, checkpoints: str) -> dict[str, Any]:
     out: dict[str, Any] = dict.fromkeys(METHOD_PARAMS["som"])
     out.update(structure=None, osc_quanta=None, outside_training=None, n_warnings=0, error=None)
     try:
-        res = _identifier(checkpoints).identify_records([record])[0]
+        res = _identifier(checkpoints, refine).identify_records([record])[0]
     except Exception as err:  # noqa: BLE001 - one bad record must not end a long run; it is reported
         out["error"] = _one_line(err)
         return out
@@ -234,6 +239,8 @@ def _process(record: Any, checkpoints: str, methods: tuple[str, ...]) -> tuple[i
     out: dict[str, dict[str, Any]] = {}
     if "som" in methods:
         out["som"] = som_result(record, checkpoints)
+    if "maps" in methods:
+        out["maps"] = som_result(record, checkpoints, refine=False)
     if "iv4" in methods:
         out["iv4"] = iv4_result(record)
     return index, out
@@ -270,7 +277,8 @@ def checkpoints_digest(checkpoints: str | os.PathLike[str]) -> str:
 #: Top-level packages whose source enters :func:`source_digest`.
 _OWN_PACKAGES = ("sim", "training", "som_torch")
 #: Modules a method's results depend on (their import closure within :data:`_OWN_PACKAGES` is hashed).
-METHOD_ROOTS: dict[str, tuple[str, ...]] = {"som": ("sim", "training.identify"), "iv4": ("sim", "training.iv4")}
+METHOD_ROOTS: dict[str, tuple[str, ...]] = {"som": ("sim", "training.identify"), "maps": ("sim", "training.identify"),
+                                             "iv4": ("sim", "training.iv4")}
 
 
 def _module_file(name: str) -> Path | None:
@@ -324,11 +332,11 @@ def method_config(method: str, eval_set: EvalSet, drive: DriveConfig, signal: Te
     cfg: dict[str, Any] = {"cache_version": CACHE_VERSION, "method": method, "set": eval_set.to_dict(),
                            "drive": asdict(drive), "signal": asdict(signal),
                            "source_sha256": source_digest(METHOD_ROOTS[method])}
-    if method == "som":
+    if method in ("som", "maps"):
         from training.analysis import FEATURE_VERSION
 
         if checkpoints is None:
-            raise ValueError("method_config: expected a checkpoint folder for method 'som', received None")
+            raise ValueError(f"method_config: expected a checkpoint folder for method {method!r}, received None")
         cfg.update(feature_version=FEATURE_VERSION, checkpoints_manifest_sha256=checkpoints_digest(checkpoints))
     else:
         cfg.update(iv4="identify_iv4 defaults (speed_is_mean, friction, max_iter=10), T_Ei from the record")
@@ -426,7 +434,7 @@ def run_set(eval_set: EvalSet, *, methods: Sequence[str] = METHODS, drive: Drive
     ckpt = str(Path(checkpoints) if checkpoints is not None else DEFAULT_CHECKPOINTS)
     n = eval_set.size
     cfgs = {m: method_config(m, eval_set, drive, signal, ckpt) for m in methods}
-    if "som" in methods:
+    if "som" in methods or "maps" in methods:
         _identifier(ckpt)  # fail fast (one line) on maps that do not fit this toolkit, cached or not
     cache = Path(cache_dir) if cache_dir is not None else None
     results: dict[str, list[Any]] = {}
@@ -566,10 +574,11 @@ def structure_confusion(rows: Sequence[Mapping[str, Any]]) -> np.ndarray:
 
 def _failures(rows: Sequence[Mapping[str, Any]], methods: Sequence[str]) -> dict[str, Any]:
     out: dict[str, Any] = {}
-    if "som" in methods:
-        errs = [r["som"]["error"] for r in rows if r["som"].get("error")]
-        out["som"] = {"n_error": len(errs), "examples": sorted(set(errs))[:3],
-                      "n_stiff_no_f_e": sum(1 for r in rows if r["som"]["structure"] == "stiff")}
+    for m in ("som", "maps"):
+        if m in methods:
+            errs = [r[m]["error"] for r in rows if r[m].get("error")]
+            out[m] = {"n_error": len(errs), "examples": sorted(set(errs))[:3],
+                      "n_stiff_no_f_e": sum(1 for r in rows if r[m]["structure"] == "stiff")}
     if "iv4" in methods:
         bad = [r["iv4"]["reason"] for r in rows if not r["iv4"].get("valid")]
         out["iv4"] = {"n_invalid": len(bad), "examples": sorted(set(bad))[:3]}

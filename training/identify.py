@@ -26,6 +26,7 @@ from sim import Record, read_record
 from sim.params import STRUCTURE_CLASSES
 from training.analysis import FEATURE_NAMES, Analysis, analyze
 from training.maps import MAP_SPECS, TrainedMap, load_map, recall_targets
+from training.refine import RefineConfig, RefineProblem, Refined, refine, torque_reference
 
 #: Where the shipped maps lie (override with ``$TWOMASS_CHECKPOINTS`` or ``Identifier.load(folder)``).
 DEFAULT_CHECKPOINTS = Path(os.environ.get("TWOMASS_CHECKPOINTS", Path(__file__).resolve().parents[1] / "checkpoints"))
@@ -35,21 +36,29 @@ _BACKLASH_CLASSES = ("elastic_backlash", "stiff_backlash")
 
 
 class Identifier:
-    """Trained maps, loaded once; identifies records (one at a time or many in one batch)."""
+    """Trained maps, loaded once; identifies records (one at a time or many in one batch).
 
-    def __init__(self, maps: dict[str, TrainedMap]) -> None:
+    ``refine``: the model-based refinement of the maps' answer (:mod:`training.refine`); ``None``
+    gives the maps' answer alone (the paper's method)."""
+
+    def __init__(self, maps: dict[str, TrainedMap], refine: RefineConfig | None = RefineConfig()) -> None:
         missing = [n for n in MAP_SPECS if n not in maps]
         if missing:
             raise ValueError(f"Identifier: maps missing: {missing}; expected {list(MAP_SPECS)}")
+        if refine is not None and not isinstance(refine, RefineConfig):
+            raise TypeError(f"refine: expected a RefineConfig or None, received {type(refine).__name__}")
         self.maps = maps
+        self.refine = refine
+        self.M_N = float(maps["backlash"].metadata["dataset"]["drive"]["M_N"])
 
     @classmethod
-    def load(cls, folder: str | os.PathLike[str] | None = None) -> "Identifier":
+    def load(cls, folder: str | os.PathLike[str] | None = None, *,
+             refine: RefineConfig | None = RefineConfig()) -> "Identifier":
         """Load every map of ``folder`` (default: the shipped ``checkpoints/``) after checking
         the manifest's SHA-256 of each file."""
         folder = Path(folder) if folder is not None else DEFAULT_CHECKPOINTS
         st.verify_manifest(folder)
-        return cls({name: load_map(folder / f"{name}.pt") for name in MAP_SPECS})
+        return cls({name: load_map(folder / f"{name}.pt") for name in MAP_SPECS}, refine)
 
     def identify(self, record: Record) -> dict[str, Any]:
         """Identify one record; raises ValueError (one line) when it cannot be analysed."""
@@ -97,8 +106,14 @@ class Identifier:
         for name, m in self.maps.items():
             cols = [FEATURE_NAMES.index(f) for f in m.spec.features]
             recalled[name] = recall_targets(m, F[:, cols], int(m.metadata["train_config"]["interpolate"]))
-        return [self._assemble(a, {n: {k: float(v[i]) for k, v in r.items()} for n, r in recalled.items()})
-                for i, a in enumerate(analyses)]
+        results = [self._assemble(a, {n: {k: float(v[i]) for k, v in r.items()} for n, r in recalled.items()})
+                   for i, a in enumerate(analyses)]
+        if self.refine is not None:
+            todo = [i for i, res in enumerate(results) if res["structure"] != "stiff"]
+            problems = [self._problem(analyses[i], results[i]) for i in todo]
+            for i, refined in zip(todo, refine(problems, self.refine)):
+                self._apply_refined(analyses[i], results[i], refined)
+        return results
 
     def _assemble(self, a: Analysis, r: dict[str, dict[str, float]]) -> dict[str, Any]:
         warnings = list(a.warnings)
@@ -113,7 +128,7 @@ class Identifier:
         w_0 = 2 * math.pi * f_e / math.sqrt(1.0 - d * d)
         C_F = w_0 * w_0 * J_M * J_L / fit.J_sigma
         structure, probs = self._structure(a, r, f_e, V_J, w_0)
-        M_N = float(self.maps["backlash"].metadata["dataset"]["drive"]["M_N"])
+        M_N = self.M_N
         p: dict[str, float | None] = dict.fromkeys(PARAMETER_NAMES)
         p.update(J_sigma=fit.J_sigma, M_FC=max(fit.M_FC, 0.0), mu_F=max(fit.mu_F, 0.0), backlash=0.0)
         if structure != "stiff":
@@ -139,10 +154,49 @@ class Identifier:
             "one_mass_rel_residual": fit.rel_residual,
             "outside_training": any(unseen[n] > 1.0 for n in used),
             "section_flags": a.section_flags,
+            "maps_s_N": 10.0 ** r["structure"]["log10_s_N"],
         }
         if a.osc_quanta < 1.0 and structure != "stiff":
             warnings.append(f"oscillation only {a.osc_quanta:.2f} speed quanta rms: elastic parameters uncertain")
         return {"structure": structure, "parameters": p, "quality": quality, "warnings": warnings}
+
+    def _problem(self, a: Analysis, res: dict[str, Any]) -> RefineProblem:
+        """The refinement of one maps' answer: the record's replayed test signal, STEP 2's
+        one-mass values, and the maps' ``f_e``, ``V_J``, ``d``, ``s_N`` as the start."""
+        b = a.sections.bounds
+        start, level = torque_reference(b, a.M_star)
+        p = res["parameters"]
+        counts = int(round(2.0 * math.pi / (a.q_w * a.T_s)))
+        segments = np.concatenate([b, [[b[5, 1], len(a.fit.speed)]]])  # the six sections and the tail
+        s_N = max(res["quality"]["maps_s_N"], 1e-3)
+        return RefineProblem(speed=a.fit.speed, start=start, level=level, segments=segments, J_sigma=a.fit.J_sigma,
+                             M_FC=max(a.fit.M_FC, 0.0), mu_F=max(a.fit.mu_F, 0.0), T_s=a.T_s, T_Ei=a.T_Ei,
+                             encoder_counts=counts, M_N=self.M_N,
+                             theta=np.array([math.log10(p["f_e"]), math.log10(p["V_J"]), p["d"], math.log10(s_N)]))
+
+    def _apply_refined(self, a: Analysis, res: dict[str, Any], m: Refined) -> None:
+        """Replace the maps' elastic parameters by the refined ones; the structure follows
+        SPEC's class rules on the refined values (the maps' class stays in ``quality``)."""
+        J_sigma = a.fit.J_sigma
+        J_M = J_sigma / (1.0 + m.V_J)
+        w_e = 2 * math.pi * m.f_e
+        w_0 = w_e / math.sqrt(1.0 - m.d * m.d)
+        r_osc = m.V_J * a.M_star / (J_sigma * w_0 * a.q_w)
+        if m.s_N < 0.1:
+            structure = "stiff" if (w_e * a.T_Ei >= 1.0 or r_osc < 1.0) else "elastic"
+        else:
+            structure = "stiff_backlash" if (m.s_N >= 1.0 or w_e * a.T_Ei >= 1.0) else "elastic_backlash"
+        p = res["parameters"]
+        p.update(f_e=m.f_e, V_J=m.V_J, d=m.d, J_M=J_M, J_L=J_sigma - J_M, C_F=w_0 * w_0 * J_M * (J_sigma - J_M) / J_sigma,
+                 backlash=m.backlash if structure in _BACKLASH_CLASSES else 0.0)
+        if structure == "stiff":
+            p.update(f_e=None, V_J=None, d=None, J_M=None, J_L=None, C_F=None)
+        res["quality"].update(maps_structure=res["structure"], refine_residual=m.residual,
+                              refine_start_residual=m.start_residual, refined_s_N=m.s_N)
+        res["structure"] = structure
+        if m.residual > 0.7 and structure != "stiff":
+            res["warnings"].append(f"the refined model reproduces only part of the measured oscillation "
+                                   f"(residual {m.residual:.2f} of its rms)")
 
     def _structure(self, a: Analysis, r: dict[str, dict[str, float]], f_e: float, V_J: float,
                    w_0: float) -> tuple[str, dict[str, float]]:

@@ -214,21 +214,31 @@ def _osc_columns(bounds: list[tuple[int, int]], T_s: float, f: float, d: float) 
 
 
 def _lstsq(X: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
-    """Column-scaled least squares by Householder QR; returns parameters, their std, rms residual."""
+    """Column-scaled least squares; returns parameters, their std, rms residual.
+
+    Normal equations of the unit-norm columns, factored by Cholesky (``R^T R = X^T X``, the R of
+    a QR of ``X``): half the flops of Householder QR on these tall matrices and, with the columns
+    scaled, accurate to ~1e-8 relative in float64 for the condition numbers met here."""
     scale = np.sqrt(np.sum(X * X, axis=0))
     scale[scale == 0] = 1.0
     Xs = X / scale
-    if Xs.shape[0] < Xs.shape[1]:
-        raise ValueError(f"one-mass fit: expected at least {Xs.shape[1]} rows, received {Xs.shape[0]}")
-    Q, R = np.linalg.qr(Xs)
-    d = np.abs(np.diag(R))
-    rank = int(np.sum(d > 1e-10 * max(float(d.max(initial=0.0)), 1e-300)))
-    if rank < X.shape[1]:
+    p = Xs.shape[1]
+    if Xs.shape[0] < p:
+        raise ValueError(f"one-mass fit: expected at least {p} rows, received {Xs.shape[0]}")
+    G = Xs.T @ Xs  # p x p
+    try:
+        R = np.linalg.cholesky(G).T  # upper
+        d = np.abs(np.diag(R))
+        rank = int(np.sum(d > 1e-7 * max(float(d.max(initial=0.0)), 1e-300)))
+    except np.linalg.LinAlgError:
+        rank = -1
+    if rank < p:
         raise ValueError(
-            f"one-mass fit: expected an informative record (regressor rank {X.shape[1]}), received rank {rank}; "
+            f"one-mass fit: expected an informative record (regressor rank {p}), received "
+            f"{'a rank-deficient regressor' if rank < 0 else f'rank {rank}'}; "
             "the speed must change sign or vary enough to separate inertia, friction and offset "
             "(try offset=False)")
-    theta_s = np.linalg.solve(R, Q.T @ y)
+    theta_s = np.linalg.solve(G, Xs.T @ y)
     theta = theta_s / scale
     r = y - X @ theta
     dof = max(1, X.shape[0] - X.shape[1])

@@ -25,7 +25,7 @@ import numpy as np
 
 from training.evaluation import TOLERANCES, TRUTH_KEYS, METHOD_PARAMS, relative_errors
 
-METHOD_TITLES = {"som": "SOM", "iv4": "IV4"}
+METHOD_TITLES = {"som": "SOM", "maps": "maps only", "iv4": "IV4"}
 NO_MATPLOTLIB = "figures skipped: matplotlib is not installed (pip install 'twomass-som[plot]')"
 
 
@@ -193,7 +193,7 @@ def render_markdown(summary: Mapping[str, Any], *, command: str = "", figures: S
 
 def _csv_rows(rows: Sequence[Mapping[str, Any]], methods: Sequence[str]) -> tuple[list[str], list[list[Any]]]:
     header = ["set", "index", "cell_f_e", "cell_backlash_deg"] + [f"true_{k}" for k in TRUTH_KEYS]
-    extra = {"som": ["structure", "error"], "iv4": ["valid", "reason"]}
+    extra = {"som": ["structure", "error"], "maps": ["structure", "error"], "iv4": ["valid", "reason"]}
     for m in methods:
         header += [f"{m}_{k}" for k in METHOD_PARAMS[m] + tuple(extra[m])]
     out = []
@@ -215,7 +215,8 @@ def _plot(summary: Mapping[str, Any], rows_by_set: Mapping[str, Sequence[Mapping
     from matplotlib.ticker import NullFormatter
 
     methods = summary["methods"]
-    style = {"som": dict(color="tab:blue", marker="o"), "iv4": dict(color="tab:red", marker="x")}
+    style = {"som": dict(color="tab:blue", marker="o"), "maps": dict(color="tab:green", marker="."),
+             "iv4": dict(color="tab:red", marker="x")}
     files = []
     ceiling = 10.0  # misses drawn at 1000 %
     for name, rows in rows_by_set.items():

@@ -1,0 +1,303 @@
+"""Model-based refinement of the maps' answer: an output-error fit by batched re-simulation.
+
+The maps give the structure and a first estimate of ``f_e``, ``V_J``, ``d`` and the normalized
+backlash ``s_N``. This module polishes them on the record itself: candidate two-mass models
+(``J_sigma``, ``M_FC``, ``mu_F`` fixed from STEP 2) are simulated open loop under the record's own
+torque reference (:func:`sim.replay.replay_speed`, many candidates in one batch) and scored by
+how well they reproduce the measured motor speed. Before scoring, a quadratic trend per section
+is removed from the speed error: it absorbs the small one-mass errors of STEP 2 (a friction or
+inertia error tilts a section's speed), so the score measures what the maps are about: the
+oscillation after each torque step and the motor's excursions while it crosses the backlash.
+
+The search is a cross-entropy method (sample around the best models so far, keep the elites,
+shrink), started from the maps' answer, which stays a candidate: the refined model never
+reproduces the record worse than the maps' own answer.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+import sim
+from sim.replay import replay_speed
+
+__all__ = ["RefineConfig", "RefineProblem", "Refined", "torque_reference", "refine"]
+
+#: Search coordinates and their bounds: log10 f_e [Hz], log10 V_J, d, log10 s_N (normalized
+#: backlash; measured better than searching the width itself: 86 vs 66 % of the widths within 30 %).
+COORDINATES: tuple[str, ...] = ("log10_f_e", "log10_V_J", "d", "log10_s_N")
+_LOW = np.array([0.0, math.log10(0.05), 0.001, -3.0])
+_HIGH = np.array([math.log10(3000.0), math.log10(20.0), 0.5, 2.0])
+
+
+@dataclass(frozen=True)
+class RefineConfig:
+    """The search, in two stages.
+
+    Explore: score only the first ``window_periods`` periods (at the start's ``f_e``; at most
+    ``window_max`` seconds) after each torque step, with each candidate's best gain projected out: a model whose frequency is a few
+    % off does not lose its match to the phase error that builds up over a long section, nor a
+    model with the right shape but a wrong ``V_J`` to its amplitude (the gain rescales its
+    ``V_J``). A grid of ``grid_f_e`` eigenfrequencies over ``+-grid_span`` decades around the
+    start times the normalized backlash values ``grid_s_N`` (0: the start's own), then
+    ``rounds`` rounds of a cross-entropy search: ``candidates`` models around the best so far,
+    the ``elites`` best setting the next round's spread (``spread``: the first round's standard
+    deviation per coordinate of :data:`COORDINATES`). Each window is simulated on its own from a
+    quasi-static state, so exploring costs a few periods per torque step, not the whole record.
+
+    Choose: the maps' answer and the ``elites`` best of the exploration compete on the plain
+    detrended error over the whole record, simulated exactly (more rounds there were measured
+    not to help). The C kernel runs blocks of 32 models on the CPU's cores: 64 candidates take
+    the wall time of 32 on two."""
+
+    grid_f_e: int = 11
+    grid_s_N: tuple[float, ...] = (0.0, 0.05, 0.3, 1.0, 3.0)
+    grid_span: float = 0.25
+    window_periods: float = 4.0
+    window_max: float = 0.1
+    rounds: int = 3
+    candidates: int = 64
+    elites: int = 12
+    spread: tuple[float, float, float, float] = (0.05, 0.12, 0.03, 0.3)
+    seed: int = 0
+
+
+@dataclass
+class RefineProblem:
+    """One record to refine: measured ``speed`` ``N`` [rad/s]; torque reference segments
+    (``start`` int ``K``, ``level`` ``K`` [Nm]); scored ``segments`` ``(L, 2)`` half-open sample
+    ranges; STEP 2's ``J_sigma``, ``M_FC``, ``mu_F``; the drive (``T_s``, ``T_Ei``,
+    ``encoder_counts``, ``M_N`` for ``s_N``); the start ``theta`` over :data:`COORDINATES`
+    (``s_N`` of 1e-3 or less stands for no backlash)."""
+
+    speed: np.ndarray
+    start: np.ndarray
+    level: np.ndarray
+    segments: np.ndarray
+    J_sigma: float
+    M_FC: float
+    mu_F: float
+    T_s: float
+    T_Ei: float
+    encoder_counts: int
+    M_N: float
+    theta: np.ndarray
+
+    def C_F(self, theta: np.ndarray) -> np.ndarray:
+        """Shaft stiffness [Nm/rad] of ``theta`` ``*batch x 4``."""
+        f_e, V_J, d = 10.0 ** theta[..., 0], 10.0 ** theta[..., 1], theta[..., 2]
+        J_M = self.J_sigma / (1.0 + V_J)
+        w_0 = 2 * np.pi * f_e / np.sqrt(1.0 - d * d)
+        return w_0 * w_0 * J_M * (self.J_sigma - J_M) / self.J_sigma
+
+
+@dataclass
+class Refined:
+    """The refined model: ``f_e`` [Hz], ``V_J``, ``d``, ``s_N``, ``backlash`` = ``2s`` [rad];
+    ``residual`` and ``start_residual``: the detrended speed error of the refined model and of
+    the maps' answer over the measured oscillation (both detrended the same way; about the
+    quantization noise over the oscillation for a perfect model); ``n_sims`` simulated models."""
+
+    f_e: float
+    V_J: float
+    d: float
+    s_N: float
+    backlash: float
+    residual: float
+    start_residual: float
+    n_sims: int
+
+
+def torque_reference(bounds: np.ndarray, M_star: float) -> tuple[np.ndarray, np.ndarray]:
+    """The switching test's torque reference (SPEC 2) from its six section ``bounds`` ``(6, 2)``:
+    0 before section I, ``(1, 0, -0.7, -1, 0, 0.7) M*`` over the sections, 0 in the tail.
+    Returns ``start`` (int ``8``) and ``level`` (``8`` [Nm]) for :func:`sim.replay.replay_speed`."""
+    bounds = np.asarray(bounds, dtype=np.int64)
+    if bounds.shape != (6, 2):
+        raise ValueError(f"bounds: expected shape (6, 2), received {bounds.shape}")
+    start = np.concatenate([[0], bounds[:, 0], [bounds[5, 1]]])
+    level = M_star * np.array([0.0, 1.0, 0.0, -0.7, -1.0, 0.0, 0.7, 0.0])
+    return start, level
+
+
+def _detrend_basis(segments: np.ndarray) -> list[tuple[int, int, torch.Tensor]]:
+    """Per segment ``(a, b, Q)``: orthonormal ``L x 3`` basis of the quadratic trends on it."""
+    out = []
+    for a, b in np.asarray(segments, dtype=np.int64).tolist():
+        L = b - a
+        if L < 1:
+            continue
+        tau = np.linspace(-1.0, 1.0, L)
+        V = np.stack([np.ones(L), tau, tau * tau], axis=1)[:, : min(3, L)]  # L x 3
+        Q, _ = np.linalg.qr(V)
+        out.append((a, b, torch.as_tensor(Q, dtype=torch.float64)))
+    return out
+
+
+def _detrended_energy(E: torch.Tensor, basis: list[tuple[int, int, torch.Tensor]]) -> torch.Tensor:
+    """``sum ||e - Q Q^T e||^2`` over the segments for each row of ``E`` (``C x N``) -> ``C``."""
+    total = torch.zeros(E.shape[0], dtype=torch.float64)
+    for a, b, Q in basis:
+        e = E[:, a:b]  # C x L
+        total += (e * e).sum(-1) - ((e @ Q) ** 2).sum(-1)
+    return total.clamp(min=0.0)
+
+
+def _models(p: RefineProblem, theta: np.ndarray) -> sim.TwoMassParams:
+    """Candidate models ``C`` from ``theta`` ``C x 4`` (backlash ``2s = 2 s_N M_N / C_F``)."""
+    f_e, V_J, d = 10.0 ** theta[:, 0], 10.0 ** theta[:, 1], theta[:, 2]
+    backlash = 2.0 * 10.0 ** theta[:, 3] * p.M_N / p.C_F(theta)
+    C = theta.shape[0]
+    full = lambda v: torch.full((C,), float(v), dtype=torch.float64)  # noqa: E731
+    t = lambda v: torch.as_tensor(v, dtype=torch.float64)  # noqa: E731
+    return sim.TwoMassParams(J_sigma=full(p.J_sigma), V_J=t(V_J), f_e=t(f_e), d=t(d), backlash=t(backlash),
+                             M_FC=full(max(p.M_FC, 0.0)), mu_F=full(max(p.mu_F, 0.0)))
+
+
+def _simulate(p: RefineProblem, theta: np.ndarray, drive: sim.DriveConfig) -> torch.Tensor:
+    """Speed error ``C x N`` [rad/s] (model minus measurement) of each candidate ``theta`` ``C x 4``."""
+    models = _models(p, theta)
+    C, N = theta.shape[0], len(p.speed)
+    w_0 = float(models.w_0.max())
+    S = max(1, math.ceil(w_0 * p.T_s / 0.5))  # RK4 at w_0 dt <= 0.5: frequency error < 0.1 %
+    start = torch.as_tensor(np.broadcast_to(p.start, (C, len(p.start))).copy())
+    level = torch.as_tensor(np.broadcast_to(p.level, (C, len(p.level))).copy())
+    w = replay_speed(models, drive, start, level, N, quantize=False, substeps=S)  # C x N
+    E = w.to(torch.float64) - torch.as_tensor(p.speed, dtype=torch.float64)
+    return torch.nan_to_num(E, nan=1e6, posinf=1e6, neginf=-1e6)
+
+
+def _score(p: RefineProblem, theta: np.ndarray, basis: list, drive: sim.DriveConfig) -> np.ndarray:
+    """Detrended squared speed error of each candidate ``theta`` ``C x 4`` -> ``C``."""
+    return _detrended_energy(_simulate(p, theta, drive), basis).numpy()
+
+
+def _score_shape(p: RefineProblem, theta: np.ndarray, windows: np.ndarray,
+                 drive: sim.DriveConfig) -> tuple[np.ndarray, np.ndarray]:
+    """The exploration score over the ``windows``: the detrended error after the best gain ``g``
+    on each candidate's detrended speed, ``||y||^2 - <y, x>^2 / ||x||^2`` (``y`` measured, ``x``
+    model), and ``theta`` with ``V_J`` scaled by ``g`` (eq. 1: the oscillation is about
+    proportional to ``V_J``)."""
+    y = torch.cat([torch.as_tensor(p.speed[a:b], dtype=torch.float64) for a, b in windows.tolist()])
+    X = _simulate_windows(p, theta, windows, drive) + y  # C x sum(L_j): the model speeds
+    ends = np.cumsum(windows[:, 1] - windows[:, 0])
+    basis = _detrend_basis(np.stack([ends - (windows[:, 1] - windows[:, 0]), ends], axis=1))
+    xy = torch.zeros(X.shape[0], dtype=torch.float64)
+    xx = torch.zeros(X.shape[0], dtype=torch.float64)
+    yy = torch.zeros((), dtype=torch.float64)
+    for a, b, Q in basis:
+        xr = X[:, a:b] - (X[:, a:b] @ Q) @ Q.T  # C x L, detrended
+        yr = y[a:b] - Q @ (Q.T @ y[a:b])
+        xy += xr @ yr
+        xx += (xr * xr).sum(-1)
+        yy += yr @ yr
+    gain = torch.where(xx > 0, xy / xx.clamp(min=1e-300), torch.zeros_like(xx))
+    cost = (yy - torch.where(xx > 0, xy * xy / xx.clamp(min=1e-300), torch.zeros_like(xx))).clamp(min=0.0)
+    cost = torch.where(gain > 0, cost, yy.expand_as(cost))  # an inverted oscillation is no match
+    scaled = theta.copy()
+    scaled[:, 1] += np.log10(np.clip(gain.numpy(), 0.25, 4.0))
+    return cost.numpy(), np.clip(scaled, _LOW, _HIGH)
+
+
+def _windows(segments: np.ndarray, length: int) -> np.ndarray:
+    """The first ``length`` samples of each segment ``(L, 2)``."""
+    seg = np.asarray(segments, dtype=np.int64)
+    return np.stack([seg[:, 0], np.minimum(seg[:, 1], seg[:, 0] + length)], axis=1)
+
+
+def _level_at(p: RefineProblem, k: int) -> float:
+    """The torque reference [Nm] over sample ``k``."""
+    return float(p.level[np.searchsorted(p.start, k, side="right") - 1])
+
+
+def _simulate_windows(p: RefineProblem, theta: np.ndarray, windows: np.ndarray,
+                      drive: sim.DriveConfig) -> torch.Tensor:
+    """Speed error ``C x sum(L_j)`` of each candidate over the ``windows`` ``(J, 2)`` (concatenated),
+    each simulated on its own from a quasi-static state: the torque before the window settled,
+    both masses at the measured speed, the shaft twisted by the torque that accelerates the load
+    (``J_L a`` plus the load friction, ``a`` the rigid acceleration) over ``C_F``, plus ``s`` on the
+    loaded side. An oscillation still ringing from before the window is not in that state (the
+    exploring score tolerates it; the polish simulates the whole record)."""
+    C, J = theta.shape[0], len(windows)
+    models = _models(p, theta)
+    lengths = (windows[:, 1] - windows[:, 0]).tolist()
+    L = max(lengths)
+    w = torch.as_tensor(p.speed[windows[:, 0]], dtype=torch.float64)  # J: speed at each window start
+    M_prev = torch.tensor([_level_at(p, a - 1) if a > 0 else 0.0 for a in windows[:, 0].tolist()], dtype=torch.float64)
+    M_new = torch.tensor([_level_at(p, a) for a in windows[:, 0].tolist()], dtype=torch.float64)
+    friction = max(p.M_FC, 0.0) * torch.sign(w) + max(p.mu_F, 0.0) * w  # J
+    J_L = (models.J_L[:, None])  # C x 1
+    M_S = J_L * (M_prev - friction) / p.J_sigma + friction  # C x J: shaft torque of the rigid motion
+    s = (models.backlash / 2.0)[:, None]
+    dphi = M_S / models.C_F[:, None] + s * torch.sign(M_S)
+    rep = lambda v: v.repeat_interleave(J)  # noqa: E731  C -> C*J, window index fastest
+    flat = sim.TwoMassParams(J_sigma=rep(models.J_sigma), V_J=rep(models.V_J), f_e=rep(models.f_e), d=rep(models.d),
+                             backlash=rep(models.backlash), M_FC=rep(models.M_FC), mu_F=rep(models.mu_F))
+    state = {"w_M": w.repeat(C), "w_L": w.repeat(C), "dphi": dphi.reshape(-1), "M_M": M_prev.repeat(C)}
+    start = torch.zeros(C * J, 1, dtype=torch.int32)
+    level = M_new.repeat(C)[:, None]
+    S = max(1, math.ceil(float(models.w_0.max()) * p.T_s / 0.5))
+    out = replay_speed(flat, drive, start, level, L, quantize=False, state=state, substeps=S).reshape(C, J, L)
+    E = torch.cat([out[:, j, :n].to(torch.float64) - torch.as_tensor(p.speed[a:a + n], dtype=torch.float64)
+                   for j, (a, n) in enumerate(zip(windows[:, 0].tolist(), lengths))], dim=1)  # C x sum(L_j)
+    return torch.nan_to_num(E, nan=1e6, posinf=1e6, neginf=-1e6)
+
+
+def _cem(theta: np.ndarray, cost: np.ndarray, score: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]],
+         rounds: int, spread: np.ndarray, config: RefineConfig,
+         rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """``rounds`` of the cross-entropy search from the best of ``theta``/``cost`` (all kept);
+    ``score(candidates) -> (cost, candidates as scored)``."""
+    mean, std = theta[int(np.argmin(cost))], spread
+    for _ in range(rounds):
+        cand = np.clip(mean + std * rng.standard_normal((config.candidates, 4)), _LOW, _HIGH)
+        c, cand = score(cand)
+        theta, cost = np.concatenate([theta, cand]), np.concatenate([cost, c])
+        elite = theta[np.argsort(cost)[: config.elites]]
+        mean = elite[0]  # the best so far; the elites' spread sets the next step
+        std = np.maximum(0.7 * elite.std(axis=0) + 0.15 * std, 0.02 * np.asarray(config.spread))
+    return theta, cost
+
+
+def refine(problems: list[RefineProblem], config: RefineConfig | None = None) -> list[Refined]:
+    """Refine each problem's ``theta`` (see module docstring); one :class:`Refined` per problem,
+    each the same whatever the other problems (every search starts from ``config.seed``)."""
+    config = config or RefineConfig()
+    if config.elites < 2 or config.candidates < config.elites or config.rounds < 0 or config.window_periods <= 0:
+        raise ValueError(f"RefineConfig: expected rounds >= 0, window_periods > 0 and candidates >= elites >= 2, "
+                         f"received {config}")
+    return [_refine_one(p, config, np.random.default_rng(config.seed)) for p in problems]
+
+
+def _refine_one(p: RefineProblem, config: RefineConfig, rng: np.random.Generator) -> Refined:
+    drive = sim.DriveConfig(M_max=1e9, T_Ei=p.T_Ei, T_s=p.T_s, encoder_counts=p.encoder_counts)
+    spread = np.asarray(config.spread, dtype=np.float64)
+    theta0 = np.clip(np.asarray(p.theta, dtype=np.float64), _LOW, _HIGH)
+    # explore: windows after each torque step, gain projected out
+    period = 1.0 / (10.0 ** theta0[0] * p.T_s)  # samples per period at the start's f_e
+    short = _windows(p.segments, max(8, int(round(min(config.window_periods * period, config.window_max / p.T_s)))))
+    explore = lambda th: _score_shape(p, th, short, drive)  # noqa: E731
+    grid = np.repeat(theta0[None], config.grid_f_e * len(config.grid_s_N), axis=0)  # G x 4
+    grid[:, 0] += np.repeat(np.linspace(-config.grid_span, config.grid_span, config.grid_f_e), len(config.grid_s_N))
+    grid[:, 3] = np.tile([math.log10(v) if v > 0 else theta0[3] for v in config.grid_s_N], config.grid_f_e)
+    cost, theta = explore(np.clip(grid, _LOW, _HIGH))
+    theta, cost = _cem(theta, cost, explore, config.rounds, spread, config, rng)
+    # choose: the whole record, exactly, plain error; the maps' answer competes too
+    full = _detrend_basis(p.segments)
+    theta = np.concatenate([theta0[None], theta[np.argsort(cost)[: config.elites]]])
+    cost = _score(p, theta, full, drive)
+    start_cost = float(cost[0])
+    n_sims = len(grid) + config.rounds * config.candidates + len(cost)
+    best = theta[int(np.argmin(cost))]
+    measured = _detrended_energy(torch.as_tensor(p.speed, dtype=torch.float64)[None], full)[0].item()
+    norm = math.sqrt(measured) if measured > 0 else 1.0
+    s_N = float(10.0 ** best[3])
+    return Refined(f_e=float(10.0 ** best[0]), V_J=float(10.0 ** best[1]), d=float(best[2]),
+                   s_N=s_N, backlash=2.0 * s_N * p.M_N / float(p.C_F(best)),
+                   residual=math.sqrt(float(cost.min())) / norm, start_residual=math.sqrt(start_cost) / norm,
+                   n_sims=n_sims)
