@@ -104,15 +104,36 @@ def test_chain_on_an_elastic_plant_with_exact_identification():
 
 
 def test_wrong_identification_is_refused_with_the_reason():
-    """Deliberately wrong parameters (f_e x 3, J_sigma x 1.5): validation fails, nothing is proposed."""
+    """Deliberately wrong parameters (f_e x 3, J_sigma x 1.5): validation fails, nothing is proposed
+    (without the fallback)."""
     ident = StubIdentifier("elastic", ELASTIC, f_e=3.0, J_sigma=1.5)
-    rep = commission(_plant(ELASTIC), DRIVE, ExcitationLimits(w_limit=100.0, travel_limit=100.0), identifier=ident, **FAST)
+    rep = commission(_plant(ELASTIC), DRIVE, ExcitationLimits(w_limit=100.0, travel_limit=100.0), identifier=ident,
+                     fallback_evaluations=0, **FAST)
     assert not rep.validation.passed
     assert rep.refused and rep.permission.reason.startswith("V3")
     assert rep.proposal is None and rep.tuning is None and rep.controller is None and rep.improvement is None
     assert "REFUSED" in rep.to_text() and rep.permission.reason in rep.to_text()
     d = rep.to_dict()
     assert d["permission"]["allowed"] is False and d["proposal"] is None
+
+
+def test_refusal_ends_with_the_cautious_fallback_tuned_on_the_plant():
+    """The same wrong identification with the fallback F1: a PI on J_sigma alone, searched on the
+    plant, ends with a stable loop that is not worse than its start; the refusal is still reported."""
+    ident = StubIdentifier("elastic", ELASTIC, f_e=3.0, J_sigma=1.5)
+    rep = commission(_plant(ELASTIC), DRIVE, ExcitationLimits(w_limit=100.0, travel_limit=100.0), identifier=ident,
+                     fallback_evaluations=8, **FAST)
+    assert rep.refused and rep.permission.reason.startswith("V3") and rep.fallback
+    assert any(r.startswith("F1") for r in rep.proposal.rules)
+    assert rep.proposal.Kp == pytest.approx(1.5 * ELASTIC["J_sigma"] * 3.0)  # J_sigma as identified, w_c 3 rad/s
+    assert rep.controller is not None and rep.tuning.n_evaluations <= 8 + 1  # scipy counts the start too
+    assert rep.checks["stable"] and rep.checks["tuned_not_worse"] and rep.checks["within_limits"]
+    text = rep.to_text()
+    assert "REFUSED" in text and "5 fallback F1" in text and "evaluations on the plant" in text
+    assert rep.to_dict()["fallback"] is True
+    with pytest.raises(ValueError, match="fallback_evaluations"):
+        commission(_plant(ELASTIC), DRIVE, ExcitationLimits(w_limit=100.0, travel_limit=100.0), identifier=ident,
+                   fallback_evaluations=-1, **FAST)
 
 
 def test_outside_training_is_refused():

@@ -39,6 +39,7 @@ __all__ = [
     "linear_plant",
     "loop_figures",
     "mechanics_from",
+    "propose_cautious",
     "propose_controller",
     "STRUCTURES",
 ]
@@ -525,6 +526,9 @@ class ControllerSpec:
     the check on the linear model; the gain is lowered by ``backoff`` until both hold.
     ``speed_filter_samples``: low-pass ``T_f`` in samples (0: none). ``allow_notch``: try a notch
     at the resonance when the elastic bandwidth limit costs more than ``notch_gain_factor``.
+    ``cautious_bandwidth`` [rad/s]: the crossover of the fallback F1 (:func:`propose_cautious`),
+    below R3's limit for every mechanic of the SPEC population (the lowest anti-resonance there,
+    5 Hz with ``V_J = 5``, is 12.8 rad/s; R3 allows 0.3 of it).
     """
 
     a: float = 3.0
@@ -537,6 +541,7 @@ class ControllerSpec:
     speed_filter_samples: float = 1.0
     allow_notch: bool = True
     notch_gain_factor: float = 3.0
+    cautious_bandwidth: float = 3.0
 
 
 @dataclass(frozen=True)
@@ -675,3 +680,20 @@ def propose_controller(
             f"margins not reached on the linear model (PM {prop.figures['phase_margin']:.1f} deg, "
             f"GM {prop.figures['gain_margin_dB']:.1f} dB, stable={bool(prop.figures['stable'])})",))
     return prop
+
+
+def propose_cautious(J_sigma: float, drive: Any, spec: ControllerSpec | None = None) -> ControllerProposal:
+    """Fallback F1 when the identification is refused: a PI on the one-mass ``J_sigma`` of STEP 2
+    alone (least squares on the whole record, the most robust figure of a test run) with the
+    crossover ``spec.cautious_bandwidth``, far below any plausible anti-resonance, and a long
+    integral time (``Ti = a / w_c``). It is meant as the start of a search on the plant itself
+    (the mechanic's model is not trusted), not as a tuned controller."""
+    spec = spec or ControllerSpec()
+    if not (isinstance(J_sigma, (int, float)) and math.isfinite(J_sigma) and J_sigma > 0):
+        raise ValueError(f"J_sigma: expected a finite number > 0, received {J_sigma!r}")
+    prop = propose_controller("stiff", {"J_sigma": float(J_sigma)}, drive, spec)
+    w_c = spec.cautious_bandwidth
+    return prop.with_gains(drive, float(J_sigma) * w_c, spec.a / w_c, prop.T_f, rule=(
+        f"F1 identification refused: cautious PI on J_sigma alone, w_c = {w_c:g} rad/s (below R3's limit for "
+        f"every mechanic of the SPEC population), Kp = {float(J_sigma) * w_c:.4g} Nm s/rad, Ti = a / w_c = "
+        f"{spec.a / w_c:.4g} s; to be tuned on the plant"))

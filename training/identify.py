@@ -23,7 +23,7 @@ import numpy as np
 
 import som_torch as st
 from sim import Record, read_record
-from sim.params import STRUCTURE_CLASSES
+from sim.params import STRUCTURE_CLASSES, DriveConfig, TwoMassParams, structure_class
 from training.analysis import FEATURE_NAMES, Analysis, analyze
 from training.maps import MAP_SPECS, TrainedMap, load_map, recall_targets
 from training.refine import RefineConfig, RefineProblem, Refined, refine, torque_reference
@@ -109,7 +109,10 @@ class Identifier:
         results = [self._assemble(a, {n: {k: float(v[i]) for k, v in r.items()} for n, r in recalled.items()})
                    for i, a in enumerate(analyses)]
         if self.refine is not None:
-            todo = [i for i, res in enumerate(results) if res["structure"] != "stiff"]
+            # stiff answers are refined too where the oscillation shows above the quantization
+            # (near the w_e T_Ei = 1 threshold the maps' f_e decides the class)
+            todo = [i for i, (a, res) in enumerate(zip(analyses, results))
+                    if res["structure"] != "stiff" or a.osc_quanta >= 1.0]
             problems = [self._problem(analyses[i], results[i]) for i in todo]
             for i, refined in zip(todo, refine(problems, self.refine)):
                 self._apply_refined(analyses[i], results[i], refined)
@@ -154,7 +157,7 @@ class Identifier:
             "one_mass_rel_residual": fit.rel_residual,
             "outside_training": any(unseen[n] > 1.0 for n in used),
             "section_flags": a.section_flags,
-            "maps_s_N": 10.0 ** r["structure"]["log10_s_N"],
+            "maps_estimate": {"f_e": f_e, "V_J": V_J, "d": d, "s_N": 10.0 ** r["structure"]["log10_s_N"]},
         }
         if a.osc_quanta < 1.0 and structure != "stiff":
             warnings.append(f"oscillation only {a.osc_quanta:.2f} speed quanta rms: elastic parameters uncertain")
@@ -165,32 +168,29 @@ class Identifier:
         one-mass values, and the maps' ``f_e``, ``V_J``, ``d``, ``s_N`` as the start."""
         b = a.sections.bounds
         start, level = torque_reference(b, a.M_star)
-        p = res["parameters"]
+        p = res["quality"]["maps_estimate"]
         counts = int(round(2.0 * math.pi / (a.q_w * a.T_s)))
         segments = np.concatenate([b, [[b[5, 1], len(a.fit.speed)]]])  # the six sections and the tail
-        s_N = max(res["quality"]["maps_s_N"], 1e-3)
+        s_N = max(p["s_N"], 1e-3)
         return RefineProblem(speed=a.fit.speed, start=start, level=level, segments=segments, J_sigma=a.fit.J_sigma,
                              M_FC=max(a.fit.M_FC, 0.0), mu_F=max(a.fit.mu_F, 0.0), T_s=a.T_s, T_Ei=a.T_Ei,
                              encoder_counts=counts, M_N=self.M_N,
                              theta=np.array([math.log10(p["f_e"]), math.log10(p["V_J"]), p["d"], math.log10(s_N)]))
 
     def _apply_refined(self, a: Analysis, res: dict[str, Any], m: Refined) -> None:
-        """Replace the maps' elastic parameters by the refined ones; the structure follows
-        SPEC's class rules on the refined values (the maps' class stays in ``quality``)."""
-        J_sigma = a.fit.J_sigma
-        J_M = J_sigma / (1.0 + m.V_J)
-        w_e = 2 * math.pi * m.f_e
-        w_0 = w_e / math.sqrt(1.0 - m.d * m.d)
-        r_osc = m.V_J * a.M_star / (J_sigma * w_0 * a.q_w)
-        if m.s_N < 0.1:
-            structure = "stiff" if (w_e * a.T_Ei >= 1.0 or r_osc < 1.0) else "elastic"
-        else:
-            structure = "stiff_backlash" if (m.s_N >= 1.0 or w_e * a.T_Ei >= 1.0) else "elastic_backlash"
+        """Replace the maps' elastic parameters and backlash width by the refined ones; the
+        structure follows SPEC's class rules on the refined values (the maps' class and estimate
+        stay in ``quality``). A ``stiff`` result keeps the one-mass answer."""
+        model = TwoMassParams.from_dicts(dict(J_sigma=a.fit.J_sigma, V_J=m.V_J, f_e=m.f_e, d=m.d, backlash=m.backlash,
+                                              M_FC=0.0, mu_F=0.0))
+        drive = DriveConfig(M_N=self.M_N, T_Ei=a.T_Ei, T_s=a.T_s, encoder_counts=int(round(2 * math.pi / (a.q_w * a.T_s))))
+        structure = STRUCTURE_CLASSES[int(structure_class(model, drive, a.M_star).reshape(-1)[0])]
         p = res["parameters"]
-        p.update(f_e=m.f_e, V_J=m.V_J, d=m.d, J_M=J_M, J_L=J_sigma - J_M, C_F=w_0 * w_0 * J_M * (J_sigma - J_M) / J_sigma,
-                 backlash=m.backlash if structure in _BACKLASH_CLASSES else 0.0)
+        p.update(f_e=m.f_e, V_J=m.V_J, d=m.d, J_M=float(model.J_M.reshape(-1)[0]), J_L=float(model.J_L.reshape(-1)[0]),
+                 C_F=float(model.C_F.reshape(-1)[0]),
+                 backlash=m.backlash)  # measured even where the class calls it negligible (elastic)
         if structure == "stiff":
-            p.update(f_e=None, V_J=None, d=None, J_M=None, J_L=None, C_F=None)
+            p.update(f_e=None, V_J=None, d=None, J_M=None, J_L=None, C_F=None, backlash=0.0)
         res["quality"].update(maps_structure=res["structure"], refine_residual=m.residual,
                               refine_start_residual=m.start_residual, refined_s_N=m.s_N)
         res["structure"] = structure

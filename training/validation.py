@@ -1,7 +1,8 @@
 """Validation of an identification result (knowledge base, SPEC 8).
 
 * :func:`validate_model` — re-simulate the identified model under the recorded test signal
-  (``mode="replay"``: the recorded ``torque_ref`` sequence, open loop; ``mode="switching"``: the
+  (``mode="replay"``: the recorded ``torque_ref`` sequence, open loop, :func:`sim.replay.replay_speed`;
+  ``mode="switching"``: the
   same switching law with the record's ``M_star``/``w_max``) and compare with the measured speed:
   normalized RMS error of the speed (``nrmse``) and of its oscillating part (``osc_nrmse``, the
   speed minus its moving average over one period of the model's ``f_e``), each with a threshold.
@@ -21,7 +22,6 @@ import torch
 
 __all__ = [
     "ValidationResult",
-    "ReplayController",
     "validate_model",
     "Permission",
     "may_propose_controller",
@@ -32,26 +32,13 @@ __all__ = [
 # --------------------------------------------------------------------------- re-simulation
 
 
-class ReplayController:
-    """Replays a recorded ``torque_ref`` (``N`` [Nm]; ``torque_ref[k]`` acts during sample ``k``).
-
-    Contract: ``reset(batch_shape)``; ``step(k, w_meas)`` returns ``torque_ref[k+1]`` (it acts
-    from sample ``k+1``), held at its last value beyond the record, broadcast to the batch.
-    """
-
-    def __init__(self, torque_ref: Any) -> None:
-        t = torch.as_tensor(np.asarray(torque_ref, dtype=np.float64)).reshape(-1)
-        if t.numel() < 2 or not torch.isfinite(t).all():
-            raise ValueError(f"torque_ref: expected >= 2 finite samples, received {t.numel()}")
-        self.torque_ref = t
-        self._shape: tuple[int, ...] = ()
-
-    def reset(self, batch_shape: tuple[int, ...] | torch.Size) -> None:
-        self._shape = tuple(batch_shape)
-
-    def step(self, k: int, w_meas: torch.Tensor) -> torch.Tensor:
-        v = self.torque_ref[min(k + 1, self.torque_ref.numel() - 1)]
-        return v.expand(self._shape).to(w_meas.dtype) if self._shape else v.to(w_meas.dtype)
+def _segments(torque_ref: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
+    """The recorded ``torque_ref`` ``N`` as piecewise-constant segments ``1 x K`` (start, level)."""
+    t = np.asarray(torque_ref, dtype=np.float64).reshape(-1)
+    if t.size < 2 or not np.isfinite(t).all():
+        raise ValueError(f"torque_ref: expected >= 2 finite samples, received {t.size}")
+    start = np.concatenate([[0], np.flatnonzero(t[1:] != t[:-1]) + 1])
+    return torch.as_tensor(start)[None], torch.as_tensor(t[start])[None]
 
 
 @dataclass
@@ -194,8 +181,10 @@ def validate_model(
     if mode == "replay":
         if torque_ref is None:
             raise ValueError("mode='replay' needs the recorded torque_ref")
-        resp = sim.simulate(p, drive, ReplayController(torque_ref), n, seed=seed)
-        w_sim = _one(resp.speed)[:n]
+        from sim.replay import replay_speed
+
+        start, level = _segments(torque_ref)
+        w_sim = _one(replay_speed(p, drive, start, level, n))[:n]
     else:
         if signal is None:
             if "M_star" not in meta or "w_max" not in meta:
