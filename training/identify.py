@@ -174,18 +174,23 @@ class Identifier:
         s_N = max(p["s_N"], 1e-3)
         return RefineProblem(speed=a.fit.speed, start=start, level=level, segments=segments, J_sigma=a.fit.J_sigma,
                              M_FC=max(a.fit.M_FC, 0.0), mu_F=max(a.fit.mu_F, 0.0), T_s=a.T_s, T_Ei=a.T_Ei,
-                             encoder_counts=counts, M_N=self.M_N,
+                             encoder_counts=counts, M_N=self.M_N, free_one_mass=bool(a.fit.warnings),
                              theta=np.array([math.log10(p["f_e"]), math.log10(p["V_J"]), p["d"], math.log10(s_N)]))
 
     def _apply_refined(self, a: Analysis, res: dict[str, Any], m: Refined) -> None:
         """Replace the maps' elastic parameters and backlash width by the refined ones; the
         structure follows SPEC's class rules on the refined values (the maps' class and estimate
         stay in ``quality``). A ``stiff`` result keeps the one-mass answer."""
-        model = TwoMassParams.from_dicts(dict(J_sigma=a.fit.J_sigma, V_J=m.V_J, f_e=m.f_e, d=m.d, backlash=m.backlash,
+        J_sigma = a.fit.J_sigma if m.J_sigma is None else m.J_sigma
+        model = TwoMassParams.from_dicts(dict(J_sigma=J_sigma, V_J=m.V_J, f_e=m.f_e, d=m.d, backlash=m.backlash,
                                               M_FC=0.0, mu_F=0.0))
         drive = DriveConfig(M_N=self.M_N, T_Ei=a.T_Ei, T_s=a.T_s, encoder_counts=int(round(2 * math.pi / (a.q_w * a.T_s))))
         structure = STRUCTURE_CLASSES[int(structure_class(model, drive, a.M_star).reshape(-1)[0])]
         p = res["parameters"]
+        if m.J_sigma is not None:  # STEP 2 flagged its fit; the whole-record fit replaced it
+            p.update(J_sigma=m.J_sigma, M_FC=m.M_FC)
+            res["warnings"].append("J_sigma and M_FC from the two-mass fit of the whole record "
+                                   "(the one-mass fit of STEP 2 was not trusted)")
         p.update(f_e=m.f_e, V_J=m.V_J, d=m.d, J_M=float(model.J_M.reshape(-1)[0]), J_L=float(model.J_L.reshape(-1)[0]),
                  C_F=float(model.C_F.reshape(-1)[0]),
                  backlash=m.backlash)  # measured even where the class calls it negligible (elastic)
