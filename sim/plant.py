@@ -16,7 +16,6 @@ import torch
 
 from sim._integrate_fast import (FastParams, FastState, TestState, advance, default_substeps, new_test_buffers,
                                   run_test_chunk)
-from sim._integrate_reference import ReferenceIntegrator
 from sim._kernel import load_kernel
 from sim.measurement import measure_speed, noisy_current
 from sim.params import DriveConfig, TwoMassParams
@@ -106,7 +105,11 @@ def simulate(params: TwoMassParams, drive: DriveConfig, controller: Controller, 
     n = params.J_sigma.numel()
     S = default_substeps(params, drive) if substeps is None else substeps
     fp = FastParams.build(params, drive, S, dtype, load_torque)
-    ref = ReferenceIntegrator(params, drive, load_torque) if method == "reference" else None
+    ref = None
+    if method == "reference":
+        from sim._integrate_reference import ReferenceIntegrator  # torchdiffeq: loaded only when used
+
+        ref = ReferenceIntegrator(params, drive, load_torque)
     x = FastState.zeros(n, dtype)
     controller.reset(shape)
     rec: dict[str, list[torch.Tensor]] = {k: [] for k in ("speed", "torque", "torque_ref", "section")}

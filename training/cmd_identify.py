@@ -29,7 +29,7 @@ from training.errors import UserError
 HELP = "identify records (NAME.csv + NAME.json) with the shipped maps; JSON Lines out, one object per record"
 
 EXIT_OK, EXIT_SOME_ERRORS = 0, 1
-CHUNK = 16  # records analysed before one batched recall + refinement (overlaps the analysis workers)
+CHUNK = 8  # records analysed before one batched recall + refinement (overlaps the analysis workers)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -63,7 +63,7 @@ class RefineConfig:
     mechanics whose test sections are shorter than an oscillation period): ``J_sigma`` and
     ``M_FC`` join the search (:data:`FREE_COORDINATES`), scored by the plain error over the
     whole record (an exact replay from rest; nothing to detrend once the one-mass part is
-    fitted): a grid over ``J_sigma`` (x 1/8 .. 8), ``f_e`` (x 1/16 .. 2: such a mechanic is
+    fitted): a grid over ``J_sigma`` (x 1/4 .. 4), ``f_e`` (x 1/16 .. 2: such a mechanic is
     softer than it looks), ``V_J`` and ``M_FC`` around the chosen model and around the maps'
     answer, then ``free_rounds`` rounds (``free_spread``: the first spread of the two new coordinates).
     The model with the lower plain error wins."""
@@ -77,7 +77,7 @@ class RefineConfig:
     candidates: int = 64
     elites: int = 12
     spread: tuple[float, float, float, float] = (0.05, 0.12, 0.03, 0.3)
-    free_rounds: int = 8
+    free_rounds: int = 5
     free_spread: tuple[float, float] = (0.1, 0.1)
     free_win: float = 0.25
     seed: int = 0
@@ -187,15 +187,39 @@ def _models(p: RefineProblem, theta: np.ndarray) -> sim.TwoMassParams:
 
 def _simulate(p: RefineProblem, theta: np.ndarray, drive: sim.DriveConfig) -> torch.Tensor:
     """Speed error ``C x N`` [rad/s] (model minus measurement) of each candidate ``theta`` ``C x 4``."""
-    models = _models(p, theta)
-    C, N = theta.shape[0], len(p.speed)
-    w_0 = float(models.w_0.max())
-    S = max(1, math.ceil(w_0 * p.T_s / 0.5))  # RK4 at w_0 dt <= 0.5: frequency error < 0.1 %
-    start = torch.as_tensor(np.broadcast_to(p.start, (C, len(p.start))).copy())
-    level = torch.as_tensor(np.broadcast_to(p.level, (C, len(p.level))).copy())
-    w = replay_speed(models, drive, start, level, N, quantize=False, substeps=S)  # C x N
-    E = w.to(torch.float64) - torch.as_tensor(p.speed, dtype=torch.float64)
-    return torch.nan_to_num(E, nan=1e6, posinf=1e6, neginf=-1e6)
+    return _simulate_packed([(p, theta)], drive)[0]
+
+
+def _simulate_packed(items: list[tuple[RefineProblem, np.ndarray]], drive: sim.DriveConfig) -> list[torch.Tensor]:
+    """:func:`_simulate` for several records on one drive in one replay call (the kernel's blocks
+    of 32 models fill up and run on all cores): one ``C_i x N_i`` error per item."""
+    models = [_models(p, th) for p, th in items]
+    flat = sim.TwoMassParams(**{k: torch.cat([getattr(m, k) for m in models])
+                                for k in ("J_sigma", "V_J", "f_e", "d", "backlash", "M_FC", "mu_F")})
+    N = max(len(p.speed) for p, _ in items)
+    K = max(len(p.start) for p, _ in items)
+    start = np.concatenate([np.broadcast_to(np.pad(p.start, (0, K - len(p.start)), constant_values=2**30),
+                                            (len(th), K)) for p, th in items])  # n x K
+    level = np.concatenate([np.broadcast_to(np.pad(p.level, (0, K - len(p.level)), mode="edge"),
+                                            (len(th), K)) for p, th in items])
+    S = _substeps(flat, drive.T_s)
+    w = replay_speed(flat, drive, torch.as_tensor(start), torch.as_tensor(level), N, quantize=False, substeps=S)
+    out, i = [], 0
+    for p, th in items:
+        E = w[i:i + len(th), : len(p.speed)].to(torch.float64) - torch.as_tensor(p.speed, dtype=torch.float64)
+        out.append(torch.nan_to_num(E, nan=1e6, posinf=1e6, neginf=-1e6))
+        i += len(th)
+    return out
+
+
+def _substeps(models: sim.TwoMassParams, T_s: float) -> int:
+    """RK4 substeps per sample: ``w_0 dt <= 0.5`` for the stiffest model (frequency error < 0.1 %)."""
+    return max(1, math.ceil(float(models.w_0.max()) * T_s / 0.5))
+
+
+def _drive(p: RefineProblem) -> sim.DriveConfig:
+    """The drive the candidates of ``p`` run on (no torque limit: the levels are what was applied)."""
+    return sim.DriveConfig(M_max=1e9, T_Ei=p.T_Ei, T_s=p.T_s, encoder_counts=p.encoder_counts)
 
 
 def _score(p: RefineProblem, theta: np.ndarray, basis: list, drive: sim.DriveConfig) -> np.ndarray:
@@ -203,16 +227,14 @@ def _score(p: RefineProblem, theta: np.ndarray, basis: list, drive: sim.DriveCon
     return _detrended_energy(_simulate(p, theta, drive), basis).numpy()
 
 
-def _score_shape(p: RefineProblem, theta: np.ndarray, windows: np.ndarray,
+def _score_shape(p: RefineProblem, theta: np.ndarray, windows: np.ndarray, basis: list,
                  drive: sim.DriveConfig) -> tuple[np.ndarray, np.ndarray]:
     """The exploration score over the ``windows``: the detrended error after the best gain ``g``
     on each candidate's detrended speed, ``||y||^2 - <y, x>^2 / ||x||^2`` (``y`` measured, ``x``
     model), and ``theta`` with ``V_J`` scaled by ``g`` (eq. 1: the oscillation is about
-    proportional to ``V_J``)."""
+    proportional to ``V_J``). ``basis``: :func:`_window_basis` of the windows."""
     y = torch.cat([torch.as_tensor(p.speed[a:b], dtype=torch.float64) for a, b in windows.tolist()])
     X = _simulate_windows(p, theta, windows, drive) + y  # C x sum(L_j): the model speeds
-    ends = np.cumsum(windows[:, 1] - windows[:, 0])
-    basis = _detrend_basis(np.stack([ends - (windows[:, 1] - windows[:, 0]), ends], axis=1))
     xy = torch.zeros(X.shape[0], dtype=torch.float64)
     xx = torch.zeros(X.shape[0], dtype=torch.float64)
     yy = torch.zeros((), dtype=torch.float64)
@@ -234,6 +256,12 @@ def _windows(segments: np.ndarray, length: int) -> np.ndarray:
     """The first ``length`` samples of each segment ``(L, 2)``."""
     seg = np.asarray(segments, dtype=np.int64)
     return np.stack([seg[:, 0], np.minimum(seg[:, 1], seg[:, 0] + length)], axis=1)
+
+
+def _window_basis(windows: np.ndarray) -> list[tuple[int, int, torch.Tensor]]:
+    """:func:`_detrend_basis` of the ``windows`` laid end to end (as :func:`_simulate_windows` returns them)."""
+    ends = np.cumsum(windows[:, 1] - windows[:, 0])
+    return _detrend_basis(np.stack([ends - (windows[:, 1] - windows[:, 0]), ends], axis=1))
 
 
 def _level_at(p: RefineProblem, k: int) -> float:
@@ -266,8 +294,8 @@ def _simulate_windows(p: RefineProblem, theta: np.ndarray, windows: np.ndarray,
     state = {"w_M": w.repeat(C), "w_L": w.repeat(C), "dphi": dphi.reshape(-1), "M_M": M_prev.repeat(C)}
     start = torch.zeros(C * J, 1, dtype=torch.int32)
     level = M_new.repeat(C)[:, None]
-    S = max(1, math.ceil(float(models.w_0.max()) * p.T_s / 0.5))
-    out = replay_speed(flat, drive, start, level, L, quantize=False, state=state, substeps=S).reshape(C, J, L)
+    out = replay_speed(flat, drive, start, level, L, quantize=False, state=state,
+                       substeps=_substeps(models, p.T_s)).reshape(C, J, L)
     E = torch.cat([out[:, j, :n].to(torch.float64) - torch.as_tensor(p.speed[a:a + n], dtype=torch.float64)
                    for j, (a, n) in enumerate(zip(windows[:, 0].tolist(), lengths))], dim=1)  # C x sum(L_j)
     return torch.nan_to_num(E, nan=1e6, posinf=1e6, neginf=-1e6)
@@ -291,45 +319,77 @@ def _cem(theta: np.ndarray, cost: np.ndarray, score: Callable[[np.ndarray], tupl
 
 def refine(problems: list[RefineProblem], config: RefineConfig | None = None) -> list[Refined]:
     """Refine each problem's ``theta`` (see module docstring); one :class:`Refined` per problem,
-    each the same whatever the other problems (every search starts from ``config.seed``)."""
+    each the same whatever the other problems (every search starts from ``config.seed``; the
+    whole-record choice of records on the same drive and of similar length runs packed in one
+    replay)."""
     config = config or RefineConfig()
     if config.elites < 2 or config.candidates < config.elites or config.rounds < 0 or config.window_periods <= 0:
         raise ValueError(f"RefineConfig: expected rounds >= 0, window_periods > 0 and candidates >= elites >= 2, "
                          f"received {config}")
-    return [_refine_one(p, config, np.random.default_rng(config.seed)) for p in problems]
+    rngs = [np.random.default_rng(config.seed) for _ in problems]
+    finalists = [_explore(p, config, rng) for p, rng in zip(problems, rngs)]
+    costs: list[np.ndarray] = [np.empty(0)] * len(problems)
+    substeps = [_substeps(_models(p, f), p.T_s) for p, f in zip(problems, finalists)]
+    bases = [_detrend_basis(p.segments) for p in problems]  # the whole record's sections and tail
+    for pack in _packs(problems, [len(f) for f in finalists], substeps):
+        errors = _simulate_packed([(problems[i], finalists[i]) for i in pack], _drive(problems[pack[0]]))
+        for i, E in zip(pack, errors):
+            costs[i] = _detrended_energy(E, bases[i]).numpy()
+    return [_finish(p, th, c, b, config, rng) for p, th, c, b, rng in zip(problems, finalists, costs, bases, rngs)]
 
 
-def _refine_one(p: RefineProblem, config: RefineConfig, rng: np.random.Generator) -> Refined:
-    drive = sim.DriveConfig(M_max=1e9, T_Ei=p.T_Ei, T_s=p.T_s, encoder_counts=p.encoder_counts)
+def _packs(problems: list[RefineProblem], sizes: list[int], substeps: list[int], max_models: int = 256,
+           min_length_ratio: float = 0.6) -> list[list[int]]:
+    """Indices of ``problems`` in packs of one drive and one substep count (so that a result does
+    not depend on its pack), lengths within ``min_length_ratio`` of the pack's longest (the
+    shorter ones idle while it runs) and at most ``max_models`` models."""
+    key = lambda i: (problems[i].T_s, problems[i].T_Ei, problems[i].encoder_counts, substeps[i])  # noqa: E731
+    order = sorted(range(len(problems)), key=lambda i: (key(i), -len(problems[i].speed)))
+    packs: list[list[int]] = []
+    for i in order:
+        last = packs[-1] if packs else None
+        if (last and key(last[0]) == key(i) and len(problems[i].speed) >= min_length_ratio * len(problems[last[0]].speed)
+                and sum(sizes[j] for j in last) + sizes[i] <= max_models):
+            last.append(i)
+        else:
+            packs.append([i])
+    return packs
+
+
+def _explore(p: RefineProblem, config: RefineConfig, rng: np.random.Generator) -> np.ndarray:
+    """The exploring stage; returns the finalists ``F x 4``: the maps' answer, then the elites."""
+    drive = _drive(p)
     spread = np.asarray(config.spread, dtype=np.float64)
     theta0 = np.clip(np.asarray(p.theta, dtype=np.float64), _LOW, _HIGH)
-    # explore: windows after each torque step, gain projected out
     period = 1.0 / (10.0 ** theta0[0] * p.T_s)  # samples per period at the start's f_e
     short = _windows(p.segments, max(8, int(round(min(config.window_periods * period, config.window_max / p.T_s)))))
-    explore = lambda th: _score_shape(p, th, short, drive)  # noqa: E731
+    basis = _window_basis(short)
+    explore = lambda th: _score_shape(p, th, short, basis, drive)  # noqa: E731
     grid = np.repeat(theta0[None], config.grid_f_e * len(config.grid_s_N), axis=0)  # G x 4
     grid[:, 0] += np.repeat(np.linspace(-config.grid_span, config.grid_span, config.grid_f_e), len(config.grid_s_N))
     grid[:, 3] = np.tile([math.log10(v) if v > 0 else theta0[3] for v in config.grid_s_N], config.grid_f_e)
     cost, theta = explore(np.clip(grid, _LOW, _HIGH))
     theta, cost = _cem(theta, cost, explore, config.rounds, spread, config, rng)
-    # choose: the whole record, exactly, plain error; the maps' answer competes too
-    full = _detrend_basis(p.segments)
-    theta = np.concatenate([theta0[None], theta[np.argsort(cost)[: config.elites]]])
-    cost = _score(p, theta, full, drive)
-    start_cost = float(cost[0])
-    n_sims = len(grid) + config.rounds * config.candidates + len(cost)
+    return np.concatenate([theta0[None], theta[np.argsort(cost)[: config.elites]]])
+
+
+def _finish(p: RefineProblem, theta: np.ndarray, cost: np.ndarray, full: list, config: RefineConfig,
+            rng: np.random.Generator) -> Refined:
+    """The best finalist (``theta`` with its whole-record ``cost`` over the detrending basis
+    ``full``; row 0 the maps' answer), after the free stage where the problem asks for it."""
+    n_sims = config.grid_f_e * len(config.grid_s_N) + config.rounds * config.candidates + len(cost)
     best, best_cost = theta[int(np.argmin(cost))], float(cost.min())
     if p.free_one_mass:
-        best, n_free = _free_one_mass(p, best, config, rng, drive)
+        best, n_free = _free_one_mass(p, best, config, rng, _drive(p))
         n_sims += n_free
-        best_cost = float(_score(p, best[None], full, drive)[0])
+        best_cost = float(_score(p, best[None], full, _drive(p))[0])
     measured = _detrended_energy(torch.as_tensor(p.speed, dtype=torch.float64)[None], full)[0].item()
     norm = math.sqrt(measured) if measured > 0 else 1.0
     s_N = float(10.0 ** best[3])
     free = len(best) == 6
     return Refined(f_e=float(10.0 ** best[0]), V_J=float(10.0 ** best[1]), d=float(best[2]),
                    s_N=s_N, backlash=2.0 * s_N * p.M_N / float(p.C_F(best)),
-                   residual=math.sqrt(best_cost) / norm, start_residual=math.sqrt(start_cost) / norm,
+                   residual=math.sqrt(best_cost) / norm, start_residual=math.sqrt(float(cost[0])) / norm,
                    n_sims=n_sims, J_sigma=float(10.0 ** best[4]) if free else None,
                    M_FC=float(best[5]) if free else None)
 
@@ -341,7 +401,7 @@ def _free_one_mass(p: RefineProblem, best: np.ndarray, config: RefineConfig, rng
     plain = lambda th: ((_simulate(p, th, drive) ** 2).sum(-1).numpy(), th)  # noqa: E731
     one_mass = [math.log10(p.J_sigma), min(max(p.M_FC, 0.0), 1.0)]
     start = np.concatenate([best, one_mass])
-    J_f, f_f, V_f, M_v = np.meshgrid(np.log10([1 / 8, 1 / 4, 1 / 2, 1.0, 2.0, 4.0, 8.0]),
+    J_f, f_f, V_f, M_v = np.meshgrid(np.log10([1 / 4, 1 / 2, 1.0, 2.0, 4.0]),
                                      np.log10([1 / 16, 1 / 8, 1 / 4, 1 / 2, 1.0, 2.0]),
                                      np.log10([0.5, 1.0, 2.0]), [one_mass[1], 0.25], indexing="ij")
     grids = []
