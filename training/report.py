@@ -26,6 +26,7 @@ import numpy as np
 from training.evaluation import TOLERANCES, TRUTH_KEYS, METHOD_PARAMS, relative_errors
 
 METHOD_TITLES = {"som": "SOM", "maps": "maps only", "iv4": "IV4"}
+_LINE = {"som": "-", "maps": ":", "iv4": "--"}  # line style per method in Fig. 10
 NO_MATPLOTLIB = "figures skipped: matplotlib is not installed (pip install 'twomass-som[plot]')"
 
 
@@ -261,7 +262,8 @@ def _plot(summary: Mapping[str, Any], rows_by_set: Mapping[str, Sequence[Mapping
             for i, b in enumerate(bls):
                 sub = sorted((c for c in cells if c["backlash_deg"] == b), key=lambda c: c["f_e"])
                 f = [c["f_e"] for c in sub]
-                for m, ls in zip(methods, ("-", "--")):
+                for m in methods:
+                    ls = _LINE[m]
                     y = [np.nan if c[m][key] is None else c[m][key] for c in sub]
                     mean = means[b][m][key]
                     ax.plot(f, y, ls=ls, marker=style[m]["marker"], color=colors[i],
