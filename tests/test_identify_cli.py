@@ -257,3 +257,15 @@ def test_a_failing_recall_costs_only_its_record(records):
     assert res[0] == {"record": paths[0], "structure": "stiff"}
     assert res[1] == {"record": paths[1], "error": "recall failed: RuntimeError: boom"}
     assert "constant speed" in res[2]["error"]
+
+
+def test_bench_identify_small(tmp_path, capsys):
+    """``twomass bench identify`` times real ``twomass identify`` processes and writes its figures."""
+    out = tmp_path / "bench.json"
+    assert main(["bench", "identify", "--records", "2", "--repeat", "1", "--json", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "2 records" in text and "twomass identify: wall" in text and "--no-refine: wall" in text
+    figures = json.loads(out.read_text())["figures"]
+    assert set(figures) == {"identify", "identify --no-refine"}
+    assert all(0 < f["min_s"] <= f["median_s"] <= f["max_s"] for f in figures.values())
+    assert main(["bench", "identify", "--records", "0"]) == 2

@@ -11,6 +11,7 @@ HELP = "performance figures (targets: see TARGETS)"
 
 # target name -> module exposing add_arguments(parser) and run(args) -> int. Add new ones here.
 TARGETS: dict[str, str] = {
+    "identify": "training.bench_identify",
     "sim": "training.bench_sim",
     "som": "training.bench_som",
 }
