@@ -33,8 +33,8 @@ def replay_speed(params: TwoMassParams, drive: DriveConfig, start: torch.Tensor,
     encoder's (its expected value: an output-error fit then compares the measurement with the
     model's noise-free speed). ``state``: the plant state at sample 0 instead of rest, ``n``
     tensors ``w_M``, ``w_L``, ``dphi`` [rad/s, rad/s, rad] and ``M_M`` [Nm] (the motor angle
-    starts at 0; with ``quantize=False`` sample 0 reads ``w_M``). Levels are clamped to ``+-drive.M_max``. ``substeps`` defaults to
-    :func:`default_substeps`."""
+    starts at 0; with ``quantize=False`` sample 0 reads ``w_M``). Levels are clamped to
+    ``+-drive.M_max``. ``substeps`` defaults to :func:`default_substeps`."""
     flat = params.reshape(-1)
     n = flat.J_sigma.numel()
     if start.ndim != 2 or level.shape != start.shape or start.shape[0] != n:

@@ -169,12 +169,11 @@ class Identifier:
         b = a.sections.bounds
         start, level = torque_reference(b, a.M_star)
         p = res["quality"]["maps_estimate"]
-        counts = int(round(2.0 * math.pi / (a.q_w * a.T_s)))
         segments = np.concatenate([b, [[b[5, 1], len(a.fit.speed)]]])  # the six sections and the tail
         s_N = max(p["s_N"], 1e-3)
         return RefineProblem(speed=a.fit.speed, start=start, level=level, segments=segments, J_sigma=a.fit.J_sigma,
                              M_FC=max(a.fit.M_FC, 0.0), mu_F=max(a.fit.mu_F, 0.0), T_s=a.T_s, T_Ei=a.T_Ei,
-                             encoder_counts=counts, M_N=self.M_N, free_one_mass=bool(a.fit.warnings),
+                             encoder_counts=_encoder_counts(a), M_N=self.M_N, free_one_mass=bool(a.fit.warnings),
                              theta=np.array([math.log10(p["f_e"]), math.log10(p["V_J"]), p["d"], math.log10(s_N)]))
 
     def _apply_refined(self, a: Analysis, res: dict[str, Any], m: Refined) -> None:
@@ -184,7 +183,7 @@ class Identifier:
         J_sigma = a.fit.J_sigma if m.J_sigma is None else m.J_sigma
         model = TwoMassParams.from_dicts(dict(J_sigma=J_sigma, V_J=m.V_J, f_e=m.f_e, d=m.d, backlash=m.backlash,
                                               M_FC=0.0, mu_F=0.0))
-        drive = DriveConfig(M_N=self.M_N, T_Ei=a.T_Ei, T_s=a.T_s, encoder_counts=int(round(2 * math.pi / (a.q_w * a.T_s))))
+        drive = DriveConfig(M_N=self.M_N, T_Ei=a.T_Ei, T_s=a.T_s, encoder_counts=_encoder_counts(a))
         structure = STRUCTURE_CLASSES[int(structure_class(model, drive, a.M_star).reshape(-1)[0])]
         p = res["parameters"]
         if m.J_sigma is not None:  # STEP 2 flagged its fit; the whole-record fit replaced it
@@ -214,6 +213,11 @@ class Identifier:
             return "stiff", probs
         others = [c for c in STRUCTURE_CLASSES if c != "stiff"]
         return max(others, key=probs.get), probs
+
+
+def _encoder_counts(a: Analysis) -> int:
+    """The record's encoder counts per revolution, from its speed quantum ``q_w = 2 pi / (counts T_s)``."""
+    return int(round(2.0 * math.pi / (a.q_w * a.T_s)))
 
 
 def _one_line(err: BaseException) -> str:

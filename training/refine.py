@@ -2,7 +2,8 @@
 
 The maps give the structure and a first estimate of ``f_e``, ``V_J``, ``d`` and the normalized
 backlash ``s_N``. This module polishes them on the record itself: candidate two-mass models
-(``J_sigma``, ``M_FC``, ``mu_F`` fixed from STEP 2) are simulated open loop under the record's own
+(``J_sigma``, ``M_FC``, ``mu_F`` from STEP 2, unless STEP 2 flags its own fit: see
+:class:`RefineConfig`) are simulated open loop under the record's own
 torque reference (:func:`sim.replay.replay_speed`, many candidates in one batch) and scored by
 how well they reproduce the measured motor speed. Before scoring, a quadratic trend per section
 is removed from the speed error: it absorbs the small one-mass errors of STEP 2 (a friction or
@@ -41,14 +42,15 @@ _HIGH_FREE = np.concatenate([_HIGH, [1.0, 5.0]])
 
 @dataclass(frozen=True)
 class RefineConfig:
-    """The search, in two stages.
+    """The search, in three stages.
 
     Explore: score only the first ``window_periods`` periods (at the start's ``f_e``; at most
-    ``window_max`` seconds) after each torque step, with each candidate's best gain projected out: a model whose frequency is a few
-    % off does not lose its match to the phase error that builds up over a long section, nor a
-    model with the right shape but a wrong ``V_J`` to its amplitude (the gain rescales its
-    ``V_J``). A grid of ``grid_f_e`` eigenfrequencies over ``+-grid_span`` decades around the
-    start times the normalized backlash values ``grid_s_N`` (0: the start's own), then
+    ``window_max`` seconds) after each torque step, with each candidate's best gain projected
+    out: a model whose frequency is a few % off does not lose its match to the phase error that
+    builds up over a long section, nor a model with the right shape but a wrong ``V_J`` to its
+    amplitude (the gain rescales its ``V_J``). A grid of ``grid_f_e`` eigenfrequencies over
+    ``+-grid_span`` decades around the start times the normalized backlash values ``grid_s_N``
+    (0: the start's own), then
     ``rounds`` rounds of a cross-entropy search: ``candidates`` models around the best so far,
     the ``elites`` best setting the next round's spread (``spread``: the first round's standard
     deviation per coordinate of :data:`COORDINATES`). Each window is simulated on its own from a
@@ -65,8 +67,9 @@ class RefineConfig:
     whole record (an exact replay from rest; nothing to detrend once the one-mass part is
     fitted): a grid over ``J_sigma`` (x 1/4 .. 4), ``f_e`` (x 1/16 .. 2: such a mechanic is
     softer than it looks), ``V_J`` and ``M_FC`` around the chosen model and around the maps'
-    answer, then ``free_rounds`` rounds (``free_spread``: the first spread of the two new coordinates).
-    The model with the lower plain error wins."""
+    answer, then ``free_rounds`` rounds (``free_spread``: the first spread of the two new
+    coordinates). The free model replaces the chosen one only when its plain squared error is
+    below ``free_win`` times the chosen one's (with STEP 2's ``J_sigma`` and ``M_FC``)."""
 
     grid_f_e: int = 11
     grid_s_N: tuple[float, ...] = (0.0, 0.05, 0.3, 1.0, 3.0)
@@ -348,8 +351,10 @@ def _packs(problems: list[RefineProblem], sizes: list[int], substeps: list[int],
     packs: list[list[int]] = []
     for i in order:
         last = packs[-1] if packs else None
-        if (last and key(last[0]) == key(i) and len(problems[i].speed) >= min_length_ratio * len(problems[last[0]].speed)
-                and sum(sizes[j] for j in last) + sizes[i] <= max_models):
+        fits = (last and key(last[0]) == key(i)
+                and len(problems[i].speed) >= min_length_ratio * len(problems[last[0]].speed)
+                and sum(sizes[j] for j in last) + sizes[i] <= max_models)
+        if fits:
             last.append(i)
         else:
             packs.append([i])
