@@ -11,8 +11,8 @@ import pytest
 sim = pytest.importorskip("sim")
 
 from training.cli import main  # noqa: E402
-from training.commissioning import commission  # noqa: E402
-from training.excitation import ExcitationLimits  # noqa: E402
+from training.commissioning._chain import commission  # noqa: E402
+from training.commissioning._excitation import ExcitationLimits  # noqa: E402
 
 DRIVE = sim.DriveConfig()
 FAST = dict(tune_evaluations=8, max_samples=600)
@@ -43,7 +43,7 @@ def _shipped_identifier():
     """The shipped maps; skip (with the reason) while they do not match the toolkit's features
     (between a feature change and the retraining of the maps)."""
     from som_torch._checkpoint import CheckpointError
-    from training.identify import Identifier
+    from training.identification._identifier import Identifier
 
     try:
         return Identifier.load()
@@ -153,7 +153,7 @@ def test_outside_training_is_refused():
 def test_limits_never_exceeded_over_the_chain(limits):
     plant = dict(J_sigma=0.2, V_J=2.0, f_e=15.0, d=0.02, backlash=0.001, M_FC=0.3, mu_F=0.0)
     runs = []
-    import training.commissioning as cm
+    import training.commissioning._chain as cm
 
     inner = cm.sim_test_runner
 
@@ -210,7 +210,7 @@ def test_command_reports_and_rejects_bad_input(tmp_path, capsys):
 def test_spectral_oscillation_check_tolerates_small_and_flags_large_frequency_errors():
     """The chain's oscillation check (osc_metric="spectrum") is phase-insensitive: 3 % f_e error
     passes where the sample-by-sample error is larger; f_e x 2 and f_e / 2 fail."""
-    from training.validation import validate_model
+    from training.commissioning._validation import validate_model
 
     plant = _plant(ELASTIC)
     sig = sim.TestSignalConfig(M_star=10.0, w_max=50.0)

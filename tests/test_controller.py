@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from training.controller import (
+from training.commissioning._controller import (
     ControllerSpec,
     PISpeedController,
     _closed_loop_matrices,
@@ -18,7 +18,7 @@ from training.controller import (
     loop_figures,
     propose_controller,
 )
-from training.tuning import LinearRunner
+from training.commissioning._tuning import LinearRunner
 
 DRIVE = SimpleNamespace(M_max=20.0, M_N=10.0, K_M=1.0, T_Ei=5e-4, T_s=2.5e-4, encoder_counts=2**20)
 ELASTIC = dict(J_sigma=0.05, V_J=1.0, f_e=20.0, d=0.02)

@@ -11,10 +11,10 @@ import pytest
 import torch
 
 from sim import DriveConfig, TestSignalConfig
-from training import evaluation as ev
+from training.evaluation import _study as ev
 from training.cli import main
 from training.errors import UserError
-from training.report import NO_MATPLOTLIB, render_markdown, write_report
+from training.evaluation._report import NO_MATPLOTLIB, render_markdown, write_report
 
 TRUTH = {"J_sigma": 0.1, "V_J": 1.0, "f_e": 50.0}
 
@@ -195,7 +195,7 @@ def test_markdown_and_json_writer(tmp_path, monkeypatch):
 
 def _shipped_maps_fit() -> bool:
     from som_torch._checkpoint import CheckpointError
-    from training.identify import Identifier
+    from training.identification._identifier import Identifier
 
     try:
         Identifier.load()
@@ -247,8 +247,8 @@ def test_source_digest_follows_the_import_closure(monkeypatch):
 
     monkeypatch.setattr(ev, "_module_file", spy)
     som = ev.source_digest(ev.METHOD_ROOTS["som"])
-    assert {"training.analysis", "training.features", "training.identify", "sim.plant"} <= set(seen)
-    assert "training.iv4" not in seen and "training.evaluation" not in seen
+    assert {"training.identification._analysis", "training.identification._features", "training.identification._identifier", "sim.plant"} <= set(seen)
+    assert "training.evaluation._iv4" not in seen and "training.evaluation._study" not in seen
     iv4 = ev.source_digest(ev.METHOD_ROOTS["iv4"])
     assert som != iv4 == ev.source_digest(ev.METHOD_ROOTS["iv4"])  # (iv4: files nobody edits during the test)
 

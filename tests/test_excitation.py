@@ -11,7 +11,7 @@ sim = pytest.importorskip("sim")
 if not hasattr(sim, "simulate_test") or not hasattr(sim, "TwoMassParams"):
     pytest.skip("sim.simulate_test / sim.TwoMassParams not available yet", allow_module_level=True)
 
-from training.excitation import ExcitationLimits, ExcitationRules, adapt_test_signal, measure_response, sim_test_runner  # noqa: E402
+from training.commissioning._excitation import ExcitationLimits, ExcitationRules, adapt_test_signal, measure_response, sim_test_runner  # noqa: E402
 
 DRIVE = sim.DriveConfig()
 

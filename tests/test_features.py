@@ -1,4 +1,4 @@
-"""Features of w_osc (training.features): synthetic signals with known content, properties, a test run."""
+"""Features of w_osc (training.identification._features): synthetic signals with known content, properties, a test run."""
 
 from __future__ import annotations
 
@@ -10,12 +10,12 @@ from hypothesis.extra.numpy import arrays
 from scipy.signal import sawtooth
 
 from test_sections import simulate_switching
-from training.features import (
+from training.identification._features import (
     EIG_EDGES, EXTRA_NAMES, FEATURE_SETS, compute_features, dominant_frequency, eigenfrequency_features,
     extra_features, structure_features, zero_crossing_frequency,
 )
-from training.one_mass import fit_one_mass
-from training.sections import detect_sections
+from training.identification._one_mass import fit_one_mass
+from training.identification._sections import detect_sections
 
 T_S = 2.5e-4
 BOUNDS = [(0, 1300), (1300, 2500), (2500, 4000), (4000, 5200), (5200, 6500), (6500, 8000)]

@@ -15,8 +15,8 @@ import pytest
 from sim import Record, write_record
 from sim.params import STRUCTURE_CLASSES
 from training.cli import main
-from training.cmd_identify import json_safe
-from training.identify import DEFAULT_CHECKPOINTS, PARAMETER_NAMES
+from training.commands.identify import json_safe
+from training.identification._identifier import DEFAULT_CHECKPOINTS, PARAMETER_NAMES
 
 REPO = Path(__file__).resolve().parents[1]
 RPM = 60.0 / (2.0 * math.pi)
@@ -240,7 +240,7 @@ def test_readme_sample_line_has_the_output_keys():
 
 
 def test_a_failing_recall_costs_only_its_record(records):
-    from training.cmd_identify import identify_paths
+    from training.commands.identify import identify_paths
 
     class Stub:
         calls = 0

@@ -8,7 +8,7 @@ from scipy.integrate import trapezoid
 from scipy.linalg import expm
 from scipy.signal import lfilter
 
-from training.iv4 import arx, identify_iv4, iv4, mean_torque, two_mass_from_discrete
+from training.evaluation._iv4 import arx, identify_iv4, iv4, mean_torque, two_mass_from_discrete
 
 T_S = 2.5e-4
 

@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from training.metrics import (confusion_matrix, recognition_rate, recognized, relative_error,
+from training.evaluation._metrics import (confusion_matrix, recognition_rate, recognized, relative_error,
                               threshold_margin)
 
 

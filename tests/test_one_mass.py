@@ -1,4 +1,4 @@
-"""STEP 2 one-mass fit (training.one_mass): exact one-mass data, the test run, and the EMPS benchmark."""
+"""STEP 2 one-mass fit (training.identification._one_mass): exact one-mass data, the test run, and the EMPS benchmark."""
 
 from __future__ import annotations
 
@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from test_sections import simulate_switching
-from training.one_mass import OneMassFit, fit_one_mass, speed_from_position
-from training.sections import detect_sections
+from training.identification._one_mass import OneMassFit, fit_one_mass, speed_from_position
+from training.identification._sections import detect_sections
 
 EMPS_REF = {"J_sigma": 95.1089, "mu_F": 203.5034, "M_FC": 20.3935}
 
@@ -154,7 +154,7 @@ def test_integration_with_sim_simulate_test():
     """sim.simulate_test -> sections (vs the true column) -> one-mass fit -> eigenfrequency bin."""
     import torch
 
-    from training.features import EIG_EDGES, eigenfrequency_features
+    from training.identification._features import EIG_EDGES, eigenfrequency_features
 
     sim = _sim_api()
     truth = {"J_sigma": [0.05, 0.03, 0.1], "V_J": [1.0, 2.0, 0.5], "f_e": [300.0, 40.0, 20.0],

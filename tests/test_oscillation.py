@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from training.oscillation import _response, fit_oscillation
+from training.identification._oscillation import _response, fit_oscillation
 
 T_S = 2.5e-4
 

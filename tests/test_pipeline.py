@@ -7,10 +7,10 @@ import pytest
 
 from sim import TestSignalConfig, iter_records, sample_population
 from training.cli import main
-from training.dataset import GenerateConfig, generate, load_dataset
+from training.learning._dataset import GenerateConfig, generate, load_dataset
 from training.errors import UserError
-from training.identify import PARAMETER_NAMES, Identifier
-from training.maps import MAP_SPECS
+from training.identification._identifier import PARAMETER_NAMES, Identifier
+from training.identification._maps import MAP_SPECS
 
 
 @pytest.fixture(scope="module")

@@ -1,4 +1,4 @@
-"""training.plausibility: units and metadata checked against the signals (one-line messages)."""
+"""training.identification._plausibility: units and metadata checked against the signals (one-line messages)."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from sim import Record, iter_records, sample_population
-from training.plausibility import check_record
+from training.identification._plausibility import check_record
 
 RPM = 60.0 / (2.0 * math.pi)
 

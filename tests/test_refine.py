@@ -1,4 +1,4 @@
-"""Model-based refinement (training.refine): recovers a known plant from a perturbed start."""
+"""Model-based refinement (training.identification._refine): recovers a known plant from a perturbed start."""
 
 import math
 
@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from sim import DriveConfig, TestSignalConfig, TwoMassParams, responses_to_records, simulate_test
-from training.analysis import analyze
-from training.refine import RefineConfig, RefineProblem, refine, torque_reference
+from training.identification._analysis import analyze
+from training.identification._refine import RefineConfig, RefineProblem, refine, torque_reference
 
 DRIVE = DriveConfig()
 

@@ -1,4 +1,4 @@
-"""Section detection (training.sections) on a small numpy two-mass plant under the SPEC 2 test signal.
+"""Section detection (training.identification._sections) on a small numpy two-mass plant under the SPEC 2 test signal.
 
 ``simulate_switching`` is a stand-alone reference of the test run (plant SPEC 1, signal SPEC 2),
 used here and by tests/test_one_mass.py and tests/test_features.py so that those tests do not
@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import pytest
 
-from training.sections import SectionSplit, detect_sections
+from training.identification._sections import SectionSplit, detect_sections
 
 LEVELS = (1.0, 0.0, -0.7, -1.0, 0.0, 0.7)
 

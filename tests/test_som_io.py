@@ -136,7 +136,7 @@ def test_docs_example_runs():
 
 
 def test_bench_cli_small():
-    from training import bench_som
+    from training.bench import _som as bench_som
 
     parser = argparse.ArgumentParser()
     bench_som.add_arguments(parser)
@@ -153,7 +153,7 @@ def test_bench_cli_small():
 def test_bench_minisom_missing(monkeypatch):
     import sys
 
-    from training import bench_som
+    from training.bench import _som as bench_som
 
     monkeypatch.setitem(sys.modules, "minisom", None)  # import fails
     parser = argparse.ArgumentParser()
@@ -167,7 +167,7 @@ def test_bench_minisom_missing(monkeypatch):
 
 
 def test_twomass_bench_som_cli(capsys):
-    pytest.importorskip("training.cmd_bench")
+    pytest.importorskip("training.commands.bench")
     from training.cli import main
 
     code = main(["bench", "som", "--maps", "1", "--rows", "4", "--cols", "4", "--samples", "20", "--epochs", "1",

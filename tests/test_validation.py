@@ -6,7 +6,7 @@ import math
 
 import pytest
 
-from training.validation import may_propose_controller
+from training.commissioning._validation import may_propose_controller
 
 GOOD = {
     "structure": "elastic",
@@ -70,7 +70,7 @@ def record():
     ids=["true", "f_e_x2", "f_e_half", "J_plus_50pct", "stiff_for_elastic"],
 )
 def test_switching_resimulation_flags_wrong_models(record, model, ok):
-    from training.validation import validate_model
+    from training.commissioning._validation import validate_model
 
     drive, signal, rec = record
     res = validate_model(model, drive, rec, mode="switching", signal=signal)
@@ -81,7 +81,7 @@ def test_switching_resimulation_flags_wrong_models(record, model, ok):
 
 @needs_sim
 def test_replay_of_recorded_torque_flags_wrong_inertia():
-    from training.validation import validate_model
+    from training.commissioning._validation import validate_model
 
     drive = sim.DriveConfig()
     signal = sim.TestSignalConfig(M_star=10.0, w_max=4.0)
@@ -96,7 +96,7 @@ def test_replay_of_recorded_torque_flags_wrong_inertia():
 
 @needs_sim
 def test_validation_from_a_record_uses_its_meta(record):
-    from training.validation import validate_model
+    from training.commissioning._validation import validate_model
 
     drive, signal, resp = record
     rec = sim.responses_to_records(resp, sim.TwoMassParams.from_dicts(TRUE).reshape(1), drive, signal)[0]

@@ -21,14 +21,14 @@ from collections.abc import Sequence
 from training.errors import UserError
 
 COMMANDS: dict[str, str] = {
-    "simulate": "training.cmd_simulate",
-    "identify": "training.cmd_identify",
-    "generate": "training.cmd_generate",
-    "train": "training.cmd_train",
-    "evaluate": "training.cmd_evaluate",
-    "commission": "training.cmd_commission",
-    "bench": "training.cmd_bench",
-    "demo": "training.cmd_demo",
+    "simulate": "training.commands.simulate",
+    "identify": "training.commands.identify",
+    "generate": "training.commands.generate",
+    "train": "training.commands.train",
+    "evaluate": "training.commands.evaluate",
+    "commission": "training.commands.commission",
+    "bench": "training.commands.bench",
+    "demo": "training.commands.demo",
 }
 
 

@@ -20,7 +20,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from training.dataset import GenerateConfig, generate, load_dataset
+    from training.learning._dataset import GenerateConfig, generate, load_dataset
 
     if args.n < 1 or args.shard_size < 1:
         raise ValueError(f"--n and --shard-size: expected >= 1, received {args.n}, {args.shard_size}")

@@ -30,7 +30,7 @@ import torch
 
 from sim import DriveConfig, PopulationRanges, TestSignalConfig, iter_records, sample_population
 from sim.params import DERIVED_NAMES, PARAM_NAMES, STRUCTURE_CLASSES
-from training.analysis import FEATURE_NAMES, FEATURE_VERSION, analyze
+from training.identification._analysis import FEATURE_NAMES, FEATURE_VERSION, analyze
 from training.errors import UserError
 
 #: Truth columns stored per system (SI units; ``structure`` as index into STRUCTURE_CLASSES).

@@ -25,7 +25,7 @@ def _floats(text: str) -> tuple[float, ...]:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from training.evaluation import GRID_BACKLASH_DEG, GRID_F_E
+    from training.evaluation._study import GRID_BACKLASH_DEG, GRID_F_E
 
     parser.add_argument("--out", type=Path, default=DEFAULT_OUT, help=f"report folder (default {DEFAULT_OUT})")
     parser.add_argument("--seed", type=int, default=5,
@@ -68,8 +68,8 @@ def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from sim import DriveConfig, TestSignalConfig
-    from training.evaluation import grid_set, population_set, run_set, summarize
-    from training.report import write_report
+    from training.evaluation._study import grid_set, population_set, run_set, summarize
+    from training.evaluation._report import write_report
 
     if args.per_cell < 0 or args.population < 0:
         raise ValueError(f"--per-cell and --population: expected >= 0, received {args.per_cell}, {args.population}")

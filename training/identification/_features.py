@@ -1,7 +1,7 @@
 """Features of the oscillating part ``w_osc`` of a test run (paper section 3.3, SPEC 4).
 
 All functions work on one record: ``w_osc`` ``(N,)`` [rad/s] (from
-:func:`training.one_mass.fit_one_mass`), the sample time ``T_s`` [s] and the sections (``None`` =
+:func:`training.identification._one_mass.fit_one_mass`), the sample time ``T_s`` [s] and the sections (``None`` =
 the whole signal as one section, a ``SectionSplit``, or ``(K, 2)`` ``(start, stop)`` indices).
 They never return NaN/inf: a section without oscillation contributes zeros.
 
@@ -43,7 +43,7 @@ import numpy as np
 from scipy import fft as _fft
 from scipy import signal as _signal
 
-from training.one_mass import section_bounds
+from training.identification._one_mass import section_bounds
 
 __all__ = [
     "EIG_F_LO", "EIG_F_HI", "EIG_N_BINS", "EIG_EDGES", "STRUCT_SAMPLES_PER_PERIOD", "FeatureSet", "FEATURE_SETS",

@@ -12,7 +12,7 @@ Three jobs, in this order:
    everything they depend on; a cache file of another config is refused, never mixed.
 3. **Aggregation** (:func:`summarize`): recognition rates ``E_30``/``E_50`` per grid cell, per
    backlash, per true class and overall; per-parameter error statistics; the structure
-   confusion matrix; the issue's acceptance checks. All figures come from ``training.metrics``.
+   confusion matrix; the issue's acceptance checks. All figures come from ``training.evaluation._metrics``.
 
 Conventions: a missing estimate is a miss. The SOM gives no ``f_e``/``V_J`` for the ``stiff``
 class (``None``), a record it cannot analyse gets ``error``; IV4 results with ``valid=False``
@@ -41,7 +41,7 @@ import torch
 
 from sim import DriveConfig, PopulationRanges, TestSignalConfig, TwoMassParams, iter_records, sample_population
 from sim.params import STRUCTURE_CLASSES
-from training import metrics
+from training.evaluation import _metrics as metrics
 from training.errors import UserError
 
 #: The paper's grid (section 4, Fig. 10): eigenfrequencies [Hz] and total backlash widths [degree].
@@ -163,8 +163,8 @@ _IDENTIFIERS: dict[tuple[str, bool], Any] = {}
 def _identifier(checkpoints: str, refine: bool = True) -> Any:
     """The loaded maps of ``checkpoints`` (with or without the refinement), once per process."""
     if (checkpoints, refine) not in _IDENTIFIERS:
-        from training.identify import Identifier
-        from training.refine import RefineConfig
+        from training.identification._identifier import Identifier
+        from training.identification._refine import RefineConfig
 
         _IDENTIFIERS[checkpoints, refine] = Identifier.load(checkpoints, refine=RefineConfig() if refine else None)
     return _IDENTIFIERS[checkpoints, refine]
@@ -211,12 +211,12 @@ def som_result(record: Any, checkpoints: str, refine: bool = True) -> dict[str, 
 
 
 def iv4_result(record: Any) -> dict[str, Any]:
-    """IV4 (``training.iv4.identify_iv4`` with its defaults) on one record (JSON-able).
+    """IV4 (``training.evaluation._iv4.identify_iv4`` with its defaults) on one record (JSON-able).
 
     Keys: ``J_sigma``, ``V_J``, ``f_e`` [Hz], ``d`` (``None`` where NaN), ``valid``, ``reason``,
     ``converged``, ``iterations``. Input: ``K_M * current`` (or ``torque``) and the measured speed.
     """
-    from training.iv4 import identify_iv4
+    from training.evaluation._iv4 import identify_iv4
 
     out: dict[str, Any] = dict.fromkeys(METHOD_PARAMS["iv4"])
     out.update(valid=False, reason="", converged=False, iterations=0)
@@ -277,8 +277,8 @@ def checkpoints_digest(checkpoints: str | os.PathLike[str]) -> str:
 #: Top-level packages whose source enters :func:`source_digest`.
 _OWN_PACKAGES = ("sim", "training", "som_torch")
 #: Modules a method's results depend on (their import closure within :data:`_OWN_PACKAGES` is hashed).
-METHOD_ROOTS: dict[str, tuple[str, ...]] = {"som": ("sim", "training.identify"), "maps": ("sim", "training.identify"),
-                                             "iv4": ("sim", "training.iv4")}
+METHOD_ROOTS: dict[str, tuple[str, ...]] = {"som": ("sim", "training.identification._identifier"), "maps": ("sim", "training.identification._identifier"),
+                                             "iv4": ("sim", "training.evaluation._iv4")}
 
 
 def _module_file(name: str) -> Path | None:
@@ -333,7 +333,7 @@ def method_config(method: str, eval_set: EvalSet, drive: DriveConfig, signal: Te
                            "drive": asdict(drive), "signal": asdict(signal),
                            "source_sha256": source_digest(METHOD_ROOTS[method])}
     if method in ("som", "maps"):
-        from training.analysis import FEATURE_VERSION
+        from training.identification._analysis import FEATURE_VERSION
 
         if checkpoints is None:
             raise ValueError(f"method_config: expected a checkpoint folder for method {method!r}, received None")
@@ -421,8 +421,8 @@ def run_set(eval_set: EvalSet, *, methods: Sequence[str] = METHODS, drive: Drive
         (wall time of simulation + all methods computed together), ``workers``, ``loadavg``
         (1-minute load average before and after; the machine may be shared).
     """
-    from training.dataset import _worker_pool
-    from training.identify import DEFAULT_CHECKPOINTS
+    from training.learning._dataset import _worker_pool
+    from training.identification._identifier import DEFAULT_CHECKPOINTS
 
     if not methods or any(m not in METHODS for m in methods):
         raise ValueError(f"methods: expected a non-empty subset of {METHODS}, received {list(methods)}")

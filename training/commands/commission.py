@@ -163,9 +163,9 @@ def _write_json(path: Path, data: Any) -> None:
 
 def run(args: argparse.Namespace) -> int:
     import sim
-    from training.commissioning import commission
-    from training.excitation import ExcitationLimits
-    from training.identify import Identifier
+    from training.commissioning._chain import commission
+    from training.commissioning._excitation import ExcitationLimits
+    from training.identification._identifier import Identifier
 
     for name in ("--w-limit", "--travel-limit", "--M-star-max", "--max-map-distance"):
         _check_positive(name, getattr(args, name[2:].replace("-", "_")))

@@ -137,7 +137,7 @@ def section_bounds(sections: Any, n: int) -> list[tuple[int, int]]:
     """Normalize ``sections`` to a list of ``(start, stop)`` sample indices within ``0..n``.
 
     Accepts ``None`` (the whole record), an object with a ``bounds`` attribute (a
-    :class:`training.sections.SectionSplit`), or a sequence of ``(start, stop)`` pairs / an
+    :class:`training.identification._sections.SectionSplit`), or a sequence of ``(start, stop)`` pairs / an
     array of shape ``(K, 2)``.
     """
     if sections is None:

@@ -2,7 +2,7 @@
 
 Writes JSON Lines: one object per record, in the order given, each with ``record`` (the path as
 given) and either ``error`` (one line) or ``structure``, ``parameters``, ``quality`` and
-``warnings`` (see :class:`training.identify.Identifier`). Non-finite numbers are written as
+``warnings`` (see :class:`training.identification._identifier.Identifier`). Non-finite numbers are written as
 ``null``. A record may be named ``NAME.csv``, ``NAME.json`` or ``NAME``; when several arguments
 name the same record (``runs/*`` lists both files of each record) only the first is answered.
 
@@ -83,7 +83,7 @@ def _one_line(err: BaseException) -> str:
 def analyze_path(path: str) -> Any:
     """Read and analyse one record: an ``Analysis``, or the one-line reason it cannot be identified."""
     from sim import read_record
-    from training.analysis import analyze
+    from training.identification._analysis import analyze
 
     try:
         return analyze(read_record(path))
@@ -108,7 +108,7 @@ def _analyses(paths: Sequence[str], jobs: int) -> Iterator[Any]:
 def identify_paths(ident: Any, paths: Sequence[str], progress: Any = None, jobs: int = 1) -> Iterator[dict[str, Any]]:
     """``{"record": path, ...}`` per path, in order; analysed one by one (or in ``jobs`` worker
     processes), recalled in chunks of :data:`CHUNK`. ``progress``: called with 1 per record."""
-    from training.analysis import Analysis
+    from training.identification._analysis import Analysis
 
     items: list[tuple[str, Any]] = []
 
@@ -149,8 +149,8 @@ def default_jobs(n_records: int) -> int:
 
 
 def _load_identifier(folder: Path | None, refine: bool = True) -> Any:
-    from training.identify import DEFAULT_CHECKPOINTS, Identifier
-    from training.refine import RefineConfig
+    from training.identification._identifier import DEFAULT_CHECKPOINTS, Identifier
+    from training.identification._refine import RefineConfig
 
     where = folder if folder is not None else DEFAULT_CHECKPOINTS
     if not Path(where).is_dir():

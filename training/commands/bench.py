@@ -1,20 +1,15 @@
-"""``twomass bench TARGET``: performance figures; each target is a module ``training.bench_<name>``."""
+"""``twomass bench TARGET``: performance figures; the targets live in :mod:`training.bench`."""
 
 from __future__ import annotations
 
 import argparse
 import importlib
 
+from training.bench import TARGETS
 from training.errors import UserError
 
-HELP = "performance figures (targets: see TARGETS)"
+HELP = f"performance figures (targets: {', '.join(sorted(TARGETS))})"
 
-# target name -> module exposing add_arguments(parser) and run(args) -> int. Add new ones here.
-TARGETS: dict[str, str] = {
-    "identify": "training.bench_identify",
-    "sim": "training.bench_sim",
-    "som": "training.bench_som",
-}
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

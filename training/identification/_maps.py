@@ -1,7 +1,7 @@
-"""The identification maps: which features each map sees, which parameters it stores, training.
+"""The identification maps: which features each map sees, which parameters it stores, recall.
 
 Each map is a :class:`som_torch.SOM` whose active components are named features
-(:data:`training.analysis.FEATURE_NAMES`) and whose inactive components are *targets*:
+(:data:`training.identification._analysis.FEATURE_NAMES`) and whose inactive components are *targets*:
 transformed physical parameters (paper section 3.4). A map is trained as an ensemble of
 ``E`` maps with different seeds in one batch (``batch_shape = (E,)``); recall takes the median
 of the members' interpolated read-outs, which is smoother than one map's quantized answer.
@@ -9,9 +9,8 @@ of the members' interpolated read-outs, which is smoother than one map's quantiz
 
 from __future__ import annotations
 
-import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -20,8 +19,7 @@ import torch
 
 import som_torch as st
 from sim.params import STRUCTURE_CLASSES
-from training.analysis import FEATURE_NAMES, FEATURE_VERSION
-from training.dataset import Dataset
+from training.identification._analysis import FEATURE_NAMES, FEATURE_VERSION
 
 _EIG = tuple(n for n in FEATURE_NAMES if n.startswith("eig_"))
 _HARM = tuple(n for n in FEATURE_NAMES if n.startswith("harm_"))
@@ -98,27 +96,6 @@ MAP_SPECS: dict[str, MapSpec] = {
 }
 
 
-@dataclass(frozen=True)
-class TrainConfig:
-    """How maps are trained (the paper: 40 x 40, online rule, 10 epochs)."""
-
-    rows: int = 40
-    cols: int = 40
-    topology: str = "rectangular"
-    ensemble: int = 4
-    epochs: int = 10
-    learning_rate: tuple[float, float] = (0.5, 0.01)
-    sigma: tuple[float, float] = (8.0, 0.5)
-    schedule: str = "asymptotic"
-    neighbourhood: str = "gaussian"
-    normalization: str = "standard"
-    interpolate: int = 4
-    seed: int = 0
-
-    def to_dict(self) -> dict[str, Any]:
-        return asdict(self)
-
-
 @dataclass
 class TrainedMap:
     """A trained ensemble with the metadata that makes its checkpoint self-contained."""
@@ -126,53 +103,6 @@ class TrainedMap:
     spec: MapSpec
     som: st.SOM
     metadata: dict[str, Any] = field(default_factory=dict)
-
-
-def training_matrix(spec: MapSpec, dataset: Dataset) -> np.ndarray:
-    """``N' x C`` rows of the subset: active features then targets (raw units)."""
-    mask = dataset.ok & SUBSETS[spec.subset](dataset.truth)
-    cols = [dataset.features[:, FEATURE_NAMES.index(f)] for f in spec.features]
-    cols += [TARGETS[t](dataset.truth, dataset.features) for t in spec.targets]
-    return np.stack(cols, axis=1)[mask]
-
-
-def train_map(spec: MapSpec, dataset: Dataset, config: TrainConfig, *, progress: bool = False,
-              writer: Any = None, calibration_share: float = 0.1) -> TrainedMap:
-    """Train the ensemble of ``spec`` on its subset of ``dataset``; with a TensorBoard ``writer``,
-    log QE/TE/learning rate/radius per epoch and U-matrix, hit and parameter maps (tag prefix = map name).
-
-    A seeded ``calibration_share`` of the rows is held out of training: the recall distances of
-    those unseen rows give the quantiles against which identification flags records unlike the
-    training data (distances of training rows themselves are much smaller: measured 3x)."""
-    rows = training_matrix(spec, dataset)
-    n_cal = max(5, int(round(calibration_share * rows.shape[0])))
-    if rows.shape[0] < n_cal + 10:
-        raise ValueError(f"map {spec.name}: expected >= {n_cal + 10} training systems, received {rows.shape[0]}")
-    perm = np.random.default_rng(config.seed).permutation(rows.shape[0])
-    calibration, rows = rows[perm[:n_cal]], rows[perm[n_cal:]]
-    data = torch.as_tensor(rows, dtype=torch.float32).expand(config.ensemble, *rows.shape)  # E x N x C
-    active = [True] * len(spec.features) + [False] * len(spec.targets)
-    som = st.SOM(st.Grid(config.rows, config.cols, config.topology), spec.components, active,
-                 batch_shape=(config.ensemble,))
-    hooks = [st.tensorboard_hook(writer, data, prefix=spec.name)] if writer is not None else []
-    t0 = time.perf_counter()
-    st.fit(som, data, mode="online", init="random", normalization=config.normalization,
-           seed=config.seed, epochs=config.epochs, learning_rate=config.learning_rate, sigma=config.sigma,
-           schedule=config.schedule, neighbourhood=config.neighbourhood, progress=progress, hooks=hooks)
-    seconds = time.perf_counter() - t0
-    trained = TrainedMap(spec, som)
-    distance = recall_targets(trained, calibration[:, : len(spec.features)], config.interpolate)["distance"]
-    trained.metadata = {
-        "map": spec.name, "spec": {"features": list(spec.features), "targets": list(spec.targets),
-                                   "subset": spec.subset},
-        "feature_version": FEATURE_VERSION, "train_config": config.to_dict(),
-        "dataset": {"sha256": dataset.sha256, "n": int(dataset.config["n"]), "seed": int(dataset.config["seed"]),
-                    "n_used": int(rows.shape[0]), "n_calibration": int(n_cal),
-                    "drive": dataset.config["drive"], "signal": dataset.config["signal"]},
-        "quality": st.quality_report(som, data), "train_seconds": seconds,
-        "distance_quantiles": {q: float(np.quantile(distance, float(q))) for q in ("0.5", "0.95", "0.99")},
-    }
-    return trained
 
 
 def recall_targets(trained: TrainedMap, features: np.ndarray, interpolate: int) -> dict[str, np.ndarray]:
@@ -184,11 +114,6 @@ def recall_targets(trained: TrainedMap, features: np.ndarray, interpolate: int) 
            for t in trained.spec.targets}
     out["distance"] = r.distance.median(0).values.double().numpy()
     return out
-
-
-def save_map(folder: Path, trained: TrainedMap) -> str:
-    """Write ``folder/<name>.pt`` atomically; returns its SHA-256."""
-    return st.save_checkpoint(folder / f"{trained.spec.name}.pt", trained.som, trained.metadata)
 
 
 def load_map(path: Path) -> TrainedMap:

@@ -12,11 +12,11 @@ from typing import Any
 
 import numpy as np
 
-from training.features import EXTRA_NAMES, FEATURE_SETS, eigenfrequency_features, extra_features, structure_features
-from training.one_mass import OneMassFit, fit_one_mass
-from training.oscillation import fit_oscillation
-from training.plausibility import check_record
-from training.sections import SectionSplit, detect_sections
+from training.identification._features import EXTRA_NAMES, FEATURE_SETS, eigenfrequency_features, extra_features, structure_features
+from training.identification._one_mass import OneMassFit, fit_one_mass
+from training.identification._oscillation import fit_oscillation
+from training.identification._plausibility import check_record
+from training.identification._sections import SectionSplit, detect_sections
 
 #: Version of the whole feature vector below; stored in checkpoints and checked at recall.
 FEATURE_VERSION = "twomass-features-v2"

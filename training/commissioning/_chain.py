@@ -4,8 +4,8 @@
     -> may a controller be proposed? (V1-V6) -> propose (R1-R7) -> fine-tune (Nelder-Mead) -> report
 
 The plant is the simulator behind the plant interfaces a real drive would offer: the test
-runner ``signal -> response`` (:func:`training.excitation.sim_test_runner`) and the closed-loop
-runner (:class:`training.tuning.SimRunner`). The chain itself sees only what a drive delivers:
+runner ``signal -> response`` (:func:`training.commissioning._excitation.sim_test_runner`) and the closed-loop
+runner (:class:`training.commissioning._tuning.SimRunner`). The chain itself sees only what a drive delivers:
 the responses are turned into records *without* ``meta["truth"]``; the true parameters are
 used only to simulate the plant and, in the report, for the "true" column and the evaluation
 checks (true linear closed loop stable, limits kept), never for a decision.
@@ -29,12 +29,12 @@ from typing import Any
 import numpy as np
 import torch
 
-from training.controller import (ControllerProposal, ControllerSpec, loop_figures, mechanics_from, propose_cautious,
+from training.commissioning._controller import (ControllerProposal, ControllerSpec, loop_figures, mechanics_from, propose_cautious,
                                  propose_controller)
-from training.excitation import ExcitationLimits, ExcitationResult, ExcitationRules, adapt_test_signal, sim_test_runner
-from training.tuning import (LinearRunner, SimRunner, TuningResult, evaluate_gains, make_scenario,
+from training.commissioning._excitation import ExcitationLimits, ExcitationResult, ExcitationRules, adapt_test_signal, sim_test_runner
+from training.commissioning._tuning import (LinearRunner, SimRunner, TuningResult, evaluate_gains, make_scenario,
                              response_figures, tune_controller)
-from training.validation import Permission, ValidationResult, may_propose_controller, validate_model
+from training.commissioning._validation import Permission, ValidationResult, may_propose_controller, validate_model
 
 __all__ = ["CommissioningReport", "commission", "limit_checks", "PARAMETER_KEYS"]
 
@@ -315,7 +315,7 @@ def commission(
         plant_params: the plant (one-system ``sim.TwoMassParams``; stands where a real drive would).
         drive: ``sim.DriveConfig``.
         limits: user limits for the test runs.
-        identifier: object with ``identify(record) -> dict`` (``training.identify.Identifier``).
+        identifier: object with ``identify(record) -> dict`` (``training.identification._identifier.Identifier``).
         spec: controller rule constants (``ControllerSpec``).
         seed: noise seed of the test runs.
         tune: run the fine-tuning (else: proposal only, still evaluated on the plant).
@@ -340,7 +340,7 @@ def commission(
         name, tag: report name and TensorBoard tag prefix.
         timeout: safety timeout per test section [s].
         fallback_evaluations: after a refusal, the cautious fallback F1 (PI on ``J_sigma`` alone,
-            :func:`training.controller.propose_cautious`) is tuned by this many Nelder-Mead
+            :func:`training.commissioning._controller.propose_cautious`) is tuned by this many Nelder-Mead
             evaluations on the plant itself (0: no fallback, the chain ends with the refusal).
 
     Returns :class:`CommissioningReport`. A refused identification is a normal outcome (the

@@ -10,7 +10,7 @@ HELP = "train the identification maps on a dataset; TensorBoard logs; checkpoint
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from training.maps import TrainConfig
+    from training.learning._maps import TrainConfig
 
     d = TrainConfig()
     parser.add_argument("--data", type=Path, required=True, help="dataset folder made by `twomass generate`")
@@ -29,9 +29,10 @@ def run(args: argparse.Namespace) -> int:
     from torch.utils.tensorboard import SummaryWriter
     from tqdm import tqdm
 
-    from training.dataset import load_dataset
+    from training.learning._dataset import load_dataset
     from training.errors import UserError
-    from training.maps import MAP_SPECS, TrainConfig, save_map, train_map
+    from training.identification._maps import MAP_SPECS
+    from training.learning._maps import TrainConfig, save_map, train_map
 
     config = TrainConfig(rows=args.size[0], cols=args.size[1], ensemble=args.ensemble, epochs=args.epochs,
                          seed=args.seed)

@@ -1,7 +1,7 @@
 """Fine-tuning of a proposed speed controller by a Nelder-Mead simplex search on the closed loop.
 
 The search runs over log-gains ``x = log([Kp, Ti(, T_f)])`` starting at the proposal
-(:class:`training.controller.ControllerProposal`), with ``scipy.optimize.minimize(method=
+(:class:`training.commissioning._controller.ControllerProposal`), with ``scipy.optimize.minimize(method=
 "Nelder-Mead")``. Each cost evaluation runs the closed loop on a plant through a
 :class:`ClosedLoopRunner`: :class:`LinearRunner` (the exact sampled linear model, batched
 torch) or :class:`SimRunner` (the batched nonlinear simulator ``sim.simulate``; a real drive can
@@ -34,7 +34,7 @@ import numpy as np
 import scipy.optimize
 import torch
 
-from training.controller import ControllerProposal, linear_plant, loop_figures
+from training.commissioning._controller import ControllerProposal, linear_plant, loop_figures
 
 __all__ = [
     "ClosedLoopRunner",
@@ -70,7 +70,7 @@ class LinearRunner:
     Same timing as the drive (SPEC 1/2): ``M_ref`` from ``step(k)`` acts from sample ``k+1``
     (zero-order hold); ``w_meas[k]`` = motor angle gained over sample ``k-1`` / ``T_s``, optionally
     quantized by the encoder (``quantize=True``: angle floored to ``2 pi / encoder_counts``).
-    No backlash, no Coulomb friction (the linear model of :func:`training.controller.linear_plant`).
+    No backlash, no Coulomb friction (the linear model of :func:`training.commissioning._controller.linear_plant`).
     """
 
     def __init__(self, params: Any, drive: Any, *, quantize: bool = False) -> None:

@@ -107,7 +107,7 @@ def print_result(label: str, truth: dict[str, Any], res: dict[str, Any], n_sampl
 
 def run(args: argparse.Namespace) -> int:
     from sim import DriveConfig, TestSignalConfig, TwoMassParams, responses_to_records, simulate_test
-    from training.cmd_identify import _load_identifier
+    from training.commands.identify import _load_identifier
 
     plants = _plants(args.params)
     try:

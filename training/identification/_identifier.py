@@ -2,7 +2,7 @@
 
 An app needs three lines::
 
-    from training.identify import Identifier
+    from training.identification._identifier import Identifier
     ident = Identifier.load()                   # shipped maps, checked against the manifest
     result = ident.identify_file("run.csv")     # or ident.identify(record) / identify_records([...])
 
@@ -24,12 +24,12 @@ import numpy as np
 import som_torch as st
 from sim import Record, read_record
 from sim.params import STRUCTURE_CLASSES, DriveConfig, TwoMassParams, structure_class
-from training.analysis import FEATURE_NAMES, Analysis, analyze
-from training.maps import MAP_SPECS, TrainedMap, load_map, recall_targets
-from training.refine import RefineConfig, RefineProblem, Refined, refine, torque_reference
+from training.identification._analysis import FEATURE_NAMES, Analysis, analyze
+from training.identification._maps import MAP_SPECS, TrainedMap, load_map, recall_targets
+from training.identification._refine import RefineConfig, RefineProblem, Refined, refine, torque_reference
 
 #: Where the shipped maps lie (override with ``$TWOMASS_CHECKPOINTS`` or ``Identifier.load(folder)``).
-DEFAULT_CHECKPOINTS = Path(os.environ.get("TWOMASS_CHECKPOINTS", Path(__file__).resolve().parents[1] / "checkpoints"))
+DEFAULT_CHECKPOINTS = Path(os.environ.get("TWOMASS_CHECKPOINTS", Path(__file__).resolve().parents[2] / "checkpoints"))
 
 PARAMETER_NAMES: tuple[str, ...] = ("J_sigma", "V_J", "J_M", "J_L", "f_e", "C_F", "d", "backlash", "M_FC", "mu_F")
 _BACKLASH_CLASSES = ("elastic_backlash", "stiff_backlash")
@@ -38,7 +38,7 @@ _BACKLASH_CLASSES = ("elastic_backlash", "stiff_backlash")
 class Identifier:
     """Trained maps, loaded once; identifies records (one at a time or many in one batch).
 
-    ``refine``: the model-based refinement of the maps' answer (:mod:`training.refine`); ``None``
+    ``refine``: the model-based refinement of the maps' answer (:mod:`training.identification._refine`); ``None``
     gives the maps' answer alone (the paper's method)."""
 
     def __init__(self, maps: dict[str, TrainedMap], refine: RefineConfig | None = RefineConfig()) -> None:
@@ -122,7 +122,7 @@ class Identifier:
         warnings = list(a.warnings)
         fit = a.fit
         f_fit, V_J_fit = a.feature("log10_f_fit"), a.feature("log10_V_J_fit")
-        # the maps store corrections to the eq.-1 fit (training.maps.TARGETS)
+        # the maps store corrections to the eq.-1 fit (training.identification._maps.TARGETS)
         f_e = 10.0 ** (f_fit + r["f_e"]["dlog10_f_e"])
         V_J = 10.0 ** (V_J_fit + r["V_J"]["dlog10_V_J"])
         d = min(max(r["f_e"]["d"], 0.0), 0.9)

@@ -1,7 +1,7 @@
 """Evaluation report: markdown + JSON (always), per-system CSV, PNG figures (when matplotlib imports).
 
-Input is the JSON-able summary of :func:`training.evaluation.summarize` plus the per-system
-rows of :func:`training.evaluation.run_set`. Files written into the output folder:
+Input is the JSON-able summary of :func:`training.evaluation._study.summarize` plus the per-system
+rows of :func:`training.evaluation._study.run_set`. Files written into the output folder:
 
 - ``report.md``: the tables (paper Fig. 10 as ``E_30``/``E_50`` grids, SOM / IV4 side by side),
 - ``report.json``: the summary, the run's config and timing,
@@ -23,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-from training.evaluation import TOLERANCES, TRUTH_KEYS, METHOD_PARAMS, relative_errors
+from training.evaluation._study import TOLERANCES, TRUTH_KEYS, METHOD_PARAMS, relative_errors
 
 METHOD_TITLES = {"som": "SOM", "maps": "maps only", "iv4": "IV4"}
 _LINE = {"som": "-", "maps": ":", "iv4": "--"}  # line style per method in Fig. 10
