@@ -10,7 +10,7 @@ from __future__ import annotations
 import math
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, fields
-from typing import Any
+from typing import Any, NamedTuple
 
 import torch
 
@@ -141,29 +141,29 @@ class TwoMassParams:
     # -- derived values (SPEC 1) ----------------------------------------------------------
     @property
     def J_M(self) -> torch.Tensor:
-        return self.J_sigma / (1.0 + self.V_J)
+        return two_mass_derived(self.J_sigma, self.V_J, self.f_e, self.d).J_M
 
     @property
     def J_L(self) -> torch.Tensor:
-        return self.J_sigma * self.V_J / (1.0 + self.V_J)
+        return two_mass_derived(self.J_sigma, self.V_J, self.f_e, self.d).J_L
 
     @property
     def w_e(self) -> torch.Tensor:
-        return 2.0 * math.pi * self.f_e
+        return two_mass_derived(self.J_sigma, self.V_J, self.f_e, self.d).w_e
 
     @property
     def w_0(self) -> torch.Tensor:
-        return self.w_e / torch.sqrt(1.0 - self.d**2)
+        return two_mass_derived(self.J_sigma, self.V_J, self.f_e, self.d).w_0
 
     @property
     def C_F(self) -> torch.Tensor:
         """Stiffness [Nm/rad]: ``w_0^2 J_M J_L / J_sigma``."""
-        return self.w_0**2 * self.J_M * self.J_L / self.J_sigma
+        return two_mass_derived(self.J_sigma, self.V_J, self.f_e, self.d).C_F
 
     @property
     def D_F(self) -> torch.Tensor:
         """Shaft damping [Nm s/rad]: ``2 d C_F / w_0``."""
-        return 2.0 * self.d * self.C_F / self.w_0
+        return two_mass_derived(self.J_sigma, self.V_J, self.f_e, self.d).D_F
 
     @property
     def s(self) -> torch.Tensor:
@@ -248,11 +248,38 @@ class TwoMassParams:
 
 def structure_class(params: TwoMassParams, drive: DriveConfig, M_star: float) -> torch.Tensor:
     """Ground-truth class index into :data:`STRUCTURE_CLASSES` (LongTensor ``*batch``), SPEC 1."""
-    s_N = params.s_N(drive)
-    soft = params.w_e * drive.T_Ei < 1.0
-    visible = params.r_osc(drive, M_star) >= 1.0
-    cls = torch.full(params.batch_shape, 0, dtype=torch.long)
+    return class_index(params.s_N(drive), params.w_e * drive.T_Ei, params.r_osc(drive, M_star))
+
+
+class TwoMassDerived(NamedTuple):
+    """The derived values of SPEC 1, of the type and shape of the inputs."""
+
+    J_M: Any  # motor inertia [kg m^2]
+    J_L: Any  # load inertia [kg m^2]
+    w_e: Any  # eigenfrequency [rad/s]
+    w_0: Any  # natural frequency [rad/s]
+    C_F: Any  # stiffness [Nm/rad]
+    D_F: Any  # shaft damping [Nm s/rad]
+
+
+def two_mass_derived(J_sigma: Any, V_J: Any, f_e: Any, d: Any) -> TwoMassDerived:
+    """``J_M, J_L, w_e, w_0, C_F, D_F`` from ``J_sigma, V_J, f_e, d`` (SPEC 1): the one definition,
+    for Python floats, numpy arrays and torch tensors alike (elementwise, broadcasting)."""
+    J_M = J_sigma / (1.0 + V_J)
+    J_L = J_sigma * V_J / (1.0 + V_J)
+    w_e = 2.0 * math.pi * f_e
+    w_0 = w_e / (1.0 - d * d) ** 0.5
+    C_F = w_0 * w_0 * J_M * J_L / J_sigma
+    return TwoMassDerived(J_M, J_L, w_e, w_0, C_F, 2.0 * d * C_F / w_0)
+
+
+def class_index(s_N: Any, w_e_T_Ei: Any, r_osc: Any) -> torch.Tensor:
+    """SPEC 1's class rule on the normalized backlash ``s_N``, ``w_e T_Ei`` and ``r_osc``: an index
+    into :data:`STRUCTURE_CLASSES` (LongTensor of the broadcast shape; floats give a 0-d tensor)."""
+    s_N, w_e_T_Ei, r_osc = (torch.as_tensor(x, dtype=torch.float64) for x in (s_N, w_e_T_Ei, r_osc))
+    soft = w_e_T_Ei < 1.0
+    visible = r_osc >= 1.0
+    cls = torch.zeros(_broadcast_shape([s_N.shape, soft.shape, visible.shape]) or (), dtype=torch.long)
     cls = torch.where((s_N < 0.1) & soft & visible, 1, cls)
     cls = torch.where(soft & (s_N >= 0.1) & (s_N < 1.0), 2, cls)
-    cls = torch.where((s_N >= 1.0) | (~soft & (s_N >= 0.1)), 3, cls)
-    return cls
+    return torch.where((s_N >= 1.0) | (~soft & (s_N >= 0.1)), 3, cls)

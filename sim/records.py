@@ -57,7 +57,32 @@ class Record:
 
     @property
     def T_s(self) -> float:
+        """Sample time [s] (metadata; :func:`validate` fills it in from ``t`` when absent)."""
         return float(self.meta["T_s"])
+
+    @property
+    def motor_torque(self) -> np.ndarray:
+        """Measured motor torque [Nm] ``N``: the ``torque`` column, else ``current * K_M``."""
+        if self.torque is not None:
+            return np.asarray(self.torque, dtype=np.float64)
+        if self.current is None:
+            raise RecordError(f"{self.name}: expected a 'current' or 'torque' column, received neither")
+        K_M = self.meta.get("K_M")
+        if K_M is None:
+            raise RecordError(f"{self.name}: metadata 'K_M' is missing (needed to turn current into torque)")
+        return np.asarray(self.current, dtype=np.float64) * float(K_M)
+
+    @property
+    def encoder_counts(self) -> int | None:
+        """Encoder counts per revolution (metadata), or None where the record does not say."""
+        counts = self.meta.get("encoder_counts")
+        return None if counts is None else int(counts)
+
+    @property
+    def q_w(self) -> float | None:
+        """Speed quantum ``2 pi / (encoder_counts T_s)`` [rad/s], or None without ``encoder_counts``."""
+        counts = self.encoder_counts
+        return None if counts is None else 2.0 * math.pi / (counts * self.T_s)
 
     def __len__(self) -> int:
         return int(self.t.shape[0])

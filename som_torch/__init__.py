@@ -6,6 +6,7 @@ for the best match (the others, e.g. physical parameters, are trained and read o
 
 from ._checkpoint import (FORMAT_VERSION, CheckpointError, file_sha256, load_checkpoint, save_checkpoint,
                           verify_manifest, write_manifest)
+from ._files import atomic_write
 from ._grid import TOPOLOGIES, Grid
 from ._init import INITS, init_linear, init_random, initialize, map_seeds
 from ._native import available as native_available
@@ -24,6 +25,6 @@ __all__ = [
     "distances", "best_matching_units", "recall", "Recall",
     "quantization_error", "topographic_error", "u_matrix", "hit_counts", "degree_of_order", "quality_report",
     "save_checkpoint", "load_checkpoint", "CheckpointError", "FORMAT_VERSION",
-    "write_manifest", "verify_manifest", "file_sha256",
+    "write_manifest", "verify_manifest", "file_sha256", "atomic_write",
     "log_scalars", "log_images", "log_config", "tensorboard_hook",
 ]

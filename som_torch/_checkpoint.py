@@ -6,12 +6,12 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-import tempfile
 from pathlib import Path
 from typing import Any
 
 import torch
 
+from ._files import atomic_write
 from ._grid import Grid
 from ._som import SOM
 
@@ -33,23 +33,6 @@ def _digest(header: dict, tensors: dict[str, torch.Tensor]) -> str:
     return h.hexdigest()
 
 
-def atomic_write_bytes(path: str | os.PathLike, write) -> None:
-    """Call ``write(fileobj)`` on a temporary file beside ``path``, fsync, then ``os.replace``."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            write(f)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-
-
 def save_checkpoint(path: str | os.PathLike, som: SOM, extra_metadata: dict[str, Any] | None = None) -> str:
     """Write ``som`` and JSON-able ``extra_metadata`` atomically; return the content SHA-256."""
     metadata = dict(extra_metadata or {})
@@ -68,7 +51,7 @@ def save_checkpoint(path: str | os.PathLike, som: SOM, extra_metadata: dict[str,
                "offset": som.offset.contiguous(), "scale": som.scale.contiguous()}
     digest = _digest(header, tensors)
     payload = {**header, "tensors": tensors, "sha256": digest}
-    atomic_write_bytes(path, lambda f: torch.save(payload, f))
+    atomic_write(path, lambda f: torch.save(payload, f))
     return digest
 
 
@@ -133,7 +116,7 @@ def write_manifest(folder: str | os.PathLike, name: str = "manifest.json") -> Pa
     }
     text = json.dumps({"algorithm": "sha256", "files": files}, indent=2, sort_keys=True) + "\n"
     out = folder / name
-    atomic_write_bytes(out, lambda f: f.write(text.encode()))
+    atomic_write(out, lambda f: f.write(text.encode()))
     return out
 
 

@@ -1,5 +1,31 @@
-"""Errors the command line reports as one line (no traceback)."""
+"""The toolkit's domain exceptions, in one module, and the one-line text of an error.
+
+Each subclasses the builtin it refines, so ``except ValueError`` / ``except OSError`` keep working.
+The library raises them; only the command line (:mod:`training.cli`) turns them into a one-line
+message and an exit code. Errors from :mod:`sim` (``RecordError``) and :mod:`som_torch`
+(``CheckpointError``) are ``ValueError`` subclasses too.
+"""
+
+from __future__ import annotations
 
 
-class UserError(Exception):
-    """Bad input from the user: a file, an option, a record. The message is the whole story."""
+class UserError(ValueError):
+    """Bad input from the user: an option, a file, a parameter file. The message is the whole story."""
+
+
+class IdentificationError(ValueError):
+    """A record that cannot be identified (no recognisable test run, implausible units, ...)."""
+
+
+class CommissioningError(ValueError):
+    """A commissioning step that cannot go on (a drive that does not keep the interface, ...)."""
+
+
+class OutputExistsError(UserError, FileExistsError):
+    """A file or folder that the work would overwrite; nothing is written unless asked to."""
+
+
+def one_line(err: BaseException) -> str:
+    """The first line of ``err``'s message (its class name when it has none)."""
+    lines = str(err).strip().splitlines()
+    return lines[0] if lines else type(err).__name__

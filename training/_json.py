@@ -1,0 +1,32 @@
+"""The one JSON conversion of results: numpy/torch scalars as numbers, NaN and inf as ``null``."""
+
+from __future__ import annotations
+
+import json
+import math
+from typing import Any
+
+
+def json_safe(x: Any) -> Any:
+    """``x`` with numpy/torch scalars as Python numbers, tuples as lists, NaN/inf as ``None``,
+    dataclass-like objects through their ``to_dict()``; anything else unknown as ``str``."""
+    if isinstance(x, dict):
+        return {str(k): json_safe(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [json_safe(v) for v in x]
+    if isinstance(x, bool) or x is None or isinstance(x, str):
+        return x
+    if hasattr(x, "to_dict") and callable(x.to_dict):
+        return json_safe(x.to_dict())
+    if hasattr(x, "item") and callable(x.item) and getattr(x, "ndim", 0) == 0:  # numpy / torch scalar
+        return json_safe(x.item())
+    if isinstance(x, int):
+        return x
+    if isinstance(x, float):
+        return x if math.isfinite(x) else None
+    return str(x)
+
+
+def dumps(x: Any, **kwargs: Any) -> str:
+    """``json.dumps`` of :func:`json_safe` ``(x)`` (strict JSON: never ``NaN``)."""
+    return json.dumps(json_safe(x), allow_nan=False, **kwargs)
