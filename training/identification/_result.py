@@ -1,0 +1,129 @@
+"""The typed identification result, built once by the identifier and never rewritten downstream.
+
+:meth:`IdentificationResult.to_dict` gives exactly the JSON object of SPEC section 9
+(``structure``, ``parameters``, ``quality``, ``warnings`` as a list of strings); decisions in code
+key on :attr:`Warning.code`, never on the text.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, fields
+from typing import Any
+
+#: The parameters of SPEC section 9, in output order (SI units; ``backlash`` = total width ``2s``).
+PARAMETER_NAMES: tuple[str, ...] = ("J_sigma", "V_J", "J_M", "J_L", "f_e", "C_F", "d", "backlash", "M_FC", "mu_F")
+
+
+@dataclass(frozen=True)
+class IdentWarning:
+    """One warning: a stable machine-readable ``code`` (see :data:`WARNING_CODES`) and a one-line ``text``."""
+
+    code: str
+    text: str
+
+    def __post_init__(self) -> None:
+        if self.code not in WARNING_CODES:
+            raise ValueError(f"IdentWarning.code: expected one of {sorted(WARNING_CODES)}, received {self.code!r}")
+
+
+#: Every warning code the identification emits, with what it means.
+WARNING_CODES: dict[str, str] = {
+    "unlike_training_data": "a map's recall distance lies above the 99 % quantile of held-out training records",
+    "oscillation_below_quantum": "the oscillation is below one speed quantum rms: elastic parameters uncertain",
+    "refine_partial_fit": "the refined model reproduces only part of the measured oscillation",
+    "one_mass_fit_replaced": "STEP 2's one-mass fit was not trusted; J_sigma and M_FC come from the whole-record fit",
+    "one_mass_fit": "STEP 2's one-mass fit flagged its own result",
+}
+
+
+@dataclass(frozen=True)
+class Parameters:
+    """Identified parameters in SI units; ``None`` where not identified (e.g. ``f_e`` of a stiff mechanic)."""
+
+    J_sigma: float | None = None
+    V_J: float | None = None
+    J_M: float | None = None
+    J_L: float | None = None
+    f_e: float | None = None
+    C_F: float | None = None
+    d: float | None = None
+    backlash: float | None = None
+    M_FC: float | None = None
+    mu_F: float | None = None
+
+    def to_dict(self) -> dict[str, float | None]:
+        return {n: getattr(self, n) for n in PARAMETER_NAMES}
+
+
+@dataclass(frozen=True)
+class Quality:
+    """Figures that say how far to trust a result (``docs/identification.md``). The refinement's
+    figures are ``None`` where it did not run, and then absent from :meth:`to_dict`."""
+
+    structure_probabilities: dict[str, float]
+    map_distance_ratio: dict[str, float]
+    osc_quanta: float
+    oscillation_fit_r2: float
+    one_mass_rel_residual: float
+    outside_training: bool
+    section_flags: tuple[str, ...]
+    maps_estimate: dict[str, float]
+    maps_structure: str | None = None
+    refine_residual: float | None = None
+    refine_start_residual: float | None = None
+    refined_s_N: float | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        out: dict[str, Any] = {}
+        for f in fields(self):
+            v = getattr(self, f.name)
+            if v is None and f.default is None:
+                continue
+            out[f.name] = list(v) if isinstance(v, tuple) else v
+        return out
+
+
+@dataclass(frozen=True)
+class IdentificationResult:
+    """One identified record: ``structure`` (a class of ``sim.STRUCTURE_CLASSES``), ``parameters``,
+    ``quality`` and ``warnings``; ``record`` names its file where it came from one."""
+
+    structure: str
+    parameters: Parameters
+    quality: Quality
+    warnings: tuple[IdentWarning, ...] = ()
+    record: str | None = None
+
+    @property
+    def ok(self) -> bool:
+        return True
+
+    def has_warning(self, code: str) -> bool:
+        if code not in WARNING_CODES:
+            raise ValueError(f"code: expected one of {sorted(WARNING_CODES)}, received {code!r}")
+        return any(w.code == code for w in self.warnings)
+
+    def to_dict(self) -> dict[str, Any]:
+        """The JSON object of SPEC section 9 (with ``record`` first where known)."""
+        out: dict[str, Any] = {} if self.record is None else {"record": self.record}
+        out.update(structure=self.structure, parameters=self.parameters.to_dict(), quality=self.quality.to_dict(),
+                   warnings=[w.text for w in self.warnings])
+        return out
+
+
+@dataclass(frozen=True)
+class IdentificationFailure:
+    """A record that could not be identified: ``error`` is the one-line reason."""
+
+    error: str
+    record: str | None = None
+
+    @property
+    def ok(self) -> bool:
+        return False
+
+    def to_dict(self) -> dict[str, Any]:
+        return ({} if self.record is None else {"record": self.record}) | {"error": self.error}
+
+
+Outcome = IdentificationResult | IdentificationFailure
