@@ -1,15 +1,17 @@
 """Batched two-mass plant, drive, measurement, test signal and records (SI units)."""
 
 from sim.measurement import encoder_count, speed_from_angle
-from sim.params import STRUCTURE_CLASSES, DriveConfig, TwoMassParams, structure_class
+from sim.params import (DERIVED_NAMES, PARAM_NAMES, STRUCTURE_CLASSES, DriveConfig, TwoMassDerived, TwoMassParams,
+                        class_index, structure_class, two_mass_derived)
 from sim.plant import Controller, Plant, Response, SimulatedPlant, simulate, simulate_test
 from sim.population import PopulationRanges, sample_population
 from sim.records import Record, RecordError, iter_records, read_record, responses_to_records, write_record
 from sim.replay import replay_speed
-from sim.test_signal import SECTION_NAMES, SwitchingController, TestSignalConfig
+from sim._signal import SECTION_LEVELS, SECTION_NAMES, SPEED_RETURN, SwitchingController, TestSignalConfig
 
 __all__ = [
-    "STRUCTURE_CLASSES", "SECTION_NAMES", "Controller", "DriveConfig", "Plant", "PopulationRanges", "Record",
+    "STRUCTURE_CLASSES", "SECTION_NAMES", "SECTION_LEVELS", "SPEED_RETURN", "PARAM_NAMES", "DERIVED_NAMES",
+    "TwoMassDerived", "two_mass_derived", "class_index", "Controller", "DriveConfig", "Plant", "PopulationRanges", "Record",
     "RecordError", "Response", "SimulatedPlant", "SwitchingController", "TestSignalConfig", "TwoMassParams",
     "encoder_count", "iter_records", "read_record", "replay_speed", "responses_to_records", "sample_population", "simulate",
     "simulate_test", "speed_from_angle", "structure_class", "write_record",

@@ -19,7 +19,7 @@ from sim._integrate_fast import (FastParams, FastState, TestState, advance, defa
 from sim._kernel import load_kernel
 from sim.measurement import measure_speed, noisy_current
 from sim.params import DriveConfig, TwoMassParams
-from sim.test_signal import SwitchingController, TestSignalConfig
+from sim._signal import SwitchingController, TestSignalConfig
 
 
 @runtime_checkable

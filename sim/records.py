@@ -25,7 +25,7 @@ import numpy as np
 import torch
 
 from sim.params import DriveConfig, TwoMassParams
-from sim.test_signal import TestSignalConfig
+from sim._signal import TestSignalConfig
 
 FORMAT = "twomass-record/1"
 UNITS: dict[str, str] = {"t": "s", "speed": "rad/s", "current": "A", "torque": "Nm", "torque_ref": "Nm", "section": "1"}

@@ -7,7 +7,7 @@ key on :attr:`Warning.code`, never on the text.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, fields
 from typing import Any
 
 #: The parameters of SPEC section 9, in output order (SI units; ``backlash`` = total width ``2s``).

@@ -143,7 +143,7 @@ def _sim_api():
     try:  # sim is built in parallel; its modules may exist before the package exports them
         from sim.params import DriveConfig, TwoMassParams
         from sim.plant import simulate_test
-        from sim.test_signal import TestSignalConfig
+        from sim._signal import TestSignalConfig
     except ImportError as exc:
         pytest.skip(f"sim lacks the test-run API yet ({exc})")
     return types.SimpleNamespace(simulate_test=simulate_test, TwoMassParams=TwoMassParams,

@@ -18,7 +18,7 @@ from training.cli import main
 from training.commands.identify import json_safe
 from training.identification._identifier import DEFAULT_CHECKPOINTS, PARAMETER_NAMES
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[3]
 RPM = 60.0 / (2.0 * math.pi)
 
 

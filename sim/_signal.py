@@ -20,6 +20,10 @@ import torch
 from sim.params import DriveConfig
 
 SECTION_NAMES: tuple[str, ...] = ("I", "II", "III", "IV", "V", "VI")
+#: The torque reference of sections I..VI in units of ``M*`` (SPEC 2); the tail and the time before I are 0.
+SECTION_LEVELS: tuple[float, ...] = (1.0, 0.0, -0.7, -1.0, 0.0, 0.7)
+#: The speed, in units of ``w_max``, below which II (and above whose negative V) ends.
+SPEED_RETURN = 0.2
 
 
 @dataclass(frozen=True)

@@ -13,7 +13,7 @@ import torch
 
 import som_torch as st
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 
 @pytest.fixture()
