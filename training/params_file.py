@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import math
 from pathlib import Path
 from typing import Any
 
@@ -15,7 +14,7 @@ def read_params_file(path: Path, name_prefix: str = "sys") -> tuple[Any, list[st
     of ``TwoMassParams.from_dicts`` and an optional ``name`` (default ``<prefix><index>``).
 
     Raises :class:`UserError` with one line for a missing file, bad JSON, unknown keys, duplicate
-    names or values outside the physical range."""
+    names or values outside the physical range (``TwoMassParams`` checks the ranges)."""
     from sim import TwoMassParams
 
     try:
@@ -34,10 +33,4 @@ def read_params_file(path: Path, name_prefix: str = "sys") -> tuple[Any, list[st
         params = TwoMassParams.from_dicts([{k: v for k, v in r.items() if k != "name"} for r in rows])
     except (TypeError, ValueError) as err:
         raise UserError(f"{path}: {err}") from None
-    for name, p in zip(names, params.to_dicts()):
-        bad = [k for k in ("J_sigma", "V_J", "f_e") if not (math.isfinite(p[k]) and p[k] > 0)] + \
-              [k for k in ("backlash", "M_FC", "mu_F") if not (math.isfinite(p[k]) and p[k] >= 0)] + \
-              (["d"] if not 0 <= p["d"] < 1 else [])
-        if bad:
-            raise UserError(f"{path}: system {name!r}: invalid value(s) for {', '.join(bad)}")
     return params, names

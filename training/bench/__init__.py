@@ -1,11 +1,7 @@
 """``twomass bench`` targets: one private module per target, each with ``HELP``,
-``add_arguments(parser)`` and ``run(args) -> int``; :data:`TARGETS` names them."""
+``add_arguments(parser)`` and ``run(args) -> int``; :data:`TARGETS` names them and
+:func:`run_target` runs one."""
 
-#: target name -> module (imported only when the target runs)
-TARGETS: dict[str, str] = {
-    "identify": "training.bench._identify",
-    "sim": "training.bench._sim",
-    "som": "training.bench._som",
-}
+from ._run import TARGETS, run_target
 
-__all__ = ["TARGETS"]
+__all__ = ["TARGETS", "run_target"]

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import statistics
 import subprocess
@@ -12,6 +11,7 @@ import tempfile
 import time
 from pathlib import Path
 
+from training.bench._run import write_figures
 from training.errors import UserError
 
 HELP = "wall time of 'twomass identify' on N population records (start-up included), with and without the refinement"
@@ -61,6 +61,6 @@ def run(args: argparse.Namespace) -> int:
             print(f"twomass {label}: wall {min(walls):.2f} / {statistics.median(walls):.2f} / {max(walls):.2f} s "
                   f"(min / median / max of {args.repeat})")
     if args.json_out:
-        Path(args.json_out).write_text(json.dumps({"records": args.records, "seed": args.seed,
-                                                    "mean_samples": samples, "figures": figures}, indent=2))
+        write_figures(args.json_out, {"records": args.records, "seed": args.seed, "mean_samples": samples,
+                                      "figures": figures})
     return 0

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import os
 import sys
@@ -11,6 +10,8 @@ import time
 
 import numpy as np
 import torch
+
+from training.bench._run import write_figures
 
 HELP = "simulator throughput (system-substeps/s) vs batch size, solve_ivp baseline, population records time"
 
@@ -55,7 +56,7 @@ def _solve_ivp_test(p: dict, n_samples: int) -> tuple[float, int]:
     """What a user would write: solve_ivp (RK45) per sample interval, the switching controller in Python."""
     from scipy.integrate import solve_ivp
 
-    from sim import DriveConfig, TestSignalConfig
+    from sim import SECTION_LEVELS, SPEED_RETURN, DriveConfig, TestSignalConfig
 
     drive, sig = DriveConfig(), TestSignalConfig()
     J_M, J_L, C_F, D_F, s, M_FC, mu_F = (p[k] for k in ("J_M", "J_L", "C_F", "D_F", "s", "M_FC", "mu_F"))
@@ -78,15 +79,15 @@ def _solve_ivp_test(p: dict, n_samples: int) -> tuple[float, int]:
         w = (c - c_prev) * drive.q_w
         c_prev = c
         cnt += 1
-        end = {1: w >= sig.w_max, 2: cnt >= nI or w <= 0.2 * sig.w_max, 3: w <= 0, 4: w <= -sig.w_max,
-               5: cnt >= nIV or w >= -0.2 * sig.w_max, 6: w >= 0}.get(sec, cnt >= 200)
+        end = {1: w >= sig.w_max, 2: cnt >= nI or w <= SPEED_RETURN * sig.w_max, 3: w <= 0, 4: w <= -sig.w_max,
+               5: cnt >= nIV or w >= -SPEED_RETURN * sig.w_max, 6: w >= 0}.get(sec, cnt >= 200)
         if end:
             nI = cnt if sec == 1 else nI
             nIV = cnt if sec == 4 else nIV
             sec, cnt = sec + 1, 0
             if sec == 8:
                 break
-        M_next = {1: sig.M_star, 3: -0.7 * sig.M_star, 4: -sig.M_star, 6: 0.7 * sig.M_star}.get(sec, 0.0)
+        M_next = SECTION_LEVELS[sec - 1] * sig.M_star if sec <= len(SECTION_LEVELS) else 0.0  # 7: the tail
         y = solve_ivp(rhs, (0.0, drive.T_s), y, method="RK45", args=(M_ref,), rtol=1e-6, atol=1e-9).y[:, -1]
         M_ref = M_next
     return time.perf_counter() - t0, k + 1
@@ -142,7 +143,6 @@ def run(args: argparse.Namespace) -> int:
                fast_s_per_system_sample=fast_per_sample, ratio=ratio, records=n_rec, records_s=rec_s,
                mean_record_samples=mean_len)
     if args.json_out:
-        with open(args.json_out, "w") as f:
-            json.dump(res, f, indent=1)
+        write_figures(args.json_out, res)
     sys.stdout.flush()
     return 0

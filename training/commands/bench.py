@@ -3,13 +3,10 @@
 from __future__ import annotations
 
 import argparse
-import importlib
 
-from training.bench import TARGETS
-from training.errors import UserError
+from training.bench import TARGETS, run_target
 
 HELP = f"performance figures (targets: {', '.join(sorted(TARGETS))})"
-
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -18,12 +15,4 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    valid = ", ".join(sorted(TARGETS))
-    if args.target is None:
-        raise UserError(f"no bench target given; valid targets: {valid}")
-    if args.target not in TARGETS:
-        raise UserError(f"unknown bench target '{args.target}'; valid targets: {valid}")
-    module = importlib.import_module(TARGETS[args.target])
-    sub = argparse.ArgumentParser(prog=f"twomass bench {args.target}", description=getattr(module, "HELP", None))
-    module.add_arguments(sub)
-    return int(module.run(sub.parse_args(args.target_args)) or 0)
+    return run_target(args.target, args.target_args)

@@ -80,34 +80,33 @@ def _rel(ident: float | None, true: float) -> str:
     return f"{100.0 * (ident - true) / abs(true):+.1f} %"
 
 
-def print_result(label: str, truth: dict[str, Any], res: dict[str, Any], n_samples: int, T_s: float,
-                 out: TextIO) -> None:
-    """One plant: true vs identified table, quality line, warnings."""
+def print_result(label: str, truth: dict[str, Any], res: Any, n_samples: int, T_s: float, out: TextIO) -> None:
+    """One plant: true vs identified table, quality line, warnings (``res``: an
+    ``IdentificationResult`` or ``IdentificationFailure``)."""
     print(f"\n{label}: record {n_samples} samples ({n_samples * T_s:.2f} s), true class {truth['structure']}, "
           f"s_N {truth['s_N']:.3g}, r_osc {truth['r_osc']:.3g}", file=out)
-    if "error" in res:
-        print(f"  identification failed: {res['error']}", file=out)
+    if not res.ok:
+        print(f"  identification failed: {res.error}", file=out)
         return
     print(f"  {'':10} {'unit':>9} {'true':>16} {'identified':>16} {'error':>9}", file=out)
-    ok = "ok" if res["structure"] == truth["structure"] else "WRONG"
-    print(f"  {'structure':10} {'-':>9} {truth['structure']:>16} {res['structure']:>16} {ok:>9}", file=out)
-    p = res["parameters"]
+    ok = "ok" if res.structure == truth["structure"] else "WRONG"
+    print(f"  {'structure':10} {'-':>9} {truth['structure']:>16} {res.structure:>16} {ok:>9}", file=out)
     for name, unit, k in _ROWS:
         t = float(truth[name]) * k
-        v = None if p.get(name) is None else float(p[name]) * k
+        v = getattr(res.parameters, name)
+        v = None if v is None else float(v) * k
         print(f"  {name:10} {unit:>9} {_num(t):>16} {_num(v):>16} {_rel(v, t):>9}", file=out)
-    q = res["quality"]
-    dist = ", ".join(f"{n} {_num(v)}" for n, v in q["map_distance_ratio"].items())
-    print(f"  quality: P({res['structure']}) {q['structure_probabilities'][res['structure']]:.2f}; "
-          f"map distance / training 99 % quantile: {dist}; oscillation {q['osc_quanta']:.3g} speed quanta rms; "
-          f"one-mass residual {100.0 * q['one_mass_rel_residual']:.2g} %", file=out)
-    warnings = res["warnings"] or ["none"]
-    print("  warnings: " + "; ".join(warnings), file=out)
+    q = res.quality
+    dist = ", ".join(f"{n} {_num(v)}" for n, v in q.map_distance_ratio.items())
+    print(f"  quality: P({res.structure}) {q.structure_probabilities[res.structure]:.2f}; "
+          f"map distance / training 99 % quantile: {dist}; oscillation {q.osc_quanta:.3g} speed quanta rms; "
+          f"one-mass residual {100.0 * q.one_mass_rel_residual:.2g} %", file=out)
+    print("  warnings: " + ("; ".join(w.text for w in res.warnings) or "none"), file=out)
 
 
 def run(args: argparse.Namespace) -> int:
     from sim import DriveConfig, TestSignalConfig, TwoMassParams, responses_to_records, simulate_test
-    from training.commands.identify import _load_identifier
+    from training.commands.identify import load_identifier
 
     plants = _plants(args.params)
     try:
@@ -115,7 +114,7 @@ def run(args: argparse.Namespace) -> int:
     except (TypeError, ValueError) as err:
         raise UserError(f"--params: {err}") from None
     drive, signal = DriveConfig(), TestSignalConfig()
-    ident = _load_identifier(args.checkpoints)
+    ident = load_identifier(args.checkpoints)
     resp = simulate_test(params, drive, signal, seed=args.seed)
     records = responses_to_records(resp, params, drive, signal, names=[f"demo{i}" for i in range(len(plants))])
     results = ident.identify_records(records)
@@ -126,5 +125,5 @@ def run(args: argparse.Namespace) -> int:
           "identified with the shipped maps", file=out)
     for (label, _), rec, res in zip(plants, records, results):
         print_result(label, rec.meta["truth"], res, len(rec), drive.T_s, out)
-    failed = sum("error" in r for r in results)
+    failed = sum(not r.ok for r in results)
     return 1 if failed else 0

@@ -7,6 +7,7 @@ import os
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 HELP = "evaluate the SOM identification against IV4 on the paper's grid and a random set (tables + figures)"
 
@@ -25,7 +26,7 @@ def _floats(text: str) -> tuple[float, ...]:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from training.evaluation._study import GRID_BACKLASH_DEG, GRID_F_E
+    from training.evaluation import GRID_BACKLASH_DEG, GRID_F_E
 
     parser.add_argument("--out", type=Path, default=DEFAULT_OUT, help=f"report folder (default {DEFAULT_OUT})")
     parser.add_argument("--seed", type=int, default=5,
@@ -67,10 +68,9 @@ def command_line(args: argparse.Namespace) -> str:
 def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
-    from sim import DriveConfig, TestSignalConfig
-    from training.evaluation._study import grid_set, population_set, run_set, summarize
-    from training.evaluation._report import write_report
+    from training.evaluation import grid_set, population_set, run_study, write_report
 
+    t0 = time.perf_counter()
     if args.per_cell < 0 or args.population < 0:
         raise ValueError(f"--per-cell and --population: expected >= 0, received {args.per_cell}, {args.population}")
     if args.per_cell == 0 and args.population == 0:
@@ -79,30 +79,24 @@ def run(args: argparse.Namespace) -> int:
     if workers < 0:
         raise ValueError(f"--workers: expected >= 0, received {workers}")
     methods = ("som", "maps") if args.no_iv4 else ("iv4",) if args.no_som else ("som", "maps", "iv4")
-    drive, signal = DriveConfig(), TestSignalConfig()
     sets = {}
     if args.per_cell:
         sets["grid"] = grid_set(args.per_cell, args.seed, f_e=args.f_e, backlash_deg=args.backlash)
     if args.population:
         sets["population"] = population_set(args.population, args.seed + 1)
-    cache = None if args.no_cache else args.cache
-    t0 = time.perf_counter()
-    rows_by_set, timing = {}, {}
     with tqdm(total=sum(s.size for s in sets.values()), unit="sys", desc="evaluate", file=sys.stderr,
               disable=args.no_progress) as bar:
-        for name, s in sets.items():
-            t = time.perf_counter()
-            bar.set_postfix_str(name)
-            rows_by_set[name], info = run_set(s, methods=methods, drive=drive, signal=signal,
-                                              checkpoints=args.checkpoints, cache_dir=cache, workers=workers,
-                                              progress=bar.update)
-            timing[name] = {"s": time.perf_counter() - t, "n": s.size, "methods": info}
-    summary = summarize(rows_by_set, sets, methods)
-    summary["config"] = {name: s.to_dict() for name, s in sets.items()}
-    summary["workers"] = workers
-    summary["timing"] = {"total_s": time.perf_counter() - t0, "sets": timing}
+        summary, rows_by_set = run_study(sets, methods=methods, checkpoints=args.checkpoints,
+                                         cache_dir=None if args.no_cache else args.cache, workers=workers,
+                                         progress=bar.update)
     written = write_report(summary, rows_by_set, args.out, command=command_line(args), plots=not args.no_plots)
-    summary["timing"]["total_s"] = time.perf_counter() - t0
+    _print_summary(summary, written)
+    print(f"wrote {args.out / 'report.md'} and {len(written['files']) - 1} more files in "
+          f"{time.perf_counter() - t0:.0f} s")
+    return 0
+
+
+def _print_summary(summary: dict[str, Any], written: dict[str, Any]) -> None:
     if written["note"]:
         print(written["note"])
     for name, s in summary["sets"].items():
@@ -111,9 +105,6 @@ def run(args: argparse.Namespace) -> int:
         print(f"{name}: {s['n']} systems: {rates}")
     for c in summary["checks"]:
         print(f"check {'PASS' if c['passed'] else 'FAIL' if c['passed'] is False else 'n/a'}: {c['name']} ({c['detail']})")
-    print(f"wrote {args.out / 'report.md'} and {len(written['files']) - 1} more files in "
-          f"{summary['timing']['total_s']:.0f} s")
-    return 0
 
 
 def _fmt(x: float | None) -> str:

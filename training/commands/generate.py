@@ -5,8 +5,6 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from tqdm import tqdm
-
 HELP = "make training data: population responses and their features, sharded to disk (resumable)"
 
 
@@ -20,7 +18,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from training.learning._dataset import GenerateConfig, generate, load_dataset
+    from tqdm import tqdm
+
+    from training.learning import GenerateConfig, generate, load_dataset
 
     if args.n < 1 or args.shard_size < 1:
         raise ValueError(f"--n and --shard-size: expected >= 1, received {args.n}, {args.shard_size}")

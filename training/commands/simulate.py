@@ -6,9 +6,6 @@ import argparse
 import sys
 from pathlib import Path
 
-import torch
-from tqdm import tqdm
-
 from training.errors import UserError
 from training.params_file import read_params_file
 
@@ -32,6 +29,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    import torch
+    from tqdm import tqdm
+
     from sim import DriveConfig, TestSignalConfig, iter_records, sample_population, write_record
 
     drive = DriveConfig()

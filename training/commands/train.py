@@ -3,14 +3,13 @@
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 
 HELP = "train the identification maps on a dataset; TensorBoard logs; checkpoints + manifest"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from training.learning._maps import TrainConfig
+    from training.learning import TrainConfig
 
     d = TrainConfig()
     parser.add_argument("--data", type=Path, required=True, help="dataset folder made by `twomass generate`")
@@ -25,37 +24,20 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    import som_torch as st
-    from torch.utils.tensorboard import SummaryWriter
     from tqdm import tqdm
 
-    from training.learning._dataset import load_dataset
-    from training.errors import UserError
-    from training.identification._maps import MAP_SPECS
-    from training.learning._maps import TrainConfig, save_map, train_map
+    from training._json import dumps
+    from training.learning import TrainConfig, load_dataset, train_maps
 
     config = TrainConfig(rows=args.size[0], cols=args.size[1], ensemble=args.ensemble, epochs=args.epochs,
                          seed=args.seed)
-    if min(args.size) < 2 or args.ensemble < 1 or args.epochs < 1:
-        raise UserError(f"--size, --ensemble, --epochs: expected >= 2, >= 1, >= 1, received "
-                        f"{args.size}, {args.ensemble}, {args.epochs}")
-    existing = [n for n in MAP_SPECS if (args.out / f"{n}.pt").exists()]
-    if existing and not args.overwrite:
-        raise UserError(f"{args.out} already holds maps {existing}; pass --overwrite to replace them")
     ds = load_dataset(args.data)
-    args.out.mkdir(parents=True, exist_ok=True)
-    writer = SummaryWriter(str(args.logdir))
-    st.log_config(writer, {"train": config.to_dict(), "dataset": ds.config, "dataset_sha256": ds.sha256})
-    summary = {}
-    for name, spec in tqdm(MAP_SPECS.items(), desc="train", unit="map", disable=args.no_progress):
-        trained = train_map(spec, ds, config, writer=writer)
-        save_map(args.out, trained)
-        q = trained.metadata["quality"]
-        summary[name] = {"systems": trained.metadata["dataset"]["n_used"],
-                         "seconds": round(trained.metadata["train_seconds"], 1),
-                         "quantization_error": q.get("quantization_error"), "topographic_error": q.get("topographic_error")}
-    writer.close()
-    st.write_manifest(args.out)
-    print(json.dumps(summary, default=float))
+    with tqdm(desc="train", unit="map", disable=args.no_progress) as bar:
+        trained = train_maps(ds, args.out, config, logdir=args.logdir, overwrite=args.overwrite, progress=bar.update)
+    summary = {name: {"systems": t.metadata["dataset"]["n_used"], "seconds": round(t.metadata["train_seconds"], 1),
+                      "quantization_error": t.metadata["quality"].get("quantization_error"),
+                      "topographic_error": t.metadata["quality"].get("topographic_error")}
+               for name, t in trained.items()}
+    print(dumps(summary))
     print(f"maps written to {args.out} (manifest.json), TensorBoard logs in {args.logdir}")
     return 0

@@ -1,7 +1,7 @@
 """Fine-tuning of a proposed speed controller by a Nelder-Mead simplex search on the closed loop.
 
 The search runs over log-gains ``x = log([Kp, Ti(, T_f)])`` starting at the proposal
-(:class:`training.commissioning._controller.ControllerProposal`), with ``scipy.optimize.minimize(method=
+(:class:`training.commissioning._rules.ControllerProposal`), with ``scipy.optimize.minimize(method=
 "Nelder-Mead")``. Each cost evaluation runs the closed loop on a plant through a
 :class:`ClosedLoopRunner`: :class:`LinearRunner` (the exact sampled linear model, batched
 torch) or :class:`SimRunner` (the batched nonlinear simulator ``sim.simulate``; a real drive can
@@ -34,7 +34,8 @@ import numpy as np
 import scipy.optimize
 import torch
 
-from training.commissioning._controller import ControllerProposal, linear_plant, loop_figures
+from ._loop import linear_plant, loop_figures
+from ._rules import ControllerProposal
 
 __all__ = [
     "ClosedLoopRunner",
@@ -70,7 +71,7 @@ class LinearRunner:
     Same timing as the drive (SPEC 1/2): ``M_ref`` from ``step(k)`` acts from sample ``k+1``
     (zero-order hold); ``w_meas[k]`` = motor angle gained over sample ``k-1`` / ``T_s``, optionally
     quantized by the encoder (``quantize=True``: angle floored to ``2 pi / encoder_counts``).
-    No backlash, no Coulomb friction (the linear model of :func:`training.commissioning._controller.linear_plant`).
+    No backlash, no Coulomb friction (the linear model of :func:`training.commissioning._loop.linear_plant`).
     """
 
     def __init__(self, params: Any, drive: Any, *, quantize: bool = False) -> None:
@@ -156,28 +157,33 @@ class SimRunner:
 class TuningScenario:
     """The closed-loop test: run "ref" (speed step ``w_step`` [rad/s] from rest) and run "load"
     (constant load ``M_L`` [Nm] from ``t=0``, speed reference 0), ``n_segment`` samples each.
-
-    ``T_ref`` [s] and ``dip_ref`` [rad/s] normalize time and the load error. Weights and
-    thresholds as in the module docstring.
+    The cost's weights and thresholds as in the module docstring.
     """
 
     T_s: float
+    """Sample time [s]."""
     w_step: float
+    """Speed step of the ref run [rad/s]; also the scale of the speed errors."""
     M_L: float
+    """Constant load torque of the load run [Nm]."""
     n_segment: int
+    """Samples per run."""
     T_ref: float
+    """Time scale [s] of the ITAE terms (``1/w_c`` of the proposal)."""
     dip_ref: float
+    """Expected load dip [rad/s]: the scale of the load run's error."""
     load_weight: float = 0.5
+    """Weight of the load run's ITAE beside the ref run's."""
     overshoot_allowed: float = 0.05
     load_overshoot_allowed: float = 0.2
+    """Overshoot of the ref run (over ``w_step``) and recovery overshoot of the load run (over the
+    dip) that cost nothing."""
     overshoot_weight: float = 20.0
     oscillation_weight: float = 100.0
+    """Weights of the squared overshoot excess and of the ringing in the last quarter of each run."""
     divergence_factor: float = 20.0
     unstable_cost: float = 1e4
-
-    @property
-    def n_samples(self) -> int:
-        return self.n_segment
+    """A run beyond ``divergence_factor * w_step`` (or not settling) costs ``unstable_cost`` and more."""
 
     def reference(self, batch: int) -> torch.Tensor:
         """Speed references ``2 batch x n_segment`` [rad/s]: ``batch`` ref runs, then ``batch`` load runs."""

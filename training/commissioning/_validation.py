@@ -1,35 +1,29 @@
-"""Validation of an identification result (knowledge base, SPEC 8).
+"""Validation of an identified model by re-simulation (knowledge base, SPEC 8).
 
 * :func:`validate_model` — re-simulate the identified model under the recorded test signal
-  (``mode="replay"``: the recorded ``torque_ref`` sequence, open loop, :func:`sim.replay.replay_speed`;
+  (``mode="replay"``: the recorded ``torque_ref`` sequence, open loop, :func:`sim.replay_speed`;
   ``mode="switching"``: the
   same switching law with the record's ``M_star``/``w_max``) and compare with the measured speed:
   normalized RMS error of the speed (``nrmse``) and of its oscillating part (``osc_nrmse``, the
   speed minus its moving average over one period of the model's ``f_e``), each with a threshold.
-* :func:`may_propose_controller` — the refusal rules (V1-V6, docs/commissioning.md): whether a
-  controller may be proposed from an identification result, and why not.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 import torch
 
-__all__ = [
-    "ValidationResult",
-    "validate_model",
-    "Permission",
-    "may_propose_controller",
-    "BLOCKING_WARNING_WORDS",
-]
+__all__ = ["ValidationResult", "validate_model", "VALIDATION_MODES", "OSC_METRICS"]
 
+#: Re-simulation modes of :func:`validate_model` and its oscillation comparisons.
+VALIDATION_MODES: tuple[str, ...] = ("replay", "switching")
+OSC_METRICS: tuple[str, ...] = ("spectrum", "time")
 
-# --------------------------------------------------------------------------- re-simulation
 
 
 def _segments(torque_ref: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
@@ -99,7 +93,7 @@ def _as_sim_params(params: Any, drive: Any) -> Any:
         return params
     if not isinstance(params, Mapping):
         raise TypeError(f"params: expected TwoMassParams or a dict, received {type(params).__name__}")
-    row = {k: params.get(k) for k in ("J_sigma", "V_J", "f_e", "d", "backlash", "M_FC", "mu_F")}
+    row = {k: params.get(k) for k in sim.PARAM_NAMES}
     if row["V_J"] is None or row["f_e"] is None:
         row.update(_stiff_surrogate(params, drive))
     row = {k: (0.0 if v is None else float(v)) for k, v in row.items()}
@@ -129,6 +123,49 @@ def _spectrum_error(a: np.ndarray, b: np.ndarray, T_s: float, rel_width: float =
     Bb = np.bincount(idx[keep], weights=B[keep] ** 2, minlength=len(edges) + 1) ** 0.5
     den = float(np.sqrt(np.sum(Bb**2)))
     return float(np.sqrt(np.sum((Ab - Bb) ** 2)) / den) if den > 0 else 0.0
+
+
+def _simulated_speed(p: Any, drive: Any, mode: str, torque_ref: np.ndarray | None, meta: dict[str, Any],
+                     signal: Any, seed: int, n: int) -> np.ndarray:
+    """The model ``p`` (batch ``(1,)``) under the record's test: its recorded torque reference
+    replayed open loop (``"replay"``, ``n`` samples) or the switching law rerun (``"switching"``)."""
+    import sim
+
+    if mode == "replay":
+        if torque_ref is None:
+            raise ValueError("mode='replay' needs the recorded torque_ref")
+        start, level = _segments(torque_ref)
+        return _one(sim.replay_speed(p, drive, start, level, n))[:n]
+    if signal is None:
+        if "M_star" not in meta or "w_max" not in meta:
+            raise ValueError("mode='switching' needs signal= or record meta with M_star and w_max")
+        signal = sim.TestSignalConfig(M_star=float(meta["M_star"]), w_max=float(meta["w_max"]),
+                                      timeout=float(meta.get("timeout", 10.0)), tail=float(meta.get("tail", 0.05)))
+    resp = sim.simulate_test(p, drive, signal, seed=seed)
+    w_sim = _one(resp.speed)
+    L = _get(resp, "length")
+    return w_sim if L is None else w_sim[: int(torch.as_tensor(L).reshape(-1)[0])]
+
+
+def _oscillation_error(a: np.ndarray, b: np.ndarray, f_e: Any, drive: Any, osc_min_quanta: float,
+                       osc_metric: str) -> float | None:
+    """Error of the oscillating parts (speed minus its moving average over one period of ``f_e``,
+    else 10 ms) of the model ``a`` against the measurement ``b`` (both ``m``); None when the
+    measured oscillation is below ``osc_min_quanta`` speed quanta rms."""
+    f_e = float(f_e.reshape(-1)[0]) if isinstance(f_e, torch.Tensor) else (None if f_e is None else float(f_e))
+    m = len(b)
+    W = int(round(1.0 / (f_e * float(drive.T_s)))) if f_e else int(round(0.01 / float(drive.T_s)))
+    W = int(min(max(W, 3), max(m // 4, 3)))
+    hp_b = b - _moving_average(b, W)
+    hp_a = a - _moving_average(a, W)
+    osc_rms = float(np.sqrt(np.mean(hp_b**2)))
+    if osc_rms < osc_min_quanta * float(drive.q_w):
+        return None
+    if not np.isfinite(hp_a).all():
+        return math.inf
+    if osc_metric == "spectrum":
+        return _spectrum_error(hp_a, hp_b, float(drive.T_s))
+    return float(np.sqrt(np.mean((hp_a - hp_b) ** 2)) / osc_rms)
 
 
 def validate_model(
@@ -164,59 +201,25 @@ def validate_model(
 
     Returns :class:`ValidationResult`.
     """
-    import sim
-
-    if osc_metric not in ("time", "spectrum"):
-        raise ValueError(f"osc_metric: expected 'time' or 'spectrum', received {osc_metric!r}")
-    if mode not in ("replay", "switching"):
-        raise ValueError(f"mode: expected 'replay' or 'switching', received {mode!r}")
+    if osc_metric not in OSC_METRICS:
+        raise ValueError(f"osc_metric: expected one of {OSC_METRICS}, received {osc_metric!r}")
+    if mode not in VALIDATION_MODES:
+        raise ValueError(f"mode: expected one of {VALIDATION_MODES}, received {mode!r}")
     if not (threshold > 0 and osc_threshold > 0):
         raise ValueError(f"threshold, osc_threshold: expected > 0, received {threshold}, {osc_threshold}")
     w_meas, torque_ref, meta = _measured(record)
     p = _as_sim_params(params, drive)
     if p.J_sigma.numel() != 1:
         raise ValueError(f"params: expected one system, received batch {tuple(p.batch_shape)}")
-    p = p.reshape(1)
     n = len(w_meas)
-    if mode == "replay":
-        if torque_ref is None:
-            raise ValueError("mode='replay' needs the recorded torque_ref")
-        from sim.replay import replay_speed
-
-        start, level = _segments(torque_ref)
-        w_sim = _one(replay_speed(p, drive, start, level, n))[:n]
-    else:
-        if signal is None:
-            if "M_star" not in meta or "w_max" not in meta:
-                raise ValueError("mode='switching' needs signal= or record meta with M_star and w_max")
-            signal = sim.TestSignalConfig(M_star=float(meta["M_star"]), w_max=float(meta["w_max"]),
-                                          timeout=float(meta.get("timeout", 10.0)), tail=float(meta.get("tail", 0.05)))
-        resp = sim.simulate_test(p, drive, signal, seed=seed)
-        w_sim = _one(resp.speed)
-        L = _get(resp, "length")
-        if L is not None:
-            w_sim = w_sim[: int(torch.as_tensor(L).reshape(-1)[0])]
+    w_sim = _simulated_speed(p.reshape(1), drive, mode, torque_ref, meta, signal, seed, n)
     m = min(len(w_sim), n)
     a, b = w_sim[:m], w_meas[:m]
     rms = float(np.sqrt(np.mean(b**2))) or 1e-300
     nrmse = float(np.sqrt(np.mean((a - b) ** 2)) / rms) if np.isfinite(a).all() else math.inf
     if mode == "switching" and max(len(w_sim), n) > 0:
         nrmse = max(nrmse, abs(len(w_sim) - n) / max(n, 1))  # a different test length is an error too
-    f_e = _get(params, "f_e")
-    f_e = float(f_e.reshape(-1)[0]) if isinstance(f_e, torch.Tensor) else (None if f_e is None else float(f_e))
-    W = int(round(1.0 / (f_e * float(drive.T_s)))) if f_e else int(round(0.01 / float(drive.T_s)))
-    W = int(min(max(W, 3), max(m // 4, 3)))
-    hp_b = b - _moving_average(b, W)
-    hp_a = a - _moving_average(a, W)
-    osc_rms = float(np.sqrt(np.mean(hp_b**2)))
-    osc_nrmse = None
-    if osc_rms >= osc_min_quanta * float(drive.q_w):
-        if not np.isfinite(hp_a).all():
-            osc_nrmse = math.inf
-        elif osc_metric == "spectrum":
-            osc_nrmse = _spectrum_error(hp_a, hp_b, float(drive.T_s))
-        else:
-            osc_nrmse = float(np.sqrt(np.mean((hp_a - hp_b) ** 2)) / osc_rms)
+    osc_nrmse = _oscillation_error(a, b, _get(params, "f_e"), drive, osc_min_quanta, osc_metric)
     reasons = []
     if not nrmse <= threshold:
         reasons.append(f"speed error {nrmse:.3g} > {threshold:g}")
@@ -226,87 +229,3 @@ def validate_model(
         passed=not reasons, nrmse=nrmse, osc_nrmse=osc_nrmse, threshold=threshold, osc_threshold=osc_threshold,
         simulated=a, measured=b, mode=mode, reason="; ".join(reasons) if reasons else "model reproduces the record",
     )
-
-
-# --------------------------------------------------------------------------- refusal rules
-
-BLOCKING_WARNING_WORDS: tuple[str, ...] = ("timed out", "timeout", "not informative", "saturat", "clipped", "diverg", "failed")
-
-_REQUIRED = {
-    "stiff": ("J_sigma",),
-    "stiff_backlash": ("J_sigma",),
-    "elastic": ("J_sigma", "V_J", "f_e"),
-    "elastic_backlash": ("J_sigma", "V_J", "f_e"),
-}
-
-
-@dataclass(frozen=True)
-class Permission:
-    """``allowed``; ``reason`` (one line: why not, or what was checked); ``notes``: non-blocking warnings."""
-
-    allowed: bool
-    reason: str
-    notes: tuple[str, ...] = ()
-
-    def __bool__(self) -> bool:
-        return self.allowed
-
-
-def may_propose_controller(
-    result: Mapping[str, Any],
-    *,
-    max_validation_error: float = 0.1,
-    max_quantization_error: float | None = None,
-    blocking_words: Sequence[str] = BLOCKING_WARNING_WORDS,
-) -> Permission:
-    """Decide whether a speed controller may be proposed from an identification result.
-
-    ``result``: ``{"structure": str, "parameters": {...}, "quality": {...}, "warnings": [...]}``
-    (the ``twomass identify`` object). Refused (rules V1-V6) when:
-    V1 ``error`` is present or the structure is missing/unknown; V2 a parameter the structure
-    needs is missing, not finite or not positive (``J_sigma``; plus ``V_J``, ``f_e`` for elastic);
-    V3 ``quality.validation_error`` is missing, not finite or above ``max_validation_error``
-    (or ``quality.validation_passed`` is false); V4 ``quality.outside_training`` is true (the maps
-    have not seen such a record); V5 ``quality.quantization_error`` above
-    ``max_quantization_error`` (when given); V6 a warning names a blocking condition
-    (``blocking_words``: timed-out sections, saturation, ...). Other warnings are passed on.
-    """
-    if not isinstance(result, Mapping):
-        raise TypeError(f"result: expected a dict, received {type(result).__name__}")
-    if result.get("error"):
-        return Permission(False, f"V1 identification failed: {result['error']}")
-    structure = result.get("structure")
-    if structure not in _REQUIRED:
-        return Permission(False, f"V1 unknown structure {structure!r}: expected one of {tuple(_REQUIRED)}")
-    params = result.get("parameters") or {}
-    if not isinstance(params, Mapping):
-        return Permission(False, f"V2 parameters: expected a dict, received {type(params).__name__}")
-    for key in _REQUIRED[structure]:
-        v = params.get(key)
-        try:
-            ok = v is not None and math.isfinite(float(v)) and float(v) > 0
-        except (TypeError, ValueError):
-            ok = False
-        if not ok:
-            return Permission(False, f"V2 parameter {key} = {v!r} not usable for structure {structure!r}")
-    quality = result.get("quality") or {}
-    if quality.get("validation_passed") is False:
-        return Permission(False, "V3 validation failed: the identified model does not reproduce the record")
-    ve = quality.get("validation_error")
-    try:
-        ve_f = float(ve)
-    except (TypeError, ValueError):
-        return Permission(False, f"V3 no validation error in quality (received {ve!r}): validate the model first")
-    if not math.isfinite(ve_f) or ve_f > max_validation_error:
-        return Permission(False, f"V3 validation error {ve_f:.3g} above {max_validation_error:g}")
-    if quality.get("outside_training"):
-        return Permission(False, "V4 the record lies outside what the maps were trained on")
-    qe = quality.get("quantization_error")
-    if max_quantization_error is not None and qe is not None and float(qe) > max_quantization_error:
-        return Permission(False, f"V5 quantization error {float(qe):.3g} above {max_quantization_error:g}")
-    warnings = [str(w) for w in (result.get("warnings") or [])]
-    for w in warnings:
-        low = w.lower()
-        if any(word in low for word in blocking_words):
-            return Permission(False, f"V6 blocking warning: {w}")
-    return Permission(True, f"structure {structure}, validation error {ve_f:.3g} <= {max_validation_error:g}", tuple(warnings))

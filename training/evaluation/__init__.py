@@ -1,12 +1,19 @@
-"""The paper's study (SPEC 7): evaluation sets, the SOM and IV4 methods side by side, metrics, report."""
+"""The paper's study (SPEC 7): evaluation sets, the SOM and IV4 methods side by side, metrics,
+report, and the cache of per-system results."""
 
+from ._cache import load_cached, method_config, save_cached, source_digest
 from ._iv4 import ARXResult, IV4Result, arx, identify_iv4, iv4, mean_torque, two_mass_from_discrete
-from ._metrics import confusion_matrix, recognition_rate, recognized, relative_error, threshold_margin
+from ._metrics import (CLASS_THRESHOLDS, confusion_matrix, recognition_rate, recognized, relative_error,
+                       threshold_margin)
 from ._report import render_markdown, write_report
-from ._study import EvalSet, grid_set, population_set, run_set, summarize
+from ._sets import GRID_BACKLASH_DEG, GRID_F_E, METHODS, EvalSet, grid_set, population_set
+from ._study import iv4_result, run_set, run_study, som_result
+from ._summary import summarize
 
 __all__ = [
-    "EvalSet", "grid_set", "population_set", "run_set", "summarize", "render_markdown", "write_report",
-    "relative_error", "recognized", "recognition_rate", "confusion_matrix", "threshold_margin",
+    "EvalSet", "grid_set", "population_set", "GRID_F_E", "GRID_BACKLASH_DEG", "METHODS",
+    "run_set", "run_study", "som_result", "iv4_result", "summarize", "render_markdown", "write_report",
+    "method_config", "load_cached", "save_cached", "source_digest",
+    "relative_error", "recognized", "recognition_rate", "confusion_matrix", "threshold_margin", "CLASS_THRESHOLDS",
     "iv4", "arx", "identify_iv4", "two_mass_from_discrete", "mean_torque", "ARXResult", "IV4Result",
 ]

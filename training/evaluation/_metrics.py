@@ -6,15 +6,28 @@ numbers or arrays, so that evaluation, tests and reports share one definition.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping, Sequence
+from typing import Any
 
 import numpy as np
 
 #: The parameters whose relative errors define the recognition rate ``E_x`` (paper section 4).
 RECOGNITION_PARAMS: tuple[str, ...] = ("f_e", "V_J", "J_sigma")
 
-#: Class thresholds of SPEC section 1: quantity -> thresholds on it.
+#: Class thresholds of SPEC section 1: quantity -> thresholds on it. They are those of the class
+#: rule :func:`sim.class_index` (``w_e T_Ei < 1`` soft, ``r_osc >= 1`` visible, ``s_N`` against 0.1
+#: and 1), which keeps them as literals; ``tests/training/evaluation/test_metrics.py`` checks that
+#: the class changes at each of them.
 CLASS_THRESHOLDS: dict[str, tuple[float, ...]] = {"w_e_T_Ei": (1.0,), "s_N": (0.1, 1.0), "r_osc": (1.0,)}
+
+
+def finite_or_none(x: Any) -> float | None:
+    """``x`` as a float where it is finite, else ``None`` (a JSON-able figure; missing = ``None``)."""
+    if x is None:
+        return None
+    x = float(x)
+    return x if math.isfinite(x) else None
 
 
 def relative_error(estimate: np.ndarray, truth: np.ndarray) -> np.ndarray:

@@ -1,7 +1,7 @@
 """Evaluation report: markdown + JSON (always), per-system CSV, PNG figures (when matplotlib imports).
 
-Input is the JSON-able summary of :func:`training.evaluation._study.summarize` plus the per-system
-rows of :func:`training.evaluation._study.run_set`. Files written into the output folder:
+Input is the JSON-able summary of :func:`training.evaluation.run_study` (or ``summarize``) plus the per-system
+rows of :func:`training.evaluation.run_set`. Files written into the output folder:
 
 - ``report.md``: the tables (paper Fig. 10 as ``E_30``/``E_50`` grids, SOM / IV4 side by side),
 - ``report.json``: the summary, the run's config and timing,
@@ -13,33 +13,28 @@ rows of :func:`training.evaluation._study.run_set`. Files written into the outpu
 from __future__ import annotations
 
 import csv
-import json
+import io
 import math
 import os
-import tempfile
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from training.evaluation._study import TOLERANCES, TRUTH_KEYS, METHOD_PARAMS, relative_errors
+from som_torch import atomic_write
+from training._json import dumps
+from training.evaluation._sets import METHOD_PARAMS, TRUTH_KEYS
+from training.evaluation._summary import TOLERANCES, relative_errors
 
 METHOD_TITLES = {"som": "SOM", "maps": "maps only", "iv4": "IV4"}
 _LINE = {"som": "-", "maps": ":", "iv4": "--"}  # line style per method in Fig. 10
 NO_MATPLOTLIB = "figures skipped: matplotlib is not installed (pip install 'twomass-som[plot]')"
 
 
-def _write_atomic(path: Path, text: str) -> None:
-    fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w") as fh:
-            fh.write(text)
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
+def _write_text(path: Path, text: str) -> None:
+    atomic_write(path, lambda f: f.write(text), text=True)
+    path.chmod(0o644)  # a report to share, not a private temporary file
 
 
 def _pct(x: float | None) -> str:
@@ -206,6 +201,14 @@ def _csv_rows(rows: Sequence[Mapping[str, Any]], methods: Sequence[str]) -> tupl
     return header, out
 
 
+def _csv_text(header: Sequence[str], lines: Sequence[Sequence[Any]]) -> str:
+    buf = io.StringIO(newline="")
+    w = csv.writer(buf)
+    w.writerow(header)
+    w.writerows(lines)
+    return buf.getvalue()
+
+
 def _plot(summary: Mapping[str, Any], rows_by_set: Mapping[str, Sequence[Mapping[str, Any]]],
           out: Path) -> list[str]:
     """Fig. 9 per set and Fig. 10 for the grid; raises ImportError without matplotlib."""
@@ -301,21 +304,10 @@ def write_report(summary: Mapping[str, Any], rows_by_set: Mapping[str, Sequence[
         except ImportError:
             note = NO_MATPLOTLIB
     md = render_markdown(summary, command=command, figures=figures, figure_note=note)
-    _write_atomic(out / "report.md", md)
-    _write_atomic(out / "report.json", json.dumps({**summary, "command": command, "figures": figures},
-                                                  indent=1, allow_nan=False) + "\n")
+    _write_text(out / "report.md", md)
+    _write_text(out / "report.json", dumps({**summary, "command": command, "figures": figures}, indent=1) + "\n")
     methods = summary["methods"]
     header, lines = _csv_rows([r for rows in rows_by_set.values() for r in rows], methods)
-    fd, tmp = tempfile.mkstemp(dir=out, suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w", newline="") as fh:
-            w = csv.writer(fh)
-            w.writerow(header)
-            w.writerows(lines)
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, out / "systems.csv")
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
+    _write_text(out / "systems.csv", _csv_text(header, lines))
     files = [out / "report.md", out / "report.json", out / "systems.csv"] + [out / f for f in figures]
     return {"files": [str(f) for f in files], "note": note}

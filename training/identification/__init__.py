@@ -1,20 +1,23 @@
 """Identification of one record: sections -> one-mass fit (STEP 2) -> features -> maps recall ->
-model-based refinement -> result (SPEC sections 4 and 9)."""
+model-based refinement -> one typed result (SPEC sections 4 and 9)."""
 
-from ._analysis import FEATURE_NAMES, FEATURE_VERSION, Analysis, analyze
+from ._analysis import FEATURE_NAMES, FEATURE_VERSION, REFERENCE_DRIVE, Analysis, analyze
 from ._features import eigenfrequency_features, extra_features, structure_features
-from ._identifier import DEFAULT_CHECKPOINTS, PARAMETER_NAMES, Identifier
+from ._identifier import Identifier
 from ._maps import MAP_SPECS, SUBSETS, TARGETS, MapSpec, TrainedMap, load_map, recall_targets
-from ._one_mass import OneMassFit, fit_one_mass, speed_from_position
+from ._one_mass import FORMULATIONS, OneMassFit, fit_one_mass, speed_from_position
 from ._oscillation import OscillationFit, fit_oscillation
 from ._plausibility import check_record
 from ._refine import RefineConfig, RefineProblem, Refined, refine, torque_reference
+from ._result import (PARAMETER_NAMES, WARNING_CODES, IdentificationFailure, IdentificationResult, IdentWarning,
+                      Outcome, Parameters, Quality)
 from ._sections import SectionSplit, detect_sections
 
 __all__ = [
-    "Identifier", "DEFAULT_CHECKPOINTS", "PARAMETER_NAMES",
-    "analyze", "Analysis", "FEATURE_NAMES", "FEATURE_VERSION",
-    "detect_sections", "SectionSplit", "fit_one_mass", "OneMassFit", "speed_from_position",
+    "Identifier", "IdentificationResult", "IdentificationFailure", "Outcome", "Parameters", "Quality",
+    "IdentWarning", "WARNING_CODES", "PARAMETER_NAMES",
+    "analyze", "Analysis", "FEATURE_NAMES", "FEATURE_VERSION", "REFERENCE_DRIVE",
+    "detect_sections", "SectionSplit", "fit_one_mass", "FORMULATIONS", "OneMassFit", "speed_from_position",
     "eigenfrequency_features", "structure_features", "extra_features", "fit_oscillation", "OscillationFit",
     "check_record", "MAP_SPECS", "MapSpec", "TrainedMap", "TARGETS", "SUBSETS", "load_map", "recall_targets",
     "refine", "RefineConfig", "RefineProblem", "Refined", "torque_reference",

@@ -7,15 +7,18 @@ identification can never disagree on the feature definition (``FEATURE_VERSION``
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
-from typing import Any
+from dataclasses import dataclass
 
 import numpy as np
 
-from training.identification._features import EXTRA_NAMES, FEATURE_SETS, eigenfrequency_features, extra_features, structure_features
+from sim import DriveConfig, Record
+from training.errors import IdentificationError, one_line
+from training.identification._features import (EIG_NAMES, EXTRA_NAMES, STRUCT_NAMES, eigenfrequency_features,
+                                               extra_features, structure_features)
 from training.identification._one_mass import OneMassFit, fit_one_mass
 from training.identification._oscillation import fit_oscillation
 from training.identification._plausibility import check_record
+from training.identification._result import IdentWarning
 from training.identification._sections import SectionSplit, detect_sections
 
 #: Version of the whole feature vector below; stored in checkpoints and checked at recall.
@@ -23,24 +26,24 @@ FEATURE_VERSION = "twomass-features-v2"
 
 #: Names of the feature vector's components, in order.
 FEATURE_NAMES: tuple[str, ...] = (
-    FEATURE_SETS["paper-eig-v1"].components + FEATURE_SETS["paper-struct-v1"].components + EXTRA_NAMES
-    + ("log10_osc_quanta", "log10_f_fit", "log10_V_J_fit", "d_fit", "r2_fit")
+    EIG_NAMES + STRUCT_NAMES + EXTRA_NAMES + ("log10_osc_quanta", "log10_f_fit", "log10_V_J_fit", "d_fit", "r2_fit")
 )
 
-#: Default encoder resolution when a record's metadata does not give one (SPEC reference drive).
-_DEFAULT_ENCODER_COUNTS = 2**20
-_DEFAULT_T_Ei = 5e-4
+#: The SPEC reference drive: its encoder and current loop are assumed where a record's metadata
+#: does not give ``encoder_counts`` or ``T_Ei``.
+REFERENCE_DRIVE = DriveConfig()
 
 
-@dataclass
+@dataclass(frozen=True)
 class Analysis:
     """One record, analysed.
 
     ``features``: ``(F,)`` float64 in the order of :data:`FEATURE_NAMES`.
     ``fit``: the STEP 2 one-mass fit (``J_sigma``, ``M_FC``, ``mu_F``, ``M_0``, ``w_osc``).
     ``M_star``: the test's torque amplitude [Nm] (metadata, else estimated from the record).
-    ``osc_quanta``: rms of ``w_osc`` over the speed quantum ``q_w`` [rad/s] (how visible the oscillation is).
-    ``T_Ei``: current-loop time constant [s] (metadata, else the reference drive's).
+    ``osc_quanta``: rms of ``w_osc`` over the speed quantum :attr:`q_w` (how visible the oscillation is).
+    ``encoder_counts``, ``T_Ei`` [s]: the record's metadata, else the :data:`REFERENCE_DRIVE`'s.
+    ``warnings``: STEP 2's (coded); ``section_flags``: the section detection's notes.
     """
 
     sections: SectionSplit
@@ -49,33 +52,39 @@ class Analysis:
     M_star: float
     T_s: float
     osc_quanta: float
-    q_w: float
+    encoder_counts: int
     T_Ei: float
-    warnings: list[str] = field(default_factory=list)
-    section_flags: list[str] = field(default_factory=list)
+    warnings: tuple[IdentWarning, ...] = ()
+    section_flags: tuple[str, ...] = ()
+
+    @property
+    def q_w(self) -> float:
+        """Speed quantum ``2 pi / (encoder_counts T_s)`` [rad/s]."""
+        return 2.0 * math.pi / (self.encoder_counts * self.T_s)
 
     def feature(self, name: str) -> float:
         return float(self.features[FEATURE_NAMES.index(name)])
 
 
-def _torque(record: Any) -> np.ndarray:
-    if getattr(record, "torque", None) is not None:
-        return np.asarray(record.torque, dtype=np.float64)
-    K_M = record.meta.get("K_M")
-    if K_M is None:
-        raise ValueError(f"{record.name}: K_M missing in the metadata, needed to turn current into torque")
-    return np.asarray(record.current, dtype=np.float64) * float(K_M)
-
-
-def analyze(record: Any) -> Analysis:
-    """Sections, one-mass fit and features of one record (``sim.Record`` or alike).
+def analyze(record: Record) -> Analysis:
+    """Sections, one-mass fit and features of one record.
 
     Raises:
-        ValueError: one line, when the record has no recognisable test run.
+        IdentificationError: one line, when the record cannot be analysed (implausible units,
+            no recognisable test run, an uninformative one-mass fit, a missing ``K_M``).
     """
-    check_record(record)  # units and metadata against the signals (training/plausibility.py)
-    T_s = float(record.meta["T_s"])
-    torque = _torque(record)
+    try:
+        return _analyze(record)
+    except IdentificationError:
+        raise
+    except ValueError as err:  # RecordError, plausibility, sections, fit
+        raise IdentificationError(one_line(err)) from err
+
+
+def _analyze(record: Record) -> Analysis:
+    check_record(record)  # units and metadata against the signals
+    T_s = record.T_s
+    torque = record.motor_torque
     split = detect_sections(record)
     fit = fit_one_mass(torque, record.speed, T_s, sections=split.bounds)
     w_osc = fit.w_osc
@@ -84,12 +93,12 @@ def analyze(record: Any) -> Analysis:
     steps = np.diff(np.r_[0.0, split.levels])  # torque step at each section start [Nm]
     extra = extra_features(w_osc, T_s, split.bounds, J_sigma=fit.J_sigma, torque_steps=steps,
                            speed_span=float(np.ptp(record.speed)), structure=struct)
-    counts = int(record.meta.get("encoder_counts") or _DEFAULT_ENCODER_COUNTS)
+    counts = record.encoder_counts or REFERENCE_DRIVE.encoder_counts
     q_w = 2.0 * math.pi / (counts * T_s)
     sel = np.concatenate([w_osc[a:b] for a, b in split.bounds.tolist()])
     osc_quanta = float(np.sqrt(np.mean(sel * sel))) / q_w if sel.size else 0.0
-    f_peak = 10.0 ** extra[EXTRA_NAMES.index("log10_f_peak")] if extra[EXTRA_NAMES.index("log10_f_peak")] else 0.0
-    osc = fit_oscillation(torque, w_osc, split.bounds, T_s, f_peak)
+    log10_f_peak = extra[EXTRA_NAMES.index("log10_f_peak")]
+    osc = fit_oscillation(torque, w_osc, split.bounds, T_s, 10.0 ** log10_f_peak if log10_f_peak else 0.0)
     V_J_fit = osc.gain * fit.J_sigma  # eq. 1: gain = V_J / J_sigma
     features = np.concatenate([eig, struct, extra, [
         math.log10(max(osc_quanta, 1e-3)),
@@ -97,5 +106,6 @@ def analyze(record: Any) -> Analysis:
         math.log10(V_J_fit) if V_J_fit > 1e-3 else -3.0,
         osc.d, osc.r2]])
     return Analysis(sections=split, fit=fit, features=features, M_star=float(split.M_star), T_s=T_s,
-                    osc_quanta=osc_quanta, q_w=q_w,
-                    T_Ei=float(record.meta.get("T_Ei") or _DEFAULT_T_Ei), warnings=list(fit.warnings), section_flags=list(split.flags))
+                    osc_quanta=osc_quanta, encoder_counts=counts,
+                    T_Ei=float(record.meta.get("T_Ei") or REFERENCE_DRIVE.T_Ei), warnings=fit.warnings,
+                    section_flags=split.flags)

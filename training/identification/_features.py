@@ -5,7 +5,8 @@ All functions work on one record: ``w_osc`` ``(N,)`` [rad/s] (from
 the whole signal as one section, a ``SectionSplit``, or ``(K, 2)`` ``(start, stop)`` indices).
 They never return NaN/inf: a section without oscillation contributes zeros.
 
-Feature sets (name and version are stored with a map's checkpoint):
+The three parts of the feature vector (``training.identification._analysis.FEATURE_VERSION``
+names the whole vector and is stored with a map's checkpoint):
 
 - ``"paper-eig-v1"`` (26): :func:`eigenfrequency_features`. Per section the one-sided FFT
   magnitude of ``w_osc`` (mean removed, no window, no zero padding), normalized to 0..10 (its
@@ -35,9 +36,8 @@ Feature sets (name and version are stored with a map's checkpoint):
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 from functools import lru_cache
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 from scipy import fft as _fft
@@ -46,9 +46,9 @@ from scipy import signal as _signal
 from training.identification._one_mass import section_bounds
 
 __all__ = [
-    "EIG_F_LO", "EIG_F_HI", "EIG_N_BINS", "EIG_EDGES", "STRUCT_SAMPLES_PER_PERIOD", "FeatureSet", "FEATURE_SETS",
-    "eigenfrequency_features", "eigenfrequency_bin_centers", "structure_features", "extra_features",
-    "dominant_frequency", "zero_crossing_frequency", "compute_features",
+    "EIG_F_LO", "EIG_F_HI", "EIG_N_BINS", "EIG_EDGES", "EIG_NAMES", "STRUCT_SAMPLES_PER_PERIOD", "STRUCT_NAMES",
+    "EXTRA_NAMES", "eigenfrequency_features", "structure_features", "extra_features", "dominant_frequency",
+    "zero_crossing_frequency",
 ]
 
 EIG_F_LO = 2.5
@@ -57,6 +57,9 @@ EIG_N_BINS = 25
 EIG_EDGES = np.geomspace(EIG_F_LO, EIG_F_HI, EIG_N_BINS + 1)
 STRUCT_SAMPLES_PER_PERIOD = 64
 STRUCT_N_HARMONICS = 8
+#: Component names of :func:`eigenfrequency_features` and :func:`structure_features`.
+EIG_NAMES: tuple[str, ...] = tuple(f"eig_bin_{i}" for i in range(EIG_N_BINS)) + ("eig_peak_index",)
+STRUCT_NAMES: tuple[str, ...] = tuple(f"harm_{h}" for h in range(1, STRUCT_N_HARMONICS + 1))
 _MIN_SECTION = 8
 
 
@@ -97,11 +100,6 @@ def _scale_ok(seg: np.ndarray) -> bool:
     """True when the segment holds a non-zero oscillation (relative to floating-point noise)."""
     peak = float(np.max(np.abs(seg))) if seg.size else 0.0
     return peak > 0 and math.isfinite(peak)
-
-
-def eigenfrequency_bin_centers() -> np.ndarray:
-    """``(25,)`` geometric centre frequencies [Hz] of the eigenfrequency bins."""
-    return np.sqrt(EIG_EDGES[:-1] * EIG_EDGES[1:])
 
 
 def _eig_bars(seg: np.ndarray, T_s: float) -> np.ndarray:
@@ -368,33 +366,3 @@ def extra_features(
         if rms > 0:
             out[7] = math.log10(rms) + math.log10(scale) - math.log10(float(speed_span))
     return np.nan_to_num(out, nan=0.0, posinf=0.0, neginf=0.0)
-
-
-@dataclass(frozen=True)
-class FeatureSet:
-    """A named, versioned feature definition (stored with checkpoints)."""
-
-    name: str
-    size: int
-    components: tuple[str, ...]
-    fn: Callable[..., np.ndarray]
-    description: str
-
-
-FEATURE_SETS: dict[str, FeatureSet] = {
-    "paper-eig-v1": FeatureSet("paper-eig-v1", 26, tuple(f"eig_bin_{i}" for i in range(25)) + ("eig_peak_index",),
-                               eigenfrequency_features, "paper eq.: 25 log bins 2.5..1000 Hz + peak index"),
-    "paper-struct-v1": FeatureSet("paper-struct-v1", 8, tuple(f"harm_{h}" for h in range(1, 9)),
-                                  structure_features, "paper Fig. 4: energy-normalized harmonics 1..8 of f_d"),
-    "extra-v1": FeatureSet("extra-v1", len(EXTRA_NAMES), EXTRA_NAMES, extra_features,
-                           "zero-crossing/peak frequency, eq.-1 amplitude V_J, decay damping, THD, "
-                           "torque-dependent frequency ratios"),
-}
-
-
-def compute_features(name: str, w_osc: Any, T_s: float, sections: Any = None, **kwargs: Any) -> np.ndarray:
-    """Feature vector of the set ``name`` (a key of ``FEATURE_SETS``)."""
-    if name not in FEATURE_SETS:
-        raise ValueError(f"feature set: expected one of {sorted(FEATURE_SETS)}, received {name!r}")
-    fs = FEATURE_SETS[name]
-    return fs.fn(w_osc, T_s, sections, **kwargs) if kwargs else fs.fn(w_osc, T_s, sections)

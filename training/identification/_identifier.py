@@ -2,44 +2,72 @@
 
 An app needs three lines::
 
-    from training.identification._identifier import Identifier
+    from training import Identifier
     ident = Identifier.load()                   # shipped maps, checked against the manifest
     result = ident.identify_file("run.csv")     # or ident.identify(record) / identify_records([...])
 
-The result is a JSON-able dict: ``structure`` (a class of ``sim.STRUCTURE_CLASSES``),
-``parameters`` (SI units, ``backlash`` = total width ``2s`` [rad]; ``None`` where not identified),
-``quality`` (figures that say how far to trust it) and ``warnings``.
+Each record gets one :class:`IdentificationResult` (``structure``, ``parameters``, ``quality``,
+coded ``warnings``; ``to_dict()`` is the JSON object of SPEC 9), or an
+:class:`IdentificationFailure` with the one-line reason, built once after the maps' recall and
+the refinement.
 """
 
 from __future__ import annotations
 
 import math
 import os
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
 import som_torch as st
-from sim import Record, read_record
-from sim.params import STRUCTURE_CLASSES, DriveConfig, TwoMassParams, structure_class
+from sim import STRUCTURE_CLASSES, Record, class_index, two_mass_derived
+from training.config import blas_threads, checkpoints_folder
+from training.errors import one_line
 from training.identification._analysis import FEATURE_NAMES, Analysis, analyze
+from training.identification._batch import CHUNK, analysis_outcome, file_outcomes
 from training.identification._maps import MAP_SPECS, TrainedMap, load_map, recall_targets
 from training.identification._refine import RefineConfig, RefineProblem, Refined, refine, torque_reference
+from training.identification._result import (IdentificationFailure, IdentificationResult, IdentWarning, Outcome,
+                                              Parameters, Quality)
 
-#: Where the shipped maps lie (override with ``$TWOMASS_CHECKPOINTS`` or ``Identifier.load(folder)``).
-DEFAULT_CHECKPOINTS = Path(os.environ.get("TWOMASS_CHECKPOINTS", Path(__file__).resolve().parents[2] / "checkpoints"))
-
-PARAMETER_NAMES: tuple[str, ...] = ("J_sigma", "V_J", "J_M", "J_L", "f_e", "C_F", "d", "backlash", "M_FC", "mu_F")
 _BACKLASH_CLASSES = ("elastic_backlash", "stiff_backlash")
+
+
+@dataclass(frozen=True)
+class _MapsAnswer:
+    """What the maps say about one record, before the refinement: the structure and its
+    probabilities, ``f_e`` [Hz], ``V_J``, ``d``, the structure map's ``s_N``, the backlash map's
+    ``log10_s_N``, and each map's recall distance over its training 99 % quantile."""
+
+    structure: str
+    probabilities: dict[str, float]
+    f_e: float
+    V_J: float
+    d: float
+    s_N: float
+    log10_s_N_backlash: float
+    distance_ratio: dict[str, float]
+
+    @property
+    def used(self) -> tuple[str, ...]:
+        """The maps whose recall this answer rests on."""
+        return (("structure",) + (("f_e", "V_J") if self.structure != "stiff" else ())
+                + (("backlash",) if self.structure in _BACKLASH_CLASSES else ()))
+
+    @property
+    def outside_training(self) -> bool:
+        return any(self.distance_ratio[n] > 1.0 for n in self.used)
 
 
 class Identifier:
     """Trained maps, loaded once; identifies records (one at a time or many in one batch).
 
     ``refine``: the model-based refinement of the maps' answer (:mod:`training.identification._refine`); ``None``
-    gives the maps' answer alone (the paper's method)."""
+    gives the maps' answer alone (the paper's method). The work runs with one BLAS thread
+    (:func:`training.config.blas_threads`) whoever calls it."""
 
     def __init__(self, maps: dict[str, TrainedMap], refine: RefineConfig | None = RefineConfig()) -> None:
         missing = [n for n in MAP_SPECS if n not in maps]
@@ -54,172 +82,216 @@ class Identifier:
     @classmethod
     def load(cls, folder: str | os.PathLike[str] | None = None, *,
              refine: RefineConfig | None = RefineConfig()) -> "Identifier":
-        """Load every map of ``folder`` (default: the shipped ``checkpoints/``) after checking
-        the manifest's SHA-256 of each file."""
-        folder = Path(folder) if folder is not None else DEFAULT_CHECKPOINTS
+        """Load every map of ``folder`` (default: :func:`training.config.checkpoints_folder`, the
+        shipped maps unless ``$TWOMASS_CHECKPOINTS`` names others) after checking the manifest's
+        SHA-256 of each file."""
+        folder = Path(folder) if folder is not None else checkpoints_folder()
         st.verify_manifest(folder)
         return cls({name: load_map(folder / f"{name}.pt") for name in MAP_SPECS}, refine)
 
-    def identify(self, record: Record) -> dict[str, Any]:
-        """Identify one record; raises ValueError (one line) when it cannot be analysed."""
-        return self.identify_analyses([analyze(record)])[0]
+    # -- public entries ---------------------------------------------------------------------
+    def identify(self, record: Record) -> IdentificationResult:
+        """Identify one record.
 
-    def identify_records(self, records: Sequence[Record]) -> list[dict[str, Any]]:
-        """One result per record, in order; a record that cannot be analysed gets ``{"error": ...}``."""
-        analyses: list[Analysis | str] = []
-        for r in records:
-            try:
-                analyses.append(analyze(r))
-            except ValueError as err:
-                analyses.append(_one_line(err))
-        good = [a for a in analyses if isinstance(a, Analysis)]
-        results = iter(self.identify_analyses(good))
-        return [next(results) if isinstance(a, Analysis) else {"error": a} for a in analyses]
+        Raises:
+            IdentificationError: one line, when the record cannot be analysed.
+        """
+        with blas_threads():
+            return self._identify_batch([analyze(record)], [None])[0]
 
-    def identify_file(self, path: str | os.PathLike[str]) -> dict[str, Any]:
-        """Read and identify one record file; errors become ``{"error": ...}``."""
+    def identify_records(self, records: Sequence[Record]) -> list[Outcome]:
+        """One outcome per record, in order; a record that cannot be analysed or recalled gets an
+        :class:`IdentificationFailure` with the reason."""
+        with blas_threads():
+            return self._recall_isolated([analysis_outcome(r) for r in records], [None] * len(records))
+
+    def identify_file(self, path: str | os.PathLike[str]) -> Outcome:
+        """Read and identify one record file (``record`` = the path as given)."""
         return self.identify_files([path])[0]
 
-    def identify_files(self, paths: Iterable[str | os.PathLike[str]]) -> list[dict[str, Any]]:
-        """``{"record": path, ...result}`` per path, in the order given (errors per record)."""
-        paths = [str(p) for p in paths]
-        records: list[Record | str] = []
-        for p in paths:
-            try:
-                records.append(read_record(p))
-            except (ValueError, OSError) as err:
-                records.append(_one_line(err))
-        good = [r for r in records if isinstance(r, Record)]
-        results = iter(self.identify_records(good))
-        out = []
-        for p, r in zip(paths, records):
-            res = next(results) if isinstance(r, Record) else {"error": r}
-            out.append({"record": p, **res})
-        return out
+    def identify_files(self, paths: Iterable[str | os.PathLike[str]], *, jobs: int | None = 1,
+                       progress: Callable[[int], object] | None = None) -> list[Outcome]:
+        """:meth:`iter_files` as a list."""
+        return list(self.iter_files(paths, jobs=jobs, progress=progress))
 
-    def identify_analyses(self, analyses: Sequence[Analysis]) -> list[dict[str, Any]]:
-        """Recall all maps for a batch of analysed records (one tensor computation per map)."""
+    def iter_files(self, paths: Iterable[str | os.PathLike[str]], *, jobs: int | None = 1,
+                   progress: Callable[[int], object] | None = None) -> Iterator[Outcome]:
+        """One outcome per path, in the order given (``record`` = the path as given), as they are
+        done: records are read and analysed one by one (in ``jobs`` forked worker processes when
+        ``jobs > 1``; ``None``: 1 for fewer than 8 records, else up to 2), then recalled and refined
+        in batches of :data:`CHUNK`. ``progress`` is called with 1 per record analysed.
+
+        A record that cannot be read, analysed or recalled gets an :class:`IdentificationFailure`
+        (an unexpected exception is named as such: ``"unexpected TypeError in the analysis: ..."``);
+        the others are still answered."""
+        names = [str(p) for p in paths]
+        chunk: list[tuple[str, Analysis | IdentificationFailure]] = []
+        for name, item in zip(names, file_outcomes(names, jobs)):
+            chunk.append((name, item))
+            if progress is not None:
+                progress(1)
+            if len(chunk) >= CHUNK:
+                yield from self._recall_chunk(chunk)
+                chunk = []
+        yield from self._recall_chunk(chunk)
+
+    def identify_analyses(self, analyses: Sequence[Analysis]) -> list[IdentificationResult]:
+        """Recall all maps for a batch of analysed records (one tensor computation per map), then
+        refine; one result per analysis, in order (an exception ends the whole batch)."""
+        with blas_threads():
+            return self._identify_batch(analyses, [None] * len(analyses))
+
+    # -- batches with per-record isolation ----------------------------------------------------
+    def _recall_chunk(self, chunk: list[tuple[str, Analysis | IdentificationFailure]]) -> list[Outcome]:
+        with blas_threads():
+            return self._recall_isolated([item for _, item in chunk], [name for name, _ in chunk])
+
+    def _recall_isolated(self, items: Sequence[Analysis | IdentificationFailure],
+                         names: Sequence[str | None]) -> list[Outcome]:
+        """Outcomes of ``items`` in order (``names``: their ``record``): the failures as they are,
+        the analyses recalled in one batch; when the batch fails, each alone, so that a failing
+        record costs only its own answer."""
+        todo = [i for i, item in enumerate(items) if isinstance(item, Analysis)]
+        try:
+            done: list[Outcome] = list(self._identify_batch([items[i] for i in todo], [names[i] for i in todo]))
+        except Exception:  # noqa: BLE001 - isolate the record that breaks the batch
+            done = [self._recall_one(items[i], names[i]) for i in todo]
+        answered = dict(zip(todo, done))
+        return [answered[i] if isinstance(item, Analysis) else item for i, item in enumerate(items)]
+
+    def _recall_one(self, a: Analysis, name: str | None) -> Outcome:
+        try:
+            return self._identify_batch([a], [name])[0]
+        except ValueError as err:
+            return IdentificationFailure(f"recall failed: {one_line(err)}", name)
+        except Exception as err:  # noqa: BLE001 - a bug must not cost the other records their answer
+            return IdentificationFailure(f"unexpected {type(err).__name__} in the recall: {one_line(err)}", name)
+
+    # -- the identification of a batch ------------------------------------------------------------
+    def _identify_batch(self, analyses: Sequence[Analysis], names: Sequence[str | None]) -> list[IdentificationResult]:
         if not analyses:
             return []
+        answers = self._recall(analyses)
+        refined: list[Refined | None] = [None] * len(analyses)
+        if self.refine is not None:
+            # stiff answers are refined too where the oscillation shows above the quantization
+            # (near the w_e T_Ei = 1 threshold the maps' f_e decides the class)
+            todo = [i for i, (a, m) in enumerate(zip(analyses, answers))
+                    if m.structure != "stiff" or a.osc_quanta >= 1.0]
+            problems = [self._problem(analyses[i], answers[i]) for i in todo]
+            for i, r in zip(todo, refine(problems, self.refine)):
+                refined[i] = r
+        return [self._result(a, m, r, name) for a, m, r, name in zip(analyses, answers, refined, names)]
+
+    def _recall(self, analyses: Sequence[Analysis]) -> list[_MapsAnswer]:
+        """The maps' answer per analysis (one batched recall per map)."""
         F = np.stack([a.features for a in analyses])  # M x F
         recalled = {}
         for name, m in self.maps.items():
             cols = [FEATURE_NAMES.index(f) for f in m.spec.features]
             recalled[name] = recall_targets(m, F[:, cols], int(m.metadata["train_config"]["interpolate"]))
-        results = [self._assemble(a, {n: {k: float(v[i]) for k, v in r.items()} for n, r in recalled.items()})
-                   for i, a in enumerate(analyses)]
-        if self.refine is not None:
-            # stiff answers are refined too where the oscillation shows above the quantization
-            # (near the w_e T_Ei = 1 threshold the maps' f_e decides the class)
-            todo = [i for i, (a, res) in enumerate(zip(analyses, results))
-                    if res["structure"] != "stiff" or a.osc_quanta >= 1.0]
-            problems = [self._problem(analyses[i], results[i]) for i in todo]
-            for i, refined in zip(todo, refine(problems, self.refine)):
-                self._apply_refined(analyses[i], results[i], refined)
-        return results
+        return [self._maps_answer(a, {n: {k: float(v[i]) for k, v in r.items()} for n, r in recalled.items()})
+                for i, a in enumerate(analyses)]
 
-    def _assemble(self, a: Analysis, r: dict[str, dict[str, float]]) -> dict[str, Any]:
-        warnings = list(a.warnings)
-        fit = a.fit
-        f_fit, V_J_fit = a.feature("log10_f_fit"), a.feature("log10_V_J_fit")
+    def _maps_answer(self, a: Analysis, r: dict[str, dict[str, float]]) -> _MapsAnswer:
         # the maps store corrections to the eq.-1 fit (training.identification._maps.TARGETS)
-        f_e = 10.0 ** (f_fit + r["f_e"]["dlog10_f_e"])
-        V_J = 10.0 ** (V_J_fit + r["V_J"]["dlog10_V_J"])
+        f_e = 10.0 ** (a.feature("log10_f_fit") + r["f_e"]["dlog10_f_e"])
+        V_J = 10.0 ** (a.feature("log10_V_J_fit") + r["V_J"]["dlog10_V_J"])
         d = min(max(r["f_e"]["d"], 0.0), 0.9)
-        J_M = fit.J_sigma / (1.0 + V_J)
-        J_L = fit.J_sigma - J_M
-        w_0 = 2 * math.pi * f_e / math.sqrt(1.0 - d * d)
-        C_F = w_0 * w_0 * J_M * J_L / fit.J_sigma
-        structure, probs = self._structure(a, r, f_e, V_J, w_0)
-        M_N = self.M_N
-        p: dict[str, float | None] = dict.fromkeys(PARAMETER_NAMES)
-        p.update(J_sigma=fit.J_sigma, M_FC=max(fit.M_FC, 0.0), mu_F=max(fit.mu_F, 0.0), backlash=0.0)
-        if structure != "stiff":
-            p.update(f_e=f_e, V_J=V_J, d=d, J_M=J_M, J_L=J_L, C_F=C_F)
-        if structure in _BACKLASH_CLASSES:  # s_N = s C_F / M_N, backlash = 2 s
-            p["backlash"] = 2.0 * 10.0 ** r["backlash"]["log10_s_N"] * M_N / C_F
-        # how far each recall lies from the training data: distance over the training 99 % quantile
-        unseen = {}
-        for name, m in self.maps.items():
+        s_N = 10.0 ** r["structure"]["log10_s_N"]
+        probs = {c: r["structure"][f"p_{c}"] for c in STRUCTURE_CLASSES}
+        # SPEC's stiff rule on the identified values; otherwise the structure map's most likely other class
+        if _spec_class(a, a.fit.J_sigma, V_J, f_e, d, s_N) == "stiff":
+            structure = "stiff"
+        else:
+            structure = max((c for c in STRUCTURE_CLASSES if c != "stiff"), key=probs.get)
+        ratio = {}
+        for name, m in self.maps.items():  # recall distance over the training 99 % quantile
             q99 = m.metadata["distance_quantiles"]["0.99"]
-            unseen[name] = r[name]["distance"] / q99 if q99 > 0 else float("inf")
-        used = ["structure"] + (["f_e", "V_J"] if structure != "stiff" else []) + \
-               (["backlash"] if structure in _BACKLASH_CLASSES else [])
-        for name in used:
-            if unseen[name] > 1.0:
-                warnings.append(f"record unlike the training data of the {name} map "
-                                f"(distance {unseen[name]:.2f} x its 99 % quantile)")
-        quality = {
-            "structure_probabilities": probs,
-            "map_distance_ratio": unseen,
-            "osc_quanta": a.osc_quanta,
-            "oscillation_fit_r2": a.feature("r2_fit"),
-            "one_mass_rel_residual": fit.rel_residual,
-            "outside_training": any(unseen[n] > 1.0 for n in used),
-            "section_flags": a.section_flags,
-            "maps_estimate": {"f_e": f_e, "V_J": V_J, "d": d, "s_N": 10.0 ** r["structure"]["log10_s_N"]},
-        }
-        if a.osc_quanta < 1.0 and structure != "stiff":
-            warnings.append(f"oscillation only {a.osc_quanta:.2f} speed quanta rms: elastic parameters uncertain")
-        return {"structure": structure, "parameters": p, "quality": quality, "warnings": warnings}
+            ratio[name] = r[name]["distance"] / q99 if q99 > 0 else float("inf")
+        return _MapsAnswer(structure, probs, f_e, V_J, d, s_N, r["backlash"]["log10_s_N"], ratio)
 
-    def _problem(self, a: Analysis, res: dict[str, Any]) -> RefineProblem:
+    def _problem(self, a: Analysis, m: _MapsAnswer) -> RefineProblem:
         """The refinement of one maps' answer: the record's replayed test signal, STEP 2's
         one-mass values, and the maps' ``f_e``, ``V_J``, ``d``, ``s_N`` as the start."""
         b = a.sections.bounds
         start, level = torque_reference(b, a.M_star)
-        p = res["quality"]["maps_estimate"]
         segments = np.concatenate([b, [[b[5, 1], len(a.fit.speed)]]])  # the six sections and the tail
-        s_N = max(p["s_N"], 1e-3)
         return RefineProblem(speed=a.fit.speed, start=start, level=level, segments=segments, J_sigma=a.fit.J_sigma,
                              M_FC=max(a.fit.M_FC, 0.0), mu_F=max(a.fit.mu_F, 0.0), T_s=a.T_s, T_Ei=a.T_Ei,
-                             encoder_counts=_encoder_counts(a), M_N=self.M_N, free_one_mass=bool(a.fit.warnings),
-                             theta=np.array([math.log10(p["f_e"]), math.log10(p["V_J"]), p["d"], math.log10(s_N)]))
+                             encoder_counts=a.encoder_counts, M_N=self.M_N, free_one_mass=bool(a.fit.warnings),
+                             theta=np.array([math.log10(m.f_e), math.log10(m.V_J), m.d,
+                                             math.log10(max(m.s_N, 1e-3))]))
 
-    def _apply_refined(self, a: Analysis, res: dict[str, Any], m: Refined) -> None:
-        """Replace the maps' elastic parameters and backlash width by the refined ones; the
-        structure follows SPEC's class rules on the refined values (the maps' class and estimate
-        stay in ``quality``). A ``stiff`` result keeps the one-mass answer."""
-        J_sigma = a.fit.J_sigma if m.J_sigma is None else m.J_sigma
-        model = TwoMassParams.from_dicts(dict(J_sigma=J_sigma, V_J=m.V_J, f_e=m.f_e, d=m.d, backlash=m.backlash,
-                                              M_FC=0.0, mu_F=0.0))
-        drive = DriveConfig(M_N=self.M_N, T_Ei=a.T_Ei, T_s=a.T_s, encoder_counts=_encoder_counts(a))
-        structure = STRUCTURE_CLASSES[int(structure_class(model, drive, a.M_star).reshape(-1)[0])]
-        p = res["parameters"]
-        if m.J_sigma is not None:  # STEP 2 flagged its fit; the whole-record fit replaced it
-            p.update(J_sigma=m.J_sigma, M_FC=m.M_FC)
-            res["warnings"].append("J_sigma and M_FC from the two-mass fit of the whole record "
-                                   "(the one-mass fit of STEP 2 was not trusted)")
-        p.update(f_e=m.f_e, V_J=m.V_J, d=m.d, J_M=float(model.J_M.reshape(-1)[0]), J_L=float(model.J_L.reshape(-1)[0]),
-                 C_F=float(model.C_F.reshape(-1)[0]),
-                 backlash=m.backlash)  # measured even where the class calls it negligible (elastic)
+    # -- the result, assembled once ---------------------------------------------------------------
+    def _result(self, a: Analysis, m: _MapsAnswer, r: Refined | None, name: str | None) -> IdentificationResult:
+        quality = Quality(
+            structure_probabilities=m.probabilities, map_distance_ratio=m.distance_ratio, osc_quanta=a.osc_quanta,
+            oscillation_fit_r2=a.feature("r2_fit"), one_mass_rel_residual=a.fit.rel_residual,
+            outside_training=m.outside_training, section_flags=a.section_flags,
+            maps_estimate={"f_e": m.f_e, "V_J": m.V_J, "d": m.d, "s_N": m.s_N},
+            **({} if r is None else dict(maps_structure=m.structure, refine_residual=r.residual,
+                                         refine_start_residual=r.start_residual, refined_s_N=r.s_N)))
+        warnings = list(a.warnings) + self._maps_warnings(a, m)
+        if r is None:
+            structure, parameters = m.structure, self._maps_parameters(a, m)
+        else:
+            structure, parameters = self._refined_parameters(a, r)
+            warnings += _refine_warnings(r, structure)
+        return IdentificationResult(structure, parameters, quality, tuple(warnings), name)
+
+    def _maps_parameters(self, a: Analysis, m: _MapsAnswer) -> Parameters:
+        """The maps' elastic parameters (none for ``stiff``) on STEP 2's one-mass values."""
+        fit = a.fit
+        one_mass = dict(J_sigma=fit.J_sigma, M_FC=max(fit.M_FC, 0.0), mu_F=max(fit.mu_F, 0.0), backlash=0.0)
+        if m.structure == "stiff":
+            return Parameters(**one_mass)
+        dv = two_mass_derived(fit.J_sigma, m.V_J, m.f_e, m.d)
+        if m.structure in _BACKLASH_CLASSES:  # s_N = s C_F / M_N, backlash = 2 s
+            one_mass["backlash"] = 2.0 * 10.0 ** m.log10_s_N_backlash * self.M_N / dv.C_F
+        return Parameters(**one_mass, f_e=m.f_e, V_J=m.V_J, d=m.d, J_M=dv.J_M, J_L=dv.J_L, C_F=dv.C_F)
+
+    def _refined_parameters(self, a: Analysis, r: Refined) -> tuple[str, Parameters]:
+        """The refined elastic parameters and backlash width; the structure follows SPEC's class
+        rule on the refined values (the maps' class and estimate stay in ``quality``). A ``stiff``
+        result keeps the one-mass answer. ``J_sigma``, ``M_FC``: the whole-record fit's where STEP
+        2's was not trusted."""
+        fit = a.fit
+        J_sigma, M_FC = (fit.J_sigma, max(fit.M_FC, 0.0)) if r.J_sigma is None else (r.J_sigma, r.M_FC)
+        dv = two_mass_derived(J_sigma, r.V_J, r.f_e, r.d)
+        structure = _spec_class(a, J_sigma, r.V_J, r.f_e, r.d, 0.5 * r.backlash * dv.C_F / self.M_N)
+        one_mass = dict(J_sigma=J_sigma, M_FC=M_FC, mu_F=max(fit.mu_F, 0.0))
         if structure == "stiff":
-            p.update(f_e=None, V_J=None, d=None, J_M=None, J_L=None, C_F=None, backlash=0.0)
-        res["quality"].update(maps_structure=res["structure"], refine_residual=m.residual,
-                              refine_start_residual=m.start_residual, refined_s_N=m.s_N)
-        res["structure"] = structure
-        if m.residual > 0.7 and structure != "stiff":
-            res["warnings"].append(f"the refined model reproduces only part of the measured oscillation "
-                                   f"(residual {m.residual:.2f} of its rms)")
+            return structure, Parameters(**one_mass, backlash=0.0)
+        # the backlash is measured even where the class calls it negligible (elastic)
+        return structure, Parameters(**one_mass, f_e=r.f_e, V_J=r.V_J, d=r.d, J_M=dv.J_M, J_L=dv.J_L, C_F=dv.C_F,
+                                     backlash=r.backlash)
 
-    def _structure(self, a: Analysis, r: dict[str, dict[str, float]], f_e: float, V_J: float,
-                   w_0: float) -> tuple[str, dict[str, float]]:
-        """SPEC's stiff rule on the identified values (``w_e T_Ei >= 1`` or ``r_osc < 1``, and the
-        map's ``s_N < 0.1``); otherwise the structure map's most likely of the other classes."""
-        probs = {c: r["structure"][f"p_{c}"] for c in STRUCTURE_CLASSES}
-        s_N = 10.0 ** r["structure"]["log10_s_N"]
-        r_osc = V_J * a.M_star / (a.fit.J_sigma * w_0 * a.q_w)
-        if s_N < 0.1 and (2 * math.pi * f_e * a.T_Ei >= 1.0 or r_osc < 1.0):
-            return "stiff", probs
-        others = [c for c in STRUCTURE_CLASSES if c != "stiff"]
-        return max(others, key=probs.get), probs
+    @staticmethod
+    def _maps_warnings(a: Analysis, m: _MapsAnswer) -> list[IdentWarning]:
+        out = [IdentWarning("unlike_training_data", f"record unlike the training data of the {name} map "
+                                                    f"(distance {m.distance_ratio[name]:.2f} x its 99 % quantile)")
+               for name in m.used if m.distance_ratio[name] > 1.0]
+        if a.osc_quanta < 1.0 and m.structure != "stiff":
+            out.append(IdentWarning("oscillation_below_quantum", f"oscillation only {a.osc_quanta:.2f} speed quanta "
+                                                                 "rms: elastic parameters uncertain"))
+        return out
 
 
-def _encoder_counts(a: Analysis) -> int:
-    """The record's encoder counts per revolution, from its speed quantum ``q_w = 2 pi / (counts T_s)``."""
-    return int(round(2.0 * math.pi / (a.q_w * a.T_s)))
+def _refine_warnings(r: Refined, structure: str) -> list[IdentWarning]:
+    out = []
+    if r.J_sigma is not None:
+        out.append(IdentWarning("one_mass_fit_replaced", "J_sigma and M_FC from the two-mass fit of the whole record "
+                                                         "(the one-mass fit of STEP 2 was not trusted)"))
+    if r.residual > 0.7 and structure != "stiff":
+        out.append(IdentWarning("refine_partial_fit", f"the refined model reproduces only part of the measured "
+                                                      f"oscillation (residual {r.residual:.2f} of its rms)"))
+    return out
 
 
-def _one_line(err: BaseException) -> str:
-    text = str(err).strip().splitlines()
-    return text[0] if text else type(err).__name__
+def _spec_class(a: Analysis, J_sigma: float, V_J: float, f_e: float, d: float, s_N: float) -> str:
+    """SPEC's class (:func:`sim.class_index`) of a two-mass model on the record's drive: ``s_N``,
+    ``w_e T_Ei`` and ``r_osc = V_J M* / (J_sigma w_0 q_w)``."""
+    dv = two_mass_derived(J_sigma, V_J, f_e, d)
+    r_osc = V_J * a.M_star / (J_sigma * dv.w_0 * a.q_w)
+    return STRUCTURE_CLASSES[int(class_index(s_N, dv.w_e * a.T_Ei, r_osc))]

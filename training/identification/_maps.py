@@ -18,10 +18,9 @@ import numpy as np
 import torch
 
 import som_torch as st
-from sim.params import STRUCTURE_CLASSES
+from sim import STRUCTURE_CLASSES
 from training.identification._analysis import FEATURE_NAMES, FEATURE_VERSION
 
-_EIG = tuple(n for n in FEATURE_NAMES if n.startswith("eig_"))
 _HARM = tuple(n for n in FEATURE_NAMES if n.startswith("harm_"))
 
 

@@ -40,6 +40,7 @@ elastic oscillation and little else.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -47,8 +48,9 @@ import numpy as np
 from scipy import signal as _signal
 
 from training._checks import as_signal
+from training.identification._result import IdentWarning
 
-__all__ = ["OneMassFit", "SectionFit", "fit_one_mass", "speed_from_position", "section_bounds"]
+__all__ = ["OneMassFit", "SectionFit", "FORMULATIONS", "fit_one_mass", "speed_from_position", "section_bounds"]
 
 
 @dataclass(frozen=True)
@@ -81,7 +83,7 @@ class OneMassFit:
     speed for ``"trajectory"`` (below 2 % for a good test-run fit), speed increments over short
     windows for ``"integral"`` (noise dominated: 7 % on EMPS), filtered torque for ``"derivative"``.
     ``std``: standard deviations of ``(J_sigma, mu_F, M_FC, M_0)`` from the least squares.
-    ``warnings``: reasons to distrust a ``"trajectory"`` fit (residual above 5 %, sections
+    ``warnings``: reasons (coded) to distrust a ``"trajectory"`` fit (residual above 5 %, sections
     shorter than two periods of the oscillation); empty when none.
     """
 
@@ -97,12 +99,7 @@ class OneMassFit:
     std: tuple[float, float, float, float]
     n_rows: int
     method: str
-    warnings: tuple[str, ...] = ()
-
-    def as_dict(self) -> dict[str, float]:
-        """The identified scalars as a JSON-able dict."""
-        return {"J_sigma": self.J_sigma, "M_FC": self.M_FC, "mu_F": self.mu_F, "M_0": self.M_0,
-                "rel_residual": self.rel_residual}
+    warnings: tuple[IdentWarning, ...] = ()
 
 
 def _lowpass(x: np.ndarray, cutoff: float, T_s: float, order: int = 4) -> np.ndarray:
@@ -248,6 +245,239 @@ def _lstsq(X: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]
     return theta, std, float(np.sqrt(np.mean(r * r)))
 
 
+@dataclass(frozen=True)
+class _Signals:
+    """One record, checked, as every formulation sees it (arrays ``(N,)``)."""
+
+    M: np.ndarray  # torque [Nm]
+    w: np.ndarray  # speed [rad/s]
+    w_lp: np.ndarray  # low-passed speed [rad/s]
+    sgn: np.ndarray  # sign of w_lp, 0 within the deadband
+    moving: np.ndarray  # bool: |w_lp| above the deadband
+    in_sec: np.ndarray  # bool: inside a section
+    bounds: list[tuple[int, int]]
+    T_s: float
+    cutoff: float  # low-pass cutoff [Hz]
+    dead: float  # speed deadband [rad/s]
+    n_par: int  # 4 with the offset M_0, else 3
+
+
+@dataclass(frozen=True)
+class _Options:
+    """The formulation-specific options of :func:`fit_one_mass`."""
+
+    window: int | None
+    n_scales: int
+    oscillation: bool
+
+
+@dataclass(frozen=True)
+class _Estimate:
+    """What a formulation estimates; ``sgn``: the speed sign the friction acts with (the trajectory
+    formulation refines it); ``f_osc``, ``d_osc``: the oscillation it fitted as a nuisance (0: none)."""
+
+    J_sigma: float
+    mu_F: float
+    M_FC: float
+    M_0: float
+    std: tuple[float, ...]
+    rel_residual: float
+    n_rows: int
+    sgn: np.ndarray
+    f_osc: float = 0.0
+    d_osc: float = 0.0
+    warnings: tuple[IdentWarning, ...] = ()
+
+
+def _inverse_inertia_values(theta: np.ndarray, std: np.ndarray, n_par: int,
+                            sign: float) -> tuple[float, float, float, float, tuple[float, ...]]:
+    """``J_sigma, mu_F, M_FC, M_0`` and their standard deviations from a fit whose parameters are
+    ``(1/J_sigma, sign mu_F/J_sigma, sign M_FC/J_sigma, sign M_0/J_sigma)`` (the first ``n_par``)."""
+    if not theta[0] > 0:
+        raise ValueError(f"one-mass fit: expected a positive inertia, received 1/J_sigma = {theta[0]:.4g}; "
+                         "the record does not excite the inertia")
+    J_sigma = float(1.0 / theta[0])
+    p = sign * theta[:n_par] * J_sigma
+    sd, th = std[:n_par], theta[:n_par]
+    std_p = np.abs(p) * np.sqrt((sd / np.where(th == 0, 1, th)) ** 2 + (sd[0] / theta[0]) ** 2)
+    std_p[0] = sd[0] / theta[0] ** 2
+    M_0 = float(p[3]) if n_par == 4 else 0.0
+    return J_sigma, float(p[1]), float(p[2]), M_0, tuple(float(v) for v in std_p) + ((0.0,) if n_par == 3 else ())
+
+
+def _fit_integral(s: _Signals, opt: _Options) -> _Estimate:
+    """The integrated torque balance over windows, the speed increment as the dependent variable."""
+    n, T_s = s.w.size, s.T_s
+    L = max(4, int(round(0.005 / T_s))) if opt.window is None else int(opt.window)
+    if L < 1:
+        raise ValueError(f"window: expected >= 1 samples, received {opt.window}")
+    C_M, C_w, C_s, C_1 = _cumint(s.M, T_s), _cumint(s.w, T_s), _cumint(s.sgn, T_s), np.arange(n) * T_s
+    # a window is usable when every sample in it is moving and belongs to a section
+    bad = np.concatenate([[0], np.cumsum(~(s.moving & s.in_sec))])
+    ia, ib = _windows(n, L, opt.n_scales)
+    ok = (bad[ib + 1] - bad[ia]) == 0
+    ia, ib = ia[ok], ib[ok]
+    if ia.size < s.n_par:
+        raise ValueError(f"one-mass fit: expected >= {s.n_par} usable windows away from zero speed, received {ia.size}")
+    X = np.stack([C_M[ib] - C_M[ia], C_w[ib] - C_w[ia], C_s[ib] - C_s[ia], C_1[ib] - C_1[ia]], axis=1)[:, :s.n_par]
+    y = s.w[ib] - s.w[ia]
+    # speed-increment regression: the elastic oscillation enters the dependent variable only
+    theta, std, rms = _lstsq(X, y)
+    J_sigma, mu_F, M_FC, M_0, std_t = _inverse_inertia_values(theta, std, s.n_par, -1.0)
+    rel = rms / max(float(np.sqrt(np.mean(y * y))), 1e-300)
+    return _Estimate(J_sigma, mu_F, M_FC, M_0, std_t, rel, int(X.shape[0]), s.sgn)
+
+
+def _trajectory_rows(s: _Signals, sgn: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Regressors and speeds of the output error per section:
+    ``w(t) = w0_k + (1/J) int_{t_k}^t (M - mu_F w - M_FC sgn - M_0) dt``."""
+    T_s, n, K = s.T_s, s.w.size, len(s.bounds)
+    C_M, C_w, C_1, C_s = _cumint(s.M, T_s), _cumint(s.w, T_s), np.arange(n) * T_s, _cumint(sgn, T_s)
+    rows_X, rows_y = [], []
+    for k, (a0, b0) in enumerate(s.bounds):
+        e = np.zeros((b0 - a0, K))
+        e[:, k] = 1.0
+        cols = np.stack([C_M[a0:b0] - C_M[a0], -(C_w[a0:b0] - C_w[a0]), -(C_s[a0:b0] - C_s[a0]),
+                         -(C_1[a0:b0] - C_1[a0])], axis=1)[:, :s.n_par]
+        rows_X.append(np.concatenate([cols, e], axis=1))
+        rows_y.append(s.w[a0:b0])
+    return np.concatenate(rows_X), np.concatenate(rows_y)
+
+
+def _fit_trajectory(s: _Signals, opt: _Options) -> _Estimate:
+    """Output error of the integrated model per section, in two passes: pass 2 with the sign of the
+    fitted smooth speed (a proxy of the load speed, which the friction acts on) and, with
+    ``oscillation``, damped sin/cos nuisance regressors per section at the residual's dominant
+    frequency (the eq.-1 oscillation, so that it does not leak into the slopes that carry inertia
+    and friction)."""
+    idx = np.concatenate([np.arange(a0, b0) for a0, b0 in s.bounds])
+    sgn, f_osc, d_osc = s.sgn, 0.0, 0.0
+    for _pass in range(2):
+        X, y = _trajectory_rows(s, sgn)
+        n_lin = X.shape[1]
+        w_model = np.array(s.w_lp)
+        if _pass == 1 and f_osc > 0:
+            best = None
+            for d_try in (0.0, 0.03, 0.1):
+                Xo = np.concatenate([X, _osc_columns(s.bounds, s.T_s, f_osc, d_try)], axis=1)
+                th_o, sd_o, rms_o = _lstsq(Xo, y)
+                if best is None or rms_o < best[2]:
+                    best = (th_o, sd_o, rms_o, d_try)
+            theta, std, rms, d_osc = best
+            w_model[idx] = X @ theta[:n_lin]
+        else:
+            theta, std, rms = _lstsq(X, y)
+            w_model[idx] = X @ theta
+            if opt.oscillation:
+                f_osc = _residual_frequency(y - w_model[idx], s.bounds, s.T_s)
+        sgn = np.where(np.abs(w_model) > s.dead, np.sign(w_model), 0.0)
+    J_sigma, mu_F, M_FC, M_0, std_t = _inverse_inertia_values(theta, std, s.n_par, 1.0)
+    rel = rms / max(float(np.sqrt(np.mean((y - y.mean()) ** 2))), 1e-300)
+    return _Estimate(J_sigma, mu_F, M_FC, M_0, std_t, rel, int(X.shape[0]), sgn, f_osc, d_osc,
+                     _trajectory_warnings(rel, f_osc, s.bounds, s.T_s))
+
+
+def _trajectory_warnings(rel: float, f_osc: float, bounds: list[tuple[int, int]],
+                         T_s: float) -> tuple[IdentWarning, ...]:
+    """Reasons to distrust a trajectory fit: residual above 5 %, sections shorter than two periods."""
+    warns = []
+    if rel > 0.05:
+        warns.append(IdentWarning("one_mass_fit_residual", f"one-mass fit residual is {100 * rel:.1f} % of the "
+                                  "signal: the record is not well described by one mass (oscillation too large?)"))
+    if f_osc > 0 and rel > 0.01:
+        shortest = min(b - a for a, b in bounds) * T_s
+        if shortest * f_osc < 2.0:
+            warns.append(IdentWarning("one_mass_fit_short_sections",
+                                      f"shortest section ({1e3 * shortest:.0f} ms) holds fewer than two periods of "
+                                      f"the {f_osc:.3g} Hz oscillation: lower M* or raise w_max"))
+    return tuple(warns)
+
+
+def _fit_derivative(s: _Signals, opt: _Options) -> _Estimate:
+    """Filtered torque against the differentiated filtered speed, sample by sample."""
+    Mf = _lowpass(s.M, s.cutoff, s.T_s)
+    acc = np.gradient(s.w_lp, s.T_s)
+    use = s.moving & s.in_sec
+    if int(use.sum()) < s.n_par:
+        raise ValueError(f"one-mass fit: expected >= {s.n_par} samples away from zero speed, received {int(use.sum())}")
+    X = np.stack([acc, s.w_lp, s.sgn, np.ones(s.w.size)], axis=1)[use][:, :s.n_par]
+    y = Mf[use]
+    theta, std, rms = _lstsq(X, y)
+    J_sigma, mu_F, M_FC = (float(v) for v in theta[:3])
+    M_0 = float(theta[3]) if s.n_par == 4 else 0.0
+    std_t = tuple(float(v) for v in std) + ((0.0,) if s.n_par == 3 else ())
+    rel = rms / max(float(np.sqrt(np.mean(y * y))), 1e-300)
+    return _Estimate(J_sigma, mu_F, M_FC, M_0, std_t, rel, int(X.shape[0]), s.sgn)
+
+
+#: The formulations of :func:`fit_one_mass` (see the module docstring), by ``method`` name.
+FORMULATIONS: dict[str, Callable[[_Signals, _Options], _Estimate]] = {
+    "trajectory": _fit_trajectory,
+    "integral": _fit_integral,
+    "derivative": _fit_derivative,
+}
+
+
+def _signals(torque: Any, speed: Any, T_s: float, sections: Any, offset: bool, position: Any,
+             speed_deadband: float | None, cutoff: float | None) -> _Signals:
+    """Check the inputs of :func:`fit_one_mass` and prepare what the formulations share."""
+    _check_T_s(T_s)
+    M = as_signal("torque", torque)
+    if speed is None:
+        if position is None:
+            raise ValueError("fit_one_mass: expected speed or position, received neither")
+        w = speed_from_position(position, T_s)
+        if w.size != M.size:
+            raise ValueError(f"position: expected {M.size} samples like torque, received {w.size}")
+    else:
+        w = as_signal("speed", speed)
+        if w.size != M.size:
+            raise ValueError(f"speed: expected {M.size} samples like torque, received {w.size}")
+    n = M.size
+    if n < 16:
+        raise ValueError(f"fit_one_mass: expected at least 16 samples, received {n}")
+    if not np.ptp(w) > 0:
+        raise ValueError("fit_one_mass: expected a varying speed, received a constant speed")
+    bounds = section_bounds(sections, n)
+    fc = 0.02 / T_s if cutoff is None else float(cutoff)
+    w_lp = _lowpass(w, fc, T_s)
+    dead = 0.005 * float(np.max(np.abs(w_lp))) if speed_deadband is None else float(speed_deadband)
+    in_sec = np.zeros(n, dtype=bool)
+    for a, b in bounds:
+        in_sec[a:b] = True
+    return _Signals(M=M, w=w, w_lp=w_lp, sgn=np.where(np.abs(w_lp) > dead, np.sign(w_lp), 0.0),
+                    moving=np.abs(w_lp) > dead, in_sec=in_sec, bounds=bounds, T_s=T_s, cutoff=fc, dead=dead,
+                    n_par=4 if offset else 3)
+
+
+def _smooth_response(s: _Signals, est: _Estimate, section_drift: bool) -> tuple[np.ndarray, tuple[SectionFit, ...]]:
+    """``w_bar`` ``(N,)`` (the one-mass model per section, see the module docstring) and the sections' fits."""
+    w, T_s = s.w, s.T_s
+    w_bar = np.zeros(w.size)
+    acc_torque = s.M - est.mu_F * s.w_lp - est.M_FC * est.sgn - est.M_0  # accelerating torque [Nm]
+    C_acc = _cumint(acc_torque, T_s)
+    sec_fits = []
+    for a, b in s.bounds:
+        tt = np.arange(b - a) * T_s
+        base = (C_acc[a:b] - C_acc[a]) / est.J_sigma
+        cols = [np.ones(b - a)] + ([tt / est.J_sigma] if section_drift and b - a > 2 else [])
+        A = np.stack(cols, axis=1)
+        # the oscillation's sin/cos take part in the fit (so the drift cannot absorb it) but not in w_bar
+        extra = (_osc_columns([(a, b)], T_s, est.f_osc, est.d_osc) if est.f_osc > 0 and b - a > 8
+                 else np.zeros((b - a, 0)))
+        coef, *_ = np.linalg.lstsq(np.concatenate([A, extra], axis=1), w[a:b] - base, rcond=None)
+        coef = coef[:A.shape[1]]
+        w_bar[a:b] = base + A @ coef
+        drift = float(coef[1]) if len(coef) > 1 else 0.0
+        # section's own inertia with the overall friction
+        dw = w[b - 1] - w[a]
+        num = C_acc[b - 1] - C_acc[a]
+        J_k = float(num / dw) if abs(dw) > 1e-6 * max(float(np.max(np.abs(w))), 1e-300) else float("nan")
+        osc = w[a:b] - w_bar[a:b]
+        sec_fits.append(SectionFit(a, b, float(coef[0]), drift, J_k, float(np.sqrt(np.mean(osc * osc)))))
+    return w_bar, tuple(sec_fits)
+
+
 def fit_one_mass(
     torque: Any,
     speed: Any,
@@ -299,167 +529,16 @@ def fit_one_mass(
     Raises:
         ValueError: bad shapes, non-finite input, too few samples, or an uninformative record.
     """
-    _check_T_s(T_s)
-    M = as_signal("torque", torque)
-    if speed is None:
-        if position is None:
-            raise ValueError("fit_one_mass: expected speed or position, received neither")
-        w = speed_from_position(position, T_s)
-        if w.size != M.size:
-            raise ValueError(f"position: expected {M.size} samples like torque, received {w.size}")
-    else:
-        w = as_signal("speed", speed)
-        if w.size != M.size:
-            raise ValueError(f"speed: expected {M.size} samples like torque, received {w.size}")
-    n = M.size
-    if n < 16:
-        raise ValueError(f"fit_one_mass: expected at least 16 samples, received {n}")
+    if method != "auto" and method not in FORMULATIONS:
+        raise ValueError(f"method: expected 'auto' or one of {sorted(FORMULATIONS)}, received {method!r}")
+    s = _signals(torque, speed, T_s, sections, offset, position, speed_deadband, cutoff)
     if method == "auto":
         method = "integral" if sections is None else "trajectory"
-    if method not in ("integral", "trajectory", "derivative"):
-        raise ValueError(f"method: expected 'integral', 'trajectory' or 'derivative', received {method!r}")
-    if not np.ptp(w) > 0:
-        raise ValueError("fit_one_mass: expected a varying speed, received a constant speed")
-    bounds = section_bounds(sections, n)
-    fc = 0.02 / T_s if cutoff is None else float(cutoff)
-    w_lp = _lowpass(w, fc, T_s)
-    dead = 0.005 * float(np.max(np.abs(w_lp))) if speed_deadband is None else float(speed_deadband)
-    sgn = np.where(np.abs(w_lp) > dead, np.sign(w_lp), 0.0)
-    moving = np.abs(w_lp) > dead
-    in_sec = np.zeros(n, dtype=bool)
-    for a, b in bounds:
-        in_sec[a:b] = True
-
-    n_par = 4 if offset else 3
-    f_osc = 0.0
-    if method == "integral":
-        L = max(4, int(round(0.005 / T_s))) if window is None else int(window)
-        if L < 1:
-            raise ValueError(f"window: expected >= 1 samples, received {window}")
-        C_M, C_w, C_s, C_1 = _cumint(M, T_s), _cumint(w, T_s), _cumint(sgn, T_s), np.arange(n) * T_s
-        # a window is usable when every sample in it is moving and belongs to a section
-        bad = np.concatenate([[0], np.cumsum(~(moving & in_sec))])
-        ia, ib = _windows(n, L, n_scales)
-        ok = (bad[ib + 1] - bad[ia]) == 0
-        ia, ib = ia[ok], ib[ok]
-        if ia.size < n_par:
-            raise ValueError(f"one-mass fit: expected >= {n_par} usable windows away from zero speed, received {ia.size}")
-        X = np.stack([C_M[ib] - C_M[ia], C_w[ib] - C_w[ia], C_s[ib] - C_s[ia], C_1[ib] - C_1[ia]], axis=1)
-        y = w[ib] - w[ia]
-        X = X[:, :n_par]
-        # speed-increment regression: the elastic oscillation enters the dependent variable only
-        theta, std, rms = _lstsq(X, y)
-        if not theta[0] > 0:
-            raise ValueError(f"one-mass fit: expected a positive inertia, received 1/J_sigma = {theta[0]:.4g}; "
-                             "the record does not excite the inertia")
-        J_sigma = float(1.0 / theta[0])
-        p = -theta * J_sigma
-        rel_std = np.sqrt((std / np.where(theta == 0, 1, theta)) ** 2 + (std[0] / theta[0]) ** 2)
-        mu_F, M_FC = float(p[1]), float(p[2])
-        M_0 = float(p[3]) if offset else 0.0
-        std_p = np.abs(p) * rel_std
-        std_p[0] = std[0] / theta[0] ** 2
-        std_t = tuple(float(v) for v in std_p) + ((0.0,) if not offset else ())
-        rel = rms / max(float(np.sqrt(np.mean(y * y))), 1e-300)
-    elif method == "trajectory":
-        # output error per section: w(t) = w0_k + (1/J) int_{t_k}^t (M - mu_F w - M_FC sgn - M_0) dt
-        C_M, C_w, C_1 = _cumint(M, T_s), _cumint(w, T_s), np.arange(n) * T_s
-        K = len(bounds)
-        idx = np.concatenate([np.arange(a0, b0) for a0, b0 in bounds])
-        f_osc, d_osc = 0.0, 0.0
-        for _pass in range(2):
-            # pass 2: the sign of the fitted smooth speed (a proxy of the load speed, which the
-            # friction acts on) and, with ``oscillation``, damped sin/cos nuisance regressors per
-            # section at the residual's dominant frequency (the eq.-1 oscillation, so that it does
-            # not leak into the slopes that carry inertia and friction)
-            C_s = _cumint(sgn, T_s)
-            rows_X, rows_y = [], []
-            for k, (a0, b0) in enumerate(bounds):
-                e = np.zeros((b0 - a0, K))
-                e[:, k] = 1.0
-                cols = np.stack([C_M[a0:b0] - C_M[a0], -(C_w[a0:b0] - C_w[a0]), -(C_s[a0:b0] - C_s[a0]),
-                                 -(C_1[a0:b0] - C_1[a0])], axis=1)[:, :n_par]
-                rows_X.append(np.concatenate([cols, e], axis=1))
-                rows_y.append(w[a0:b0])
-            X, y = np.concatenate(rows_X), np.concatenate(rows_y)
-            n_lin = X.shape[1]
-            if _pass == 1 and f_osc > 0:
-                best = None
-                for d_try in (0.0, 0.03, 0.1):
-                    Xo = np.concatenate([X, _osc_columns(bounds, T_s, f_osc, d_try)], axis=1)
-                    th_o, sd_o, rms_o = _lstsq(Xo, y)
-                    if best is None or rms_o < best[2]:
-                        best = (th_o, sd_o, rms_o, d_try, Xo)
-                theta, std, rms, d_osc, Xo = best
-                w_model = np.array(w_lp)
-                w_model[idx] = X @ theta[:n_lin]
-            else:
-                theta, std, rms = _lstsq(X, y)
-                w_model = np.array(w_lp)
-                w_model[idx] = X @ theta
-                if oscillation:
-                    f_osc = _residual_frequency(y - w_model[idx], bounds, T_s)
-            sgn = np.where(np.abs(w_model) > dead, np.sign(w_model), 0.0)
-        if not theta[0] > 0:
-            raise ValueError(f"one-mass fit: expected a positive inertia, received 1/J_sigma = {theta[0]:.4g}; "
-                             "the record does not excite the inertia")
-        J_sigma = float(1.0 / theta[0])
-        p = theta[:n_par] * J_sigma
-        mu_F, M_FC = float(p[1]), float(p[2])
-        M_0 = float(p[3]) if offset else 0.0
-        sd = std[:n_par]
-        std_p = np.abs(p) * np.sqrt((sd / np.where(theta[:n_par] == 0, 1, theta[:n_par])) ** 2 + (sd[0] / theta[0]) ** 2)
-        std_p[0] = sd[0] / theta[0] ** 2
-        std_t = tuple(float(v) for v in std_p) + ((0.0,) if not offset else ())
-        rel = rms / max(float(np.sqrt(np.mean((y - y.mean()) ** 2))), 1e-300)
-    else:
-        Mf = _lowpass(M, fc, T_s)
-        acc = np.gradient(w_lp, T_s)
-        use = moving & in_sec
-        if int(use.sum()) < n_par:
-            raise ValueError(f"one-mass fit: expected >= {n_par} samples away from zero speed, received {int(use.sum())}")
-        X = np.stack([acc, w_lp, sgn, np.ones(n)], axis=1)[use][:, :n_par]
-        y = Mf[use]
-        theta, std, rms = _lstsq(X, y)
-        J_sigma, mu_F, M_FC = (float(v) for v in theta[:3])
-        M_0 = float(theta[3]) if offset else 0.0
-        std_t = tuple(float(v) for v in std) + ((0.0,) if not offset else ())
-        rel = rms / max(float(np.sqrt(np.mean(y * y))), 1e-300)
-    if not J_sigma > 0:
-        raise ValueError(f"one-mass fit: expected a positive inertia, received J_sigma = {J_sigma:.4g}; "
+    est = FORMULATIONS[method](s, _Options(window, n_scales, oscillation))
+    if not est.J_sigma > 0:
+        raise ValueError(f"one-mass fit: expected a positive inertia, received J_sigma = {est.J_sigma:.4g}; "
                          "the record does not excite the inertia")
-
-    # smooth response per section
-    w_bar = np.zeros(n)
-    acc_torque = M - mu_F * w_lp - M_FC * sgn - M_0          # accelerating torque [Nm]
-    C_acc = _cumint(acc_torque, T_s)
-    sec_fits = []
-    for a, b in bounds:
-        tt = np.arange(b - a) * T_s
-        base = (C_acc[a:b] - C_acc[a]) / J_sigma
-        cols = [np.ones(b - a)] + ([tt / J_sigma] if section_drift and b - a > 2 else [])
-        A = np.stack(cols, axis=1)
-        # the oscillation's sin/cos take part in the fit (so the drift cannot absorb it) but not in w_bar
-        extra = _osc_columns([(a, b)], T_s, f_osc, d_osc) if f_osc > 0 and b - a > 8 else np.zeros((b - a, 0))
-        coef, *_ = np.linalg.lstsq(np.concatenate([A, extra], axis=1), w[a:b] - base, rcond=None)
-        coef = coef[:A.shape[1]]
-        w_bar[a:b] = base + A @ coef
-        drift = float(coef[1]) if len(coef) > 1 else 0.0
-        # section's own inertia with the overall friction
-        dw = w[b - 1] - w[a]
-        num = C_acc[b - 1] - C_acc[a]
-        J_k = float(num / dw) if abs(dw) > 1e-6 * max(float(np.max(np.abs(w))), 1e-300) else float("nan")
-        osc = w[a:b] - w_bar[a:b]
-        sec_fits.append(SectionFit(a, b, float(coef[0]), drift, J_k, float(np.sqrt(np.mean(osc * osc)))))
-    w_osc = np.where(in_sec, w - w_bar, 0.0)
-    warns = []
-    if method == "trajectory" and rel > 0.05:
-        warns.append(f"one-mass fit residual is {100 * rel:.1f} % of the signal: the record is not "
-                     "well described by one mass (oscillation too large?)")
-    if method == "trajectory" and f_osc > 0 and rel > 0.01:
-        shortest = min(b - a for a, b in bounds) * T_s
-        if shortest * f_osc < 2.0:
-            warns.append(f"shortest section ({1e3 * shortest:.0f} ms) holds fewer than two periods of the "
-                         f"{f_osc:.3g} Hz oscillation: lower M* or raise w_max")
-    return OneMassFit(J_sigma, M_FC, mu_F, M_0, w_bar, w_osc, w, tuple(sec_fits), float(rel),
-                      std_t, int(X.shape[0]), method, tuple(warns))
+    w_bar, sec_fits = _smooth_response(s, est, section_drift)
+    w_osc = np.where(s.in_sec, s.w - w_bar, 0.0)
+    return OneMassFit(est.J_sigma, est.M_FC, est.mu_F, est.M_0, w_bar, w_osc, s.w, sec_fits, float(est.rel_residual),
+                      est.std, est.n_rows, method, est.warnings)

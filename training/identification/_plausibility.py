@@ -31,6 +31,8 @@ from typing import Any
 
 import numpy as np
 
+from sim import Record
+
 __all__ = ["check_record", "T_S_MAX", "T_EI_MAX", "T_S_OVER_T_EI_MAX", "TORQUE_RATIO", "SPEED_RATIO", "J_RANGE"]
 
 T_S_MAX = 0.02  # largest plausible sample time of a speed loop [s]
@@ -44,48 +46,32 @@ _MIN_CORRELATION = 0.5  # |correlation| of torque integral and speed change need
 _QUANTIZED_SHARE = 0.99  # share of nonzero speed samples on a quantum grid to call the speed quantized
 
 
-def check_record(record: Any) -> None:
+def check_record(record: Record) -> None:
     """Raise ``ValueError`` (one line) when the record's signals and metadata are implausible.
 
     Args:
-        record: a ``sim.Record`` (or an object with ``t``, ``speed``, ``current`` or ``torque``
-            and a ``meta`` dict), normally already validated by ``sim.records.validate``.
+        record: a ``sim.Record``, normally already validated by ``sim.records.validate`` (which
+            fills in ``T_s``).
     """
-    meta = dict(getattr(record, "meta", None) or {})
+    meta = record.meta
     speed = np.asarray(record.speed, dtype=np.float64)
-    torque, name = _torque(record, meta)
-    if torque is None or speed.size < 2 or not (np.all(np.isfinite(speed)) and np.all(np.isfinite(torque))):
+    if record.torque is None and (record.current is None or meta.get("K_M") is None):
+        return  # no torque to check: the analysis reports what is missing
+    torque, name = record.motor_torque, "torque" if record.torque is not None else "current"
+    if speed.size < 2 or not (np.all(np.isfinite(speed)) and np.all(np.isfinite(torque))):
         return  # format problems: sim.records / the analysis report them
-    T_s = _sample_time(record, meta)
+    T_s = record.T_s
     _check_timing(T_s, meta.get("T_Ei"))
     if not np.any(torque != 0) or not np.ptp(speed) > 0:
         return  # zero torque / constant speed: the section detection says so
     _check_torque_scale(torque, name, meta)
     _check_speed_scale(speed, meta)
-    if T_s is not None:
-        _check_speed_quantum(speed, T_s, meta)
-        _check_inertia(torque, speed, T_s, name)
+    _check_speed_quantum(speed, T_s, meta)
+    _check_inertia(torque, speed, T_s, name)
 
 
-def _torque(record: Any, meta: dict[str, Any]) -> tuple[np.ndarray | None, str]:
-    if getattr(record, "torque", None) is not None:
-        return np.asarray(record.torque, dtype=np.float64), "torque"
-    if getattr(record, "current", None) is None or meta.get("K_M") is None:
-        return None, ""
-    return np.asarray(record.current, dtype=np.float64) * float(meta["K_M"]), "current"
-
-
-def _sample_time(record: Any, meta: dict[str, Any]) -> float | None:
-    if meta.get("T_s") is not None:
-        return float(meta["T_s"])
-    t = getattr(record, "t", None)
-    if t is None or len(t) < 2:
-        return None
-    return float((t[-1] - t[0]) / (len(t) - 1))
-
-
-def _check_timing(T_s: float | None, T_Ei: Any) -> None:
-    if T_s is not None and T_s > T_S_MAX:
+def _check_timing(T_s: float, T_Ei: Any) -> None:
+    if T_s > T_S_MAX:
         raise ValueError(f"time looks like wrong units (sample time T_s = {T_s:.4g} s, expected <= {T_S_MAX:g} s "
                          f"for a drive's speed loop; t in ms instead of s?)")
     if T_Ei is None:
@@ -94,7 +80,7 @@ def _check_timing(T_s: float | None, T_Ei: Any) -> None:
     if T_Ei > T_EI_MAX:
         raise ValueError(f"metadata T_Ei looks like wrong units (T_Ei = {T_Ei:.4g} s, expected a current-loop "
                          f"time constant <= {T_EI_MAX:g} s; given in ms instead of s?)")
-    if T_s is not None and T_Ei > 0 and T_s > T_S_OVER_T_EI_MAX * T_Ei:
+    if T_Ei > 0 and T_s > T_S_OVER_T_EI_MAX * T_Ei:
         raise ValueError(f"time looks like wrong units (T_s = {T_s:.4g} s is {T_s / T_Ei:.3g} x T_Ei = {T_Ei:.4g} s, "
                          f"expected <= {T_S_OVER_T_EI_MAX:g} x; t and T_Ei in different units?)")
 

@@ -71,19 +71,19 @@ class RefineConfig:
     coordinates). The free model replaces the chosen one only when its plain squared error is
     below ``free_win`` times the chosen one's (with STEP 2's ``J_sigma`` and ``M_FC``)."""
 
-    grid_f_e: int = 11
-    grid_s_N: tuple[float, ...] = (0.0, 0.05, 0.3, 1.0, 3.0)
-    grid_span: float = 0.25
-    window_periods: float = 4.0
-    window_max: float = 0.1
-    rounds: int = 3
-    candidates: int = 64
-    elites: int = 12
-    spread: tuple[float, float, float, float] = (0.05, 0.12, 0.03, 0.3)
-    free_rounds: int = 5
-    free_spread: tuple[float, float] = (0.1, 0.1)
-    free_win: float = 0.25
-    seed: int = 0
+    grid_f_e: int = 11  # explore: eigenfrequencies of the first grid
+    grid_s_N: tuple[float, ...] = (0.0, 0.05, 0.3, 1.0, 3.0)  # explore: s_N of the first grid (0: the start's)
+    grid_span: float = 0.25  # explore: the grid's half width [decades of f_e]
+    window_periods: float = 4.0  # explore: periods scored after each torque step
+    window_max: float = 0.1  # explore: at most this long [s]
+    rounds: int = 3  # explore: cross-entropy rounds
+    candidates: int = 64  # models per round
+    elites: int = 12  # best models that set the next spread (and the finalists)
+    spread: tuple[float, float, float, float] = (0.05, 0.12, 0.03, 0.3)  # first spread over COORDINATES
+    free_rounds: int = 5  # free one-mass part: cross-entropy rounds
+    free_spread: tuple[float, float] = (0.1, 0.1)  # free one-mass part: first spread of log10 J_sigma, M_FC
+    free_win: float = 0.25  # free one-mass part: error ratio it must beat
+    seed: int = 0  # every search starts from this seed
 
 
 @dataclass
@@ -114,11 +114,8 @@ class RefineProblem:
 
     def C_F(self, theta: np.ndarray) -> np.ndarray:
         """Shaft stiffness [Nm/rad] of ``theta`` ``*batch x 4`` (or ``x 6``)."""
-        f_e, V_J, d = 10.0 ** theta[..., 0], 10.0 ** theta[..., 1], theta[..., 2]
-        J_sigma = self.J_sigma_of(theta)
-        J_M = J_sigma / (1.0 + V_J)
-        w_0 = 2 * np.pi * f_e / np.sqrt(1.0 - d * d)
-        return w_0 * w_0 * J_M * (J_sigma - J_M) / J_sigma
+        return sim.two_mass_derived(self.J_sigma_of(theta), 10.0 ** theta[..., 1], 10.0 ** theta[..., 0],
+                                    theta[..., 2]).C_F
 
 
 @dataclass
@@ -144,13 +141,13 @@ class Refined:
 
 def torque_reference(bounds: np.ndarray, M_star: float) -> tuple[np.ndarray, np.ndarray]:
     """The switching test's torque reference (SPEC 2) from its six section ``bounds`` ``(6, 2)``:
-    0 before section I, ``(1, 0, -0.7, -1, 0, 0.7) M*`` over the sections, 0 in the tail.
+    0 before section I, :data:`sim.SECTION_LEVELS` ``x M*`` over the sections, 0 in the tail.
     Returns ``start`` (int ``8``) and ``level`` (``8`` [Nm]) for :func:`sim.replay.replay_speed`."""
     bounds = np.asarray(bounds, dtype=np.int64)
     if bounds.shape != (6, 2):
         raise ValueError(f"bounds: expected shape (6, 2), received {bounds.shape}")
     start = np.concatenate([[0], bounds[:, 0], [bounds[5, 1]]])
-    level = M_star * np.array([0.0, 1.0, 0.0, -0.7, -1.0, 0.0, 0.7, 0.0])
+    level = M_star * np.array([0.0, *sim.SECTION_LEVELS, 0.0])
     return start, level
 
 
@@ -198,7 +195,7 @@ def _simulate_packed(items: list[tuple[RefineProblem, np.ndarray]], drive: sim.D
     of 32 models fill up and run on all cores): one ``C_i x N_i`` error per item."""
     models = [_models(p, th) for p, th in items]
     flat = sim.TwoMassParams(**{k: torch.cat([getattr(m, k) for m in models])
-                                for k in ("J_sigma", "V_J", "f_e", "d", "backlash", "M_FC", "mu_F")})
+                                for k in sim.PARAM_NAMES})
     N = max(len(p.speed) for p, _ in items)
     K = max(len(p.start) for p, _ in items)
     start = np.concatenate([np.broadcast_to(np.pad(p.start, (0, K - len(p.start)), constant_values=2**30),
@@ -292,8 +289,7 @@ def _simulate_windows(p: RefineProblem, theta: np.ndarray, windows: np.ndarray,
     s = (models.backlash / 2.0)[:, None]
     dphi = M_S / models.C_F[:, None] + s * torch.sign(M_S)
     rep = lambda v: v.repeat_interleave(J)  # noqa: E731  C -> C*J, window index fastest
-    flat = sim.TwoMassParams(J_sigma=rep(models.J_sigma), V_J=rep(models.V_J), f_e=rep(models.f_e), d=rep(models.d),
-                             backlash=rep(models.backlash), M_FC=rep(models.M_FC), mu_F=rep(models.mu_F))
+    flat = sim.TwoMassParams(**{n: rep(getattr(models, n)) for n in sim.PARAM_NAMES})
     state = {"w_M": w.repeat(C), "w_L": w.repeat(C), "dphi": dphi.reshape(-1), "M_M": M_prev.repeat(C)}
     start = torch.zeros(C * J, 1, dtype=torch.int32)
     level = M_new.repeat(C)[:, None]

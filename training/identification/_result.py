@@ -2,7 +2,7 @@
 
 :meth:`IdentificationResult.to_dict` gives exactly the JSON object of SPEC section 9
 (``structure``, ``parameters``, ``quality``, ``warnings`` as a list of strings); decisions in code
-key on :attr:`Warning.code`, never on the text.
+key on :attr:`IdentWarning.code`, never on the text.
 """
 
 from __future__ import annotations
@@ -32,7 +32,8 @@ WARNING_CODES: dict[str, str] = {
     "oscillation_below_quantum": "the oscillation is below one speed quantum rms: elastic parameters uncertain",
     "refine_partial_fit": "the refined model reproduces only part of the measured oscillation",
     "one_mass_fit_replaced": "STEP 2's one-mass fit was not trusted; J_sigma and M_FC come from the whole-record fit",
-    "one_mass_fit": "STEP 2's one-mass fit flagged its own result",
+    "one_mass_fit_residual": "STEP 2's one-mass fit leaves a residual above 5 % of the speed: not one mass",
+    "one_mass_fit_short_sections": "a test section holds fewer than two periods of the oscillation (STEP 2 unsure)",
 }
 
 
@@ -60,18 +61,18 @@ class Quality:
     """Figures that say how far to trust a result (``docs/identification.md``). The refinement's
     figures are ``None`` where it did not run, and then absent from :meth:`to_dict`."""
 
-    structure_probabilities: dict[str, float]
-    map_distance_ratio: dict[str, float]
-    osc_quanta: float
-    oscillation_fit_r2: float
-    one_mass_rel_residual: float
-    outside_training: bool
-    section_flags: tuple[str, ...]
-    maps_estimate: dict[str, float]
-    maps_structure: str | None = None
-    refine_residual: float | None = None
-    refine_start_residual: float | None = None
-    refined_s_N: float | None = None
+    structure_probabilities: dict[str, float]  # class -> the structure map's probability
+    map_distance_ratio: dict[str, float]  # map -> recall distance over its training 99 % quantile
+    osc_quanta: float  # rms of the oscillation in speed quanta (below 1: elastic values uncertain)
+    oscillation_fit_r2: float  # R^2 of the eq.-1 oscillation fit
+    one_mass_rel_residual: float  # STEP 2's residual over the speed's rms
+    outside_training: bool  # a map the answer rests on lies beyond its 99 % quantile
+    section_flags: tuple[str, ...]  # the section detection's notes
+    maps_estimate: dict[str, float]  # f_e, V_J, d, s_N as the maps said them
+    maps_structure: str | None = None  # the maps' class (the refined values decide the structure)
+    refine_residual: float | None = None  # refined model's detrended speed error over the oscillation
+    refine_start_residual: float | None = None  # the same for the maps' answer
+    refined_s_N: float | None = None  # the refined normalized backlash
 
     def to_dict(self) -> dict[str, Any]:
         out: dict[str, Any] = {}

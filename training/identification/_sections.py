@@ -20,15 +20,15 @@ from typing import Any
 import numpy as np
 from scipy.ndimage import median_filter
 
+from sim import SECTION_LEVELS, SECTION_NAMES, Record
 from training._checks import as_signal
 
-__all__ = ["SectionSplit", "detect_sections", "sections_from_column", "SECTION_LEVELS"]
+__all__ = ["SectionSplit", "detect_sections", "sections_from_column"]
 
-#: ``M_ref / M*`` of sections I..VI.
-SECTION_LEVELS = (1.0, 0.0, -0.7, -1.0, 0.0, 0.7)
-_CLASS_LEVELS = np.array([1.0, 0.7, 0.0, -0.7, -1.0])
-_PATTERN = [0, 2, 3, 4, 2, 1]  # indices into _CLASS_LEVELS for sections I..VI
-_NAMES = ("I", "II", "III", "IV", "V", "VI")
+#: The distinct torque levels of the test signal over ``M*``, highest first: ``(1, 0.7, 0, -0.7, -1)``.
+_CLASS_LEVELS = np.array(sorted(set(SECTION_LEVELS), reverse=True))
+_PATTERN = [int(np.flatnonzero(_CLASS_LEVELS == v)[0]) for v in SECTION_LEVELS]  # sections I..VI
+_ZERO = int(np.flatnonzero(_CLASS_LEVELS == 0.0)[0])
 
 
 @dataclass(frozen=True)
@@ -61,29 +61,13 @@ class SectionSplit:
         lab[self.tail[0]:self.tail[1]] = 7
         return lab
 
-    def durations(self, T_s: float) -> np.ndarray:
-        """``(6,)`` section durations [s]."""
-        return (self.bounds[:, 1] - self.bounds[:, 0]) * float(T_s)
 
 
-def _from_record(record: Any) -> dict[str, Any]:
-    meta = dict(getattr(record, "meta", None) or {})
-    torque = getattr(record, "torque", None)
-    current = getattr(record, "current", None)
-    if torque is None:
-        if current is None:
-            raise ValueError("record: expected a current or torque column, received neither")
-        K_M = meta.get("K_M")
-        if K_M is None:
-            raise ValueError("record: expected K_M in the metadata to convert current to torque, received none")
-        torque = np.asarray(current, dtype=np.float64) * float(K_M)
-    T_s = meta.get("T_s")
-    t = getattr(record, "t", None)
-    if T_s is None and t is not None and len(t) > 1:
-        T_s = float(np.median(np.diff(np.asarray(t, dtype=np.float64))))
-    return {"speed": getattr(record, "speed", None), "torque": torque, "T_s": T_s,
-            "torque_ref": getattr(record, "torque_ref", None), "M_star": meta.get("M_star"),
-            "T_Ei": meta.get("T_Ei"), "section": getattr(record, "section", None)}
+def _from_record(record: Record) -> dict[str, Any]:
+    """What :func:`detect_sections` reads from a record."""
+    return {"speed": record.speed, "torque": record.motor_torque, "T_s": record.T_s,
+            "torque_ref": record.torque_ref, "M_star": record.meta.get("M_star"),
+            "T_Ei": record.meta.get("T_Ei"), "section": record.section}
 
 
 def sections_from_column(section: Any, torque: Any = None, M_star: float | None = None) -> SectionSplit:
@@ -98,7 +82,7 @@ def sections_from_column(section: Any, torque: Any = None, M_star: float | None 
     for k in range(1, 7):
         idx = np.flatnonzero(sec == k)
         if idx.size == 0:
-            raise ValueError(f"section: expected section {_NAMES[k - 1]} ({k}) in the column, received none")
+            raise ValueError(f"section: expected section {SECTION_NAMES[k - 1]} ({k}) in the column, received none")
         if idx[-1] - idx[0] + 1 != idx.size:
             raise ValueError(f"section: expected section {k} to be contiguous, received gaps")
         bounds[k - 1] = idx[0], idx[-1] + 1
@@ -135,7 +119,7 @@ def _check_speed(w: np.ndarray, y: np.ndarray) -> None:
 
 
 def detect_sections(
-    record: Any = None,
+    record: Record | None = None,
     *,
     speed: Any = None,
     torque: Any = None,
@@ -149,9 +133,8 @@ def detect_sections(
     """Find sections I..VI of a test run.
 
     Args:
-        record: an object with ``speed``, ``current`` or ``torque``, optional ``torque_ref``,
-            ``section``, ``t`` and a ``meta`` dict (``K_M``, ``T_s``, ``T_Ei``, ``M_star``), such as
-            ``sim.Record``; or ``None`` and the keyword arrays.
+        record: a ``sim.Record`` (its ``motor_torque``, ``speed``, optional ``torque_ref`` and
+            ``section``; metadata ``T_s``, ``T_Ei``, ``M_star``); or ``None`` and the keyword arrays.
         speed: ``(N,)`` measured motor speed [rad/s] (used for consistency checks).
         torque: ``(N,)`` measured torque [Nm] (or current [A]; only the pattern matters).
         T_s: sample time [s].
@@ -160,6 +143,7 @@ def detect_sections(
         torque_ref: ``(N,)`` ``M_ref`` [Nm]; when given it is classified instead of the torque.
         use_column: take the record's ``section`` column when present (else ignore it).
         min_run: runs of one level shorter than this [s] are transitions and dropped.
+        (A keyword given overrides the record's value.)
 
     Returns:
         :class:`SectionSplit`.
@@ -167,13 +151,33 @@ def detect_sections(
     Raises:
         ValueError: one line, e.g. constant or saturated speed, no recognisable sections.
     """
-    info: dict[str, Any] = {"section": None}
-    if record is not None:
-        info = _from_record(record)
+    info: dict[str, Any] = {"section": None} if record is None else _from_record(record)
     for key, val in (("speed", speed), ("torque", torque), ("T_s", T_s), ("M_star", M_star), ("T_Ei", T_Ei),
                      ("torque_ref", torque_ref)):
         if val is not None:
             info[key] = val
+    w, y, Ts = _checked_signals(info)
+    if use_column and info.get("section") is not None:
+        return sections_from_column(info["section"], y, info.get("M_star"))
+    _check_speed(w, y)
+    ys, source, lag = _classified_signal(y, info, Ts)
+    Ms, estimated = _amplitude(ys, info.get("M_star"))
+    runs = _level_runs(ys, Ms, max(3, int(round(min_run / Ts))))
+    hit = _pattern_start(runs, Ms)
+    step = _StepLocator(y, Ms, lag, exact=source == "torque_ref")
+    bounds, tail, flags = _boundaries(runs, hit, step, Ts)
+    _check_speed_follows(w, bounds)
+    lens = bounds[:, 1] - bounds[:, 0]
+    if lens[1] >= lens[0] - 2:
+        flags.append("II ended by duration")
+    if lens[4] >= lens[3] - 2:
+        flags.append("V ended by duration")
+    levels = np.array([y[a:b].mean() for a, b in bounds])
+    return SectionSplit(bounds, tail, Ms, estimated, levels, tuple(flags), source, w.size)
+
+
+def _checked_signals(info: dict[str, Any]) -> tuple[np.ndarray, np.ndarray, float]:
+    """Speed ``(N,)``, torque ``(N,)`` and ``T_s`` of ``info``, checked."""
     if info.get("speed") is None or info.get("torque") is None:
         raise ValueError("detect_sections: expected speed and torque (or a record), received "
                          f"speed={'set' if info.get('speed') is not None else 'None'}, "
@@ -185,67 +189,90 @@ def detect_sections(
     Ts = info.get("T_s")
     if Ts is None or not np.isfinite(Ts) or Ts <= 0:
         raise ValueError(f"T_s: expected a positive sample time [s], received {Ts!r}")
-    Ts = float(Ts)
-    n = w.size
-    if n < 16:
-        raise ValueError(f"detect_sections: expected at least 16 samples, received {n}")
-    if use_column and info.get("section") is not None:
-        return sections_from_column(info["section"], y, info.get("M_star"))
-    _check_speed(w, y)
+    if w.size < 16:
+        raise ValueError(f"detect_sections: expected at least 16 samples, received {w.size}")
+    return w, y, float(Ts)
 
+
+def _classified_signal(y: np.ndarray, info: dict[str, Any], Ts: float) -> tuple[np.ndarray, str, float]:
+    """The signal whose levels are classified (``torque_ref`` where given, else the median-filtered
+    torque), its name, and the lag [samples] of the torque behind its reference."""
     ref = info.get("torque_ref")
     if ref is not None:
         ref = as_signal("torque_ref", ref)
-        if ref.size != n:
-            raise ValueError(f"torque_ref: expected {n} samples, received {ref.size}")
-        ys, source, lag = ref, "torque_ref", 0.0
-    else:
-        ys = median_filter(y, size=5, mode="nearest") if n >= 5 else y
-        source = "torque"
-        lag = float(info.get("T_Ei") or 0.0) * math.log(2.0) / Ts
+        if ref.size != y.size:
+            raise ValueError(f"torque_ref: expected {y.size} samples, received {ref.size}")
+        return ref, "torque_ref", 0.0
+    ys = median_filter(y, size=5, mode="nearest") if y.size >= 5 else y
+    return ys, "torque", float(info.get("T_Ei") or 0.0) * math.log(2.0) / Ts
 
-    Ms = info.get("M_star")
-    estimated = Ms is None
+
+def _amplitude(ys: np.ndarray, M_star: float | None) -> tuple[float, bool]:
+    """``M*`` [Nm] (estimated from the largest levels of ``ys`` when ``None``) and whether estimated."""
+    estimated = M_star is None
     if estimated:
         a = float(np.percentile(np.abs(ys), 99.0))
         if not a > 0:
             raise ValueError("torque: expected steps between +-M*, +-0.7M* and 0, received a zero torque")
-        Ms = float(np.median(np.abs(ys)[np.abs(ys) > 0.85 * a]))
-    Ms = float(Ms)
+        M_star = float(np.median(np.abs(ys)[np.abs(ys) > 0.85 * a]))
+    Ms = float(M_star)
     if not Ms > 0:
         raise ValueError(f"M_star: expected a positive torque amplitude [Nm], received {Ms!r}")
+    return Ms, estimated
 
+
+def _level_runs(ys: np.ndarray, Ms: float, keep_len: int) -> list[list[int]]:
+    """Runs ``[start, stop, level index]`` of ``ys`` classified to :data:`_CLASS_LEVELS` (within
+    0.15 M*), runs shorter than ``keep_len`` samples dropped and equal neighbours merged."""
     dist = np.abs(ys[:, None] / Ms - _CLASS_LEVELS[None, :])
     codes = np.argmin(dist, axis=1)
     codes = np.where(np.min(dist, axis=1) <= 0.15, codes, -1)
     starts, stops, vals = _runs(codes)
-    keep_len = max(3, int(round(min_run / Ts)))
-    stable = [(a, b, v) for a, b, v in zip(starts, stops, vals) if v >= 0 and b - a >= keep_len]
     merged: list[list[int]] = []
-    for a, b, v in stable:
+    for a, b, v in zip(starts, stops, vals):
+        if v < 0 or b - a < keep_len:
+            continue
         if merged and merged[-1][2] == v:
             merged[-1][1] = b
         else:
             merged.append([a, b, v])
-    seq = [m[2] for m in merged]
-    hit = -1
+    return merged
+
+
+def _level_text(level: float) -> str:
+    return f"{level:+.1f}".rstrip("0").rstrip(".") if level else "0"
+
+
+def _pattern_start(runs: list[list[int]], Ms: float) -> int:
+    """Index of the first run of the level sequence of sections I..VI."""
+    seq = [r[2] for r in runs]
     for i in range(len(seq) - 5):
         if seq[i:i + 6] == _PATTERN:
-            hit = i
-            break
-    if hit < 0:
-        found = ",".join(f"{_CLASS_LEVELS[v]:+.1f}" for v in seq[:12]) or "none"
-        raise ValueError("no recognisable test-signal sections: expected torque levels "
-                         f"+1,0,-0.7,-1,0,+0.7 x M* (M*={Ms:.4g}) in order, received {found}")
+            return i
+    found = ",".join(f"{_CLASS_LEVELS[v]:+.1f}" for v in seq[:12]) or "none"
+    expected = ",".join(_level_text(v) for v in SECTION_LEVELS)
+    raise ValueError("no recognisable test-signal sections: expected torque levels "
+                     f"{expected} x M* (M*={Ms:.4g}) in order, received {found}")
 
-    def step_at(prev: list[int], nxt: list[int]) -> int:
-        """Boundary sample between run ``prev`` and run ``nxt`` (step instant)."""
+
+@dataclass(frozen=True)
+class _StepLocator:
+    """Places the boundary between two runs at the step instant: the interpolated crossing of the
+    mid level in the raw torque ``y`` (the median filter would delay small steps) minus ``lag``
+    samples; with ``exact`` (a torque reference) the next run's first sample."""
+
+    y: np.ndarray
+    M_star: float
+    lag: float
+    exact: bool
+
+    def __call__(self, prev: list[int], nxt: list[int]) -> int:
         lo, hi = prev[1] - 1, nxt[0]
-        if source == "torque_ref":
+        if self.exact:
             return int(hi)
-        mid = 0.5 * (_CLASS_LEVELS[prev[2]] + _CLASS_LEVELS[nxt[2]]) * Ms
+        mid = 0.5 * (_CLASS_LEVELS[prev[2]] + _CLASS_LEVELS[nxt[2]]) * self.M_star
         up = _CLASS_LEVELS[nxt[2]] > _CLASS_LEVELS[prev[2]]
-        seg = y[lo:hi + 1]  # raw torque: the median filter would delay small steps
+        seg = self.y[lo:hi + 1]
         past = seg >= mid if up else seg <= mid
         j = int(np.argmax(past)) if past.any() else seg.size - 1
         if j == 0:
@@ -254,26 +281,28 @@ def detect_sections(
             y0, y1 = seg[j - 1], seg[j]
             frac = (mid - y0) / (y1 - y0) if y1 != y0 else 1.0
             tau = lo + j - 1 + float(np.clip(frac, 0.0, 1.0))
-        return int(min(max(math.floor(tau - lag + 0.5), prev[0] + 1), hi))
+        return int(min(max(math.floor(tau - self.lag + 0.5), prev[0] + 1), hi))
 
-    runs6 = merged[hit:hit + 6]
+
+def _boundaries(runs: list[list[int]], hit: int, step: _StepLocator,
+                Ts: float) -> tuple[np.ndarray, tuple[int, int], list[str]]:
+    """``(6, 2)`` section bounds, the tail and the flags, from the runs of the pattern at ``hit``."""
+    runs6 = runs[hit:hit + 6]
     bounds = np.zeros((6, 2), dtype=np.int64)
-    if hit > 0:
-        bounds[0, 0] = step_at(merged[hit - 1], runs6[0])
-    else:
-        bounds[0, 0] = 0  # the record starts in section I (its first samples are the torque's rise)
+    # without a run before I, the record starts in section I (its first samples are the torque's rise)
+    bounds[0, 0] = step(runs[hit - 1], runs6[0]) if hit > 0 else 0
     for k in range(5):
-        b = step_at(runs6[k], runs6[k + 1])
+        b = step(runs6[k], runs6[k + 1])
         bounds[k, 1] = b
         bounds[k + 1, 0] = b
     flags: list[str] = []
-    if hit + 6 < len(merged):
-        tail_run = merged[hit + 6]
-        b6 = step_at(runs6[5], tail_run)
-        tail = (b6, int(tail_run[1]) if tail_run[2] == 2 else b6)
-        if tail_run[2] != 2:
+    if hit + 6 < len(runs):
+        tail_run = runs[hit + 6]
+        b6 = step(runs6[5], tail_run)
+        tail = (b6, int(tail_run[1]) if tail_run[2] == _ZERO else b6)
+        if tail_run[2] != _ZERO:
             flags.append("no zero-torque tail after VI")
-        if hit + 7 < len(merged):
+        if hit + 7 < len(runs):
             flags.append("further torque steps after the tail")
     else:
         b6 = int(runs6[5][1])
@@ -284,18 +313,14 @@ def detect_sections(
         flags.append("tail shorter than 50 ms")
     if hit > 0:
         flags.append(f"{bounds[0, 0]} samples before section I")
+    return bounds, (int(tail[0]), int(tail[1])), flags
 
-    # consistency with the speed: each section must move the speed in the torque's direction
-    for k, (dirn, name) in enumerate(zip((1, 0, -1, -1, 0, 1), _NAMES)):
-        a, b = bounds[k]
+
+def _check_speed_follows(w: np.ndarray, bounds: np.ndarray) -> None:
+    """Each section must move the speed in its torque's direction."""
+    for (a, b), level, name in zip(bounds.tolist(), SECTION_LEVELS, SECTION_NAMES):
+        dirn = int(np.sign(level))
         dw = w[b - 1] - w[a]
         if dirn and dw * dirn <= 0:
             raise ValueError(f"speed does not follow the torque: expected the speed to "
                              f"{'rise' if dirn > 0 else 'fall'} in section {name}, received a change of {dw:.4g} rad/s")
-    lens = bounds[:, 1] - bounds[:, 0]
-    if lens[1] >= lens[0] - 2:
-        flags.append("II ended by duration")
-    if lens[4] >= lens[3] - 2:
-        flags.append("V ended by duration")
-    levels = np.array([y[a:b].mean() for a, b in bounds])
-    return SectionSplit(bounds, (int(tail[0]), int(tail[1])), Ms, estimated, levels, tuple(flags), source, n)

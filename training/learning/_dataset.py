@@ -14,13 +14,9 @@ with another config is refused rather than mixed or overwritten.
 from __future__ import annotations
 
 import hashlib
-import multiprocessing
 import json
 import os
-import tempfile
-from collections.abc import Callable, Iterator
-from concurrent.futures import ProcessPoolExecutor
-from contextlib import contextmanager
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -28,10 +24,13 @@ from typing import Any
 import numpy as np
 import torch
 
-from sim import DriveConfig, PopulationRanges, TestSignalConfig, iter_records, sample_population
-from sim.params import DERIVED_NAMES, PARAM_NAMES, STRUCTURE_CLASSES
-from training.identification._analysis import FEATURE_NAMES, FEATURE_VERSION, analyze
+from sim import (DERIVED_NAMES, PARAM_NAMES, STRUCTURE_CLASSES, DriveConfig, PopulationRanges, TestSignalConfig,
+                 iter_records, sample_population)
+from som_torch import atomic_write
+from training._pool import worker_pool
+from training._json import dumps
 from training.errors import UserError
+from training.identification import FEATURE_NAMES, FEATURE_VERSION, analyze
 
 #: Truth columns stored per system (SI units; ``structure`` as index into STRUCTURE_CLASSES).
 TRUTH_NAMES: tuple[str, ...] = PARAM_NAMES + DERIVED_NAMES + ("s_N", "r_osc", "w_e_T_Ei", "structure")
@@ -89,40 +88,11 @@ def _analyze_one(record: Any) -> tuple[np.ndarray, np.ndarray] | None:
     return a.features, est
 
 
-@contextmanager
-def _worker_pool(workers: int) -> Iterator[ProcessPoolExecutor]:
-    """Spawned workers with one BLAS thread each: the analysis is many small least-squares
-    problems, and several BLAS threads per worker on a few cores thrash (10x slower, measured)."""
-    keys = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
-    saved = {k: os.environ.get(k) for k in keys}
-    os.environ.update(dict.fromkeys(keys, "1"))  # workers start lazily: keep it set while the pool lives
-    try:
-        with ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn")) as pool:
-            yield pool
-    finally:
-        for k, v in saved.items():
-            if v is None:
-                os.environ.pop(k, None)
-            else:
-                os.environ[k] = v
-
-
 def _truth_row(truth: dict[str, Any], drive: DriveConfig) -> np.ndarray:
     row = dict(truth)
     row["w_e_T_Ei"] = truth["w_e"] * drive.T_Ei
     row["structure"] = STRUCTURE_CLASSES.index(truth["structure"])
     return np.array([float(row[k]) for k in TRUTH_NAMES])
-
-
-def _save_npz_atomic(path: Path, **arrays: np.ndarray) -> None:
-    fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".tmp.npz")
-    os.close(fd)
-    try:
-        np.savez(tmp, **arrays)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
 
 
 def generate(out_dir: str | os.PathLike[str], config: GenerateConfig, *, workers: int | None = None,
@@ -134,17 +104,17 @@ def generate(out_dir: str | os.PathLike[str], config: GenerateConfig, *, workers
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     cfg_path = out / "dataset.json"
-    want = json.loads(json.dumps(config.to_dict()))  # as it reads back (tuples become lists)
+    want = json.loads(dumps(config.to_dict()))  # as it reads back (tuples become lists)
     if cfg_path.exists():
         have = json.loads(cfg_path.read_text())
         if have != want:
             raise UserError(f"{out} holds a dataset of another config (n/seed/ranges/features differ); "
                             "choose a new folder or remove it")
     else:
-        cfg_path.write_text(json.dumps(want, indent=1))
+        atomic_write(cfg_path, lambda f: f.write(dumps(want, indent=1)), text=True)
     params = sample_population(config.n, config.seed, config.ranges)
     workers = workers or max(1, os.cpu_count() or 1)
-    with _worker_pool(workers) as pool:
+    with worker_pool(workers) as pool:
         for k in range(config.n_shards):
             path = out / f"shard_{k:05d}.npz"
             lo, hi = k * config.shard_size, min(config.n, (k + 1) * config.shard_size)
@@ -164,7 +134,7 @@ def generate(out_dir: str | os.PathLike[str], config: GenerateConfig, *, workers
                     F[i], E[i], ok[i] = res[0], res[1], True
                 if progress:
                     progress(1)
-            _save_npz_atomic(path, features=F, estimate=E, truth=T, ok=ok)
+            atomic_write(path, lambda f: np.savez(f, features=F, estimate=E, truth=T, ok=ok))
     return out
 
 

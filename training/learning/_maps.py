@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -11,8 +12,9 @@ import numpy as np
 import torch
 
 import som_torch as st
-from training.identification._analysis import FEATURE_NAMES, FEATURE_VERSION
-from training.identification._maps import SUBSETS, TARGETS, MapSpec, TrainedMap, recall_targets
+from training.errors import OutputExistsError
+from training.identification import (FEATURE_NAMES, FEATURE_VERSION, MAP_SPECS, SUBSETS, TARGETS, MapSpec, TrainedMap,
+                                     recall_targets)
 from training.learning._dataset import Dataset
 
 
@@ -32,6 +34,11 @@ class TrainConfig:
     normalization: str = "standard"
     interpolate: int = 4
     seed: int = 0
+
+    def __post_init__(self) -> None:
+        if min(self.rows, self.cols) < 2 or self.ensemble < 1 or self.epochs < 1:
+            raise ValueError(f"TrainConfig: expected rows, cols >= 2, ensemble >= 1, epochs >= 1, received "
+                             f"{self.rows} x {self.cols}, {self.ensemble}, {self.epochs}")
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -89,3 +96,33 @@ def save_map(folder: Path, trained: TrainedMap) -> str:
     return st.save_checkpoint(folder / f"{trained.spec.name}.pt", trained.som, trained.metadata)
 
 
+def train_maps(dataset: Dataset, folder: Path, config: TrainConfig, *, logdir: Path | None = None,
+               overwrite: bool = False, progress: Callable[[int], None] | None = None) -> dict[str, TrainedMap]:
+    """Train every map of :data:`training.identification.MAP_SPECS` on ``dataset``, write each to
+    ``folder/<name>.pt`` and then ``folder/manifest.json``; returns the trained maps by name.
+
+    ``logdir``: TensorBoard folder (config and per-map figures); ``progress(1)`` after each map.
+    Raises :class:`training.errors.OutputExistsError` where ``folder`` holds maps and not ``overwrite``.
+    """
+    existing = [n for n in MAP_SPECS if (folder / f"{n}.pt").exists()]
+    if existing and not overwrite:
+        raise OutputExistsError(f"{folder} already holds maps {existing}; pass --overwrite to replace them")
+    folder.mkdir(parents=True, exist_ok=True)
+    writer = None
+    if logdir is not None:
+        from torch.utils.tensorboard import SummaryWriter
+
+        writer = SummaryWriter(str(logdir))
+        st.log_config(writer, {"train": config.to_dict(), "dataset": dataset.config, "dataset_sha256": dataset.sha256})
+    trained: dict[str, TrainedMap] = {}
+    try:
+        for name, spec in MAP_SPECS.items():
+            trained[name] = train_map(spec, dataset, config, writer=writer)
+            save_map(folder, trained[name])
+            if progress is not None:
+                progress(1)
+    finally:
+        if writer is not None:
+            writer.close()
+    st.write_manifest(folder)
+    return trained

@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 
 from training.cli import main
-from training.identification._identifier import PARAMETER_NAMES
+from training.identification import PARAMETER_NAMES
 
 
 def _table_rows(out: str) -> dict[str, list[str]]:

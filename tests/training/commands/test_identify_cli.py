@@ -15,8 +15,8 @@ import pytest
 from sim import Record, write_record
 from sim.params import STRUCTURE_CLASSES
 from training.cli import main
-from training.commands.identify import json_safe
-from training.identification._identifier import DEFAULT_CHECKPOINTS, PARAMETER_NAMES
+from training.config import checkpoints_folder
+from training.identification import PARAMETER_NAMES
 
 REPO = Path(__file__).resolve().parents[3]
 RPM = 60.0 / (2.0 * math.pi)
@@ -194,7 +194,7 @@ def test_bad_usage_exits_2(records, tmp_path, capsys):
 
 def test_changed_checkpoint_is_refused(records, tmp_path, capsys):
     ck = tmp_path / "ck"
-    shutil.copytree(DEFAULT_CHECKPOINTS, ck)
+    shutil.copytree(checkpoints_folder(), ck)
     with open(ck / "f_e.pt", "ab") as f:
         f.write(b"\0")
     assert main(["identify", str(records / "good.csv"), "--checkpoints", str(ck)]) == 2
@@ -210,13 +210,6 @@ def test_help_documents_exit_codes(capsys):
     assert "0 all records identified, 1 some records have an 'error'" in out
 
 
-def test_json_safe():
-    x = {"a": float("nan"), "b": np.float64("inf"), "c": (1, np.int64(2)), "d": np.bool_(True), "e": -np.inf,
-         "f": [np.float32(0.5)], "g": None}
-    text = json.dumps(json_safe(x), allow_nan=False)
-    assert _strict_loads(text) == {"a": None, "b": None, "c": [1, 2], "d": True, "e": None, "f": [0.5], "g": None}
-
-
 def test_readme_python_example_runs(records, tmp_path, monkeypatch):
     readme = (REPO / "README.md").read_text()
     section = readme[readme.index("## Identify your own record"):]
@@ -226,7 +219,7 @@ def test_readme_python_example_runs(records, tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     ns: dict = {}
     exec(compile(code, "README.md", "exec"), ns)  # noqa: S102 - our own README
-    result = ns["result"]
+    result = ns["result"].to_dict()
     assert result["structure"] in STRUCTURE_CLASSES and set(result["parameters"]) == set(PARAMETER_NAMES)
 
 
@@ -239,24 +232,27 @@ def test_readme_sample_line_has_the_output_keys():
     assert list(res["parameters"]) == list(PARAMETER_NAMES)
 
 
-def test_a_failing_recall_costs_only_its_record(records):
-    from training.commands.identify import identify_paths
+def test_out_exists_is_one_line_and_exit_2(records, tmp_path, capsys):
+    out = tmp_path / "taken.jsonl"
+    out.write_text("keep me\n")
+    assert main(["identify", str(records / "good.csv"), "--out", str(out), "--no-progress"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err == f"twomass identify: error: --out: {str(out)!r} exists (pass --overwrite to replace it)"
+    assert out.read_text() == "keep me\n"
 
-    class Stub:
-        calls = 0
 
-        def identify_analyses(self, analyses):
-            Stub.calls += 1
-            if len(analyses) > 1 or Stub.calls == 3:  # the batch fails, then the second record alone
-                raise RuntimeError("boom\nsecond line")
-            return [{"structure": "stiff"} for _ in analyses]
+def test_existing_out_raises_output_exists_error(records, tmp_path):
+    import argparse
 
-    paths = [str(records / "good.csv"), str(records / "good"), str(records / "constant.csv")]
-    res = list(identify_paths(Stub(), paths))
-    assert [r["record"] for r in res] == paths
-    assert res[0] == {"record": paths[0], "structure": "stiff"}
-    assert res[1] == {"record": paths[1], "error": "recall failed: RuntimeError: boom"}
-    assert "constant speed" in res[2]["error"]
+    from training.commands import identify
+    from training.errors import OutputExistsError
+
+    out = tmp_path / "taken.jsonl"
+    out.write_text("")
+    args = argparse.Namespace(files=[str(records / "good.csv")], out=out, overwrite=False, checkpoints=None,
+                              jobs=None, no_refine=True, no_progress=True)
+    with pytest.raises(OutputExistsError, match="exists"):
+        identify.run(args)
 
 
 def test_bench_identify_small(tmp_path, capsys):

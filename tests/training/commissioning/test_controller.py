@@ -9,16 +9,8 @@ import numpy as np
 import pytest
 import torch
 
-from training.commissioning._controller import (
-    ControllerSpec,
-    PISpeedController,
-    _closed_loop_matrices,
-    _constant_input_response,
-    linear_plant,
-    loop_figures,
-    propose_controller,
-)
-from training.commissioning._tuning import LinearRunner
+from training.commissioning import ControllerSpec, LinearRunner, PISpeedController, linear_plant, loop_figures, propose_controller
+from training.commissioning._loop import closed_loop_matrices, constant_input_response
 
 DRIVE = SimpleNamespace(M_max=20.0, M_N=10.0, K_M=1.0, T_Ei=5e-4, T_s=2.5e-4, encoder_counts=2**20)
 ELASTIC = dict(J_sigma=0.05, V_J=1.0, f_e=20.0, d=0.02)
@@ -30,8 +22,8 @@ def test_controller_law_matches_linear_closed_loop_model():
     n = 600
     ctrl = PISpeedController(2.0, 0.05, T_s=big.T_s, M_max=big.M_max, T_f=5e-4, w_ref=1.0)
     w = LinearRunner(ELASTIC, big).run(ctrl, n, None, 1)[0].numpy()
-    A, b_r, _, c = _closed_loop_matrices(linear_plant(ELASTIC, big), 2.0, 0.05, 5e-4, None)
-    ref = _constant_input_response(A, b_r, c, n)
+    A, b_r, _, c = closed_loop_matrices(linear_plant(ELASTIC, big), 2.0, 0.05, 5e-4, None)
+    ref = constant_input_response(A, b_r, c, n)
     np.testing.assert_allclose(w, ref, rtol=1e-9, atol=1e-12)
 
 

@@ -8,8 +8,9 @@ from types import SimpleNamespace
 import pytest
 import torch
 
-from training.commissioning._controller import ControllerSpec, propose_controller
-from training.commissioning._tuning import LinearRunner, closed_loop_cost, evaluate_gains, make_scenario, tune_controller
+from training.commissioning import (ControllerSpec, LinearRunner, SimRunner, closed_loop_cost, make_scenario,
+                                    propose_controller, tune_controller)
+from training.commissioning._tuning import evaluate_gains
 
 DRIVE = SimpleNamespace(M_max=20.0, M_N=10.0, K_M=1.0, T_Ei=5e-4, T_s=2.5e-4, encoder_counts=2**20)
 ONE_MASS = {"J_sigma": 0.02}
@@ -68,8 +69,6 @@ def test_sim_runner_agrees_with_linear_model_and_tuning_on_sim_never_worse():
     sim = pytest.importorskip("sim")
     if not hasattr(sim, "simulate") or not hasattr(sim, "TwoMassParams"):
         pytest.skip("sim.simulate not available yet")
-    from training.commissioning._tuning import SimRunner
-
     drive = sim.DriveConfig()
     params = dict(J_sigma=0.05, V_J=0.5, f_e=200.0, d=0.05, backlash=0.0, M_FC=0.0, mu_F=0.0)
     prop = propose_controller("stiff", params, drive)

@@ -11,10 +11,11 @@ import pytest
 import torch
 
 from sim import DriveConfig, TestSignalConfig
-from training.evaluation import _study as ev
+import training.evaluation as ev
 from training.cli import main
 from training.errors import UserError
-from training.evaluation._report import NO_MATPLOTLIB, render_markdown, write_report
+from training.evaluation import _cache, _sets, _summary
+from training.evaluation._report import NO_MATPLOTLIB
 
 TRUTH = {"J_sigma": 0.1, "V_J": 1.0, "f_e": 50.0}
 
@@ -36,7 +37,7 @@ def _row(cell: tuple[float, float], som: dict | None, iv4: dict | None, *, struc
     s = dict(est(som), d=0.05, backlash=0.0, M_FC=0.25, mu_F=0.001, structure=som_structure, osc_quanta=5.0,
              outside_training=False, n_warnings=0, error=None)
     if som_structure is None:  # the analysis failed: no estimates at all
-        s.update(dict.fromkeys(ev.METHOD_PARAMS["som"]), osc_quanta=None, error="ValueError: no test run")
+        s.update(dict.fromkeys(_sets.METHOD_PARAMS["som"]), osc_quanta=None, error="ValueError: no test run")
     i = dict(est(iv4), d=0.05, valid=iv4 is not None, reason="" if iv4 is not None else "no resonance",
              converged=True, iterations=3)
     return {"set": "grid", "index": 0, "cell_f_e": cell[0], "cell_backlash_deg": cell[1], "truth": truth,
@@ -75,7 +76,7 @@ def _cell(summary: dict, f_e: float, bl: float) -> dict:
 
 def test_cell_recognition_rates_are_exact():
     rows, grid = _hand_rows()
-    s = ev.summarize_set(rows, ROW_METHODS, grid)
+    s = _summary.summarize_set(rows, ROW_METHODS, grid)
     want = {  # cell: (SOM E_30, SOM E_50, IV4 E_30, IV4 E_50)
         (20.0, 0.0): (100, 100, 25, 50),
         (20.0, 0.5): (25, 50, 100, 100),
@@ -94,13 +95,13 @@ def test_cell_recognition_rates_are_exact():
     assert s["overall"]["som"]["E_30"] == 100 * 11 / 16 and s["overall"]["iv4"]["E_50"] == 100 * 11 / 16
     per_class = {c["class"]: c for c in s["per_class"]}
     assert per_class["stiff_backlash"]["n"] == 3 and per_class["stiff_backlash"]["iv4"]["E_30"] == pytest.approx(100 / 3)
-    assert math.isnan(ev.recognition([], "som", 30))
+    assert math.isnan(_summary.recognition([], "som", 30))
     assert per_class["stiff"]["n"] == 0 and per_class["stiff"]["som"]["E_30"] is None
 
 
 def test_failures_confusion_and_parameter_stats():
     rows, grid = _hand_rows()
-    s = ev.summarize_set(rows, ROW_METHODS, grid)
+    s = _summary.summarize_set(rows, ROW_METHODS, grid)
     m = np.array(s["confusion"]["matrix"])
     assert m.shape == (4, 5) and m.sum() == 16
     assert m[1, 0] == 1 and m[1, 4] == 1  # true elastic -> stiff, -> failed
@@ -124,12 +125,12 @@ def test_failures_confusion_and_parameter_stats():
 
 def test_acceptance_checks():
     rows, grid = _hand_rows()
-    s = ev.summarize_set(rows, ROW_METHODS, grid)
-    checks = {c["name"][:12]: c for c in ev.acceptance_checks(s, ROW_METHODS)}
+    s = _summary.summarize_set(rows, ROW_METHODS, grid)
+    checks = {c["name"][:12]: c for c in _summary.acceptance_checks(s, ROW_METHODS)}
     first, second = checks["SOM E_30 >= "], checks["SOM E_30 > I"]
     assert first["passed"] is True and "2 of 2" in first["detail"]  # (20, 0) and (80, 0)
     assert second["passed"] is True and "1 of 1" in second["detail"]  # (80, 0.5): SOM 50 > IV4 25
-    assert ev.acceptance_checks(s, ("som",))[0]["passed"] is True and len(ev.acceptance_checks(s, ("som",))) == 1
+    assert _summary.acceptance_checks(s, ("som",))[0]["passed"] is True and len(_summary.acceptance_checks(s, ("som",))) == 1
 
 
 def test_grid_set_fixes_f_e_and_backlash_per_cell():
@@ -161,7 +162,7 @@ def test_cache_roundtrip_and_refusal(tmp_path):
     with pytest.raises(UserError, match="another config"):
         ev.load_cached(tmp_path, cfg, 3)
     other = ev.method_config("iv4", ev.population_set(3, 2), drive, signal)
-    assert ev._cache_path(tmp_path, other) != path
+    assert _cache._cache_path(tmp_path, other) != path
     with pytest.raises(ValueError, match="method"):
         ev.method_config("ls", s, drive, signal)
 
@@ -169,7 +170,7 @@ def test_cache_roundtrip_and_refusal(tmp_path):
 def test_markdown_and_json_writer(tmp_path, monkeypatch):
     rows, grid = _hand_rows()
     summary = ev.summarize({"grid": rows}, {"grid": grid}, ROW_METHODS)
-    md = render_markdown(summary, command="twomass evaluate --per-cell 4")
+    md = ev.render_markdown(summary, command="twomass evaluate --per-cell 4")
     assert "| 20 | 100 / 25 | 25 / 100 |" in md  # E_30 row, SOM / IV4
     assert "| 80 | 100 / 100 | 50 / 25 |" in md
     assert "| **mean** | 100 / 62 | 38 / 62 |" in md
@@ -183,7 +184,7 @@ def test_markdown_and_json_writer(tmp_path, monkeypatch):
         return real_import(name, *args, **kwargs)
 
     monkeypatch.setattr(builtins, "__import__", no_matplotlib)
-    out = write_report(summary, {"grid": rows}, tmp_path, command="cmd")
+    out = ev.write_report(summary, {"grid": rows}, tmp_path, command="cmd")
     assert out["note"] == NO_MATPLOTLIB
     assert NO_MATPLOTLIB in (tmp_path / "report.md").read_text()
     data = json.loads((tmp_path / "report.json").read_text())
@@ -194,8 +195,8 @@ def test_markdown_and_json_writer(tmp_path, monkeypatch):
 
 
 def _shipped_maps_fit() -> bool:
-    from som_torch._checkpoint import CheckpointError
-    from training.identification._identifier import Identifier
+    from som_torch import CheckpointError
+    from training.identification import Identifier
 
     try:
         Identifier.load()
@@ -237,7 +238,7 @@ def test_cli_tiny_end_to_end(tmp_path, capsys):
 
 def test_source_digest_follows_the_import_closure(monkeypatch):
     seen: list[str] = []
-    real = ev._module_file
+    real = _cache._module_file
 
     def spy(name: str):
         path = real(name)
@@ -245,19 +246,19 @@ def test_source_digest_follows_the_import_closure(monkeypatch):
             seen.append(name)
         return path
 
-    monkeypatch.setattr(ev, "_module_file", spy)
-    som = ev.source_digest(ev.METHOD_ROOTS["som"])
+    monkeypatch.setattr(_cache, "_module_file", spy)
+    som = ev.source_digest(_cache.METHOD_ROOTS["som"])
     assert {"training.identification._analysis", "training.identification._features", "training.identification._identifier", "sim.plant"} <= set(seen)
     assert "training.evaluation._iv4" not in seen and "training.evaluation._study" not in seen
-    iv4 = ev.source_digest(ev.METHOD_ROOTS["iv4"])
-    assert som != iv4 == ev.source_digest(ev.METHOD_ROOTS["iv4"])  # (iv4: files nobody edits during the test)
+    iv4 = ev.source_digest(_cache.METHOD_ROOTS["iv4"])
+    assert som != iv4 == ev.source_digest(_cache.METHOD_ROOTS["iv4"])  # (iv4: files nobody edits during the test)
 
 
 def test_identification_checks_hand_counts():
     """Issue 4's targets on hand-made rows: 4 elastic systems, one misclassified, one V_J miss."""
     rows = [_row((20.0, 0.0), {}, {}), _row((20.0, 0.0), {}, {}),
             _row((20.0, 0.0), {"V_J": 0.4}, {}), _row((20.0, 0.0), {}, {}, som_structure="elastic_backlash")]
-    checks = {c["name"].split(" (")[0]: c for c in ev.identification_checks(rows)}
+    checks = {c["name"].split(" (")[0]: c for c in _summary.identification_checks(rows)}
     assert checks["structure accuracy >= 95 %"]["detail"] == "measured 75.0 %"
     assert checks["E_30 >= 95 % over elastic + elastic_backlash"]["detail"] == "measured 75.0 %"
     assert checks["E_50 >= 99 % over elastic + elastic_backlash"]["detail"] == "measured 100.0 %"

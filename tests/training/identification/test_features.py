@@ -11,7 +11,7 @@ from scipy.signal import sawtooth
 
 from test_sections import simulate_switching
 from training.identification._features import (
-    EIG_EDGES, EXTRA_NAMES, FEATURE_SETS, compute_features, dominant_frequency, eigenfrequency_features,
+    EIG_EDGES, EIG_NAMES, EXTRA_NAMES, STRUCT_NAMES, dominant_frequency, eigenfrequency_features,
     extra_features, structure_features, zero_crossing_frequency,
 )
 from training.identification._one_mass import fit_one_mass
@@ -68,14 +68,11 @@ def test_amplitude_invariance():
         assert np.allclose(a, b, atol=1e-9)
 
 
-def test_feature_sets_registry():
+def test_component_names_match_the_feature_sizes():
     x = np.sin(2 * np.pi * 30 * _t())
-    for name, fs in FEATURE_SETS.items():
-        v = compute_features(name, x, T_S, BOUNDS)
-        assert v.shape == (fs.size,) and len(fs.components) == fs.size
-    assert FEATURE_SETS["extra-v1"].components == EXTRA_NAMES
-    with pytest.raises(ValueError, match="feature set"):
-        compute_features("nope", x, T_S)
+    for fn, names in ((eigenfrequency_features, EIG_NAMES), (structure_features, STRUCT_NAMES),
+                      (extra_features, EXTRA_NAMES)):
+        assert fn(x, T_S, BOUNDS).shape == (len(names),)
 
 
 def test_bad_input():

@@ -96,7 +96,8 @@ def test_rejects_bad_input():
         fit_one_mass(np.ones(100), np.ones(100), 1e-3)
     with pytest.raises(ValueError, match="speed or position"):
         fit_one_mass(np.ones(100), None, 1e-3)
-    with pytest.raises(ValueError, match="method"):
+    with pytest.raises(ValueError, match=r"method: expected 'auto' or one of \['derivative', 'integral', 'trajectory'\], "
+                                         r"received 'magic'"):
         fit_one_mass(np.ones(100), np.arange(100.0), 1e-3, method="magic")
     with pytest.raises(ValueError, match="sections"):
         fit_one_mass(np.ones(100), np.arange(100.0), 1e-3, sections=[(50, 200)])

@@ -1,40 +1,39 @@
 """Section detection (training.identification._sections) on a small numpy two-mass plant under the SPEC 2 test signal.
 
 ``simulate_switching`` is a stand-alone reference of the test run (plant SPEC 1, signal SPEC 2),
-used here and by tests/test_one_mass.py and tests/test_features.py so that those tests do not
-depend on ``sim``.
+used here and by test_one_mass.py and test_features.py so that those tests do not depend on
+``sim``'s plant and signal (only its ``Record`` container).
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
 
 import numpy as np
 import pytest
 
+from sim import Record
 from training.identification._sections import SectionSplit, detect_sections
 
-LEVELS = (1.0, 0.0, -0.7, -1.0, 0.0, 0.7)
+LEVELS = (1.0, 0.0, -0.7, -1.0, 0.0, 0.7)  # SPEC 2, typed here: the reference stands alone
 
 
-@dataclass
-class SimRecord:
-    """Minimal record: attributes like ``sim.Record`` (numpy arrays, ``meta`` dict)."""
+def _record(t, speed, current, torque_ref, section, meta) -> Record:
+    return Record(t=t, speed=speed, meta=meta, current=current, torque_ref=torque_ref, section=section)
 
-    t: np.ndarray
-    speed: np.ndarray
-    current: np.ndarray
-    torque_ref: np.ndarray
-    section: np.ndarray
-    meta: dict = field(default_factory=dict)
-    torque: np.ndarray | None = None
+
+def _friction_step(w: float, M: float, J: float, M_FC: float, mu_F: float, h: float) -> float:
+    """Speed after a step ``h`` of a mass ``J`` driven by ``M`` against Coulomb friction with stiction."""
+    if w == 0.0 and abs(M) <= M_FC:
+        return 0.0
+    new = w + h * (M - M_FC * math.copysign(1.0, w if w != 0 else M) - mu_F * w) / J
+    return 0.0 if w != 0.0 and w * new < 0 else new
 
 
 def simulate_switching(J_sigma=0.05, V_J=1.0, f_e=30.0, d=0.02, backlash_deg=0.0, M_FC=0.2, mu_F=0.002,
                        M_star=10.0, w_max=100.0, T_s=2.5e-4, T_Ei=5e-4, counts=2**20, noise=0.01,
                        substeps=8, seed=0, tail=0.05, timeout=10.0, elastic=True):
-    """Simulate the switching-speed-controller test run; returns a :class:`SimRecord`.
+    """Simulate the switching-speed-controller test run; returns a ``sim.Record``.
 
     Semi-implicit Euler with ``substeps`` per sample; shaft with dead zone; Coulomb friction with
     stiction at the load. ``elastic=False`` gives a rigid one-mass plant (J_sigma only).
@@ -75,22 +74,10 @@ def simulate_switching(J_sigma=0.05, V_J=1.0, f_e=30.0, d=0.02, backlash_deg=0.0
                 else:
                     MS = C_F * (dphi - s * math.copysign(1.0, dphi)) + D_F * (wM - wL)
                 wM += h * (MM - MS) / J_M
-                if wL == 0.0 and abs(MS) <= M_FC:
-                    wL_new = 0.0
-                else:
-                    wL_new = wL + h * (MS - M_FC * math.copysign(1.0, wL if wL != 0 else MS) - mu_F * wL) / J_L
-                    if wL != 0.0 and wL * wL_new < 0:
-                        wL_new = 0.0
-                wL = wL_new
+                wL = _friction_step(wL, MS, J_L, M_FC, mu_F, h)
                 dphi += h * (wM - wL)
             else:
-                if wM == 0.0 and abs(MM) <= M_FC:
-                    new = 0.0
-                else:
-                    new = wM + h * (MM - M_FC * math.copysign(1.0, wM if wM != 0 else MM) - mu_F * wM) / J_sigma
-                    if wM != 0.0 and wM * new < 0:
-                        new = 0.0
-                wM = new
+                wM = _friction_step(wM, MM, J_sigma, M_FC, mu_F, h)
             phiM += h * wM
         # controller (applies from the next sample)
         if tail_left is not None:
@@ -127,7 +114,7 @@ def simulate_switching(J_sigma=0.05, V_J=1.0, f_e=30.0, d=0.02, backlash_deg=0.0
     meta = {"K_M": 1.0, "T_Ei": T_Ei, "T_s": T_s, "encoder_counts": counts, "M_star": M_star, "w_max": w_max,
             "truth": {"J_sigma": J_sigma, "V_J": V_J, "f_e": f_e, "d": d, "M_FC": M_FC, "mu_F": mu_F,
                       "backlash": 2 * s}}
-    return SimRecord(t, np.array(out_w), np.array(out_i), np.array(out_ref), np.array(out_sec, dtype=int), meta)
+    return _record(t, np.array(out_w), np.array(out_i), np.array(out_ref), np.array(out_sec, dtype=int), meta)
 
 
 def true_bounds(section: np.ndarray) -> np.ndarray:
@@ -140,9 +127,9 @@ def elastic_record():
     return simulate_switching(J_sigma=0.03, V_J=2.0, f_e=40.0, d=0.02, M_FC=0.2, seed=1)
 
 
-def _no_column(rec: SimRecord) -> SimRecord:
+def _no_column(rec: Record) -> Record:
     meta = {k: v for k, v in rec.meta.items() if k != "M_star"}
-    return SimRecord(rec.t, rec.speed, rec.current, None, None, meta)
+    return _record(rec.t, rec.speed, rec.current, None, None, meta)
 
 
 def test_detects_sections_from_current_within_two_samples(elastic_record):
@@ -155,8 +142,8 @@ def test_detects_sections_from_current_within_two_samples(elastic_record):
 
 
 def test_uses_torque_ref_exactly_when_given(elastic_record):
-    rec = SimRecord(elastic_record.t, elastic_record.speed, elastic_record.current, elastic_record.torque_ref,
-                    None, dict(elastic_record.meta))
+    rec = _record(elastic_record.t, elastic_record.speed, elastic_record.current, elastic_record.torque_ref,
+                  None, dict(elastic_record.meta))
     split = detect_sections(rec)
     assert np.array_equal(split.bounds, true_bounds(elastic_record.section))
     assert split.source == "torque_ref"

@@ -1,16 +1,17 @@
 """End to end on tiny data: generate (resumable, config-checked) -> train tiny maps -> identify."""
 
 import json
+import os
 
 import numpy as np
 import pytest
 
 from sim import TestSignalConfig, iter_records, sample_population
 from training.cli import main
-from training.learning._dataset import GenerateConfig, generate, load_dataset
+from training._pool import worker_pool
 from training.errors import UserError
-from training.identification._identifier import PARAMETER_NAMES, Identifier
-from training.identification._maps import MAP_SPECS
+from training.identification import MAP_SPECS, PARAMETER_NAMES, Identifier
+from training.learning import GenerateConfig, TrainConfig, generate, load_dataset
 
 
 @pytest.fixture(scope="module")
@@ -54,10 +55,10 @@ def test_train_then_identify(dataset_dir, tmp_path, capsys):
     records = list(iter_records(sample_population(2, seed=5), signal=TestSignalConfig(), seed=3))
     results = ident.identify_records(records)
     for res in results:
-        assert res["structure"] in ("stiff", "elastic", "elastic_backlash", "stiff_backlash")
-        assert set(res["parameters"]) == set(PARAMETER_NAMES)
-        assert res["parameters"]["J_sigma"] > 0
-        json.dumps(res, allow_nan=False)  # JSON-able, no NaN
+        assert res.ok and res.structure in ("stiff", "elastic", "elastic_backlash", "stiff_backlash")
+        assert set(res.parameters.to_dict()) == set(PARAMETER_NAMES)
+        assert res.parameters.J_sigma > 0
+        json.dumps(res.to_dict(), allow_nan=False)  # JSON-able, no NaN
 
     # a tampered checkpoint is rejected by the manifest check
     with open(ck / "f_e.pt", "r+b") as f:
@@ -65,3 +66,25 @@ def test_train_then_identify(dataset_dir, tmp_path, capsys):
         f.write(b"\x00\x01\x02")
     with pytest.raises(ValueError, match="f_e.pt"):
         Identifier.load(ck)
+
+
+def test_train_config_checks_its_sizes():
+    with pytest.raises(ValueError, match="rows, cols >= 2"):
+        TrainConfig(rows=1)
+    with pytest.raises(ValueError, match="epochs >= 1"):
+        TrainConfig(epochs=0)
+
+
+def test_worker_pool_limits_threads_in_the_workers_only(monkeypatch):
+    """The workers run with one BLAS/OpenMP thread; this process's environment stays as it was."""
+    monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
+    monkeypatch.setenv("OPENBLAS_NUM_THREADS", "3")
+    before = dict(os.environ)
+    with worker_pool(1) as pool:
+        seen = pool.submit(os.getenv, "OMP_NUM_THREADS").result(), pool.submit(os.getenv, "OPENBLAS_NUM_THREADS").result()
+        assert dict(os.environ) == before
+    assert dict(os.environ) == before
+    assert seen == ("1", "1")
+    with pytest.raises(ValueError, match="workers >= 1"):
+        with worker_pool(0):
+            pass
