@@ -21,10 +21,12 @@ from dataclasses import dataclass
 
 import torch
 
+from som_torch import CLibrary
+
 from sim._kernel import load_kernel
 from sim.params import DriveConfig, TwoMassParams
 
-_SFX = {torch.float32: "f32", torch.float64: "f64"}
+_DTYPES = (torch.float32, torch.float64)
 
 
 def default_substeps(params: TwoMassParams, drive: DriveConfig) -> int:
@@ -74,7 +76,7 @@ class FastParams:
     @classmethod
     def build(cls, params: TwoMassParams, drive: DriveConfig, S: int, dtype: torch.dtype,
               M_ext: torch.Tensor | None = None) -> "FastParams":
-        if dtype not in _SFX:
+        if dtype not in _DTYPES:
             raise TypeError(f"dtype: expected torch.float32 or torch.float64, received {dtype}")
         if isinstance(S, bool) or not isinstance(S, int) or S < 1:
             raise ValueError(f"substeps: expected an int >= 1, received {S!r}")
@@ -94,15 +96,27 @@ def _c(x: float, dtype: torch.dtype) -> torch.Tensor:
     return torch.tensor(x, dtype=dtype)
 
 
-def _rhs(wM, wL, dp, MM, Mref, Mext, stuck, fric, p: FastParams, iTE):
+def _shaft_torque(wM, wL, dp, p: FastParams) -> tuple[torch.Tensor, torch.Tensor]:
+    """Shaft torque ``M_S`` and the twist beyond the backlash gap ``e``."""
     cl = torch.minimum(torch.maximum(dp, -p.s), p.s)
     e = dp - cl
-    MS = p.C_F * e + torch.where(e != 0, p.D_F * (wM - wL), torch.zeros_like(e))
+    return p.C_F * e + torch.where(e != 0, p.D_F * (wM - wL), torch.zeros_like(e)), e
+
+
+def _rhs(wM, wL, dp, MM, Mref, Mext, stuck, fric, p: FastParams, iTE):
+    MS, e = _shaft_torque(wM, wL, dp, p)
     a = (MM - MS) * p.iJM
     b = torch.where(stuck, torch.zeros_like(e), (MS - Mext - fric - p.mu_F * wL) * p.iJL)
     c = wM - wL
     d = (Mref - MM) * iTE
     return a, b, c, d
+
+
+def _compensated(x: torch.Tensor, step: torch.Tensor, comp: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """``x + step`` with Kahan compensation ``comp``: the sum and the new compensation (as the C kernel)."""
+    y = step - comp
+    t = x + y
+    return t, (t - x) - y
 
 
 def advance_eager(x: FastState, p: FastParams) -> None:
@@ -113,9 +127,7 @@ def advance_eager(x: FastState, p: FastParams) -> None:
     inc = torch.zeros_like(wM)
     cwM, cwL, cdp, cMM = x.comp.unbind(-1)
     for _ in range(p.S):
-        cl = torch.minimum(torch.maximum(dp, -p.s), p.s)
-        e = dp - cl
-        MS = p.C_F * e + torch.where(e != 0, p.D_F * (wM - wL), torch.zeros_like(e))
+        MS, _e = _shaft_torque(wM, wL, dp, p)
         net = MS - Mext
         rest = wL == 0
         stuck = rest & (net.abs() <= p.M_FC)
@@ -129,31 +141,28 @@ def advance_eager(x: FastState, p: FastParams) -> None:
         wM4, wL4, dp4, MM4 = wM + dt * a3, wL + dt * b3, dp + dt * c3, MM + dt * d3
         a4, b4, c4, d4 = _rhs(wM4, wL4, dp4, MM4, Mref, Mext, stuck, fric, p, iTE)
         inc = inc + k6 * (wM + two * wM2 + two * wM3 + wM4)
-        y = k6 * (a1 + two * a2 + two * a3 + a4) - cwM
-        t = wM + y
-        cwM = (t - wM) - y
-        wM_n = t
-        y = k6 * (b1 + two * b2 + two * b3 + b4) - cwL
-        t = wL + y
+        wM, cwM = _compensated(wM, k6 * (a1 + two * a2 + two * a3 + a4), cwM)
+        t, c = _compensated(wL, k6 * (b1 + two * b2 + two * b3 + b4), cwL)
         clamp = stuck | (t * sgn < 0)
-        cwL = torch.where(clamp, torch.zeros_like(t), (t - wL) - y)
+        cwL = torch.where(clamp, torch.zeros_like(t), c)
         wL = torch.where(clamp, torch.zeros_like(t), t)
-        y = k6 * (c1 + two * c2 + two * c3 + c4) - cdp
-        t = dp + y
-        cdp = (t - dp) - y
-        dp = t
-        y = k6 * (d1 + two * d2 + two * d3 + d4) - cMM
-        t = MM + y
-        cMM = (t - MM) - y
-        MM = t
-        wM = wM_n
+        dp, cdp = _compensated(dp, k6 * (c1 + two * c2 + two * c3 + c4), cdp)
+        MM, cMM = _compensated(MM, k6 * (d1 + two * d2 + two * d3 + d4), cMM)
     x.comp = torch.stack([cwM, cwL, cdp, cMM], -1).contiguous()
     x.w_M, x.w_L, x.dphi, x.M_M = wM, wL, dp, MM
     x.phi = x.phi + inc.to(torch.float64)
 
 
-def _ptr(t: torch.Tensor) -> int:
-    return t.data_ptr()
+def plant_args(x: FastState, p: FastParams) -> tuple:
+    """The kernel functions' first arguments: ``n``, the step constants, the coefficients, the state."""
+    return (x.w_M.numel(), p.S, *p.consts(), torch.get_num_threads(),
+            p.iJM, p.iJL, p.C_F, p.D_F, p.s, p.M_FC, p.mu_F, p.M_ext,
+            x.w_M, x.w_L, x.dphi, x.M_M, x.M_ref, x.phi, x.cnt_prev, x.comp)
+
+
+def encoder_args(drive: DriveConfig) -> tuple[float, float]:
+    """The kernel's measurement constants: speed quantum ``q_w`` [rad/s] and counts per radian."""
+    return drive.q_w, drive.counts_per_rad
 
 
 def advance(x: FastState, p: FastParams, use_kernel: bool = True) -> None:
@@ -162,16 +171,11 @@ def advance(x: FastState, p: FastParams, use_kernel: bool = True) -> None:
     if lib is None:
         advance_eager(x, p)
         return
-    sfx = _SFX[p.dtype]
-    n = x.w_M.numel()
-    getattr(lib, f"advance_{sfx}")(
-        n, p.S, *p.consts(), torch.get_num_threads(),
-        *(_ptr(t) for t in (p.iJM, p.iJL, p.C_F, p.D_F, p.s, p.M_FC, p.mu_F, p.M_ext,
-                            x.w_M, x.w_L, x.dphi, x.M_M, x.M_ref, x.phi, x.cnt_prev, x.comp)))
+    lib.function("advance", p.dtype)(*plant_args(x, p))
 
 
 @dataclass
-class TestState:
+class SignalState:
     """Switching-controller state per system (flat int32 arrays), as the C kernel keeps it."""
 
     sec: torch.Tensor
@@ -182,7 +186,7 @@ class TestState:
     tmo: torch.Tensor
 
     @classmethod
-    def start(cls, n: int) -> "TestState":
+    def start(cls, n: int) -> "SignalState":
         z = lambda: torch.zeros(n, dtype=torch.int32)  # noqa: E731
         return cls(torch.ones(n, dtype=torch.int32), z(), z(), z(), z(), z())
 
@@ -193,22 +197,15 @@ def new_test_buffers(n: int, cap: int, dtype: torch.dtype) -> dict[str, torch.Te
             "torque_ref": torch.empty(n, cap, dtype=dtype), "section": torch.empty(n, cap, dtype=torch.int8)}
 
 
-def run_test_chunk(lib, x: FastState, p: FastParams, c: TestState, drive: DriveConfig,
+def run_test_chunk(lib: CLibrary, x: FastState, p: FastParams, c: SignalState, drive: DriveConfig,
                    levels: tuple[float, float, float, float], n_timeout: int, n_tail: int,
                    k0: int, nk: int, out: dict[str, torch.Tensor]) -> int:
     """Up to ``nk`` fused samples (``k0 ..``) of the switching test in C, written into columns
     ``k0 .. k0+nk-1`` of the buffers ``out`` (``n x cap``, cap >= k0+nk); returns systems left."""
-    n = x.w_M.numel()
-    cap = out["speed"].shape[1]
-    if cap < k0 + nk or any(not v.is_contiguous() or v.shape != (n, cap) for v in out.values()):
-        raise ValueError(f"run_test_chunk: buffers must be contiguous {n} x >= {k0 + nk}")
-    M_star, M_low, w_max, w_low = levels
-    left = getattr(lib, f"run_test_{_SFX[p.dtype]}")(
-        n, p.S, *p.consts(), torch.get_num_threads(),
-        *(_ptr(t) for t in (p.iJM, p.iJL, p.C_F, p.D_F, p.s, p.M_FC, p.mu_F, p.M_ext,
-                            x.w_M, x.w_L, x.dphi, x.M_M, x.M_ref, x.phi, x.cnt_prev, x.comp,
-                            c.sec, c.cnt, c.nI, c.nIV, c.length, c.tmo)),
-        drive.q_w, drive.encoder_counts / (2.0 * math.pi), M_star, M_low, w_max, w_low, drive.M_max,
-        n_timeout, n_tail, k0, nk, cap, k0,
-        *(_ptr(out[k]) for k in ("speed", "torque", "torque_ref", "section")))
+    cap = out["speed"].shape[-1]
+    if cap < k0 + nk:
+        raise ValueError(f"run_test_chunk: expected buffers of >= {k0 + nk} columns, received {cap}")
+    left = lib.function("run_test", p.dtype)(
+        *plant_args(x, p), c.sec, c.cnt, c.nI, c.nIV, c.length, c.tmo, *encoder_args(drive), *levels,
+        drive.M_max, n_timeout, n_tail, k0, nk, cap, k0, *(out[k] for k in ("speed", "torque", "torque_ref", "section")))
     return int(left)

@@ -1,100 +1,50 @@
-"""Build and load the fused C kernel (``_kernel_src.c``) with the system C compiler.
+"""The fused C kernel of the fixed-step path (``_kernel.c``): its signature table and its loader.
 
-The shared library is compiled once per source/compiler/flags into a cache folder
-(``$TWOMASS_CACHE`` or ``~/.cache/twomass-som``; about one second) and loaded with ctypes.
-When no compiler is available, :func:`load_kernel` returns ``None`` and the simulator uses its
-torch eager twin (same arithmetic, slower).
+Compiled once per float type with the system C compiler into a cache folder (``$TWOMASS_CACHE``,
+see :mod:`sim._config`; about one second) and loaded with ctypes by
+:class:`som_torch.CKernel`, which also checks every call's tensors against :data:`KERNEL`'s
+table. When the kernel cannot be built, :func:`load_kernel` returns ``None`` (after one warning)
+and the simulator uses its torch eager twin (same arithmetic, slower).
 """
 
 from __future__ import annotations
 
-import ctypes
-import hashlib
-import os
-import platform
-import shutil
-import subprocess
-import sys
-import tempfile
-import warnings
 from functools import lru_cache
 from pathlib import Path
 
-_SRC = Path(__file__).with_name("_kernel_src.c")
-_FLAGS = ["-O3", "-march=native", "-fopenmp", "-ffp-contract=off", "-fno-trapping-math",
-          "-fPIC", "-shared", "-std=c99"]
+from som_torch import CFunction, CKernel, CLibrary
 
-_R = {"f32": ctypes.c_float, "f64": ctypes.c_double}
-_P = ctypes.c_void_p
-_I64, _I32, _INT, _D = ctypes.c_int64, ctypes.c_int32, ctypes.c_int, ctypes.c_double
+from sim import _config
 
+#: The step constants, the plant coefficients and the state, ``n`` systems (the first 23 arguments of each function).
+_PLANT = ("n: int64", "S: int", "dt: REAL", "h: REAL", "k6: REAL", "iTE: REAL", "nthreads: int",
+          *(f"{c}: REAL[n]" for c in ("iJM", "iJL", "CF", "DF", "s", "MFC", "muF", "Mext", "wM", "wL", "dp", "MM",
+                                      "Mref")),
+          "phi: double[n]", "cntp: double[n]", "comp: REAL[n, 4]")
+#: The measurement constants: speed quantum and counts per radian.
+_ENCODER = ("qw: double", "scale: double")
 
-def _cache_dir() -> Path:
-    return Path(os.environ.get("TWOMASS_CACHE", Path.home() / ".cache" / "twomass-som"))
-
-
-def _source() -> str:
-    body = _SRC.read_text()
-    parts = []
-    for real, sfx in (("float", "_f32"), ("double", "_f64")):
-        b = body.replace("REAL", real).replace("_SFX", sfx)
-        for name in ("block_t", "rhs", "advance_block", "load_block", "store_block"):
-            b = b.replace(name, name + sfx)
-        parts.append(b)
-    return "\n".join(parts)
-
-
-def _cpu_id() -> str:
-    """The CPU's model and flags (``-march=native`` code must not be reused on another CPU)."""
-    try:
-        info = Path("/proc/cpuinfo").read_text()
-        return "".join(sorted({ln for ln in info.splitlines() if ln.startswith(("model name", "flags"))}))
-    except OSError:
-        return platform.processor() + platform.machine()
-
-
-def _build() -> Path:
-    cc = os.environ.get("CC") or shutil.which("gcc") or shutil.which("cc")
-    if cc is None:
-        raise OSError("no C compiler (gcc/cc) found")
-    src = _source()
-    key = hashlib.sha256((src + " ".join(_FLAGS) + cc + sys.platform + _cpu_id()).encode()).hexdigest()[:16]
-    out = _cache_dir() / f"twomass_kernel_{key}.so"
-    if out.exists():
-        return out
-    out.parent.mkdir(parents=True, exist_ok=True)
-    with tempfile.TemporaryDirectory(dir=out.parent) as tmp:
-        c_path = Path(tmp) / "kernel.c"
-        c_path.write_text(src)
-        so_tmp = Path(tmp) / "kernel.so"
-        res = subprocess.run([cc, *_FLAGS, str(c_path), "-o", str(so_tmp), "-lm"],
-                             capture_output=True, text=True)
-        if res.returncode != 0:
-            raise OSError(f"C kernel build failed: {res.stderr.strip().splitlines()[-1:]}")
-        os.replace(so_tmp, out)  # atomic
-    return out
+KERNEL = CKernel(
+    name="twomass_kernel",
+    source=Path(__file__).with_name("_kernel.c"),
+    functions={
+        "advance": CFunction(_PLANT),
+        "run_test": CFunction((
+            *_PLANT, *(f"{c}: int32[n]" for c in ("sec", "cnt", "nI", "nIV", "len", "tmo")), *_ENCODER,
+            "Mstar: REAL", "Mlow: REAL", "wmax: REAL", "wlow: REAL", "Mmax: REAL", "n_timeout: int32",
+            "n_tail: int32", "k0: int64", "nk: int64", "ostride: int64", "ocol0: int64",
+            "o_speed: REAL[n, ostride]", "o_torque: REAL[n, ostride]", "o_tref: REAL[n, ostride]",
+            "o_sec: int8[n, ostride]"), returns="int64"),
+        "run_replay": CFunction((
+            *_PLANT, *_ENCODER, "quantize: int32", "K: int32", "start: int32[n, K]", "lev: REAL[n, K]",
+            "k0: int64", "nk: int64", "o_speed: REAL[nk, n]")),
+    },
+    flags=("-O3", "-march=native", "-fopenmp", "-ffp-contract=off", "-fno-trapping-math", "-std=c99"),
+    link_flags=("-fopenmp", "-lm"),
+)
 
 
 @lru_cache(maxsize=1)
-def load_kernel() -> ctypes.CDLL | None:
-    """The compiled kernel library, or ``None`` (with one warning) when it cannot be built."""
-    if os.environ.get("TWOMASS_NO_C_KERNEL"):
-        return None
-    try:
-        lib = ctypes.CDLL(str(_build()))
-    except OSError as err:
-        warnings.warn(f"twomass: fused C kernel unavailable ({err}); using the torch eager path",
-                      RuntimeWarning, stacklevel=2)
-        return None
-    for sfx, real in _R.items():
-        adv = getattr(lib, f"advance_{sfx}")
-        adv.restype = None
-        adv.argtypes = [_I64, _INT, real, real, real, real, _INT] + [_P] * 16
-        run = getattr(lib, f"run_test_{sfx}")
-        run.restype = _I64
-        run.argtypes = ([_I64, _INT, real, real, real, real, _INT] + [_P] * 22
-                        + [_D, _D, real, real, real, real, real, _I32, _I32, _I64, _I64, _I64, _I64] + [_P] * 4)
-        rep = getattr(lib, f"run_replay_{sfx}")
-        rep.restype = None
-        rep.argtypes = [_I64, _INT, real, real, real, real, _INT] + [_P] * 16 + [_D, _D, _I32, _I32, _P, _P, _I64, _I64, _P]
-    return lib
+def load_kernel() -> CLibrary | None:
+    """The compiled kernel, or ``None`` when disabled or (with one warning) when it cannot be built."""
+    return KERNEL.load(_config.cache_dir(), _config.compiler()) if _config.c_kernel_enabled() else None

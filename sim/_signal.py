@@ -24,6 +24,7 @@ SECTION_NAMES: tuple[str, ...] = ("I", "II", "III", "IV", "V", "VI")
 SECTION_LEVELS: tuple[float, ...] = (1.0, 0.0, -0.7, -1.0, 0.0, 0.7)
 #: The speed, in units of ``w_max``, below which II (and above whose negative V) ends.
 SPEED_RETURN = 0.2
+_LOW = SECTION_LEVELS[5]  # the lower torque level (VI; III is its negative), in units of M*
 
 
 @dataclass(frozen=True)
@@ -58,14 +59,15 @@ class TestSignalConfig:
         return 6 * self.n_timeout(drive) + self.n_tail(drive) + 1
 
     def levels(self, drive: DriveConfig) -> tuple[float, float, float, float]:
-        """``(M*, 0.7 M*, w_max, 0.2 w_max)`` as used by the controller."""
-        return (self.M_star, 0.7 * self.M_star, self.w_max, 0.2 * self.w_max)
+        """``(M*, 0.7 M*, w_max, 0.2 w_max)`` as used by the controller: ``M*``, the level of VI
+        (:data:`SECTION_LEVELS`), ``w_max`` and the return speed (:data:`SPEED_RETURN`)."""
+        return (self.M_star, _LOW * self.M_star, self.w_max, SPEED_RETURN * self.w_max)
 
     def expected_duration(self, J_sigma: torch.Tensor, M_FC: torch.Tensor | float = 0.0) -> torch.Tensor:
         """Rough test duration [s] per system (for batching by duration): one-mass estimate."""
         a = J_sigma * self.w_max
         t1 = a / self.M_star
-        t3 = 0.2 * a / (0.7 * self.M_star)
+        t3 = SPEED_RETURN * a / (_LOW * self.M_star)
         return torch.clamp(2 * (2 * t1 + t3), max=6 * self.timeout) + self.tail
 
 
@@ -79,8 +81,9 @@ class SwitchingController:
 
     def __init__(self, signal: TestSignalConfig, drive: DriveConfig, dtype: torch.dtype = torch.float32):
         self.signal, self.drive, self.dtype = signal, drive, dtype
-        M_star, M_low, w_max, w_low = signal.levels(drive)
-        self._table = torch.tensor([0.0, M_star, 0.0, -M_low, -M_star, 0.0, M_low, 0.0, 0.0], dtype=dtype)
+        M_star, _M_low, w_max, w_low = signal.levels(drive)
+        # the reference by section state: none before I (0), I..VI, the tail (7), done (8)
+        self._table = torch.tensor([0.0, *(v * M_star for v in SECTION_LEVELS), 0.0, 0.0], dtype=dtype)
         self._w = tuple(torch.tensor(v, dtype=dtype) for v in (w_max, w_low))
         self._n_timeout = signal.n_timeout(drive)
         self._n_tail = signal.n_tail(drive)

@@ -7,7 +7,6 @@ counts; the measured speed is the count difference per sample times ``q_w``.
 
 from __future__ import annotations
 
-import math
 from typing import Protocol
 
 import torch
@@ -24,7 +23,7 @@ def encoder_count(phi_M: torch.Tensor, drive: DriveConfig) -> torch.Tensor:
     """Encoder count (float64 integer values) of the motor angle ``phi_M`` [rad] (float64)."""
     if phi_M.dtype != torch.float64:
         raise TypeError(f"encoder_count: expected a float64 angle, received {phi_M.dtype}")
-    return torch.floor(phi_M * (drive.encoder_counts / (2.0 * math.pi)))
+    return torch.floor(phi_M * drive.counts_per_rad)
 
 
 def measure_speed(x: _EncoderState, drive: DriveConfig, dtype: torch.dtype) -> torch.Tensor:

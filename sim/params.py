@@ -14,10 +14,30 @@ from typing import Any, NamedTuple
 
 import torch
 
+#: What each derived value is, with its formula (SPEC 1); the docstrings of the attributes.
+DERIVED_DOCS: dict[str, str] = {
+    "J_M": "Motor inertia [kg m^2]: ``J_sigma / (1 + V_J)``.",
+    "J_L": "Load inertia [kg m^2]: ``J_sigma V_J / (1 + V_J)``.",
+    "w_e": "Eigenfrequency [rad/s]: ``2 pi f_e``.",
+    "w_0": "Natural frequency [rad/s]: ``w_e / sqrt(1 - d^2)``.",
+    "C_F": "Stiffness [Nm/rad]: ``w_0^2 J_M J_L / J_sigma``.",
+    "D_F": "Shaft damping [Nm s/rad]: ``2 d C_F / w_0``.",
+}
+
 STRUCTURE_CLASSES: tuple[str, ...] = ("stiff", "elastic", "elastic_backlash", "stiff_backlash")
 
 PARAM_NAMES: tuple[str, ...] = ("J_sigma", "V_J", "f_e", "d", "backlash", "M_FC", "mu_F")
 DERIVED_NAMES: tuple[str, ...] = ("J_M", "J_L", "w_0", "w_e", "C_F", "D_F", "s")
+
+# The thresholds of SPEC 1's class rule (see :func:`class_index`).
+#: Normalized backlash ``s_N`` from which the backlash counts (``elastic_backlash`` or ``stiff_backlash``).
+S_N_ELASTIC = 0.1
+#: Normalized backlash ``s_N`` from which a system is ``stiff_backlash`` whatever its stiffness.
+S_N_STIFF_BACKLASH = 1.0
+#: ``w_e T_Ei`` from which the shaft is stiff (its eigenfrequency beyond the current loop's reach).
+W_E_T_EI_STIFF = 1.0
+#: Oscillation-to-resolution ratio ``r_osc`` from which the oscillation is visible in the encoder speed.
+R_OSC_VISIBLE = 1.0
 
 
 @dataclass(frozen=True)
@@ -51,12 +71,22 @@ class DriveConfig:
         return 2.0 * math.pi / self.encoder_counts
 
     @property
+    def counts_per_rad(self) -> float:
+        """Encoder counts per radian of motor angle."""
+        return self.encoder_counts / (2.0 * math.pi)
+
+    @property
     def q_w(self) -> float:
-        """Speed quantum [rad/s]: one count per sample time."""
-        return 2.0 * math.pi / (self.encoder_counts * self.T_s)
+        """Speed quantum [rad/s]: one count per sample time (:func:`speed_quantum`)."""
+        return speed_quantum(self.encoder_counts, self.T_s)
 
     def to_dict(self) -> dict[str, float]:
         return {f.name: getattr(self, f.name) for f in fields(self)}
+
+
+def speed_quantum(encoder_counts: float, T_s: float) -> float:
+    """The encoder speed's quantum ``q_w = 2 pi / (encoder_counts T_s)`` [rad/s]: one count per sample."""
+    return 2.0 * math.pi / (encoder_counts * T_s)
 
 
 def _as_tensor(name: str, value: Any) -> torch.Tensor:
@@ -85,6 +115,17 @@ def _broadcast_shape(shapes: list[torch.Size]) -> torch.Size | None:
             return None
         out.append(sizes.pop() if sizes else 1)
     return torch.Size(out)
+
+
+class _Derived:
+    """A derived value as a read-only attribute: the field of ``obj.derived`` of the same name,
+    documented by :data:`DERIVED_DOCS`."""
+
+    def __init__(self, name: str):
+        self.name, self.__doc__ = name, DERIVED_DOCS[name]
+
+    def __get__(self, obj: Any, owner: type | None = None) -> Any:
+        return self if obj is None else getattr(obj.derived, self.name)
 
 
 @dataclass(frozen=True)
@@ -140,30 +181,16 @@ class TwoMassParams:
 
     # -- derived values (SPEC 1) ----------------------------------------------------------
     @property
-    def J_M(self) -> torch.Tensor:
-        return two_mass_derived(self.J_sigma, self.V_J, self.f_e, self.d).J_M
+    def derived(self) -> "TwoMassDerived":
+        """All derived values of SPEC 1 (:func:`two_mass_derived`), ``*batch`` each."""
+        return two_mass_derived(self.J_sigma, self.V_J, self.f_e, self.d)
 
-    @property
-    def J_L(self) -> torch.Tensor:
-        return two_mass_derived(self.J_sigma, self.V_J, self.f_e, self.d).J_L
-
-    @property
-    def w_e(self) -> torch.Tensor:
-        return two_mass_derived(self.J_sigma, self.V_J, self.f_e, self.d).w_e
-
-    @property
-    def w_0(self) -> torch.Tensor:
-        return two_mass_derived(self.J_sigma, self.V_J, self.f_e, self.d).w_0
-
-    @property
-    def C_F(self) -> torch.Tensor:
-        """Stiffness [Nm/rad]: ``w_0^2 J_M J_L / J_sigma``."""
-        return two_mass_derived(self.J_sigma, self.V_J, self.f_e, self.d).C_F
-
-    @property
-    def D_F(self) -> torch.Tensor:
-        """Shaft damping [Nm s/rad]: ``2 d C_F / w_0``."""
-        return two_mass_derived(self.J_sigma, self.V_J, self.f_e, self.d).D_F
+    J_M = _Derived("J_M")
+    J_L = _Derived("J_L")
+    w_e = _Derived("w_e")
+    w_0 = _Derived("w_0")
+    C_F = _Derived("C_F")
+    D_F = _Derived("D_F")
 
     @property
     def s(self) -> torch.Tensor:
@@ -252,14 +279,14 @@ def structure_class(params: TwoMassParams, drive: DriveConfig, M_star: float) ->
 
 
 class TwoMassDerived(NamedTuple):
-    """The derived values of SPEC 1, of the type and shape of the inputs."""
+    """The derived values of SPEC 1, of the type and shape of the inputs (see :data:`DERIVED_DOCS`)."""
 
-    J_M: Any  # motor inertia [kg m^2]
-    J_L: Any  # load inertia [kg m^2]
-    w_e: Any  # eigenfrequency [rad/s]
-    w_0: Any  # natural frequency [rad/s]
-    C_F: Any  # stiffness [Nm/rad]
-    D_F: Any  # shaft damping [Nm s/rad]
+    J_M: Any
+    J_L: Any
+    w_e: Any
+    w_0: Any
+    C_F: Any
+    D_F: Any
 
 
 def two_mass_derived(J_sigma: Any, V_J: Any, f_e: Any, d: Any) -> TwoMassDerived:
@@ -277,9 +304,10 @@ def class_index(s_N: Any, w_e_T_Ei: Any, r_osc: Any) -> torch.Tensor:
     """SPEC 1's class rule on the normalized backlash ``s_N``, ``w_e T_Ei`` and ``r_osc``: an index
     into :data:`STRUCTURE_CLASSES` (LongTensor of the broadcast shape; floats give a 0-d tensor)."""
     s_N, w_e_T_Ei, r_osc = (torch.as_tensor(x, dtype=torch.float64) for x in (s_N, w_e_T_Ei, r_osc))
-    soft = w_e_T_Ei < 1.0
-    visible = r_osc >= 1.0
+    soft = w_e_T_Ei < W_E_T_EI_STIFF
+    visible = r_osc >= R_OSC_VISIBLE
+    backlash = s_N >= S_N_ELASTIC
     cls = torch.zeros(_broadcast_shape([s_N.shape, soft.shape, visible.shape]) or (), dtype=torch.long)
-    cls = torch.where((s_N < 0.1) & soft & visible, 1, cls)
-    cls = torch.where(soft & (s_N >= 0.1) & (s_N < 1.0), 2, cls)
-    return torch.where((s_N >= 1.0) | (~soft & (s_N >= 0.1)), 3, cls)
+    cls = torch.where((s_N < S_N_ELASTIC) & soft & visible, 1, cls)
+    cls = torch.where(soft & backlash & (s_N < S_N_STIFF_BACKLASH), 2, cls)
+    return torch.where((s_N >= S_N_STIFF_BACKLASH) | (~soft & backlash), 3, cls)

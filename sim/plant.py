@@ -14,7 +14,9 @@ from typing import Protocol, runtime_checkable
 
 import torch
 
-from sim._integrate_fast import (FastParams, FastState, TestState, advance, default_substeps, new_test_buffers,
+from som_torch import CLibrary
+
+from sim._integrate_fast import (FastParams, FastState, SignalState, advance, default_substeps, new_test_buffers,
                                   run_test_chunk)
 from sim._kernel import load_kernel
 from sim.measurement import measure_speed, noisy_current
@@ -212,7 +214,7 @@ def simulate_test(params: TwoMassParams, drive: DriveConfig | None = None, signa
     return _finish(out, {}, length, timed_out, shape, N, drive, S, seed)
 
 
-def run_test_group(lib, flat: TwoMassParams, drive: DriveConfig, signal: TestSignalConfig, S: int,
+def run_test_group(lib: CLibrary, flat: TwoMassParams, drive: DriveConfig, signal: TestSignalConfig, S: int,
                    dtype: torch.dtype, chunk_samples: int = 2048,
                    progress: Callable[[int], None] | None = None) -> tuple[dict[str, torch.Tensor], torch.Tensor, torch.Tensor]:
     """The fused test for one flat group: buffers ``n x N`` (valid up to each length, rest
@@ -221,7 +223,7 @@ def run_test_group(lib, flat: TwoMassParams, drive: DriveConfig, signal: TestSig
     N_max = signal.max_samples(drive)
     fp = FastParams.build(flat, drive, S, dtype)
     x = FastState.zeros(n, dtype)
-    c = TestState.start(n)
+    c = SignalState.start(n)
     est = float(signal.expected_duration(flat.J_sigma).max()) / drive.T_s
     cap = min(N_max, int(1.25 * est) + chunk_samples)
     buf = new_test_buffers(n, cap, dtype)
@@ -242,10 +244,6 @@ def run_test_group(lib, flat: TwoMassParams, drive: DriveConfig, signal: TestSig
     length = torch.where(c.sec >= 8, c.length.to(torch.int64), torch.full((n,), k0, dtype=torch.int64))
     N = int(length.max())
     return {k: v[:, :N] for k, v in buf.items()}, length, c.tmo
-
-
-def sample_time_grid(n: int, drive: DriveConfig) -> torch.Tensor:
-    return torch.arange(n, dtype=torch.float64) * drive.T_s
 
 
 class SimulatedPlant:
@@ -275,5 +273,3 @@ class SimulatedPlant:
     @property
     def motor_angle(self) -> torch.Tensor:
         return self._x.phi.reshape(self.params.batch_shape)
-
-

@@ -15,7 +15,6 @@ import io
 import json
 import math
 import os
-import tempfile
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -24,7 +23,9 @@ from typing import Any
 import numpy as np
 import torch
 
-from sim.params import DriveConfig, TwoMassParams
+from som_torch import atomic_write
+
+from sim.params import DriveConfig, TwoMassParams, speed_quantum
 from sim._signal import TestSignalConfig
 
 FORMAT = "twomass-record/1"
@@ -82,7 +83,7 @@ class Record:
     def q_w(self) -> float | None:
         """Speed quantum ``2 pi / (encoder_counts T_s)`` [rad/s], or None without ``encoder_counts``."""
         counts = self.encoder_counts
-        return None if counts is None else 2.0 * math.pi / (counts * self.T_s)
+        return None if counts is None else speed_quantum(counts, self.T_s)
 
     def __len__(self) -> int:
         return int(self.t.shape[0])
@@ -255,12 +256,8 @@ def write_record(path: str | os.PathLike[str], record: Record, overwrite: bool =
     meta = dict(record.meta)
     meta.setdefault("format", FORMAT)
     meta.setdefault("units", {c: UNITS[c] for c in names})
-    csv_path.parent.mkdir(parents=True, exist_ok=True)
     for p, text in ((csv_path, buf.getvalue()), (json_path, json.dumps(meta, indent=1) + "\n")):
-        fd, tmp = tempfile.mkstemp(dir=p.parent, prefix=f".{p.name}.", suffix=".tmp")
-        with os.fdopen(fd, "w") as f:
-            f.write(text)
-        os.replace(tmp, p)
+        atomic_write(p, lambda f, text=text: f.write(text), text=True)
     return csv_path, json_path
 
 

@@ -13,7 +13,7 @@ import math
 
 import torch
 
-from sim._integrate_fast import _SFX, FastParams, FastState, _ptr, advance, default_substeps
+from sim._integrate_fast import FastParams, FastState, advance, default_substeps, encoder_args, plant_args
 from sim._kernel import load_kernel
 from sim.params import DriveConfig, TwoMassParams
 from sim.measurement import measure_speed
@@ -60,7 +60,7 @@ def replay_speed(params: TwoMassParams, drive: DriveConfig, start: torch.Tensor,
     out = torch.empty(n_samples, n, dtype=dtype)  # time-major: a block's lanes write side by side
     if lib is None:  # the torch eager twin, sample by sample
         starts = start.to(torch.int64)
-        scale = drive.encoder_counts / (2.0 * math.pi)
+        scale = drive.counts_per_rad
         for k in range(n_samples):
             if quantize:
                 out[k] = measure_speed(x, drive, dtype)
@@ -72,11 +72,7 @@ def replay_speed(params: TwoMassParams, drive: DriveConfig, start: torch.Tensor,
             x.M_ref = level.gather(-1, seg.unsqueeze(-1)).reshape(n).contiguous()
             advance(x, fp, use_kernel=False)
         return out.T  # n x N (a view)
-    getattr(lib, f"run_replay_{_SFX[dtype]}")(
-        n, fp.S, *fp.consts(), torch.get_num_threads(),
-        *(_ptr(t) for t in (fp.iJM, fp.iJL, fp.C_F, fp.D_F, fp.s, fp.M_FC, fp.mu_F, fp.M_ext,
-                            x.w_M, x.w_L, x.dphi, x.M_M, x.M_ref, x.phi, x.cnt_prev, x.comp)),
-        drive.q_w, drive.encoder_counts / (2.0 * math.pi), int(quantize), start.shape[1], _ptr(start), _ptr(level),
-        0, n_samples, _ptr(out))
+    lib.function("run_replay", dtype)(*plant_args(x, fp), *encoder_args(drive), int(quantize), start.shape[1],
+                                      start, level, 0, n_samples, out)
     return out.T  # n x N (a view)
 

@@ -2,8 +2,12 @@
 
 Domain-free: weights ``*batch x U x C``; components are named; an active mask picks those used
 for the best match (the others, e.g. physical parameters, are trained and read out).
+
+``CKernel`` / ``CFunction`` / ``CLibrary``: the project's one way to compile, cache and call a
+small C kernel with checked tensor arguments (used by the native online rule and by ``sim``).
 """
 
+from ._cbuild import CFunction, CKernel, CLibrary
 from ._checkpoint import (FORMAT_VERSION, CheckpointError, file_sha256, load_checkpoint, save_checkpoint,
                           verify_manifest, write_manifest)
 from ._files import atomic_write
@@ -27,4 +31,5 @@ __all__ = [
     "save_checkpoint", "load_checkpoint", "CheckpointError", "FORMAT_VERSION",
     "write_manifest", "verify_manifest", "file_sha256", "atomic_write",
     "log_scalars", "log_images", "log_config", "tensorboard_hook",
+    "CKernel", "CFunction", "CLibrary",
 ]

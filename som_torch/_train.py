@@ -161,8 +161,7 @@ def _online_native(w, d2grid, order, lr, sg, *, x, active, nb, refresh, kind):
     lr, sg = lr.to(dt).contiguous(), sg.to(dt).contiguous()  # N x B each
     dist, h = torch.empty(U, dtype=dt), torch.empty(U, dtype=dt)
     bmus = torch.empty(N, B, dtype=torch.long)
-    fn(B, U, C, N, wt.data_ptr(), xe.data_ptr(), None if vv is None else vv.data_ptr(), act.data_ptr(),
-       d2.data_ptr(), lr.data_ptr(), sg.data_ptr(), kind, dist.data_ptr(), h.data_ptr(), bmus.data_ptr())
+    fn(B, U, C, N, wt, xe, vv, act, d2, lr, sg, kind, dist, h, bmus)
     return wt.transpose(1, 2).contiguous()  # B x U x C
 
 

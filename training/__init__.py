@@ -19,6 +19,8 @@ from typing import Any
 
 _EXPORTS: dict[str, str] = {
     "Identifier": "training.identification",
+    "IdentificationResult": "training.identification",
+    "IdentificationFailure": "training.identification",
     "analyze": "training.identification",
     "fit_one_mass": "training.identification",
     "detect_sections": "training.identification",

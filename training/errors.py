@@ -1,4 +1,4 @@
-"""The toolkit's domain exceptions, in one module, and the one-line text of an error.
+"""The toolkit's domain exceptions and coded warnings, in one module, and the one-line text of an error.
 
 Each subclasses the builtin it refines, so ``except ValueError`` / ``except OSError`` keep working.
 The library raises them; only the command line (:mod:`training.cli`) turns them into a one-line
@@ -7,6 +7,10 @@ message and an exit code. Errors from :mod:`sim` (``RecordError``) and :mod:`som
 """
 
 from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import ClassVar
 
 
 class UserError(ValueError):
@@ -29,3 +33,18 @@ def one_line(err: BaseException) -> str:
     """The first line of ``err``'s message (its class name when it has none)."""
     lines = str(err).strip().splitlines()
     return lines[0] if lines else type(err).__name__
+
+
+@dataclass(frozen=True)
+class CodedWarning:
+    """A warning: a stable machine-readable ``code`` (a key of the subclass's :attr:`CODES`, which
+    says what each means) and a one-line ``text`` for people. Code decides on the code, never on
+    the text."""
+
+    CODES: ClassVar[Mapping[str, str]] = {}
+    code: str
+    text: str
+
+    def __post_init__(self) -> None:
+        if self.code not in self.CODES:
+            raise ValueError(f"{type(self).__name__}.code: expected one of {sorted(self.CODES)}, received {self.code!r}")

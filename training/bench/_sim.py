@@ -28,7 +28,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def _throughput(B: int, work: float, dtype: torch.dtype) -> tuple[float, int, int]:
     from sim import DriveConfig, TestSignalConfig, sample_population
-    from sim._integrate_fast import FastParams, FastState, TestState, default_substeps, new_test_buffers, run_test_chunk
+    from sim._integrate_fast import FastParams, FastState, SignalState, default_substeps, new_test_buffers, run_test_chunk
     from sim._kernel import load_kernel
 
     drive = DriveConfig()
@@ -41,7 +41,7 @@ def _throughput(B: int, work: float, dtype: torch.dtype) -> tuple[float, int, in
         raise OSError("the fused C kernel is unavailable (no C compiler); nothing to bench")
     nk = int(max(64, min(200_000, work / (B * S))))
     fp = FastParams.build(params, drive, S, dtype)
-    x, c = FastState.zeros(B, dtype), TestState.start(B)
+    x, c = FastState.zeros(B, dtype), SignalState.start(B)
     buf = new_test_buffers(B, nk, dtype)
     warm = min(nk, 32)
     run_test_chunk(lib, x, fp, c, drive, signal.levels(drive), signal.n_timeout(drive), signal.n_tail(drive), 0, warm, buf)

@@ -9,13 +9,11 @@ quality figures and warnings. ``--params`` replaces the plants; ``--seed`` the n
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import sys
 from pathlib import Path
 from typing import Any, TextIO
 
-from training.errors import UserError
 
 HELP = ("simulate two default plants, identify them with the shipped maps, print identified vs true "
         "(no arguments needed)")
@@ -43,27 +41,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "D_F), optional name")
     parser.add_argument("--checkpoints", type=Path, metavar="DIR",
                         help="maps folder (default: the shipped checkpoints/)")
-
-
-def _plants(text: str | None) -> list[tuple[str, dict[str, Any]]]:
-    if text is None:
-        return [(label, dict(p)) for label, p in DEFAULT_PLANTS]
-    src = "--params"
-    if not text.lstrip().startswith(("{", "[")):
-        try:
-            text, src = Path(text).read_text(), text
-        except OSError as err:
-            raise UserError(f"--params: expected JSON text or a JSON file, received {text!r} "
-                            f"({err.strerror})") from None
-    try:
-        data = json.loads(text)
-    except json.JSONDecodeError as err:
-        raise UserError(f"{src}: invalid JSON ({err.msg} at line {err.lineno} column {err.colno})") from None
-    rows = [data] if isinstance(data, dict) else data
-    if not isinstance(rows, list) or not rows or not all(isinstance(r, dict) for r in rows):
-        raise UserError(f"{src}: expected an object or a non-empty list of objects")
-    return [(str(r.get("name", f"plant {i + 1}")), {k: v for k, v in r.items() if k != "name"})
-            for i, r in enumerate(rows)]
 
 
 def _num(x: float | None) -> str:
@@ -107,23 +84,24 @@ def print_result(label: str, truth: dict[str, Any], res: Any, n_samples: int, T_
 def run(args: argparse.Namespace) -> int:
     from sim import DriveConfig, TestSignalConfig, TwoMassParams, responses_to_records, simulate_test
     from training.commands.identify import load_identifier
+    from training.params_file import read_params_file
 
-    plants = _plants(args.params)
-    try:
-        params = TwoMassParams.from_dicts([p for _, p in plants])
-    except (TypeError, ValueError) as err:
-        raise UserError(f"--params: {err}") from None
+    if args.params is None:
+        labels = [label for label, _ in DEFAULT_PLANTS]
+        params = TwoMassParams.from_dicts([dict(p) for _, p in DEFAULT_PLANTS])
+    else:
+        params, labels = read_params_file(args.params, name_prefix="plant")
     drive, signal = DriveConfig(), TestSignalConfig()
     ident = load_identifier(args.checkpoints)
     resp = simulate_test(params, drive, signal, seed=args.seed)
-    records = responses_to_records(resp, params, drive, signal, names=[f"demo{i}" for i in range(len(plants))])
+    records = responses_to_records(resp, params, drive, signal, names=[f"demo{i}" for i in range(len(labels))])
     results = ident.identify_records(records)
     out = sys.stdout
     print(f"twomass demo: reference drive (M_max {drive.M_max:g} Nm, K_M {drive.K_M:g} Nm/A, T_Ei "
           f"{drive.T_Ei * 1e3:g} ms, T_s {drive.T_s * 1e6:g} us, {round(math.log2(drive.encoder_counts))}-bit "
           f"encoder); test signal M* {signal.M_star:g} Nm, w_max {signal.w_max:g} rad/s; "
           "identified with the shipped maps", file=out)
-    for (label, _), rec, res in zip(plants, records, results):
+    for label, rec, res in zip(labels, records, results):
         print_result(label, rec.meta["truth"], res, len(rec), drive.T_s, out)
     failed = sum(not r.ok for r in results)
     return 1 if failed else 0

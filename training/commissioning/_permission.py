@@ -17,6 +17,8 @@ from collections.abc import Collection, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, ClassVar, Protocol
 
+from training.errors import CodedWarning
+
 from ._validation import ValidationResult
 
 __all__ = [
@@ -76,16 +78,10 @@ class IdentificationFailed:
 
 
 @dataclass(frozen=True)
-class CommissioningWarning:
-    """A warning of the commissioning itself: ``code`` (one of :attr:`CODES`) and a one-line ``text``."""
+class CommissioningWarning(CodedWarning):
+    """A warning of the commissioning itself (``code`` one of :data:`COMMISSIONING_WARNING_CODES`)."""
 
-    CODES: ClassVar[dict[str, str]] = COMMISSIONING_WARNING_CODES
-    code: str
-    text: str
-
-    def __post_init__(self) -> None:
-        if self.code not in self.CODES:
-            raise ValueError(f"CommissioningWarning.code: expected one of {sorted(self.CODES)}, received {self.code!r}")
+    CODES: ClassVar[Mapping[str, str]] = COMMISSIONING_WARNING_CODES
 
 
 @dataclass(frozen=True)

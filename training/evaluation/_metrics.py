@@ -12,14 +12,15 @@ from typing import Any
 
 import numpy as np
 
+from sim import R_OSC_VISIBLE, S_N_ELASTIC, S_N_STIFF_BACKLASH, W_E_T_EI_STIFF
+
 #: The parameters whose relative errors define the recognition rate ``E_x`` (paper section 4).
 RECOGNITION_PARAMS: tuple[str, ...] = ("f_e", "V_J", "J_sigma")
 
-#: Class thresholds of SPEC section 1: quantity -> thresholds on it. They are those of the class
-#: rule :func:`sim.class_index` (``w_e T_Ei < 1`` soft, ``r_osc >= 1`` visible, ``s_N`` against 0.1
-#: and 1), which keeps them as literals; ``tests/training/evaluation/test_metrics.py`` checks that
-#: the class changes at each of them.
-CLASS_THRESHOLDS: dict[str, tuple[float, ...]] = {"w_e_T_Ei": (1.0,), "s_N": (0.1, 1.0), "r_osc": (1.0,)}
+#: Class thresholds of SPEC section 1: quantity -> thresholds on it, those of the class rule
+#: :func:`sim.class_index`.
+CLASS_THRESHOLDS: dict[str, tuple[float, ...]] = {
+    "w_e_T_Ei": (W_E_T_EI_STIFF,), "s_N": (S_N_ELASTIC, S_N_STIFF_BACKLASH), "r_osc": (R_OSC_VISIBLE,)}
 
 
 def finite_or_none(x: Any) -> float | None:

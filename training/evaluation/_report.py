@@ -34,7 +34,6 @@ NO_MATPLOTLIB = "figures skipped: matplotlib is not installed (pip install 'twom
 
 def _write_text(path: Path, text: str) -> None:
     atomic_write(path, lambda f: f.write(text), text=True)
-    path.chmod(0o644)  # a report to share, not a private temporary file
 
 
 def _pct(x: float | None) -> str:

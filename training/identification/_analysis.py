@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from sim import DriveConfig, Record
+from sim import DriveConfig, Record, speed_quantum
 from training.errors import IdentificationError, one_line
 from training.identification._features import (EIG_NAMES, EXTRA_NAMES, STRUCT_NAMES, eigenfrequency_features,
                                                extra_features, structure_features)
@@ -60,7 +60,7 @@ class Analysis:
     @property
     def q_w(self) -> float:
         """Speed quantum ``2 pi / (encoder_counts T_s)`` [rad/s]."""
-        return 2.0 * math.pi / (self.encoder_counts * self.T_s)
+        return speed_quantum(self.encoder_counts, self.T_s)
 
     def feature(self, name: str) -> float:
         return float(self.features[FEATURE_NAMES.index(name)])
@@ -94,7 +94,7 @@ def _analyze(record: Record) -> Analysis:
     extra = extra_features(w_osc, T_s, split.bounds, J_sigma=fit.J_sigma, torque_steps=steps,
                            speed_span=float(np.ptp(record.speed)), structure=struct)
     counts = record.encoder_counts or REFERENCE_DRIVE.encoder_counts
-    q_w = 2.0 * math.pi / (counts * T_s)
+    q_w = speed_quantum(counts, T_s)
     sel = np.concatenate([w_osc[a:b] for a, b in split.bounds.tolist()])
     osc_quanta = float(np.sqrt(np.mean(sel * sel))) / q_w if sel.size else 0.0
     log10_f_peak = extra[EXTRA_NAMES.index("log10_f_peak")]

@@ -31,7 +31,7 @@ from typing import Any
 
 import numpy as np
 
-from sim import Record
+from sim import Record, speed_quantum
 
 __all__ = ["check_record", "T_S_MAX", "T_EI_MAX", "T_S_OVER_T_EI_MAX", "TORQUE_RATIO", "SPEED_RATIO", "J_RANGE"]
 
@@ -148,7 +148,7 @@ def _check_speed_quantum(speed: np.ndarray, T_s: float, meta: dict[str, Any]) ->
     x = speed[speed != 0]
     if x.size < 32:
         return
-    q_w = 2.0 * math.pi / (float(counts) * T_s)
+    q_w = speed_quantum(float(counts), T_s)
     if _on_grid(x, q_w) >= 0.9:
         return  # quantized in rad/s, or not quantized at all (filtered speed): nothing to say
     for unit, factor in _speed_units(meta, T_s).items():

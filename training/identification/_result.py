@@ -7,23 +7,14 @@ key on :attr:`IdentWarning.code`, never on the text.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass, fields
-from typing import Any
+from typing import Any, ClassVar
+
+from training.errors import CodedWarning
 
 #: The parameters of SPEC section 9, in output order (SI units; ``backlash`` = total width ``2s``).
 PARAMETER_NAMES: tuple[str, ...] = ("J_sigma", "V_J", "J_M", "J_L", "f_e", "C_F", "d", "backlash", "M_FC", "mu_F")
-
-
-@dataclass(frozen=True)
-class IdentWarning:
-    """One warning: a stable machine-readable ``code`` (see :data:`WARNING_CODES`) and a one-line ``text``."""
-
-    code: str
-    text: str
-
-    def __post_init__(self) -> None:
-        if self.code not in WARNING_CODES:
-            raise ValueError(f"IdentWarning.code: expected one of {sorted(WARNING_CODES)}, received {self.code!r}")
 
 
 #: Every warning code the identification emits, with what it means.
@@ -35,6 +26,13 @@ WARNING_CODES: dict[str, str] = {
     "one_mass_fit_residual": "STEP 2's one-mass fit leaves a residual above 5 % of the speed: not one mass",
     "one_mass_fit_short_sections": "a test section holds fewer than two periods of the oscillation (STEP 2 unsure)",
 }
+
+
+@dataclass(frozen=True)
+class IdentWarning(CodedWarning):
+    """A warning of the identification (``code`` one of :data:`WARNING_CODES`)."""
+
+    CODES: ClassVar[Mapping[str, str]] = WARNING_CODES
 
 
 @dataclass(frozen=True)

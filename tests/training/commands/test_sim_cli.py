@@ -2,6 +2,8 @@
 
 import json
 
+import pytest
+
 from sim import read_record
 from training.cli import main
 
@@ -48,3 +50,21 @@ def test_bench_sim_small(capsys):
     assert "system-substeps/s" in out and "solve_ivp" in out and "records for 4" in out
 
 
+
+
+def test_params_column_wise_and_text(tmp_path):
+    """Column-wise JSON (``DataFrame.to_json(orient="list")``) and JSON text are read like rows."""
+    from training.errors import UserError
+    from training.params_file import read_params_file
+
+    cols = {"J_sigma": [0.05, 0.1], "V_J": [1.0, 2.0], "f_e": [30.0, 60.0], "name": ["a", "b"]}
+    path = tmp_path / "cols.json"
+    path.write_text(json.dumps(cols))
+    params, names = read_params_file(path)
+    assert names == ["a", "b"] and params.V_J.tolist() == [1.0, 2.0]
+    params, names = read_params_file('[{"J_sigma": 0.05, "V_J": 1, "f_e": 30}]', name_prefix="plant")
+    assert names == ["plant00000"] and params.f_e.tolist() == [30.0]
+    path.write_text(json.dumps({"J_sigma": [0.05, 0.1], "V_J": [1.0], "f_e": [30.0, 60.0]}))
+    with pytest.raises(UserError, match="one length"):
+        read_params_file(path)
+    assert main(["simulate", "--params", str(path), "--out", str(tmp_path / "o")]) == 2

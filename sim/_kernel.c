@@ -1,7 +1,10 @@
-/* Fused fixed-step two-mass kernel (see sim/_integrate_fast.py for the torch twin).
-   REAL and SFX are substituted by the loader (float/_f32, double/_f64).
-   Every floating-point operation is written in the same order as the torch eager twin,
-   compiled with -ffp-contract=off, so both give the same numbers. */
+/* Fused fixed-step two-mass kernel (see sim/_integrate_fast.py for the torch twin; the
+   signatures are declared in sim/_kernel.py). Compiled once per float type: -DREAL=float or
+   -DREAL=double. Every floating-point operation is written in the same order as the torch eager
+   twin, compiled with -ffp-contract=off, so both give the same numbers. */
+#ifndef REAL
+#error "compile with -DREAL=float or -DREAL=double"
+#endif
 #include <math.h>
 #include <stdint.h>
 
@@ -102,10 +105,10 @@ static inline void store_block(const block_t *B, int64_t i0, int m, REAL *wM, RE
 }
 
 /* One sample for n systems: S substeps with the applied Mref; phi accumulates the angle. */
-void advance_SFX(int64_t n, int S, REAL dt, REAL h, REAL k6, REAL iTE, int nthreads,
-                 const REAL *iJM, const REAL *iJL, const REAL *CF, const REAL *DF, const REAL *s,
-                 const REAL *MFC, const REAL *muF, const REAL *Mext,
-                 REAL *wM, REAL *wL, REAL *dp, REAL *MM, REAL *Mref, double *phi, double *cntp, REAL *comp) {
+void advance(int64_t n, int S, REAL dt, REAL h, REAL k6, REAL iTE, int nthreads,
+             const REAL *iJM, const REAL *iJL, const REAL *CF, const REAL *DF, const REAL *s,
+             const REAL *MFC, const REAL *muF, const REAL *Mext,
+             REAL *wM, REAL *wL, REAL *dp, REAL *MM, REAL *Mref, double *phi, double *cntp, REAL *comp) {
     int64_t nb = (n + BLK - 1) / BLK;
 #pragma omp parallel for schedule(static) num_threads(nthreads)
     for (int64_t b = 0; b < nb; ++b) {
@@ -120,14 +123,14 @@ void advance_SFX(int64_t n, int S, REAL dt, REAL h, REAL k6, REAL iTE, int nthre
    measure, record, controller step, advance. Controller state per system: sec (1..6, 7 tail,
    8 done), cnt (samples in section), nI, nIV, len (record length once done), tmo (bit per
    section that timed out). Returns the number of systems not yet done. */
-int64_t run_test_SFX(int64_t n, int S, REAL dt, REAL h, REAL k6, REAL iTE, int nthreads,
-                     const REAL *iJM, const REAL *iJL, const REAL *CF, const REAL *DF, const REAL *s,
-                     const REAL *MFC, const REAL *muF, const REAL *Mext,
-                     REAL *wM, REAL *wL, REAL *dp, REAL *MM, REAL *Mref, double *phi, double *cntp, REAL *comp,
-                     int32_t *sec, int32_t *cnt, int32_t *nI, int32_t *nIV, int32_t *len, int32_t *tmo,
-                     double qw, double scale, REAL Mstar, REAL Mlow, REAL wmax, REAL wlow, REAL Mmax,
-                     int32_t n_timeout, int32_t n_tail, int64_t k0, int64_t nk, int64_t ostride, int64_t ocol0,
-                     REAL *o_speed, REAL *o_torque, REAL *o_tref, int8_t *o_sec) {
+int64_t run_test(int64_t n, int S, REAL dt, REAL h, REAL k6, REAL iTE, int nthreads,
+                 const REAL *iJM, const REAL *iJL, const REAL *CF, const REAL *DF, const REAL *s,
+                 const REAL *MFC, const REAL *muF, const REAL *Mext,
+                 REAL *wM, REAL *wL, REAL *dp, REAL *MM, REAL *Mref, double *phi, double *cntp, REAL *comp,
+                 int32_t *sec, int32_t *cnt, int32_t *nI, int32_t *nIV, int32_t *len, int32_t *tmo,
+                 double qw, double scale, REAL Mstar, REAL Mlow, REAL wmax, REAL wlow, REAL Mmax,
+                 int32_t n_timeout, int32_t n_tail, int64_t k0, int64_t nk, int64_t ostride, int64_t ocol0,
+                 REAL *o_speed, REAL *o_torque, REAL *o_tref, int8_t *o_sec) {
     int64_t nb = (n + BLK - 1) / BLK;
     int64_t left = 0;
 #pragma omp parallel for schedule(dynamic, 1) num_threads(nthreads) reduction(+:left)
@@ -201,12 +204,12 @@ int64_t run_test_SFX(int64_t n, int S, REAL dt, REAL h, REAL k6, REAL iTE, int n
    Writes the speed of samples k0 .. k0+nk-1 time-major to o_speed[(k - k0)*n + i]: the encoder's
    (quantized) when quantize is set, else the mean motor speed over the past sample interval
    (the expected value of the encoder's, for fits). */
-void run_replay_SFX(int64_t n, int S, REAL dt, REAL h, REAL k6, REAL iTE, int nthreads,
-                    const REAL *iJM, const REAL *iJL, const REAL *CF, const REAL *DF, const REAL *s,
-                    const REAL *MFC, const REAL *muF, const REAL *Mext,
-                    REAL *wM, REAL *wL, REAL *dp, REAL *MM, REAL *Mref, double *phi, double *cntp, REAL *comp,
-                    double qw, double scale, int32_t quantize, int32_t K, const int32_t *start, const REAL *lev,
-                    int64_t k0, int64_t nk, REAL *o_speed) {
+void run_replay(int64_t n, int S, REAL dt, REAL h, REAL k6, REAL iTE, int nthreads,
+                const REAL *iJM, const REAL *iJL, const REAL *CF, const REAL *DF, const REAL *s,
+                const REAL *MFC, const REAL *muF, const REAL *Mext,
+                REAL *wM, REAL *wL, REAL *dp, REAL *MM, REAL *Mref, double *phi, double *cntp, REAL *comp,
+                double qw, double scale, int32_t quantize, int32_t K, const int32_t *start, const REAL *lev,
+                int64_t k0, int64_t nk, REAL *o_speed) {
     int64_t nb = (n + BLK - 1) / BLK;
 #pragma omp parallel for schedule(dynamic, 1) num_threads(nthreads)
     for (int64_t b = 0; b < nb; ++b) {
