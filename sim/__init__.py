@@ -5,9 +5,10 @@ from sim.params import (DERIVED_NAMES, PARAM_NAMES, R_OSC_VISIBLE, S_N_ELASTIC, 
                         W_E_T_EI_STIFF, DriveConfig, TwoMassDerived, TwoMassParams, class_index, speed_quantum, structure_class,
                         two_mass_derived)
 from sim.plant import Controller, Plant, Response, SimulatedPlant, simulate, simulate_test
-from sim.population import PopulationRanges, sample_population
+from sim.population import EnvelopeRanges, EnvelopeSample, PopulationRanges, sample_envelope, sample_population
 from sim.records import Record, RecordError, iter_records, read_record, responses_to_records, write_record
 from sim.replay import replay_speed
+from sim._drive import Drive, DriveLimits, Scenario, SimulatedDrive, SpeedLaw, limit_violation
 from sim._signal import SECTION_LEVELS, SECTION_NAMES, SPEED_RETURN, SwitchingController, TestSignalConfig
 
 __all__ = [
@@ -17,4 +18,6 @@ __all__ = [
     "RecordError", "Response", "SimulatedPlant", "SwitchingController", "TestSignalConfig", "TwoMassParams",
     "encoder_count", "iter_records", "read_record", "replay_speed", "responses_to_records", "sample_population", "simulate",
     "simulate_test", "speed_from_angle", "structure_class", "write_record",
+    "Drive", "DriveLimits", "Scenario", "SimulatedDrive", "SpeedLaw", "limit_violation",
+    "EnvelopeRanges", "EnvelopeSample", "sample_envelope",
 ]

@@ -7,11 +7,17 @@
     The folder of the compiled kernel; default ``~/.cache/twomass-som``.
 ``CC``
     The C compiler (a name on ``PATH`` or a path); default ``cc``, else ``gcc``.
+``TWOMASS_SIM_THREADS``
+    Threads of the fused C kernel (a positive integer); default ``OMP_NUM_THREADS`` where set
+    (the pool workers of ``training`` set it to 1), else every CPU this process may run on. Not
+    torch's thread count: a process that limits BLAS (``MKL_NUM_THREADS=1``, as the ``twomass``
+    command does) makes torch report one thread.
 """
 
 from __future__ import annotations
 
 import os
+from functools import lru_cache
 from pathlib import Path
 
 
@@ -28,3 +34,21 @@ def cache_dir() -> Path:
 def compiler() -> str | None:
     """``$CC``, or None (the default compiler)."""
     return os.environ.get("CC") or None
+
+
+@lru_cache(maxsize=1)
+def _usable_cpus() -> int:
+    """The CPUs this process may run on (its affinity mask where the OS has one)."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+
+
+def kernel_threads() -> int:
+    """``$TWOMASS_SIM_THREADS``, else the first value of ``$OMP_NUM_THREADS``, else the usable CPUs."""
+    for var in ("TWOMASS_SIM_THREADS", "OMP_NUM_THREADS"):
+        text = os.environ.get(var, "").split(",")[0].strip()
+        if not text:
+            continue
+        if not text.isdigit() or int(text) < 1:
+            raise ValueError(f"{var}: expected a positive integer, received {os.environ[var]!r}")
+        return int(text)
+    return _usable_cpus()

@@ -23,6 +23,7 @@ import torch
 
 from som_torch import CLibrary
 
+from sim import _config
 from sim._kernel import load_kernel
 from sim.params import DriveConfig, TwoMassParams
 
@@ -153,9 +154,21 @@ def advance_eager(x: FastState, p: FastParams) -> None:
     x.phi = x.phi + inc.to(torch.float64)
 
 
+#: Systems per block of the C kernel (``BLK`` in ``_kernel.c``): a block is one thread's unit of work.
+KERNEL_BLOCK = 32
+
+
+def kernel_threads(n: int) -> int:
+    """Threads for ``n`` systems: the kernel's thread setting (:func:`sim._config.kernel_threads`:
+    every usable CPU unless limited), but no more than there are blocks (waking idle threads for
+    one system costs ~10x on a busy machine)."""
+    return max(1, min(_config.kernel_threads(), -(-n // KERNEL_BLOCK)))
+
+
 def plant_args(x: FastState, p: FastParams) -> tuple:
     """The kernel functions' first arguments: ``n``, the step constants, the coefficients, the state."""
-    return (x.w_M.numel(), p.S, *p.consts(), torch.get_num_threads(),
+    n = x.w_M.numel()
+    return (n, p.S, *p.consts(), kernel_threads(n),
             p.iJM, p.iJL, p.C_F, p.D_F, p.s, p.M_FC, p.mu_F, p.M_ext,
             x.w_M, x.w_L, x.dphi, x.M_M, x.M_ref, x.phi, x.cnt_prev, x.comp)
 

@@ -1,10 +1,11 @@
 """The fused C kernel of the fixed-step path (``_kernel.c``): its signature table and its loader.
 
-Compiled once per float type with the system C compiler into a cache folder (``$TWOMASS_CACHE``,
-see :mod:`sim._config`; about one second) and loaded with ctypes by
-:class:`som_torch.CKernel`, which also checks every call's tensors against :data:`KERNEL`'s
-table. When the kernel cannot be built, :func:`load_kernel` returns ``None`` (after one warning)
-and the simulator uses its torch eager twin (same arithmetic, slower).
+Compiled per float type when the package is built or installed (``setup.py``, portable flags,
+see :mod:`som_torch._prebuilt`); in a checkout without those libraries, on first use with the
+system C compiler into a cache folder (``$TWOMASS_CACHE``, see :mod:`sim._config`; about one
+second). Loaded with ctypes by :class:`som_torch.CKernel`, which also checks every call's tensors
+against :data:`KERNEL`'s table. When the kernel cannot be loaded, :func:`load_kernel` returns
+``None`` (after one warning) and the simulator uses its torch eager twin (same arithmetic, slower).
 """
 
 from __future__ import annotations
@@ -24,9 +25,15 @@ _PLANT = ("n: int64", "S: int", "dt: REAL", "h: REAL", "k6: REAL", "iTE: REAL", 
 #: The measurement constants: speed quantum and counts per radian.
 _ENCODER = ("qw: double", "scale: double")
 
+#: Build facts as plain literals (``setup.py`` reads them without importing torch). ``-ffp-contract=off``
+#: keeps the arithmetic of the torch twin (no fused multiply-add), on every CPU and variant.
+NAME, SOURCE = "twomass_kernel", "_kernel.c"
+FLAGS = ("-O3", "-march=native", "-fopenmp", "-ffp-contract=off", "-fno-trapping-math", "-std=c99")
+LINK_FLAGS = ("-fopenmp", "-lm")
+
 KERNEL = CKernel(
-    name="twomass_kernel",
-    source=Path(__file__).with_name("_kernel.c"),
+    name=NAME,
+    source=Path(__file__).with_name(SOURCE),
     functions={
         "advance": CFunction(_PLANT),
         "run_test": CFunction((
@@ -39,8 +46,8 @@ KERNEL = CKernel(
             *_PLANT, *_ENCODER, "quantize: int32", "K: int32", "start: int32[n, K]", "lev: REAL[n, K]",
             "k0: int64", "nk: int64", "o_speed: REAL[nk, n]")),
     },
-    flags=("-O3", "-march=native", "-fopenmp", "-ffp-contract=off", "-fno-trapping-math", "-std=c99"),
-    link_flags=("-fopenmp", "-lm"),
+    flags=FLAGS,
+    link_flags=LINK_FLAGS,
 )
 
 

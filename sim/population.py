@@ -1,4 +1,5 @@
-"""Seeded population sampler with the SPEC section 1 default ranges (all overridable)."""
+"""Seeded population samplers: the SPEC section 1 default ranges on one drive (all overridable), and
+SPEC 3.1's envelope of drives and test runs (:func:`sample_envelope`)."""
 
 from __future__ import annotations
 
@@ -7,7 +8,8 @@ from dataclasses import dataclass, fields
 
 import torch
 
-from sim.params import TwoMassParams
+from sim._signal import TestSignalConfig
+from sim.params import DriveConfig, TwoMassParams
 
 
 @dataclass(frozen=True)
@@ -60,3 +62,102 @@ def sample_population(n: int, seed: int, ranges: PopulationRanges | None = None)
         M_FC=r.M_FC[0] + u[6] * (r.M_FC[1] - r.M_FC[0]),
         mu_F=r.mu_F[0] + u[7] * (r.mu_F[1] - r.mu_F[0]),
     )
+
+
+@dataclass(frozen=True)
+class EnvelopeRanges:
+    """Sampling ranges over SPEC 3.1's drive envelope: drives, test runs and mechanics together.
+
+    Systems come in *cells* of :attr:`cell` systems that share one drive and one test run (the
+    simulator runs one drive per batch); each cell draws its drive and test, each system its
+    mechanics. Log-uniform: ``T_s``, ``T_Ei``, ``M_N``, ``M_star_over_M_max``, ``w_max``,
+    ``time_scale``, ``current_noise``, ``V_J``, ``f_e``, ``backlash_deg``; uniform: the rest;
+    ``encoder_bits`` uniform integers (counts ``2**bits``). The test's ``M*`` is a share of the
+    drive's ``M_max`` (the commissioning chain adapts it, section 8), ``w_max`` is free; the inertia
+    follows from the test's time scale ``J_sigma w_max / M*``, friction from ``M*`` and ``w_max``
+    (``M_FC`` and ``mu_F w_max`` as shares of ``M*``), the measured current's noise std as a share
+    of ``M*/K_M``. Backlash is a physical angle (a gearbox's play does not scale with its motor).
+    """
+
+    T_s: tuple[float, float] = (62.5e-6, 1e-3)  # [s]
+    encoder_bits: tuple[int, int] = (12, 24)
+    T_Ei: tuple[float, float] = (1e-4, 2e-3)  # [s]
+    M_N: tuple[float, float] = (0.1, 1000.0)  # [Nm]
+    M_max_over_M_N: tuple[float, float] = (1.5, 4.0)
+    M_star_over_M_max: tuple[float, float] = (0.1, 1.0)
+    w_max: tuple[float, float] = (5.0, 1000.0)  # [rad/s]
+    time_scale: tuple[float, float] = (0.02, 5.0)  # J_sigma w_max / M* [s]
+    current_noise: tuple[float, float] = (5e-4, 0.05)  # std over M*/K_M
+    V_J: tuple[float, float] = (0.2, 5.0)
+    f_e: tuple[float, float] = (5.0, 500.0)  # [Hz]
+    d: tuple[float, float] = (0.005, 0.1)
+    backlash_deg: tuple[float, float] = (0.01, 1.5)  # total width 2s [degree]
+    backlash_zero_share: float = 0.3
+    M_FC: tuple[float, float] = (0.0, 0.05)  # over M*
+    mu_F: tuple[float, float] = (0.0, 0.05)  # mu_F w_max over M*
+    cell: int = 8  # systems per drive and test run
+
+    def __post_init__(self) -> None:
+        for f in fields(self):
+            v = getattr(self, f.name)
+            if f.name == "backlash_zero_share":
+                if not (0.0 <= v <= 1.0):
+                    raise ValueError(f"EnvelopeRanges.backlash_zero_share: expected 0..1, received {v}")
+            elif f.name == "cell":
+                if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+                    raise ValueError(f"EnvelopeRanges.cell: expected an int >= 1, received {v!r}")
+            elif len(v) != 2 or not (0 <= v[0] <= v[1]):
+                raise ValueError(f"EnvelopeRanges.{f.name}: expected (low, high) with 0 <= low <= high, received {v}")
+            elif f.name not in ("d", "M_FC", "mu_F", "encoder_bits") and v[0] <= 0:
+                raise ValueError(f"EnvelopeRanges.{f.name}: log-uniform range needs low > 0, received {v}")
+
+
+@dataclass(frozen=True)
+class EnvelopeSample:
+    """``params`` (batch ``(n,)``), and per system the index into ``cases`` of its drive and test
+    run (``cell``, ``(n,)`` ints): ``cases[k] = (DriveConfig, TestSignalConfig)``."""
+
+    params: TwoMassParams
+    cell: torch.Tensor
+    cases: tuple[tuple[DriveConfig, TestSignalConfig], ...]
+
+
+def sample_envelope(n: int, seed: int, ranges: EnvelopeRanges | None = None) -> EnvelopeSample:
+    """``n`` systems on drives and test runs drawn over SPEC 3.1's envelope (:class:`EnvelopeRanges`),
+    with a private generator seeded by ``seed`` (a stream of its own: :func:`sample_population`'s
+    draws for the same seed are unchanged)."""
+    if isinstance(n, bool) or not isinstance(n, int) or n < 1:
+        raise ValueError(f"sample_envelope: expected n >= 1 (int), received {n!r}")
+    if isinstance(seed, bool) or not isinstance(seed, int):
+        raise TypeError(f"sample_envelope: expected an int seed, received {seed!r}")
+    r = ranges or EnvelopeRanges()
+    g = torch.Generator().manual_seed(seed)
+    n_cells = -(-n // r.cell)
+    c = torch.rand(9, n_cells, generator=g, dtype=torch.float64)
+    u = torch.rand(9, n, generator=g, dtype=torch.float64)
+    lin = lambda x, rng: rng[0] + x * (rng[1] - rng[0])  # noqa: E731
+    cases = []
+    for k in range(n_cells):
+        M_N = float(_log_uniform(c[0, k], *r.M_N))
+        M_max = M_N * float(lin(c[1, k], r.M_max_over_M_N))
+        M_star = M_max * float(_log_uniform(c[2, k], *r.M_star_over_M_max))
+        bits = int(math.floor(lin(float(c[3, k]), (r.encoder_bits[0], r.encoder_bits[1] + 1))))
+        drive = DriveConfig(M_max=M_max, M_N=M_N, K_M=1.0, T_Ei=float(_log_uniform(c[4, k], *r.T_Ei)),
+                            T_s=float(_log_uniform(c[5, k], *r.T_s)), encoder_counts=2 ** min(bits, r.encoder_bits[1]),
+                            current_noise_std=M_star * float(_log_uniform(c[6, k], *r.current_noise)))
+        cases.append((drive, TestSignalConfig(M_star=M_star, w_max=float(_log_uniform(c[7, k], *r.w_max)))))
+    cell = torch.arange(n) // r.cell
+    M_star = torch.tensor([s.M_star for _, s in cases], dtype=torch.float64)[cell]
+    w_max = torch.tensor([s.w_max for _, s in cases], dtype=torch.float64)[cell]
+    backlash = torch.deg2rad(_log_uniform(u[4], *r.backlash_deg))
+    backlash = torch.where(u[5] < r.backlash_zero_share, torch.zeros_like(backlash), backlash)
+    params = TwoMassParams(
+        J_sigma=_log_uniform(u[0], *r.time_scale) * M_star / w_max,
+        V_J=_log_uniform(u[1], *r.V_J),
+        f_e=_log_uniform(u[2], *r.f_e),
+        d=lin(u[3], r.d),
+        backlash=backlash,
+        M_FC=lin(u[6], r.M_FC) * M_star,
+        mu_F=lin(u[7], r.mu_F) * M_star / w_max,
+    )
+    return EnvelopeSample(params, cell, tuple(cases))

@@ -4,7 +4,7 @@ CSV header: ``t, speed`` and ``current`` or ``torque``; optional ``torque_ref``,
 A header cell may carry its unit as ``name [unit]``; it must then be the SI unit of the column.
 JSON keys: ``K_M`` (required when only ``current`` is given), ``T_Ei`` (required), optional
 ``T_s`` (else from ``t``; must agree with it), ``encoder_counts``, ``M_star``, ``w_max``,
-``M_max``, ``M_N``, ``current_noise_std``, ``timed_out``, ``units``, ``format``, ``notes``,
+``M_max``, ``M_N``, ``current_noise_std``, ``timed_out``, ``aborted``, ``units``, ``format``, ``notes``,
 ``truth`` (simulated records: the true parameters, derived values and the class name).
 Every problem raises :class:`RecordError` with a one-line message naming the file.
 """
@@ -32,7 +32,7 @@ FORMAT = "twomass-record/1"
 UNITS: dict[str, str] = {"t": "s", "speed": "rad/s", "current": "A", "torque": "Nm", "torque_ref": "Nm", "section": "1"}
 COLUMNS: tuple[str, ...] = ("t", "speed", "current", "torque", "torque_ref", "section")
 META_KEYS: frozenset[str] = frozenset({"K_M", "T_Ei", "T_s", "encoder_counts", "M_star", "w_max", "M_max", "M_N",
-                                       "current_noise_std", "timed_out", "units", "format", "notes", "truth"})
+                                       "current_noise_std", "timed_out", "aborted", "units", "format", "notes", "truth"})
 _POSITIVE_META = ("K_M", "T_Ei", "T_s", "encoder_counts", "M_star", "w_max", "M_max", "M_N")
 MIN_SAMPLES = 32
 UNIFORM_TOL = 0.01  # largest deviation from the uniform time grid [samples]
@@ -123,7 +123,7 @@ def _validate(rec: Record, where: Path | str) -> Record:
     dt = np.diff(rec.t)
     if (dt <= 0).any():
         i = int(np.argmax(dt <= 0))
-        raise _err(where, f"time is not increasing at row {i + 2} (t={rec.t[i + 1]!r} after {rec.t[i]!r})")
+        raise _err(where, f"time is not increasing at row {i + 2} (t={float(rec.t[i + 1]):.9g} s after {float(rec.t[i]):.9g} s)")
     T_s_t = float((rec.t[-1] - rec.t[0]) / (n - 1))
     dev = np.abs(rec.t - (rec.t[0] + np.arange(n) * T_s_t))  # against the ideal uniform grid
     if dev.max() > UNIFORM_TOL * T_s_t:
@@ -145,6 +145,8 @@ def _validate(rec: Record, where: Path | str) -> Record:
                 raise _err(where, f"metadata '{k}': expected a finite number > 0, received {v!r}")
     if "encoder_counts" in meta and int(meta["encoder_counts"]) != meta["encoder_counts"]:
         raise _err(where, f"metadata 'encoder_counts': expected an integer, received {meta['encoder_counts']!r}")
+    if "aborted" in meta and not isinstance(meta["aborted"], bool):
+        raise _err(where, f"metadata 'aborted': expected true or false, received {meta['aborted']!r}")
     if "T_Ei" not in meta:
         raise _err(where, "metadata 'T_Ei' (current-loop time constant) is missing")
     if rec.torque is None and "K_M" not in meta:
@@ -304,25 +306,27 @@ def iter_records(params: TwoMassParams, drive: DriveConfig | None = None, signal
     for g0 in range(0, len(order), group):
         idx = order[g0:g0 + group]
         sub = flat[torch.tensor(idx)]
-        if lib is None:
-            resp = simulate_test(sub, drive, signal, seed=seed + g0, dtype=dtype, substeps=S, use_kernel=False)
-            yield from responses_to_records(resp, sub, drive, signal, names=[f"sys{i:05d}" for i in idx])
+        if lib is None:  # the torch twin; the noise below is drawn alike on both paths
+            resp = simulate_test(sub, drive, signal, dtype=dtype, substeps=S, use_kernel=False)
+            buf = {k: getattr(resp, k) for k in ("speed", "torque", "torque_ref", "section")}
+            length, timed_out = resp.length, resp.timed_out
         else:
             buf, length, tmo = run_test_group(lib, sub, drive, signal, S, dtype)
-            truths = sub.truth(drive, signal.M_star)
-            L = length.tolist()
-            t_all = np.arange(int(length.max()), dtype=np.float64) * drive.T_s
-            b = {k: v.numpy() for k, v in buf.items()}
-            for j, i in enumerate(idx):
-                m = L[j]
-                meta = _base_meta(drive, signal)
-                meta["timed_out"] = [bool((int(tmo[j]) >> q) & 1) for q in range(6)]
-                meta["truth"] = truths[j]
-                noise = np.random.default_rng(seed + i).standard_normal(m, dtype=np.float32)
-                current = b["torque"][j, :m].astype(np.float64) / drive.K_M + drive.current_noise_std * noise.astype(np.float64)
-                yield Record(t=t_all[:m].copy(), speed=b["speed"][j, :m].astype(np.float64), current=current,
-                             torque_ref=b["torque_ref"][j, :m].astype(np.float64),
-                             section=b["section"][j, :m].astype(np.int64), meta=meta, name=f"sys{i:05d}")
+            timed_out = ((tmo.unsqueeze(-1) >> torch.arange(6, dtype=torch.int32)) & 1).bool()
+        truths = sub.truth(drive, signal.M_star)
+        L = length.tolist()
+        t_all = np.arange(int(length.max()), dtype=np.float64) * drive.T_s
+        b = {k: v.numpy() for k, v in buf.items()}
+        for j, i in enumerate(idx):
+            m = L[j]
+            meta = _base_meta(drive, signal)
+            meta["timed_out"] = timed_out[j].tolist()
+            meta["truth"] = truths[j]
+            noise = np.random.default_rng(seed + i).standard_normal(m, dtype=np.float32)
+            current = b["torque"][j, :m].astype(np.float64) / drive.K_M + drive.current_noise_std * noise.astype(np.float64)
+            yield Record(t=t_all[:m].copy(), speed=b["speed"][j, :m].astype(np.float64), current=current,
+                         torque_ref=b["torque_ref"][j, :m].astype(np.float64),
+                         section=b["section"][j, :m].astype(np.int64), meta=meta, name=f"sys{i:05d}")
         if progress is not None:
             progress(len(idx))
 

@@ -8,9 +8,13 @@ integrator):
   names in both; the tensors' dtype picks the library);
 * each exported function's signature is declared once, in a :class:`CFunction` table; every
   call is checked against it (dtype, shape, contiguity of each tensor) before C sees a pointer;
-* the libraries are cached in a folder that must be owned by the current user and not writable
-  by group or others (a library loaded from it runs in this process); the cache key covers the
-  source, flags, compiler, platform and, with ``-march=native``, the CPU's flags;
+* libraries prebuilt when the package was built or installed (``setup.py``, portable flags,
+  :mod:`som_torch._prebuilt`) lie beside the ``.c`` file and are loaded first: no compiler, no
+  warning at run time. Only where none fits (a source checkout, a changed ``.c``) is the kernel
+  compiled on first use with its own flags (``-march=native`` allowed) into a cache folder that
+  must be owned by the current user and not writable by group or others (a library loaded from it
+  runs in this process); the cache key covers the source, flags, compiler, platform and, with
+  ``-march=native``, the CPU's flags;
 * whatever fails (no compiler, a build error, an unsafe folder) gives one warning line and
   ``None``: the caller falls back to its torch path.
 """
@@ -33,6 +37,8 @@ from pathlib import Path
 from typing import Any
 
 import torch
+
+from . import _prebuilt
 
 #: The C type of ``REAL`` for each supported tensor dtype.
 REALS: dict[torch.dtype, str] = {torch.float32: "float", torch.float64: "double"}
@@ -149,22 +155,20 @@ class CLibrary:
 def cpu_id(cpuinfo: str | None = None) -> str:
     """What ``-march=native`` code depends on: a hash of the ``flags`` line of ``/proc/cpuinfo``
     (``cpuinfo`` its text, read when None), else ``platform.machine() + platform.processor()``."""
-    if cpuinfo is None:
-        try:
-            cpuinfo = Path("/proc/cpuinfo").read_text()
-        except OSError:
-            cpuinfo = ""
-    flags = next((ln for ln in cpuinfo.splitlines() if ln.startswith("flags")), None)
-    if flags is None:
+    flags = _prebuilt.cpu_flags(cpuinfo)
+    if not flags:
         return platform.machine() + platform.processor()
-    return hashlib.sha256(flags.split(":", 1)[-1].strip().encode()).hexdigest()[:16]
+    return hashlib.sha256(" ".join(sorted(flags)).encode()).hexdigest()[:16]
 
 
-def _unsafe(path: Path) -> str | None:
-    """Why a library at ``path`` must not be loaded (not ours, or writable by group/others), or None."""
+def _unsafe(path: Path, owner: int | None = None) -> str | None:
+    """Why a library at ``path`` must not be loaded (not owned by ``owner``, default this user, or
+    writable by group/others), or None."""
     st = path.stat()
-    if hasattr(os, "getuid") and st.st_uid != os.getuid():
-        return f"{path} is owned by uid {st.st_uid}, not by this user"
+    if owner is None and hasattr(os, "getuid"):
+        owner = os.getuid()
+    if owner is not None and st.st_uid != owner:
+        return f"{path} is owned by uid {st.st_uid}, expected uid {owner}"
     if st.st_mode & 0o022:
         return f"{path} is writable by group/others (mode {oct(st.st_mode & 0o777)})"
     return None
@@ -199,15 +203,42 @@ class CKernel:
                  sys.platform, platform.machine(), (cpu_id() if cpu is None else cpu) if native else ""]
         return hashlib.sha256("\n".join(parts).encode()).hexdigest()[:16]
 
+    def prebuilt(self, real: str, variants: list[str] | None = None) -> Path | None:
+        """The library for ``real`` that ``setup.py`` built beside the source, best variant this
+        CPU runs first (``variants``: default :func:`som_torch._prebuilt.usable_variants`), or None."""
+        text = self.source.read_text()
+        for variant in _prebuilt.usable_variants() if variants is None else variants:
+            flags = (*_prebuilt.portable_flags(self.flags), *_prebuilt.variant_flags(variant))
+            stem = _prebuilt.library_stem(self.name, real, variant, text, flags, self.link_flags)
+            path = self.source.with_name(stem + _prebuilt.extension_suffix())
+            if path.is_file():
+                return path
+        return None
+
     def load(self, cache_dir: Path, cc: str | None) -> CLibrary | None:
-        """The loaded libraries (built into ``cache_dir`` when missing) with the compiler ``cc``
-        (``$CC``; None: ``cc``, else ``gcc``), or ``None`` after one warning line."""
+        """The prebuilt libraries beside the source when both float types are there (no compiler
+        needed, no warning); else those built into ``cache_dir`` with the compiler ``cc``
+        (``$CC``; None: ``cc``, else ``gcc``); or ``None`` after one warning line."""
         try:
-            return self._load(Path(cache_dir), cc)
+            prebuilt = self._load_prebuilt()
+            return prebuilt if prebuilt is not None else self._load(Path(cache_dir), cc)
         except (OSError, subprocess.SubprocessError) as err:
             warnings.warn(f"{self.name}: C kernel unavailable ({err}); using the torch path",
                           RuntimeWarning, stacklevel=3)
             return None
+
+    def _load_prebuilt(self) -> CLibrary | None:
+        paths = {dtype: self.prebuilt(real) for dtype, real in REALS.items()}
+        if any(p is None for p in paths.values()):
+            return None
+        owner = self.source.stat().st_uid  # as trusted as the Python code beside it
+        libs = {}
+        for dtype, path in paths.items():
+            why = _unsafe(path, owner)
+            if why:
+                raise OSError(f"unsafe prebuilt library: {why}")
+            libs[dtype] = ctypes.CDLL(str(path))
+        return CLibrary(self.name, libs, self.functions)
 
     def _load(self, cache_dir: Path, cc: str | None) -> CLibrary:
         compiler = shutil.which(cc) if cc else (shutil.which("cc") or shutil.which("gcc"))

@@ -6,6 +6,8 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import pickle
+import zipfile
 from pathlib import Path
 from typing import Any
 
@@ -55,6 +57,23 @@ def save_checkpoint(path: str | os.PathLike, som: SOM, extra_metadata: dict[str,
     return digest
 
 
+def _first_line(err: BaseException) -> str:
+    """The first line of ``err``'s message (at most 200 characters; its class name when empty)."""
+    lines = str(err).strip().splitlines()
+    return lines[0][:200] if lines else type(err).__name__
+
+
+def _refusal(path: Path, torch_message: str) -> str:
+    """One line for a file that ``torch.load(weights_only=True)`` refused: what it holds, and why it
+    is not loaded anyway (torch's own advice would run code from the file)."""
+    detail = next((ln.split("error:", 1)[1].strip() for ln in torch_message.splitlines() if "Unpickler error:" in ln),
+                  torch_message.strip().splitlines()[0] if torch_message.strip() else "unreadable pickle")
+    detail = detail.split(". ", 1)[0].rstrip(".")
+    return (f"{path}: refused: not a plain-tensor checkpoint ({detail[:200]}); loading it with "
+            "torch.load(weights_only=False) would execute code from the file, so do that only for a file from a "
+            "source you trust")
+
+
 def load_checkpoint(path: str | os.PathLike, *, expected_sha256: str | None = None) -> tuple[SOM, dict[str, Any]]:
     """Load with ``torch.load(weights_only=True)`` (no code runs); check format, version and hash.
 
@@ -65,9 +84,12 @@ def load_checkpoint(path: str | os.PathLike, *, expected_sha256: str | None = No
         raise FileNotFoundError(f"{path}: checkpoint not found")
     try:
         payload = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as err:  # noqa: BLE001 - any unpickling/zip failure means an unreadable file
-        first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
-        raise CheckpointError(f"{path}: corrupt or truncated checkpoint, cannot be read safely ({first[:200]})") from None
+    except pickle.UnpicklingError as err:
+        if zipfile.is_zipfile(path):  # a whole torch.save file holding objects beyond plain tensors
+            raise CheckpointError(_refusal(path, str(err))) from None
+        raise CheckpointError(f"{path}: corrupt or truncated checkpoint, cannot be read safely ({_first_line(err)})") from None
+    except Exception as err:  # noqa: BLE001 - any zip/read failure means an unreadable file
+        raise CheckpointError(f"{path}: corrupt or truncated checkpoint, cannot be read safely ({_first_line(err)})") from None
     if not isinstance(payload, dict) or payload.get("format") != FORMAT:
         got = payload.get("format") if isinstance(payload, dict) else type(payload).__name__
         raise CheckpointError(f"{path}: not a {FORMAT} file (format {got!r})")

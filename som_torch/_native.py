@@ -2,10 +2,12 @@
 
 The online rule is sequential (one sample per step), so with torch every step pays ~10 kernel
 launches on small tensors. This kernel (``_native.c``) runs a whole epoch in one call on the
-transposed weights ``B x C x U`` (the unit axis is contiguous and vectorizes). It is compiled on
-first use with the system C compiler (flags in :data:`KERNEL`) into a private per-user cache and
-loaded with ctypes (see :mod:`som_torch._cbuild`); nothing is downloaded. Without a compiler,
-:func:`kernel` returns ``None`` (after one warning) and training falls back to the torch path.
+transposed weights ``B x C x U`` (the unit axis is contiguous and vectorizes). It is compiled when
+the package is built or installed (``setup.py``, portable flags, see :mod:`som_torch._prebuilt`);
+in a checkout without those libraries, on first use with the system C compiler (flags in
+:data:`KERNEL`) into a private per-user cache; loaded with ctypes (see :mod:`som_torch._cbuild`);
+nothing is downloaded. When it cannot be loaded, :func:`kernel` returns ``None`` (after one
+warning) and training falls back to the torch path.
 ``SOM_TORCH_NATIVE=0`` disables it (see :mod:`som_torch._config`).
 """
 
@@ -23,15 +25,20 @@ KINDS = {"gaussian": 0, "bubble": 1, "cut_gaussian": 2, "epanechnikov": 3}
 
 # -ffast-math lets gcc call glibc's vectorized expf/exp; the kernel sees no NaN/inf (NaN samples
 # arrive zero-filled with a validity mask). The link step goes without it (see CKernel).
+# Build facts as plain literals (``setup.py`` reads them without importing torch).
+NAME, SOURCE = "som_torch_epoch", "_native.c"
+FLAGS = ("-O3", "-march=native", "-ffast-math")
+LINK_FLAGS = ("-lm", "-lmvec")
+
 KERNEL = CKernel(
-    name="som_torch_epoch",
-    source=Path(__file__).with_name("_native.c"),
+    name=NAME,
+    source=Path(__file__).with_name(SOURCE),
     functions={"som_epoch": CFunction((
         "B: int", "U: int", "C: int", "N: int",
         "w: REAL[B, C, U]", "x: REAL[N, B, C]", "valid: REAL[N, B, C]?", "act: REAL[B, C]", "d2: REAL[U, U]",
         "lr: REAL[N, B]", "sg: REAL[N, B]", "kind: int", "dist: REAL[U]", "h: REAL[U]", "bmus: int64[N, B]"))},
-    flags=("-O3", "-march=native", "-ffast-math"),
-    link_flags=("-lm", "-lmvec"),
+    flags=FLAGS,
+    link_flags=LINK_FLAGS,
 )
 
 

@@ -122,6 +122,18 @@ class SOM:
         return SOM(self.grid, self.component_names, self.active, weights=self.weights.clone(),
                    offset=self.offset, scale=self.scale, dtype=self.weights.dtype)
 
+    @property
+    def device(self) -> torch.device:
+        return self.weights.device
+
+    def to(self, device: str | torch.device) -> "SOM":
+        """This batch of maps with its tensors on ``device`` (``self`` where they are already)."""
+        device = torch.device(device)
+        if device == self.device:
+            return self
+        return SOM(self.grid, self.component_names, self.active.to(device), weights=self.weights.to(device),
+                   offset=self.offset.to(device), scale=self.scale.to(device), dtype=self.weights.dtype)
+
     def __repr__(self) -> str:
         return (f"SOM(grid={self.grid.rows}x{self.grid.cols} {self.grid.topology}, batch_shape={tuple(self.batch_shape)}, "
                 f"components={self.n_components} ({int(self.active.reshape(-1, self.n_components)[0].sum())} active in map 0), "
@@ -129,7 +141,7 @@ class SOM:
 
     # --- data and normalization ---------------------------------------------------------
     def check_data(self, data: torch.Tensor, name: str = "data") -> torch.Tensor:
-        """Broadcast ``data`` (``N x C`` or ``*batch x N x C``) to ``*batch x N x C`` float64."""
+        """Broadcast ``data`` (``N x C`` or ``*batch x N x C``) to ``*batch x N x C`` float64 on the maps' device."""
         if not isinstance(data, torch.Tensor):
             data = torch.as_tensor(data)
         if data.dim() < 2 or data.shape[-1] != self.n_components:
@@ -137,7 +149,7 @@ class SOM:
                 f"{name}: expected N x C or *batch x N x C with C={self.n_components}, received {tuple(data.shape)}"
             )
         try:
-            return data.to(torch.float64).expand(*self.batch_shape, data.shape[-2], self.n_components)
+            return data.to(self.device, torch.float64).expand(*self.batch_shape, data.shape[-2], self.n_components)
         except RuntimeError as err:
             raise ValueError(
                 f"{name}: shape {tuple(data.shape)} does not broadcast to batch {tuple(self.batch_shape)} x N x C"

@@ -90,9 +90,10 @@ def train_online(
         schedule: one of :data:`SCHEDULES` (default ``"asymptotic"``: MiniSom's default decay).
         neighbourhood: one of :data:`NEIGHBOURHOODS`.
         seed: int (maps get ``seed, seed+1, ...``) or ``*batch`` seeds.
-        method: ``"fast"`` = ``"native"`` where the C kernel is available (see ``_native``: one
-            call per epoch, weights' dtype), else ``"torch"`` (one batched tensor step per sample,
-            weights' dtype, incremental norms refreshed every ``refresh_every`` steps);
+        method: ``"fast"`` = ``"native"`` where the C kernel is available and the maps are on
+            the CPU (see ``_native``: one call per epoch, weights' dtype), else ``"torch"`` (one
+            batched tensor step per sample, weights' dtype and device (e.g. CUDA: ``som.to``),
+            incremental norms refreshed every ``refresh_every`` steps);
             ``"reference"``: float64, one map and one sample at a time, plain formulas.
         num_threads: torch intra-op threads during the epochs (restored afterwards); the
             per-step tensors are small, so 1 is fastest on a shared CPU; ``None`` leaves it.
@@ -101,10 +102,11 @@ def train_online(
     if not isinstance(epochs, int) or epochs < 1:
         raise ValueError(f"epochs: expected a positive int, received {epochs!r}")
     nb = lookup(NEIGHBOURHOODS, neighbourhood, "neighbourhood")
-    native_ok = (method in ("fast", "native") and isinstance(neighbourhood, str)
+    native_ok = (method in ("fast", "native") and isinstance(neighbourhood, str) and som.device.type == "cpu"
                  and _native.kernel(som.weights.dtype) is not None)  # builds the kernel on first use
     if method == "native" and not native_ok:
-        raise ValueError("method 'native': no C compiler/kernel here (or a custom neighbourhood); use 'torch'")
+        raise ValueError("method 'native': no C compiler/kernel here (or a custom neighbourhood, or maps off the CPU); "
+                         "use 'torch'")
     methods = {"fast": _online_native if native_ok else _online_fast, "native": _online_native,
                "torch": _online_fast, "reference": _online_reference}
     step_fn = lookup(methods, method, "method")
@@ -172,9 +174,9 @@ def _online_fast(w, d2grid, order, lr, sg, *, x, active, nb, refresh, kind=-1):
     and update are several times faster), keeps the squared norms of the active parts
     incrementally and refreshes them exactly every ``refresh`` steps."""
     B, U, C = w.shape
-    dt = w.dtype
+    dt, dev = w.dtype, w.device
     wt = w.transpose(1, 2).contiguous()  # B x C x U
-    d2grid = d2grid.to(dt)  # U x U
+    d2grid = d2grid.to(dev, dt)  # U x U
     xe = x[torch.arange(B)[None, :], order].to(dt)  # N x B x C
     valid = ~torch.isnan(xe)
     has_nan = bool((~valid).any())
@@ -184,8 +186,8 @@ def _online_fast(w, d2grid, order, lr, sg, *, x, active, nb, refresh, kind=-1):
     xm = (xe * m).unsqueeze(-2)  # N x B x 1 x C
     xsq = (xe * xe * m).sum(-1, keepdim=True)  # N x B x 1
     m = m.unsqueeze(-2)  # N x B x 1 x C
-    lr = lr.to(dt).unsqueeze(-1)  # N x B x 1
-    sg = sg.to(dt).unsqueeze(-1)  # N x B x 1
+    lr = lr.to(dev, dt).unsqueeze(-1)  # N x B x 1
+    sg = sg.to(dev, dt).unsqueeze(-1)  # N x B x 1
     vcol = valid.to(dt).unsqueeze(-1)  # N x B x C x 1
     xcol = xe.unsqueeze(-1)  # N x B x C x 1
     act_row = act.unsqueeze(1)  # B x 1 x C
@@ -241,13 +243,21 @@ def train_batch(
     num_threads: int | None = None,
     progress: bool = False,
     hooks: Iterable[Hook] = (),
+    reduce: Callable[[torch.Tensor], torch.Tensor] | None = None,
 ) -> SOM:
     """Train in place with the batch SOM: per epoch, every unit becomes the neighbourhood-weighted
     mean of the samples (per component, NaN skipped) given the best matches (active, non-NaN
     components) under the current weights. Units that no sample reaches keep their weights.
     ``sigma`` per epoch ``e`` follows ``schedule`` over ``e = 0 .. epochs-1`` (total ``epochs``).
-    Computes in the weights' dtype; deterministic (no seed). ``data``: raw ``N x C`` or
-    ``*batch x N x C``. ``num_threads``: torch threads during training (``None``: unchanged)."""
+    Best matches in the weights' dtype, the per-unit sums and the neighbourhood means in float64;
+    deterministic (no seed); on the maps' device. ``data``: raw ``N x C`` or ``*batch x N x C``.
+    ``num_threads``: torch threads during training (``None``: unchanged).
+
+    ``reduce``: data-parallel training. ``data`` is this process's share of the samples and
+    ``reduce(t)`` returns the sum over all processes of ``t`` (float64 ``B x U x K``: per unit the
+    sums of the samples' components and their counts), e.g. an all-reduce of
+    ``torch.distributed``; every process then makes the same update. The sums being float64, N
+    processes give one process's maps to the rounding of the order in which the partial sums add."""
     if not isinstance(epochs, int) or epochs < 1:
         raise ValueError(f"epochs: expected a positive int, received {epochs!r}")
     nb = lookup(NEIGHBOURHOODS, neighbourhood, "neighbourhood")
@@ -255,15 +265,17 @@ def train_batch(
     sg = _table(schedule, sg0, sg1, torch.arange(epochs), epochs)  # E x B
     x = som.normalize(data)
     B, C, U, N = som.batch_shape.numel(), som.n_components, som.n_units, x.shape[-2]
-    dt = som.weights.dtype
-    x = x.reshape(B, N, C)  # B x N x C
+    dt, dev, f64 = som.weights.dtype, som.device, torch.float64
+    x = x.reshape(B, N, C)  # B x N x C (float64)
     valid = ~torch.isnan(x)
     has_nan = bool((~valid).any())
-    xv = torch.where(valid, x, 0.0).to(dt)  # B x N x C
+    xv = torch.where(valid, x, 0.0)  # B x N x C
     m = (valid & som.active.reshape(B, 1, C)).to(dt)  # B x N x C: distance mask
-    xm = xv * m
-    counts_src = valid.to(dt) if has_nan else torch.ones(B, N, 1, dtype=dt)  # B x N x (C or 1)
-    d2grid = som.grid.distances2.to(dt)[None]  # 1 x U x U
+    xm = xv.to(dt) * m
+    counts_src = valid.to(f64) if has_nan else torch.ones(B, N, 1, dtype=f64, device=dev)  # B x N x (C or 1)
+    K = counts_src.shape[-1]
+    d2grid = som.grid.distances2.to(dev, f64)[None]  # 1 x U x U
+    sg = sg.to(dev)
     w = som.weights.reshape(B, U, C)  # B x U x C
     bar = _progress(progress, epochs, "som batch")
     threads = torch.get_num_threads()
@@ -274,12 +286,14 @@ def train_batch(
             wT = w.transpose(1, 2)  # B x C x U
             d = torch.baddbmm(torch.bmm(m, wT * wT), xm, wT, alpha=-2.0)  # B x N x U (+ |x|^2 omitted)
             idx = d.argmin(-1, keepdim=True)  # B x N x 1
-            sums = torch.zeros(B, U, C, dtype=dt).scatter_add_(1, idx.expand(B, N, C), xv)  # B x U x C
-            counts = torch.zeros(B, U, counts_src.shape[-1], dtype=dt).scatter_add_(
-                1, idx.expand(B, N, counts_src.shape[-1]), counts_src)  # B x U x (C or 1)
-            h = nb(d2grid, sg[epoch].to(dt)[:, None, None])  # B x U x U
-            num, den = torch.bmm(h, sums), torch.bmm(h, counts)  # B x U x C, B x U x (C or 1)
-            w = torch.where(den > 1e-12, num / den.clamp_min(1e-30), w)
+            sums = torch.zeros(B, U, C + K, dtype=f64, device=dev)  # B x U x (C + K): samples, counts
+            sums[..., :C].scatter_add_(1, idx.expand(B, N, C), xv)
+            sums[..., C:].scatter_add_(1, idx.expand(B, N, K), counts_src)
+            if reduce is not None:
+                sums = reduce(sums)
+            h = nb(d2grid, sg[epoch][:, None, None])  # B x U x U
+            num, den = torch.bmm(h, sums).split((C, K), -1)  # B x U x C, B x U x K
+            w = torch.where(den > 1e-12, (num / den.clamp_min(1e-30)).to(dt), w)
             som.weights = w.reshape(*som.batch_shape, U, C)  # *batch x U x C
             if bar is not None:
                 bar.update(1)

@@ -35,6 +35,7 @@ COMMANDS: dict[str, str] = {
     "commission": "training.commands.commission",
     "bench": "training.commands.bench",
     "demo": "training.commands.demo",
+    "inspect": "training.commands.inspect",
 }
 
 #: Exit codes of :func:`main` besides a command's own: bad input, and Ctrl-C (128 + SIGINT).

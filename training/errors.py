@@ -25,6 +25,16 @@ class CommissioningError(ValueError):
     """A commissioning step that cannot go on (a drive that does not keep the interface, ...)."""
 
 
+class ExperimentPending(Exception):
+    """Not an error: a file-based drive has written the experiment it wants and waits for its
+    recording (``twomass commission --resume DIR`` goes on once it is there). ``request``: the
+    request file's path."""
+
+    def __init__(self, message: str, request: str) -> None:
+        super().__init__(message)
+        self.request = request
+
+
 class OutputExistsError(UserError, FileExistsError):
     """A file or folder that the work would overwrite; nothing is written unless asked to."""
 

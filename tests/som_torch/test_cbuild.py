@@ -86,3 +86,49 @@ def test_native_code_keyed_on_the_cpu(tmp_path):
     assert native.cache_key("float", "cc", cpu="a") != native.cache_key("float", "cc", cpu="b")
     assert portable.cache_key("float", "cc", cpu="a") == portable.cache_key("float", "cc", cpu="b")
     assert native.cache_key("float", "cc", cpu="a") != native.cache_key("double", "cc", cpu="a")
+
+
+def _prebuild(kernel: CKernel, variant: str = "") -> None:
+    """What setup.py does for one kernel: a portable library per REAL beside the source, named by
+    :func:`som_torch._prebuilt.library_stem`."""
+    import subprocess
+
+    from som_torch import _prebuilt
+
+    cc = shutil.which("cc") or shutil.which("gcc")
+    flags = (*_prebuilt.portable_flags(kernel.flags), *_prebuilt.variant_flags(variant))
+    for real in ("float", "double"):
+        stem = _prebuilt.library_stem(kernel.name, real, variant, kernel.source.read_text(), flags, kernel.link_flags)
+        out = kernel.source.with_name(stem + _prebuilt.extension_suffix())
+        subprocess.run([cc, *flags, f"-DREAL={real}", "-fPIC", "-shared", str(kernel.source), "-o", str(out),
+                        *kernel.link_flags], check=True)
+
+
+def test_prebuilt_library_needs_no_compiler_and_no_cache(kernel, tmp_path, recwarn):
+    """Libraries built with the package are loaded first: no compiler, no cache folder, no warning."""
+    _prebuild(kernel)
+    cache = tmp_path / "cache"
+    lib = kernel.load(cache, "no-such-compiler-xyz")
+    assert lib is not None and not cache.exists() and not recwarn.list
+    y = torch.zeros(2, dtype=torch.float32)
+    assert lib.function("axpy", torch.float32)(2, 2.0, torch.ones(2), y) == 2 and y.tolist() == [2.0, 2.0]
+
+
+def test_prebuilt_library_of_another_source_is_not_used(kernel, tmp_path):
+    """A checkout whose .c changed after the build: the stale library is not found (name keyed on the source)."""
+    _prebuild(kernel)
+    kernel.source.write_text(_AXPY.replace("y[i] += a * x[i]", "y[i] -= a * x[i]"))
+    assert kernel.prebuilt("float") is None
+    with pytest.warns(RuntimeWarning, match="no C compiler"):
+        assert kernel.load(tmp_path / "cache", "no-such-compiler-xyz") is None
+
+
+def test_prebuilt_variants_follow_the_cpu():
+    from som_torch import _prebuilt
+
+    v3 = _prebuilt.NEEDS["x86_64_v3"]
+    assert _prebuilt.usable_variants("x86_64", v3) == ["x86_64_v3", ""]
+    assert _prebuilt.usable_variants("x86_64", v3 - {"avx2"}) == [""]
+    assert _prebuilt.usable_variants("aarch64", v3) == [""]
+    assert _prebuilt.portable_flags(("-O3", "-march=native", "-fopenmp")) == ("-O3", "-fopenmp")
+    assert _prebuilt.cpu_flags("processor: 0\nflags\t\t: fpu avx2 fma\n") == frozenset({"fpu", "avx2", "fma"})

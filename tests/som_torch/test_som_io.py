@@ -48,7 +48,7 @@ def _payload(path: Path) -> dict:
     [
         ("truncate", "corrupt or truncated"),
         ("garbage", "corrupt or truncated"),
-        ("pickle", "corrupt or truncated"),
+        ("pickle", "not a plain-tensor checkpoint"),
         ("tamper", "content hash mismatch"),
         ("version", "format version 99 is not supported"),
         ("foreign", "not a som_torch.checkpoint file"),
@@ -80,6 +80,19 @@ def test_corrupt_checkpoints_rejected(tmp_path, trained, damage, message):
     with pytest.raises(st.CheckpointError, match=message) as info:
         st.load_checkpoint(path)
     assert str(path) in str(info.value) and "\n" not in str(info.value)
+
+
+def test_unsafe_pickle_refusal_keeps_the_warning(tmp_path):
+    """torch's advice for such a file is to load it with weights_only=False; the one line keeps the
+    warning that this runs code from the file (it used to be cut right after the advice)."""
+    path = tmp_path / "evil.pt"
+    torch.save({"format": "som_torch.checkpoint", "evil": argparse.Namespace(a=1)}, path)
+    with pytest.raises(st.CheckpointError) as info:
+        st.load_checkpoint(path)
+    text = str(info.value)
+    assert "\n" not in text and "argparse.Namespace" in text
+    assert re.search(r"weights_only=False\) would execute code from the file", text)
+    assert text.endswith("source you trust")
 
 
 def test_checkpoint_other_errors(tmp_path, trained):

@@ -8,7 +8,6 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from som_torch import atomic_write
 from training._json import dumps
 from training.errors import UserError
 
@@ -35,5 +34,7 @@ def run_target(target: str | None, argv: Sequence[str]) -> int:
 
 def write_figures(path: str | Path, figures: Mapping[str, Any]) -> None:
     """A target's figures as JSON at ``path`` (atomically)."""
+    from som_torch import atomic_write  # here: `twomass --help` lists the targets without torch
+
     text = dumps(figures, indent=1)
     atomic_write(path, lambda f: f.write(text), text=True)

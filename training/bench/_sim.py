@@ -1,59 +1,82 @@
-"""``twomass bench sim``: simulator throughput, the solve_ivp baseline, and records for a population."""
+"""``twomass bench sim``: the fused C kernel against a vectorized numpy RK4 of the same model and test.
+
+Both run the first ``--samples`` samples of the SPEC 2 switching test for the same ``--batch``
+population systems, in the same dtype, with the same substeps and the same arithmetic (the
+numpy baseline, :mod:`training.bench._numpy_rk4`, is checked against the kernel in the tests).
+numpy runs on one core, so the kernel runs once on one thread and once on all of its threads.
+The kernel's arithmetic rate is compared with a square matmul measured in the same run. The
+per-sample ``solve_ivp`` script is a labelled extra line on a tiny batch (float64, RK45).
+"""
 
 from __future__ import annotations
 
 import argparse
 import math
 import os
-import sys
 import time
+from unittest import mock
 
 import numpy as np
 import torch
 
-from training.bench._run import write_figures
+from training.bench._numpy_rk4 import FLOPS_PER_SUBSTEP, TestOutput, switching_test
+from training.bench._report import Table, machine_line, matmul_gflops, write_figures
 
-HELP = "simulator throughput (system-substeps/s) vs batch size, solve_ivp baseline, population records time"
+HELP = "simulator: fused C kernel (1 thread, all threads) vs vectorized numpy RK4, same test, dtype and batch"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--sizes", default="1,4,16,64,256,1024,4096,16384", help="batch sizes (comma list)")
-    parser.add_argument("--work", type=float, default=4e7, help="system-substeps per batch size (default 4e7)")
-    parser.add_argument("--float64", action="store_true", help="bench float64 instead of the default float32")
-    parser.add_argument("--baseline-systems", type=int, default=2, help="systems for the solve_ivp baseline")
-    parser.add_argument("--baseline-samples", type=int, default=2000, help="samples per baseline system")
-    parser.add_argument("--records", type=int, default=1800, help="population size for the records timing")
+    parser.add_argument("--batch", type=int, default=4096, help="systems (default 4096)")
+    parser.add_argument("--samples", type=int, default=400, help="samples of the test per system (default 400)")
+    parser.add_argument("--float64", action="store_true", help="float64 instead of the simulator's default float32")
+    parser.add_argument("--repeat", type=int, default=3, help="runs per implementation, the fastest counts (default 3)")
+    parser.add_argument("--naive-samples", type=int, default=200,
+                        help="samples of the solve_ivp script, one system (default 200; 0 = skip)")
+    parser.add_argument("--seed", type=int, default=1, help="population seed (default 1)")
     parser.add_argument("--json", dest="json_out", default=None, help="also write the figures to this JSON file")
 
 
-def _throughput(B: int, work: float, dtype: torch.dtype) -> tuple[float, int, int]:
+def _inputs(batch: int, seed: int, dtype: torch.dtype):
     from sim import DriveConfig, TestSignalConfig, sample_population
-    from sim._integrate_fast import FastParams, FastState, SignalState, default_substeps, new_test_buffers, run_test_chunk
+    from sim._integrate_fast import FastParams, default_substeps
+
+    drive, signal = DriveConfig(), TestSignalConfig()
+    params = sample_population(batch, seed)
+    fp = FastParams.build(params, drive, default_substeps(params, drive), dtype)
+    return params, drive, signal, fp
+
+
+def kernel_test(fp, drive, signal, nk: int, threads: int | None = None) -> tuple[float, dict[str, torch.Tensor]]:
+    """Wall time [s] and buffers ``n x nk`` of ``nk`` fused test samples (``threads``: the kernel's
+    thread setting for this call; ``None``: as configured)."""
+    from sim._integrate_fast import FastState, SignalState, new_test_buffers, run_test_chunk
     from sim._kernel import load_kernel
 
-    drive = DriveConfig()
-    # w_max out of reach: every system stays active (section I) for the whole measurement
-    signal = TestSignalConfig(w_max=1e9, timeout=1e3)
-    params = sample_population(B, 1)
-    S = default_substeps(params, drive)
     lib = load_kernel()
     if lib is None:
-        raise OSError("the fused C kernel is unavailable (no C compiler); nothing to bench")
-    nk = int(max(64, min(200_000, work / (B * S))))
-    fp = FastParams.build(params, drive, S, dtype)
-    x, c = FastState.zeros(B, dtype), SignalState.start(B)
-    buf = new_test_buffers(B, nk, dtype)
-    warm = min(nk, 32)
-    run_test_chunk(lib, x, fp, c, drive, signal.levels(drive), signal.n_timeout(drive), signal.n_tail(drive), 0, warm, buf)
+        raise OSError("the fused C kernel is unavailable (no C compiler, or TWOMASS_NO_C_KERNEL set); nothing to bench")
+    n = fp.iJM.numel()
+    x, c, buf = FastState.zeros(n, fp.dtype), SignalState.start(n), new_test_buffers(n, nk, fp.dtype)
+    env = {} if threads is None else {"TWOMASS_SIM_THREADS": str(threads)}
+    with mock.patch.dict(os.environ, env):
+        t0 = time.perf_counter()
+        run_test_chunk(lib, x, fp, c, drive, signal.levels(drive), signal.n_timeout(drive), signal.n_tail(drive),
+                       0, nk, buf)
+        return time.perf_counter() - t0, buf
+
+
+def numpy_test(fp, drive, signal, nk: int) -> tuple[float, TestOutput]:
+    """Wall time [s] and output of the numpy baseline on the kernel's inputs ``fp``."""
+    coef = {k: getattr(fp, a).numpy() for k, a in (("iJM", "iJM"), ("iJL", "iJL"), ("CF", "C_F"), ("DF", "D_F"),
+                                                    ("s", "s"), ("MFC", "M_FC"), ("muF", "mu_F"), ("Mext", "M_ext"))}
     t0 = time.perf_counter()
-    run_test_chunk(lib, x, fp, c, drive, signal.levels(drive), signal.n_timeout(drive), signal.n_tail(drive), warm,
-                   nk - warm, buf)
-    el = time.perf_counter() - t0
-    return B * (nk - warm) * S / el, S, nk - warm
+    out = switching_test(coef, fp.S, fp.consts(), (drive.q_w, drive.counts_per_rad), signal.levels(drive),
+                         drive.M_max, signal.n_timeout(drive), signal.n_tail(drive), nk)
+    return time.perf_counter() - t0, out
 
 
 def _solve_ivp_test(p: dict, n_samples: int) -> tuple[float, int]:
-    """What a user would write: solve_ivp (RK45) per sample interval, the switching controller in Python."""
+    """The naive script: solve_ivp (RK45) per sample interval, one system, the switching controller in Python."""
     from scipy.integrate import solve_ivp
 
     from sim import SECTION_LEVELS, SPEED_RETURN, DriveConfig, TestSignalConfig
@@ -69,7 +92,7 @@ def _solve_ivp_test(p: dict, n_samples: int) -> tuple[float, int]:
                 (M_ref - M_M) / drive.T_Ei, w_M]
 
     y = np.zeros(5)
-    sec, cnt, nI, nIV, M_ref, M_next = 1, 0, 0, 0, 0.0, 0.0
+    sec, cnt, nI, nIV, M_ref = 1, 0, 0, 0, 0.0
     scale = drive.encoder_counts / (2 * math.pi)
     c_prev = 0.0
     t0 = time.perf_counter()
@@ -94,55 +117,50 @@ def _solve_ivp_test(p: dict, n_samples: int) -> tuple[float, int]:
 
 
 def run(args: argparse.Namespace) -> int:
-    from sim import DriveConfig, iter_records, sample_population
-    from sim._kernel import load_kernel
+    from sim import DriveConfig, sample_population
+    from sim._config import kernel_threads
 
+    for name in ("batch", "samples", "repeat"):
+        if getattr(args, name) < 1:
+            raise ValueError(f"--{name}: expected a positive integer, received {getattr(args, name)}")
     dtype = torch.float64 if args.float64 else torch.float32
-    try:
-        sizes = [int(v) for v in args.sizes.split(",") if v.strip()]
-    except ValueError:
-        raise ValueError(f"--sizes: expected comma-separated integers, received {args.sizes!r}") from None
-    t0 = time.perf_counter()
-    load_kernel()
-    build_s = time.perf_counter() - t0
-    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
-    print(f"bench sim: {dtype}, torch threads {torch.get_num_threads()}, cpus {os.cpu_count()}, "
-          f"load average {load:.2f}, kernel load/build {build_s:.2f} s")
-    res: dict = {"dtype": str(dtype), "threads": torch.get_num_threads(), "load_average": load, "throughput": {}}
-    print(f"{'batch':>7} {'substeps':>8} {'samples':>8} {'system-substeps/s':>18}")
-    for B in sizes:
-        rate, S, nk = _throughput(B, args.work, dtype)
-        res["throughput"][B] = rate
-        print(f"{B:>7} {S:>8} {nk:>8} {rate:>18.3e}")
-    # baseline: solve_ivp per system
-    pop = sample_population(max(1, args.baseline_systems), 7)
-    per_sample = []
-    for tr in pop.truth(DriveConfig(), 10.0):
-        el, n = _solve_ivp_test(tr, args.baseline_samples)
-        per_sample.append(el / n)
-    ivp_per_sample = float(np.mean(per_sample))
-    # records for a population
-    t0 = time.perf_counter()
-    n_rec, n_samp = 0, 0
-    for rec in iter_records(sample_population(args.records, 0)):
-        n_rec += 1
-        n_samp += len(rec)
-    rec_s = time.perf_counter() - t0
-    mean_len = n_samp / max(1, n_rec)
-    best_B = max((b for b in sizes if b >= 4096), default=max(sizes), key=lambda b: res["throughput"][b])
-    fast_per_sample = 4 / res["throughput"][best_B]
-    ivp_per_system = ivp_per_sample * mean_len
-    ratio = ivp_per_sample / fast_per_sample
-    print(f"solve_ivp (RK45, rtol 1e-6) baseline: {ivp_per_sample * 1e6:.0f} us per sample "
-          f"({args.baseline_systems} systems x {args.baseline_samples} samples) -> {ivp_per_system:.1f} s per system "
-          f"for a mean test of {mean_len:.0f} samples")
-    print(f"fast path at batch {best_B}: {fast_per_sample * 1e9:.1f} ns per system-sample "
-          f"-> {fast_per_sample * mean_len * 1e3:.2f} ms per system; ratio {ratio:.0f}x")
-    print(f"records for {n_rec} population systems ({n_samp} samples): {rec_s:.2f} s (in memory, float64 arrays)")
-    res.update(solve_ivp_s_per_sample=ivp_per_sample, solve_ivp_s_per_system=ivp_per_system,
-               fast_s_per_system_sample=fast_per_sample, ratio=ratio, records=n_rec, records_s=rec_s,
-               mean_record_samples=mean_len)
+    _params, drive, signal, fp = _inputs(args.batch, args.seed, dtype)
+    nk, S, B = args.samples, fp.S, args.batch
+    all_threads = kernel_threads()
+    kernel_test(fp, drive, signal, 2)  # load (or build) the kernel outside the timings
+    print(machine_line())
+    print(f"test: the switching test (SPEC 2), first {nk} samples of {B} population systems (seed {args.seed}), "
+          f"{S} RK4 substeps per sample, {str(dtype)[6:]}; the fastest of {args.repeat} runs")
+    flop = {t: matmul_gflops(dtype, t) for t in sorted({1, all_threads})}
+    print("machine FLOP rate: " + ", ".join(f"{v:.1f} GFLOP/s on {t} thread(s)" for t, v in flop.items())
+          + f" ({str(dtype)[6:]} matmul 1024 x 1024, 2 n^3 FLOP; it uses FMA, the kernel may not)")
+
+    work = B * nk * S  # system-substeps
+    rows: list[tuple[str, int, float]] = []
+    rows.append(("numpy RK4, vectorized over systems", 1,
+                 min(numpy_test(fp, drive, signal, nk)[0] for _ in range(args.repeat))))
+    for t in sorted({1, all_threads}):
+        rows.append(("fused C kernel", t, min(kernel_test(fp, drive, signal, nk, t)[0] for _ in range(args.repeat))))
+    t_numpy = rows[0][2]
+    table = Table(["implementation", "threads", "wall s", "system-substeps/s", "GFLOP/s", "% of matmul", "vs numpy"])
+    figures: dict = {"batch": B, "samples": nk, "substeps": S, "dtype": str(dtype), "flops_per_substep":
+                     FLOPS_PER_SUBSTEP, "matmul_gflops": flop, "runs": []}
+    for label, t, wall in rows:
+        gflops = work * FLOPS_PER_SUBSTEP / wall / 1e9
+        table.add(label, t, f"{wall:.3f}", f"{work / wall:.3e}", f"{gflops:.2f}", f"{100 * gflops / flop[t]:.1f}",
+                  f"{t_numpy / wall:.1f}x")
+        figures["runs"].append({"implementation": label, "threads": t, "wall_s": wall, "substeps_per_s": work / wall})
+    if args.naive_samples > 0:
+        truth = sample_population(1, 7).truth(DriveConfig(), 10.0)[0]
+        wall, done = _solve_ivp_test(truth, args.naive_samples)
+        rate = done * S / wall  # the same samples at the kernel's substeps
+        table.add("naive script: solve_ivp RK45 per sample, 1 system, float64", 1, f"{wall:.3f}", f"{rate:.3e}",
+                  "-", "-", f"{rate / (work / t_numpy):.4f}x")
+        figures["naive_s_per_sample"] = wall / done
+    print(table.render())
+    print(f"GFLOP/s counts {FLOPS_PER_SUBSTEP} add/sub/mul per system-substep (sim/_kernel.c as written; "
+          "compares and selects not counted); the solve_ivp line counts its samples at the same substeps")
+    print(f"reproduce: twomass bench sim --batch {B} --samples {nk}{' --float64' if args.float64 else ''}")
     if args.json_out:
-        write_figures(args.json_out, res)
-    sys.stdout.flush()
+        write_figures(args.json_out, figures)
     return 0

@@ -1,27 +1,31 @@
-"""``twomass commission``: the self-commissioning chain (SPEC 8) on simulated plants, with a report.
+"""``twomass commission``: the self-commissioning chain (SPEC 8) through a SPEC 8.1 drive, with a report.
 
-Per plant: adapt the test signal within the limits, identify with the shipped maps, validate by
-re-simulation, refuse (with the reason) or propose a PI speed controller, fine-tune it and check
-the result on the plant. A refusal is a normal outcome: it is printed clearly and the exit code
-stays 0. ``--population N`` adds a summary over the plants.
+The drive: the project's simulator (``--params`` / ``--population``: one :class:`sim.SimulatedDrive`
+per plant), a user's drive object (``--drive MODULE:FACTORY`` or ``--drive path/file.py:FACTORY``;
+with ``--params`` / ``--population`` the factory is called with each plant's parameters as a dict,
+for simulators and hardware-in-the-loop rigs that take one), or a folder of files for a real drive
+and its scope (``--resume DIR``: :class:`training.commissioning.FileDrive`). A refusal is a normal
+outcome: it is printed clearly and the exit code stays 0; so is an experiment waiting for its
+recording (``--resume``).
 """
 
 from __future__ import annotations
 
 import argparse
+import importlib
+import importlib.util
 import math
 import sys
 import time
-from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
-from som_torch import atomic_write
 from training._json import dumps
-from training.errors import OutputExistsError, UserError
+from training.commands import _progress
+from training.errors import ExperimentPending, OutputExistsError, UserError
 from training.params_file import read_params_file
 
-HELP = "run the self-commissioning chain (test signal, identify, validate, propose, tune) on simulated plants"
+HELP = "run the self-commissioning chain (test signal, identify, validate, propose, tune) through a drive"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -29,32 +33,36 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     src.add_argument("--params", type=Path, help="JSON file: one plant (object) or a list of plants; keys J_sigma, V_J, "
                      "f_e, d, backlash [rad, total 2s], M_FC, mu_F (or J_M, J_L, C_F, D_F), optional name")
     src.add_argument("--population", type=int, metavar="N", help="draw N plants from the SPEC default population")
+    src.add_argument("--resume", type=Path, metavar="DIR",
+                     help="a file-based drive: DIR/drive.json (config, limits); the chain writes each experiment it "
+                          "wants as DIR/NNN_request.json and stops; run again once DIR/NNN.csv + NNN.json are there")
+    parser.add_argument("--drive", metavar="MODULE:FACTORY",
+                        help="a SPEC 8.1 drive from FACTORY() in an importable module or a path/to/file.py (with "
+                             "--params/--population: FACTORY(plant_dict) per plant)")
     parser.add_argument("--seed", type=int, default=0, help="population and noise seed (default 0)")
-    parser.add_argument("--w-limit", type=float, default=100.0, help="speed limit |w| [rad/s] for the test runs (default 100)")
+    parser.add_argument("--w-limit", type=float, default=100.0, help="speed limit |w| [rad/s] for every experiment (default 100)")
     parser.add_argument("--travel-limit", type=float, default=100.0,
-                        help="travel limit |phi| [rad] from the start position (default 100)")
-    parser.add_argument("--M-star-max", type=float, default=None, help="torque cap for the test [Nm] (default: drive M_max)")
-    parser.add_argument("--no-tune", action="store_true", help="stop after the proposal (still evaluated on the plant)")
+                        help="travel limit |phi| [rad] from the start position of each experiment (default 100)")
+    parser.add_argument("--M-max", type=float, default=None, help="torque limit [Nm] (default: the drive's M_max)")
+    parser.add_argument("--no-tune", action="store_true", help="no tuning: the proposal only (still run on the drive)")
     parser.add_argument("--tune-evaluations", type=int, default=30,
-                        help="Nelder-Mead evaluations on the identified linear model (default 30)")
-    parser.add_argument("--plant-evaluations", type=int, default=0,
-                        help="extra Nelder-Mead evaluations on the plant after the pre-tune (default 0)")
-    parser.add_argument("--fallback-evaluations", type=int, default=20,
-                        help="after a refusal: Nelder-Mead evaluations on the plant for the cautious fallback "
-                             "controller F1 (default 20; 0: end with the refusal)")
+                        help="Nelder-Mead evaluations on the identified model (default 30)")
+    parser.add_argument("--no-fallback", action="store_true",
+                        help="after a refusal, end with it (no cautious fallback controller F1)")
     parser.add_argument("--max-map-distance", type=float, default=3.0,
                         help="refusal rule V4: largest map distance / training 99 %% quantile of a used map (default 3)")
     parser.add_argument("--validation", choices=("switching", "replay"), default="replay",
                         help="re-simulation mode of the validation (default replay: the recorded torque "
                              "reference open loop; switching: the test's switching law)")
-    parser.add_argument("--plots", type=Path, help="folder for PNG plots (needs matplotlib, the 'plot' extra)")
+    parser.add_argument("--plots", type=Path, help="folder for PNG plots: test record vs model, the runs on the drive, "
+                        "the delivered loop's Bode plot (needs matplotlib, the 'plot' extra)")
     parser.add_argument("--logdir", type=Path, help="TensorBoard log folder (scalars of the search)")
     parser.add_argument("--json", type=Path, help="write the reports (and the summary) as JSON to this file "
                         "(NaN and inf as null)")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing --json file")
     parser.add_argument("--checkpoints", type=Path, help="folder with the maps (default: the shipped checkpoints/)")
-    parser.add_argument("--quiet", action="store_true", help="print only the summary with --population")
-    parser.add_argument("--no-progress", action="store_true")
+    parser.add_argument("--quiet", action="store_true", help="print only the summary over several drives")
+    _progress.add_option(parser)
 
 
 def _check_positive(name: str, v: float | None) -> None:
@@ -74,33 +82,50 @@ def _pyplot() -> Any:
 
 
 def _plot(report: Any, folder: Path) -> None:
-    """The test record against its re-simulation and the closed-loop runs before/after tuning, as
-    ``folder/<name>.png``."""
+    """``folder/<name>.png``: the test record against its re-simulation, the runs on the drive, and
+    the delivered loop's open-loop Bode plot on the guarantee's worst model and the design model."""
     import numpy as np
 
+    from som_torch import atomic_write  # imported here: `twomass --help` loads no torch
+
+    from training.commissioning import bode
+
     plt = _pyplot()
-    T_s = float(report.drive.T_s)
-    fig, axes = plt.subplots(3 if report.responses else 1, 1, figsize=(8, 9 if report.responses else 3.5), squeeze=False)
-    ax = axes[0, 0]
+    T_s = float(report.config.T_s)
+    fig, axes = plt.subplots(4, 1, figsize=(8, 12))
+    ax = axes[0]
     if report.validation is not None:
         v = report.validation
         t = np.arange(len(v.measured)) * T_s
         ax.plot(t, v.measured, label="measured")
         ax.plot(t, v.simulated, "--", label="identified model")
         ax.set_title(f"{report.name}: test record vs re-simulation ({v.reason})", fontsize=9)
+        ax.legend(fontsize=8)
+    ax.set_xlabel("t [s]")
+    ax.set_ylabel("w_M [rad/s]")
+    ax = axes[1]
+    for label, r in [*zip(("proposal", "tuned", "between"), report.runs), *zip(("F1",), report.fallback_runs)]:
+        ax.plot(np.arange(len(r.speed)) * T_s, r.speed, label=label, lw=0.8)
+    ax.set_title("closed-loop experiments on the drive", fontsize=9)
     ax.set_xlabel("t [s]")
     ax.set_ylabel("w_M [rad/s]")
     ax.legend(fontsize=8)
-    if report.responses:
-        sc = report.responses["scenario"]
-        t = np.arange(sc.n_segment) * T_s * 1e3
-        for j, (title, ax) in enumerate((("speed step", axes[1, 0]), (f"load {sc.M_L:g} Nm", axes[2, 0]))):
-            ax.plot(t, report.responses["before"][j], label="proposal")
-            ax.plot(t, report.responses["after"][j], label="tuned")
-            ax.set_title(title, fontsize=9)
-            ax.set_xlabel("t [ms]")
-            ax.set_ylabel("w_M [rad/s]")
-            ax.legend(fontsize=8)
+    d = report.delivered
+    if d is not None:
+        m = d.margins
+        worst = d.models.plants[d.models.labels.index(m.model)] if m.model in d.models.labels else d.models.plants[0]
+        for name, plant in (("design model", d.models.plants[0]), (f"worst: {m.model}", worst)):
+            b = bode(plant, d.Kp, d.Ti, d.T_f, d.notch)
+            axes[2].semilogx(b["w"], b["mag_dB"], label=name, lw=0.8)
+            axes[3].semilogx(b["w"], b["phase_deg"], label=name, lw=0.8)
+        axes[2].axhline(0, color="k", lw=0.5)
+        axes[3].axhline(-180, color="k", lw=0.5)
+        axes[2].set_title(f"delivered loop: PM {m.phase_margin:.1f} deg, GM {m.gain_margin_dB:.1f} dB, "
+                          f"w_c {d.figures['w_c']:.4g} rad/s", fontsize=9)
+        axes[2].set_ylabel("|L| [dB]")
+        axes[3].set_ylabel("phase L [deg]")
+        axes[3].set_xlabel("w [rad/s]")
+        axes[2].legend(fontsize=7)
     fig.tight_layout()
     try:
         atomic_write(folder / f"{report.name}.png", lambda f: fig.savefig(f, format="png", dpi=90))
@@ -113,35 +138,78 @@ def _refuse_existing(path: Path | None, overwrite: bool) -> None:
         raise OutputExistsError(f"--json: {str(path)!r} exists (pass --overwrite to replace it)")
 
 
-def _plants(args: argparse.Namespace) -> tuple[Any, list[str]]:
-    """The plants (``TwoMassParams``) and their names, from ``--population`` or ``--params``."""
+def load_factory(spec: str) -> Any:
+    """``MODULE:FACTORY`` (an importable module) or ``path/to/file.py:FACTORY`` -> the callable."""
+    mod_name, sep, attr = spec.rpartition(":")
+    if not sep or not mod_name or not attr:
+        raise UserError(f"--drive: expected MODULE:FACTORY or path/to/file.py:FACTORY, received {spec!r}")
+    if mod_name.endswith(".py"):
+        path = Path(mod_name)
+        if not path.is_file():
+            raise UserError(f"--drive: {mod_name} is not a file")
+        loader = importlib.util.spec_from_file_location(f"_twomass_drive_{path.stem}", path)
+        module = importlib.util.module_from_spec(loader)
+        sys.modules[loader.name] = module  # multiprocessing (spawn) finds the module's functions again
+        loader.loader.exec_module(module)
+    else:
+        try:
+            module = importlib.import_module(mod_name)
+        except ModuleNotFoundError as err:
+            raise UserError(f"--drive: cannot import {mod_name!r} ({err}); is it on PYTHONPATH?") from None
+    factory = getattr(module, attr, None)
+    if not callable(factory):
+        raise UserError(f"--drive: {mod_name} has no callable {attr!r}")
+    return factory
+
+
+def _plants(args: argparse.Namespace) -> tuple[list[dict[str, float]] | None, list[str]]:
+    """The plants' parameters and names, from ``--population`` or ``--params`` (None: no plants)."""
     import sim
 
     if args.population is not None:
         if args.population < 1:
             raise UserError(f"--population: expected N >= 1, received {args.population}")
-        return sim.sample_population(args.population, args.seed), [f"plant{i:03d}" for i in range(args.population)]
+        return sim.sample_population(args.population, args.seed).to_dicts(), [f"plant{i:03d}" for i in range(args.population)]
     if args.params is not None:
-        return read_params_file(args.params, "plant")
-    raise UserError("give --params JSON or --population N")
+        params, names = read_params_file(args.params, "plant")
+        return params.reshape(-1).to_dicts(), names
+    return None, []
+
+
+def _drives(args: argparse.Namespace, limits: Any) -> tuple[list[tuple[str, Any]], Any]:
+    """``[(name, drive)]`` (built lazily: a factory is called per plant when its turn comes) and the limits."""
+    import sim
+    from training.commissioning import FileDrive
+
+    if args.resume is not None:
+        fd = FileDrive(args.resume)
+        return [(fd.name, lambda: fd)], fd.limits
+    plants, names = _plants(args)
+    if args.drive is not None:
+        factory = load_factory(args.drive)
+        if plants is None:
+            return [("drive", factory)], limits
+        return [(n, lambda p=p: factory(p)) for n, p in zip(names, plants)], limits
+    if plants is None:
+        raise UserError("give --params JSON, --population N, --drive MODULE:FACTORY or --resume DIR")
+    return [(n, lambda p=p, i=i: sim.SimulatedDrive(p, seed=args.seed + 1000 * i)) for i, (n, p) in enumerate(zip(names, plants))], limits
 
 
 def run(args: argparse.Namespace) -> int:
     import sim
-    from training.commissioning import CommissioningConfig, ExcitationLimits, commission, summarize, summary_text
+    from training.commissioning import CommissioningConfig, commission, summarize, summary_text
     from training.identification import Identifier
 
-    for name in ("--w-limit", "--travel-limit", "--M-star-max", "--max-map-distance"):
+    for name in ("--w-limit", "--travel-limit", "--M-max", "--max-map-distance"):
         _check_positive(name, getattr(args, name[2:].replace("-", "_")))
     config = CommissioningConfig(tune=not args.no_tune, max_map_distance_ratio=args.max_map_distance,
-                                 tune_evaluations=args.tune_evaluations, plant_evaluations=args.plant_evaluations,
-                                 fallback_evaluations=args.fallback_evaluations, validation_mode=args.validation)
+                                 tune_evaluations=args.tune_evaluations, fallback=not args.no_fallback,
+                                 validation_mode=args.validation)
     _refuse_existing(args.json, args.overwrite)
-    drive = sim.DriveConfig()
-    params, names = _plants(args)
+    limits = sim.DriveLimits(w_max=args.w_limit, travel=args.travel_limit, M_max=args.M_max)
+    drives, limits = _drives(args, limits)
     if args.checkpoints is not None and not args.checkpoints.is_dir():
         raise UserError(f"--checkpoints: {args.checkpoints} is not a folder")
-    limits = ExcitationLimits(w_limit=args.w_limit, travel_limit=args.travel_limit, M_star_max=args.M_star_max)
     identifier = Identifier.load(args.checkpoints)
     writer = None
     if args.logdir is not None:
@@ -150,33 +218,44 @@ def run(args: argparse.Namespace) -> int:
         writer = SummaryWriter(str(args.logdir))
     if args.plots is not None:
         _pyplot()
-    flat = params.reshape(-1)
-    n = flat.J_sigma.numel()
-    say = (lambda msg: None) if args.no_progress else (lambda msg: print(msg, file=sys.stderr, flush=True))
+    n = len(drives)
+    say = (lambda msg: print(msg, file=sys.stderr, flush=True)) if _progress.wanted(args) else (lambda msg: None)
     reports = []
     t0 = time.perf_counter()
-    for i in range(n):
-        say(f"[{i + 1}/{n}] {names[i]}")
-        rep = commission(flat[i], drive, limits, identifier=identifier, config=replace(config, seed=args.seed + 1000 * i),
-                         writer=writer, progress=say, name=names[i])
-        reports.append(rep)
+    try:
+        for i, (name, make) in enumerate(drives):
+            say(f"[{i + 1}/{n}] {name}")
+            drive = make()
+            try:
+                rep = commission(drive, limits, identifier=identifier, config=config, writer=writer, progress=say, name=name)
+            finally:
+                close = getattr(drive, "close", None)
+                if callable(close):
+                    close()
+            reports.append(rep)
+            if writer is not None:
+                for k, v in (("improvement", rep.improvement), ("refused", float(rep.refused)),
+                             ("delivered", float(rep.delivered is not None))):
+                    if v is not None:
+                        writer.add_scalar(f"commission/{k}", v, i)
+            if args.plots is not None:
+                _plot(rep, args.plots)
+            if not (args.quiet and n > 1):
+                print(rep.to_text(), flush=True)
+                print(flush=True)
+    except ExperimentPending as pending:
+        print(str(pending), flush=True)
+        return 0
+    finally:
         if writer is not None:
-            for k, v in (("cost_proposal", rep.plant_costs.get("proposal")), ("cost_tuned", rep.plant_costs.get("tuned")),
-                         ("improvement", rep.improvement), ("refused", float(rep.refused))):
-                if v is not None:
-                    writer.add_scalar(f"commission/{k}", v, i)
-        if args.plots is not None:
-            _plot(rep, args.plots)
-        if not (args.quiet and args.population is not None):
-            print(rep.to_text(), flush=True)
-            print(flush=True)
-    summary = summarize(reports, time.perf_counter() - t0) if n > 1 or args.population is not None else None
+            writer.close()
+    summary = summarize(reports, time.perf_counter() - t0) if n > 1 else None
     if summary is not None:
         print(summary_text(summary), flush=True)
-    if writer is not None:
-        writer.close()
     if args.json is not None:
         _refuse_existing(args.json, args.overwrite)  # it may have appeared while we worked
         text = dumps({"reports": [r.to_dict() for r in reports], "summary": summary}, indent=1)
+        from som_torch import atomic_write
+
         atomic_write(args.json, lambda f: f.write(text), text=True)
     return 0

@@ -3,7 +3,14 @@
 Simulates the SPEC test run on the reference drive for two plants (the default elastic plant and
 one with clear backlash), identifies both records with the shipped maps exactly as
 ``twomass identify`` would, and prints identified against true values side by side, with the
-quality figures and warnings. ``--params`` replaces the plants; ``--seed`` the noise.
+quality figures (each explained in one line) and warnings. ``--params`` replaces the plants;
+``--seed`` the noise. ``--json``: the JSON lines ``twomass identify`` would write for the records
+(the README's example is the first of them).
+
+How well the one test run determines each parameter is shown by repeating it: the same plants are
+simulated again with :data:`REPEATS` other noise draws and identified; a parameter whose value
+varies between the draws by more than :data:`POORLY_DETERMINED` of its value is flagged (damping
+typically: the record holds few decaying periods of the oscillation).
 """
 
 from __future__ import annotations
@@ -11,8 +18,12 @@ from __future__ import annotations
 import argparse
 import math
 import sys
+from collections.abc import Sequence
+from dataclasses import replace
 from pathlib import Path
 from typing import Any, TextIO
+
+from training.commands import _progress
 
 
 HELP = ("simulate two default plants, identify them with the shipped maps, print identified vs true "
@@ -33,6 +44,26 @@ _ROWS: tuple[tuple[str, str, float], ...] = (
 )
 
 
+#: Extra noise draws per plant for the spread column, and the spread above which a parameter is
+#: flagged as poorly determined ((max - min) over the draws / |value|).
+REPEATS, POORLY_DETERMINED = 3, 0.25
+
+#: What each printed figure means: one line each, printed under the tables.
+EXPLAINED: tuple[tuple[str, str], ...] = (
+    ("s_N", "normalized backlash s*C_F/M_N: above 0.1 the backlash shapes the response"),
+    ("r_osc", "oscillation-to-resolution ratio V_J*M*/(J_sigma*w_0*q_w): below 1 the encoder cannot see the "
+              "elastic mode"),
+    ("spread", f"(max - min) of the value over this record and {REPEATS} more noise draws of the same plant, over "
+               f"the value (above {100 * POORLY_DETERMINED:.0f} %: poorly determined by this test run)"),
+    ("P(class)", "the structure map's probability of the identified class"),
+    ("map distance", "each map's recall distance over the 99 % quantile of held-out training records "
+                     "(above 1: unlike the training data)"),
+    ("oscillation", "rms of the oscillation in speed quanta of the encoder (below 1: elastic values uncertain)"),
+    ("one-mass residual", "rms error of the rigid one-mass fit over the speed's rms (large: not rigid, or not the "
+                          "test signal)"),
+)
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, default=0, help="current-noise seed (default 0)")
     parser.add_argument("--params", metavar="JSON",
@@ -40,7 +71,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "path) with J_sigma, V_J, f_e, d, backlash [rad, total], M_FC, mu_F (or J_M, J_L, C_F, "
                              "D_F), optional name")
     parser.add_argument("--checkpoints", type=Path, metavar="DIR",
-                        help="maps folder (default: the shipped checkpoints/)")
+                        help="maps folder (default: the shipped maps, or $TWOMASS_CHECKPOINTS)")
+    parser.add_argument("--json", action="store_true",
+                        help="print the JSON lines `twomass identify` writes for the simulated records (SI units), "
+                             "instead of the tables")
+    _progress.add_option(parser)
 
 
 def _num(x: float | None) -> str:
@@ -57,32 +92,62 @@ def _rel(ident: float | None, true: float) -> str:
     return f"{100.0 * (ident - true) / abs(true):+.1f} %"
 
 
-def print_result(label: str, truth: dict[str, Any], res: Any, n_samples: int, T_s: float, out: TextIO) -> None:
-    """One plant: true vs identified table, quality line, warnings (``res``: an
-    ``IdentificationResult`` or ``IdentificationFailure``)."""
+def spreads(results: Sequence[Any]) -> dict[str, float | None]:
+    """Per parameter: ``(max - min) / |first|`` over the identifications of one plant from several
+    noise draws (``results[0]`` the reported one); ``None`` where one failed or the value is 0."""
+    if not all(r.ok for r in results):
+        return {name: None for name, _, _ in _ROWS}
+    out: dict[str, float | None] = {}
+    for name, _, _ in _ROWS:
+        vals = [getattr(r.parameters, name) for r in results]
+        ok = all(v is not None and math.isfinite(v) for v in vals) and vals[0] != 0
+        out[name] = (max(vals) - min(vals)) / abs(vals[0]) if ok else None
+    return out
+
+
+def print_result(label: str, truth: dict[str, Any], res: Any, n_samples: int, T_s: float, out: TextIO,
+                 spread: dict[str, float | None] | None = None) -> None:
+    """One plant: true vs identified table (with the ``spread`` over noise draws where given),
+    quality line, warnings (``res``: an ``IdentificationResult`` or ``IdentificationFailure``)."""
     print(f"\n{label}: record {n_samples} samples ({n_samples * T_s:.2f} s), true class {truth['structure']}, "
           f"s_N {truth['s_N']:.3g}, r_osc {truth['r_osc']:.3g}", file=out)
     if not res.ok:
         print(f"  identification failed: {res.error}", file=out)
         return
-    print(f"  {'':10} {'unit':>9} {'true':>16} {'identified':>16} {'error':>9}", file=out)
+    spread = spread or {}
+    print(f"  {'':10} {'unit':>9} {'true':>16} {'identified':>16} {'error':>9} {'spread':>8}", file=out)
     ok = "ok" if res.structure == truth["structure"] else "WRONG"
     print(f"  {'structure':10} {'-':>9} {truth['structure']:>16} {res.structure:>16} {ok:>9}", file=out)
     for name, unit, k in _ROWS:
         t = float(truth[name]) * k
         v = getattr(res.parameters, name)
         v = None if v is None else float(v) * k
-        print(f"  {name:10} {unit:>9} {_num(t):>16} {_num(v):>16} {_rel(v, t):>9}", file=out)
+        sp = spread.get(name)
+        flag = "  poorly determined" if sp is not None and sp > POORLY_DETERMINED else ""
+        print(f"  {name:10} {unit:>9} {_num(t):>16} {_num(v):>16} {_rel(v, t):>9} "
+              f"{'-' if sp is None else f'{100.0 * sp:.0f} %':>8}{flag}", file=out)
     q = res.quality
     dist = ", ".join(f"{n} {_num(v)}" for n, v in q.map_distance_ratio.items())
     print(f"  quality: P({res.structure}) {q.structure_probabilities[res.structure]:.2f}; "
           f"map distance / training 99 % quantile: {dist}; oscillation {q.osc_quanta:.3g} speed quanta rms; "
           f"one-mass residual {100.0 * q.one_mass_rel_residual:.2g} %", file=out)
-    print("  warnings: " + ("; ".join(w.text for w in res.warnings) or "none"), file=out)
+    poor = [name for name in spread if spread[name] is not None and spread[name] > POORLY_DETERMINED]
+    notes = [w.text for w in res.warnings]
+    if poor:
+        notes.append(f"poorly determined by this test run: {', '.join(poor)} (value varies by more than "
+                     f"{100 * POORLY_DETERMINED:.0f} % between noise draws of the same plant)")
+    print("  warnings: " + ("; ".join(notes) or "none"), file=out)
+
+
+def _explain(out: TextIO) -> None:
+    print("\nthe figures:", file=out)
+    for name, text in EXPLAINED:
+        print(f"  {name:18} {text}", file=out)
 
 
 def run(args: argparse.Namespace) -> int:
     from sim import DriveConfig, TestSignalConfig, TwoMassParams, responses_to_records, simulate_test
+    from training._json import dumps
     from training.commands.identify import load_identifier
     from training.params_file import read_params_file
 
@@ -91,17 +156,41 @@ def run(args: argparse.Namespace) -> int:
         params = TwoMassParams.from_dicts([dict(p) for _, p in DEFAULT_PLANTS])
     else:
         params, labels = read_params_file(args.params, name_prefix="plant")
+    n = len(labels)
     drive, signal = DriveConfig(), TestSignalConfig()
-    ident = load_identifier(args.checkpoints)
-    resp = simulate_test(params, drive, signal, seed=args.seed)
-    records = responses_to_records(resp, params, drive, signal, names=[f"demo{i}" for i in range(len(labels))])
-    results = ident.identify_records(records)
+    steps = 1 + n if args.json else 2 + n * (1 + REPEATS)
+    with _progress.bar(args, total=steps, desc="demo", unit="step") as bar:
+        bar.set_postfix_str("loading the maps")
+        ident = load_identifier(args.checkpoints)
+        bar.update(1)
+        bar.set_postfix_str(f"simulating {n} test run(s)")
+        resp = simulate_test(params, drive, signal, seed=args.seed)
+        records = responses_to_records(resp, params, drive, signal, names=[f"demo{i}" for i in range(n)])
+        results = []
+        for i, rec in enumerate(records):
+            bar.set_postfix_str(f"identifying {labels[i]}")
+            results.append(replace(ident.identify_records([rec])[0], record=labels[i]))
+            bar.update(1)
+        if args.json:
+            for res in results:
+                print(dumps(res))
+            return 1 if any(not r.ok for r in results) else 0
+        bar.set_postfix_str(f"{REPEATS} more noise draws per plant")
+        again = TwoMassParams.from_dicts([p for p in params.reshape(-1).to_dicts() for _ in range(REPEATS)])
+        repeats = responses_to_records(simulate_test(again, drive, signal, seed=args.seed + 1), again, drive, signal)
+        bar.update(1)
+        others = []
+        for rec in repeats:
+            others.append(ident.identify_records([rec])[0])
+            bar.update(1)
     out = sys.stdout
     print(f"twomass demo: reference drive (M_max {drive.M_max:g} Nm, K_M {drive.K_M:g} Nm/A, T_Ei "
           f"{drive.T_Ei * 1e3:g} ms, T_s {drive.T_s * 1e6:g} us, {round(math.log2(drive.encoder_counts))}-bit "
           f"encoder); test signal M* {signal.M_star:g} Nm, w_max {signal.w_max:g} rad/s; "
           "identified with the shipped maps", file=out)
-    for label, rec, res in zip(labels, records, results):
-        print_result(label, rec.meta["truth"], res, len(rec), drive.T_s, out)
+    for i, (label, rec, res) in enumerate(zip(labels, records, results)):
+        spread = spreads([res, *others[i * REPEATS:(i + 1) * REPEATS]])
+        print_result(label, rec.meta["truth"], res, len(rec), drive.T_s, out, spread)
+    _explain(out)
     failed = sum(not r.ok for r in results)
     return 1 if failed else 0

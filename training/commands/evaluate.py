@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 import time
 from pathlib import Path
@@ -26,29 +25,33 @@ def _floats(text: str) -> tuple[float, ...]:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from training.evaluation import GRID_BACKLASH_DEG, GRID_F_E
-
+    """The options (no heavy import here: ``--help`` stays fast; the grid defaults are filled in by :func:`run`)."""
     parser.add_argument("--out", type=Path, default=DEFAULT_OUT, help=f"report folder (default {DEFAULT_OUT})")
     parser.add_argument("--seed", type=int, default=5,
                         help="seed of the grid draw; the random set uses seed + 1 (default 5)")
     parser.add_argument("--per-cell", type=int, default=20, help="systems per grid cell (default 20; 0 = no grid)")
     parser.add_argument("--population", type=int, default=1000, metavar="N",
                         help="systems of the random set from the default population (default 1000; 0 = none)")
-    parser.add_argument("--f-e", type=_floats, default=GRID_F_E, metavar="LIST",
-                        help="grid eigenfrequencies [Hz], comma-separated (default 10,20,30,50,80,120)")
-    parser.add_argument("--backlash", type=_floats, default=GRID_BACKLASH_DEG, metavar="LIST",
-                        help="grid backlash widths [degree, total 2s], comma-separated (default 0,0.2,0.5)")
+    parser.add_argument("--f-e", type=_floats, default=None, metavar="LIST",
+                        help="grid eigenfrequencies [Hz], comma-separated (default: the paper's 10,20,30,50,80,120)")
+    parser.add_argument("--backlash", type=_floats, default=None, metavar="DEG_LIST",
+                        help="grid backlash widths in DEGREES (total width 2s, as in the paper; parameter files "
+                             "and the JSON output use rad), comma-separated (default: the paper's 0,0.2,0.5)")
     parser.add_argument("--checkpoints", type=Path, default=None, help="map folder (default: the shipped maps)")
     parser.add_argument("--cache", type=Path, default=DEFAULT_CACHE,
                         help=f"cache of per-system results, keyed by config (default {DEFAULT_CACHE})")
     parser.add_argument("--no-cache", action="store_true", help="neither read nor write the cache")
     parser.add_argument("--workers", type=int, default=None,
-                        help="analysis processes (default: CPU count; 0 = in this process)")
+                        help="analysis processes (default: CPU count, under torchrun each process's share; "
+                             "0 = in this process)")
     only = parser.add_mutually_exclusive_group()
     only.add_argument("--no-iv4", action="store_true", help="SOM only (with and without the refinement)")
     only.add_argument("--no-som", action="store_true", help="IV4 only (e.g. while the maps are being retrained)")
     parser.add_argument("--no-plots", action="store_true", help="skip the PNG figures")
-    parser.add_argument("--no-progress", action="store_true")
+    parser.add_argument("--drives", type=int, default=None, metavar="N",
+                        help="instead: the study on the matrix of six drives across SPEC 3.1's envelope (issue 11), "
+                             "N systems per drive (seed --seed), written to OUT/drives.md and OUT/drives.json")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
 
 
 def command_line(args: argparse.Namespace) -> str:
@@ -65,17 +68,49 @@ def command_line(args: argparse.Namespace) -> str:
     return " ".join(parts)
 
 
+def _run_drives(args: argparse.Namespace) -> int:
+    """``--drives N``: per drive of :data:`training.evaluation.DRIVES`, N systems identified and scored."""
+    import json
+
+    from som_torch import atomic_write
+    from training._json import dumps
+    from training.evaluation import DRIVES, drive_figures, drive_rows, drives_markdown
+    from training.identification import Identifier
+
+    if args.drives < 1:
+        raise ValueError(f"--drives: expected N >= 1 systems per drive, received {args.drives}")
+    md, js = args.out / "drives.md", args.out / "drives.json"
+    identifier = Identifier.load(args.checkpoints)
+    command = f"twomass evaluate --drives {args.drives} --seed {args.seed} --out {args.out}" + (
+        f" --checkpoints {args.checkpoints}" if args.checkpoints is not None else "")
+    figures = {}
+    for name, case in DRIVES.items():
+        figures[name] = drive_figures(drive_rows(case, args.drives, args.seed, identifier))
+        print(f"{name}: {json.dumps(figures[name])}", file=sys.stderr)
+    args.out.mkdir(parents=True, exist_ok=True)
+    atomic_write(md, lambda f: f.write(drives_markdown(figures, command)), text=True)
+    atomic_write(js, lambda f: f.write(dumps({"command": command, "drives": figures}) + "\n"), text=True)
+    print(f"wrote {md} and {js}")
+    return 0
+
+
 def run(args: argparse.Namespace) -> int:
+    if args.drives is not None:
+        return _run_drives(args)
     from tqdm import tqdm
 
-    from training.evaluation import grid_set, population_set, run_study, write_report
+    from training._distributed import process_group
+    from training.evaluation import GRID_BACKLASH_DEG, GRID_F_E, grid_set, population_set, run_study, write_report
 
     t0 = time.perf_counter()
+    args.f_e = GRID_F_E if args.f_e is None else args.f_e
+    args.backlash = GRID_BACKLASH_DEG if args.backlash is None else args.backlash
+    group = process_group()  # under torchrun: the systems are split, rank 0 writes the report
     if args.per_cell < 0 or args.population < 0:
         raise ValueError(f"--per-cell and --population: expected >= 0, received {args.per_cell}, {args.population}")
     if args.per_cell == 0 and args.population == 0:
         raise ValueError("--per-cell and --population: expected at least one > 0, received both 0")
-    workers = (os.cpu_count() or 1) if args.workers is None else args.workers
+    workers = group.cpus() if args.workers is None else args.workers
     if workers < 0:
         raise ValueError(f"--workers: expected >= 0, received {workers}")
     methods = ("som", "maps") if args.no_iv4 else ("iv4",) if args.no_som else ("som", "maps", "iv4")
@@ -85,10 +120,12 @@ def run(args: argparse.Namespace) -> int:
     if args.population:
         sets["population"] = population_set(args.population, args.seed + 1)
     with tqdm(total=sum(s.size for s in sets.values()), unit="sys", desc="evaluate", file=sys.stderr,
-              disable=args.no_progress) as bar:
+              disable=args.no_progress or not group.main) as bar:
         summary, rows_by_set = run_study(sets, methods=methods, checkpoints=args.checkpoints,
                                          cache_dir=None if args.no_cache else args.cache, workers=workers,
                                          progress=bar.update)
+    if not group.main:
+        return 0
     written = write_report(summary, rows_by_set, args.out, command=command_line(args), plots=not args.no_plots)
     _print_summary(summary, written)
     print(f"wrote {args.out / 'report.md'} and {len(written['files']) - 1} more files in "

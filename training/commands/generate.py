@@ -5,28 +5,45 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from training.commands import _progress
+
 HELP = "make training data: population responses and their features, sharded to disk (resumable)"
+
+#: Default sharding: at least this many shards where N allows, of at most this many systems.
+MIN_SHARDS, MAX_SHARD_SIZE = 10, 500
+
+
+def default_shard_size(n: int) -> int:
+    """Systems per shard for ``n`` systems when ``--shard-size`` is not given."""
+    return max(1, min(MAX_SHARD_SIZE, -(-n // MIN_SHARDS)))
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=Path, required=True, help="dataset folder (an interrupted run resumes here)")
     parser.add_argument("--n", type=int, default=20000, help="number of systems (default 20000)")
     parser.add_argument("--seed", type=int, default=1, help="population and noise seed (default 1)")
-    parser.add_argument("--shard-size", type=int, default=500, help="systems per shard file (default 500)")
-    parser.add_argument("--workers", type=int, default=None, help="analysis processes (default: CPU count)")
-    parser.add_argument("--no-progress", action="store_true")
+    parser.add_argument("--shard-size", type=int, default=None,
+                        help=f"systems per shard file, the unit of resuming (default: N/{MIN_SHARDS} rounded up, "
+                             f"at most {MAX_SHARD_SIZE}: an interrupt loses at most one shard's work)")
+    parser.add_argument("--workers", type=int, default=None,
+                        help="analysis processes (default: CPU count; under torchrun: each process's share)")
+    _progress.add_option(parser)
 
 
 def run(args: argparse.Namespace) -> int:
-    from tqdm import tqdm
-
+    from training._distributed import process_group
     from training.learning import GenerateConfig, generate, load_dataset
 
-    if args.n < 1 or args.shard_size < 1:
-        raise ValueError(f"--n and --shard-size: expected >= 1, received {args.n}, {args.shard_size}")
-    config = GenerateConfig(n=args.n, seed=args.seed, shard_size=args.shard_size)
-    with tqdm(total=args.n, unit="sys", disable=args.no_progress, desc="generate") as bar:
+    shard_size = default_shard_size(args.n) if args.shard_size is None else args.shard_size
+    if args.n < 1 or shard_size < 1:
+        raise ValueError(f"--n and --shard-size: expected >= 1, received {args.n}, {shard_size}")
+    config = GenerateConfig(n=args.n, seed=args.seed, shard_size=shard_size)
+    group = process_group()  # under torchrun: the ranks share the shards, rank 0 writes and prints
+    with _progress.bar(args, show=_progress.wanted(args) and group.main, total=args.n, unit="sys",
+                       desc="generate") as bar:
         generate(args.out, config, workers=args.workers, progress=bar.update)
+    if not group.main:
+        return 0
     ds = load_dataset(args.out)
     print(f"{args.out}: {len(ds)} systems, {int(ds.ok.sum())} analysed, {len(ds) - int(ds.ok.sum())} rejected "
           f"by the analysis, sha256 {ds.sha256[:16]}")

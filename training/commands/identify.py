@@ -16,11 +16,12 @@ from __future__ import annotations
 import argparse
 import os
 import sys
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import Any, TextIO
 
 from training._json import dumps
+from training.commands import _progress
 from training.errors import OutputExistsError, UserError, one_line
 
 HELP = "identify records (NAME.csv + NAME.json) with the shipped maps; JSON Lines out, one object per record"
@@ -29,13 +30,19 @@ EXIT_OK, EXIT_SOME_ERRORS = 0, 1
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.epilog = ("exit status: 0 all records identified, 1 some records have an 'error' (the others are "
+    parser.epilog = ("output: one JSON object per line, numbers in SI units: J_sigma, J_M, J_L [kg m^2], V_J [-], "
+                     "f_e [Hz], C_F [Nm/rad], d [-], backlash [rad, total width 2s], M_FC [Nm], mu_F [Nm s/rad]; "
+                     "exit status: 0 all records identified, 1 some records have an 'error' (the others are "
                      "answered), 2 bad usage (no files, unusable checkpoints, --out exists)")
     parser.add_argument("files", nargs="*", metavar="FILE",
                         help="record as NAME.csv, NAME.json or NAME (CSV with t, speed, current|torque; "
                              "metadata NAME.json beside it)")
     parser.add_argument("--out", type=Path, metavar="PATH", help="write JSON Lines here (atomically) instead of stdout")
-    parser.add_argument("--overwrite", action="store_true", help="replace an existing --out file")
+    parser.add_argument("--overwrite", action="store_true", help="replace an existing --out file (and existing pages "
+                        "in --plot DIR)")
+    parser.add_argument("--plot", type=Path, metavar="DIR", help="write one PNG page per record into DIR: NAME.png "
+                        "(speed and the identified model's replay, w_osc, spectrum, current, results) and "
+                        "NAME_maps.png (the record on the maps); needs the plot extra (docs/figures.md)")
     parser.add_argument("--checkpoints", type=Path, metavar="DIR",
                         help="folder with the maps and manifest.json (default: the shipped checkpoints/, "
                              "or $TWOMASS_CHECKPOINTS)")
@@ -43,7 +50,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "fewer than 8 records, else 2 where 2 CPUs are available)")
     parser.add_argument("--no-refine", action="store_true",
                         help="the maps' answer alone, without the model-based refinement (faster, coarser)")
-    parser.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
+    _progress.add_option(parser)
 
 
 def load_identifier(folder: Path | None, refine: bool = True) -> Any:
@@ -54,7 +61,8 @@ def load_identifier(folder: Path | None, refine: bool = True) -> Any:
 
     where = folder if folder is not None else checkpoints_folder()
     if not Path(where).is_dir():
-        raise UserError(f"--checkpoints: expected a folder with the trained maps, received {str(where)!r} (not found)")
+        raise UserError(f"--checkpoints: expected a folder with the trained maps, received {str(where)!r} (not found; "
+                        "give --checkpoints DIR or set TWOMASS_CHECKPOINTS)")
     try:
         return Identifier.load(where, refine=RefineConfig() if refine else None)
     except (ValueError, OSError) as err:  # CheckpointError, unreadable or foreign files: one line, exit 2
@@ -99,39 +107,76 @@ def _write_lines(outcomes: Iterable[Any], f: TextIO) -> tuple[int, int]:
     return n, errors
 
 
+def _page_writer(folder: Path | None, paths: list[str], maps: Any, overwrite: bool) -> Any:
+    """The writer of ``--plot`` pages (``training.figures.PageWriter``), or None without ``--plot``
+    or without matplotlib (then one line says how to get the figures)."""
+    if folder is None:
+        return None
+    from training.figures import PLOT_HINT, PageWriter, plots_available
+
+    if not plots_available():
+        print(f"twomass identify: --plot: {PLOT_HINT}; identifying without pages", file=sys.stderr)
+        return None
+    return PageWriter(folder, paths, maps, overwrite=overwrite,
+                      report=lambda line: print(f"twomass identify: --plot: {line}", file=sys.stderr))
+
+
 def run(args: argparse.Namespace) -> int:
-    from tqdm import tqdm
-
     from som_torch import atomic_write
+    from training._distributed import process_group
+    from training.identification import CHUNK
 
+    group = process_group()  # under torchrun: the records are split, rank 0 writes them in input order
     if not args.files:
         raise UserError("expected at least one record FILE (NAME.csv, NAME.json or NAME), received none")
-    _check_out(args.out, args.overwrite)
+    group.on_main(lambda: _check_out(args.out, args.overwrite))
     paths = _distinct_records(args.files)
-    if len(paths) < len(args.files):
+    if len(paths) < len(args.files) and group.main:
         print(f"twomass identify: {len(args.files) - len(paths)} argument(s) name a record already given; "
               "answered once", file=sys.stderr)
     if args.jobs is not None and args.jobs < 1:
         raise UserError(f"--jobs: expected N >= 1, received {args.jobs}")
+    bar = _progress.bar(args, show=_progress.wanted(args) and group.main, total=len(paths), desc="identify",
+                        unit="rec")
+    bar.set_postfix_str("loading the maps")
     ident = load_identifier(args.checkpoints, refine=not args.no_refine)
-    bar = tqdm(total=len(paths), desc="identify", unit="rec", file=sys.stderr,
-               disable=args.no_progress or len(paths) < 2)
+    pages = _page_writer(args.plot, paths, ident.maps, args.overwrite) if group.main else None
     counts = (0, 0)
+    analysed = 0
+
+    def on_analysed(k: int) -> None:  # a record is answered after the maps' recall and the refinement
+        nonlocal analysed
+        analysed += k
+        bar.set_postfix_str(f"analysed {analysed}/{len(paths)}" + ("; maps and refinement" if analysed > bar.n else ""))
+
+    def outcomes() -> Iterator[Any]:
+        if not group.distributed:
+            for res in ident.iter_files(paths, jobs=args.jobs, progress=on_analysed):
+                bar.update(1)
+                yield res
+            return
+        for res in group.ordered(paths, lambda share: ident.iter_files(share, jobs=args.jobs), granule=CHUNK):
+            bar.update(1)
+            yield res
 
     def write(f: TextIO) -> None:
         nonlocal counts
-        counts = _write_lines(ident.iter_files(paths, jobs=args.jobs, progress=bar.update), f)
+        counts = _write_lines(outcomes() if pages is None else map(pages, outcomes()), f)
         _refuse_existing(args.out, args.overwrite)  # it may have appeared while we worked
 
     try:
-        if args.out is None:
+        if not group.main:
+            list(outcomes())  # this rank's share, sent to rank 0
+        elif args.out is None:
             write(sys.stdout)
             sys.stdout.flush()
         else:
             atomic_write(args.out, write, text=True)
     finally:
         bar.close()
-    n, errors = counts
+    n, errors = group.on_main(lambda: counts)  # every rank exits with rank 0's status
+    if not group.main:
+        return EXIT_SOME_ERRORS if errors else EXIT_OK
     where = f" to {args.out}" if args.out is not None else ""
     print(f"twomass identify: {n - errors} of {n} record(s) identified{where}"
           + (f"; {errors} with an error" if errors else ""), file=sys.stderr)

@@ -6,7 +6,8 @@ import argparse
 import sys
 from pathlib import Path
 
-from training.errors import UserError
+from training.commands import _progress
+from training.errors import OutputExistsError, UserError
 from training.params_file import read_params_file
 
 HELP = "simulate the SPEC test run for given or sampled systems and write records (CSV + JSON)"
@@ -22,15 +23,27 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--M-star", type=float, default=10.0, help="test torque M* [Nm] (default 10)")
     parser.add_argument("--w-max", type=float, default=100.0, help="test speed limit w_max [rad/s] (default 100)")
     parser.add_argument("--timeout", type=float, default=10.0, help="safety timeout per section [s] (default 10)")
-    parser.add_argument("--method", choices=("fast", "reference"), default="fast")
+    parser.add_argument("--method", choices=("fast", "reference"), default="fast",
+                        help="fast: fixed-step RK4 in the fused C kernel (the torch twin without it); reference: "
+                             "adaptive dopri5 (torchdiffeq) in float64, slow, for checking (default fast)")
     parser.add_argument("--float64", action="store_true", help="integrate in float64 (default float32)")
-    parser.add_argument("--overwrite", action="store_true", help="replace existing records")
-    parser.add_argument("--no-progress", action="store_true")
+    parser.add_argument("--overwrite", action="store_true",
+                        help="replace existing records (without it nothing is written when any record exists)")
+    _progress.add_option(parser)
+
+
+def _refuse_existing(folder: Path, names: list[str], overwrite: bool) -> None:
+    """Before anything is written: an :class:`OutputExistsError` naming the records of ``names``
+    already in ``folder`` (unless ``overwrite``), so that a batch is written whole or not at all."""
+    taken = [n for n in names if any((folder / f"{n}{ext}").exists() for ext in (".csv", ".json"))]
+    if taken and not overwrite:
+        shown = ", ".join(taken[:3]) + (f" and {len(taken) - 3} more" if len(taken) > 3 else "")
+        raise OutputExistsError(f"--out {folder}: {len(taken)} of the {len(names)} records exist ({shown}); "
+                                "nothing written (pass --overwrite to replace them)")
 
 
 def run(args: argparse.Namespace) -> int:
     import torch
-    from tqdm import tqdm
 
     from sim import DriveConfig, TestSignalConfig, iter_records, sample_population, write_record
 
@@ -43,8 +56,9 @@ def run(args: argparse.Namespace) -> int:
             raise UserError(f"--population: expected N >= 1, received {args.population}")
         params, names = sample_population(args.population, args.seed), None
     n = params.J_sigma.numel()
+    _refuse_existing(args.out, names or [f"sys{i:05d}" for i in range(n)], args.overwrite)
     dtype = torch.float64 if args.float64 else torch.float32
-    bar = tqdm(total=n, desc="simulate", unit="sys", file=sys.stderr, disable=args.no_progress)
+    bar = _progress.bar(args, total=n, desc="simulate", unit="sys")
     written = 0
     if args.method == "reference":
         from sim import responses_to_records, simulate_test

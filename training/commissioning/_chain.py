@@ -1,24 +1,16 @@
-"""The self-commissioning chain (SPEC 8, the paper's section 2) on one plant, one function per stage.
+"""The self-commissioning chain (SPEC 8, the paper's section 2) through a SPEC 8.1 drive, one
+function per stage.
 
-    adapt the test signal (E1-E7) -> record -> identify (shipped maps) -> validate (re-simulate)
-    -> may a controller be proposed? (V1-V6) -> propose (R1-R7) -> fine-tune (Nelder-Mead)
-    -> check on the plant -> report
+    adapt the test signal (E1-E8, drive.run_test) -> identify (shipped maps) -> validate
+    (re-simulate) -> may a controller be proposed? (V1-V6) -> propose (R1-R8, margins guaranteed)
+    or the fallback F1 -> tune on the identified model (Nelder-Mead, margins kept) -> plan the
+    closed-loop experiment inside the limits -> run the candidates on the drive
+    (drive.run_closed_loop) -> deliver the best that is not worse than the proposal -> report
 
-The plant is the simulator behind the plant interfaces a real drive would offer: the test
-runner ``signal -> response`` (:func:`training.commissioning._excitation.sim_test_runner`) and the
-closed-loop runner (:class:`training.commissioning._tuning.SimRunner`). The chain itself sees only
-what a drive delivers: the responses are turned into records *without* ``meta["truth"]``; the true
-parameters are used only to simulate the plant and, in the report, for the "true" column and the
-evaluation checks (true linear closed loop stable, limits kept), never for a decision. The
-identifier is an object handed in (``identify(record)``); its answer is kept unchanged in the
-report, the commissioning's own findings beside it.
-
-Tuning in two stages (docs/commissioning.md, "The chain"): a Nelder-Mead search on the exact
-linear model of the *identified* mechanics (:class:`LinearRunner`, fast), then the final check
-on the plant itself (:class:`SimRunner`, nonlinear): the proposal, the pre-tuned gains and points
-between them run side by side in one batch on the plant, and the lowest plant cost wins — so the
-tuned cost on the plant is never above the proposal's by construction. An optional short
-Nelder-Mead on the plant (``plant_evaluations``) polishes the winner.
+The chain reaches the plant only through the drive (``config``, ``run_test``,
+``run_closed_loop``); everything it decides comes from the records these return. A drive that
+offers ``truth()`` (a simulator) gets truth-based figures in the report, apart, marked
+"simulation only"; they are never used for a decision.
 """
 
 from __future__ import annotations
@@ -30,25 +22,29 @@ from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
-import torch
 
 import sim
-from training.errors import one_line
+from training.errors import CommissioningError, one_line
 
-from ._excitation import ExcitationLimits, ExcitationResult, ExcitationRules, adapt_test_signal, sim_test_runner
-from ._loop import loop_figures, mechanics_from
+from ._bands import f1_bands, hidden_bands
+from ._excitation import ExcitationResult, ExcitationRules, adapt_test_signal, guarded_limits, stop_headroom
+from ._loop import linear_plant, margins
 from ._permission import (CommissioningWarning, IdentificationFailed, IdentificationOutcome, may_propose_controller,
                           outside_training)
-from ._report import CommissioningReport
+from ._report import CommissioningReport, PlantRun
 from ._rules import ControllerProposal, ControllerSpec, propose_cautious, propose_controller
-from ._tuning import (LinearRunner, SimRunner, TuningResult, TuningScenario, evaluate_gains, make_scenario,
-                      response_figures, tune_controller)
+from ._tuning import Gains, TuningScenario, closed_loop_cost, plan_scenario, response_figures, tune_controller
 from ._validation import OSC_METRICS, VALIDATION_MODES, ValidationResult, validate_model
 
-__all__ = ["CommissioningConfig", "commission", "limit_checks"]
+__all__ = ["CommissioningConfig", "commission", "limit_checks", "drive_config"]
 
-#: The plant's true values kept for the report (never used for a decision).
-_TRUTH_SHOWN: tuple[str, ...] = sim.PARAM_NAMES + ("C_F", "s_N", "r_osc", "structure")
+#: The drive's own description (SPEC 8.1 ``config``) the chain reads.
+CONFIG_KEYS: tuple[str, ...] = ("T_s", "K_M", "T_Ei", "encoder_counts", "M_N", "M_max")
+#: Identification warning codes that make the elastic parameters uncertain (rule R7c widens the spread).
+UNCERTAIN_CODES: frozenset[str] = frozenset({"unlike_training_data", "oscillation_below_quantum", "refine_partial_fit",
+                                             "implausible_output", "drive_outside_training", "outside_envelope"})
+#: Identification warning codes that say the oscillation is not determined at all (rule R7b as for ``stiff``).
+UNDETERMINED_CODES: frozenset[str] = frozenset({"refine_partial_fit", "oscillation_below_quantum"})
 
 
 @dataclass(frozen=True)
@@ -56,49 +52,51 @@ class CommissioningConfig:
     """The chain's settings, with their defaults.
 
     Attributes:
-        spec: controller rule constants (:class:`ControllerSpec`).
+        spec: controller rule constants and the guaranteed margins (:class:`ControllerSpec`).
         rules: excitation rule constants (:class:`ExcitationRules`).
-        seed: noise seed of the test runs.
-        tune: run the fine-tuning (else: proposal only, still evaluated on the plant).
-        validation_mode: "replay" (the recorded torque reference open loop through the identified
-            model, fused kernel) or "switching" (the test's switching law rerun on the identified
-            model: a small error in when a speed threshold is reached moves the later sections,
-            which failed 2 more of 50 well-identified plants) (:func:`validate_model`).
-        osc_metric: oscillation comparison, "spectrum" (phase-insensitive) or "time".
+        tune: run the fine-tuning on the identified model (else: the proposal only, still run on
+            the drive).
+        validation_mode, osc_metric: :func:`validate_model`'s re-simulation and oscillation check.
         max_validation_error: refusal rule V3's bound on the speed error.
-        max_map_distance_ratio: rule V4: refuse when a used map's distance ratio (recall distance
-            over the training 99 % quantile) exceeds it (default 3: the maps were trained on the
-            fixed M* = 10 Nm, w_max = 100 rad/s test, adapted tests lie farther; 45 of 50
-            population plants exceed 1, docs/commissioning.md); None: the identifier's own
-            ``outside_training`` flag (ratio > 1).
-        tune_evaluations: Nelder-Mead evaluations on the identified linear model.
-        plant_evaluations: extra Nelder-Mead evaluations on the plant after the pre-tune (0: none).
-        fallback_evaluations: after a refusal, the cautious fallback F1 (PI on ``J_sigma`` alone,
-            :func:`propose_cautious`) is tuned by this many Nelder-Mead evaluations on the plant
-            itself (0: no fallback, the chain ends with the refusal).
-        max_samples: longest scenario run [samples] (2000 = 0.5 s; 25/w_c is cut there for loops
-            slower than w_c = 50 rad/s).
-        timeout: safety timeout per test section [s].
+        max_map_distance_ratio: rule V4's bound on a used map's distance ratio (None: the
+            identifier's own ``outside_training`` flag).
+        tune_evaluations: Nelder-Mead evaluations on the identified model.
+        fallback: after a refusal (or when no design keeps the margins), deliver the cautious
+            fallback F1 (:func:`propose_cautious`); False: end with the refusal.
+        limit_use: the share of the speed and travel limits a closed-loop experiment may use by the
+            model's prediction (``fallback_limit_use`` for F1, planned on the one-mass model).
+        max_samples: longest closed-loop experiment [samples] (six segments).
+        osc_visible_ratio: F1's eigenfrequency band: an oscillation below resolution in the test
+            means ``r_osc < osc_visible_ratio`` (SPEC 1), a lower bound on ``f_e`` per ``V_J``.
+        uncertain_spread: rule R7c: the guarantee's spread of ``f_e`` and ``V_J`` when the
+            identification's own quality figures say the elastic values are uncertain (a warning
+            code of :data:`UNCERTAIN_CODES`, or a map beyond its training); the damping ``d`` is
+            then halved (a lighter damped resonance).
+        hidden_resonances: rule R7b: the guarantee of a ``stiff`` answer, or of one whose
+            oscillation is not determined (:data:`UNDETERMINED_CODES`), also covers the resonances
+            the test could not show (:func:`training.commissioning._bands.hidden_bands`).
     """
 
     spec: ControllerSpec = field(default_factory=ControllerSpec)
     rules: ExcitationRules = field(default_factory=ExcitationRules)
-    seed: int = 0
     tune: bool = True
     validation_mode: str = "replay"
     osc_metric: str = "spectrum"
     max_validation_error: float = 0.1
     max_map_distance_ratio: float | None = 3.0
     tune_evaluations: int = 30
-    plant_evaluations: int = 0
-    fallback_evaluations: int = 20
-    max_samples: int = 2000
-    timeout: float = 10.0
+    fallback: bool = True
+    limit_use: float = 0.5
+    fallback_limit_use: float = 0.3
+    max_samples: int = 6000
+    osc_visible_ratio: float = 20.0
+    uncertain_spread: float = 0.5
+    hidden_resonances: bool = True
 
     def __post_init__(self) -> None:
-        if self.tune_evaluations < 1 or self.plant_evaluations < 0 or self.fallback_evaluations < 0:
-            raise ValueError(f"tune_evaluations >= 1, plant_evaluations >= 0, fallback_evaluations >= 0 expected, "
-                             f"received {self.tune_evaluations}, {self.plant_evaluations}, {self.fallback_evaluations}")
+        if self.tune_evaluations < 1 or self.max_samples < 600:
+            raise ValueError(f"tune_evaluations >= 1 and max_samples >= 600 expected, received "
+                             f"{self.tune_evaluations}, {self.max_samples}")
         if self.validation_mode not in VALIDATION_MODES:
             raise ValueError(f"validation_mode: expected one of {VALIDATION_MODES}, received {self.validation_mode!r}")
         if self.osc_metric not in OSC_METRICS:
@@ -107,51 +105,82 @@ class CommissioningConfig:
         if not self.max_validation_error > 0 or (bound is not None and not bound > 0):
             raise ValueError(f"max_validation_error > 0 and max_map_distance_ratio > 0 or None expected, "
                              f"received {self.max_validation_error}, {bound}")
+        if not (0 < self.limit_use <= 1 and 0 < self.fallback_limit_use <= 1):
+            raise ValueError(f"limit_use, fallback_limit_use: expected in (0, 1], received {self.limit_use}, {self.fallback_limit_use}")
 
 
-# --------------------------------------------------------------------------- checks
+# --------------------------------------------------------------------------- the drive
 
 
-def limit_checks(excitation: ExcitationResult, limits: ExcitationLimits, drive: Any) -> dict[str, Any]:
-    """Were the user limits kept in every test run? From the log's measured peaks (speed,
-    travel from start, torque reference) against ``w_limit``, ``travel_limit`` and the torque cap."""
-    M_cap = float(drive.M_max) if limits.M_star_max is None else min(float(drive.M_max), limits.M_star_max)
-    log = excitation.log
-    peak_w = max(e["peak_speed"] for e in log)
-    peak_phi = max(e["travel"] for e in log)
-    peak_M = max((e["peak_torque_ref"] for e in log if math.isfinite(e["peak_torque_ref"])), default=0.0)
-    return {
-        "peak_speed": peak_w, "peak_travel": peak_phi, "peak_torque_ref": peak_M,
-        "within_limits": bool(peak_w <= limits.w_limit and peak_phi <= limits.travel_limit and peak_M <= M_cap + 1e-6),
-    }
+def drive_config(drive: Any) -> sim.DriveConfig:
+    """The drive's ``config`` (SPEC 8.1: ``T_s``, ``K_M``, ``T_Ei``, ``encoder_counts``, ``M_N``,
+    ``M_max``, from attributes or a dict) as a :class:`sim.DriveConfig` for the chain's models;
+    raises :class:`CommissioningError` naming what is missing or wrong."""
+    for name in ("config", "run_test", "run_closed_loop"):
+        if not hasattr(drive, name):
+            raise CommissioningError(f"drive: expected a SPEC 8.1 drive with config, run_test and run_closed_loop; "
+                                     f"{type(drive).__name__} has no {name!r}")
+    cfg = drive.config
+    get = cfg.get if isinstance(cfg, dict) else (lambda k: getattr(cfg, k, None))
+    missing = [k for k in CONFIG_KEYS if get(k) is None]
+    if missing:
+        raise CommissioningError(f"drive.config: missing {missing}; expected {list(CONFIG_KEYS)}")
+    try:
+        return sim.DriveConfig(**{k: get(k) for k in CONFIG_KEYS}, current_noise_std=0.0)
+    except (TypeError, ValueError) as err:
+        raise CommissioningError(f"drive.config: {one_line(err)}") from None
 
 
-def _true_loop_checks(plant: Any, drive: Any, chosen: ControllerProposal, choice: _PlantChoice,
-                      sc: TuningScenario) -> dict[str, Any]:
-    """Evaluation checks of the chosen loop (the truth is used here only, never for a decision)."""
-    true_figs = loop_figures(mechanics_from(plant.to_dicts()[0]), drive, chosen.Kp, chosen.Ti, chosen.T_f, chosen.notch)
-    settled = bool(choice.cost < sc.unstable_cost)
-    stable_true = bool(true_figs["stable"])
-    return {"settled_on_plant": settled, "stable_true_linear": stable_true,
-            "true_phase_margin": float(true_figs["phase_margin"]), "tuned_not_worse": bool(choice.cost <= choice.cost_proposal),
-            "stable": settled and stable_true}
+def _check_record(rec: Any, what: str) -> Any:
+    if not isinstance(rec, sim.Record):
+        raise CommissioningError(f"drive.{what}: expected a sim.Record, received {type(rec).__name__}")
+    if len(rec.speed) < 2 or not np.isfinite(rec.speed).all():
+        raise CommissioningError(f"drive.{what}: expected a record with a finite measured speed of >= 2 samples")
+    return rec
+
+
+class _CheckedDrive:
+    """The user's drive with each returned record checked, and every experiment kept (kind, record)."""
+
+    def __init__(self, drive: Any, config: sim.DriveConfig) -> None:
+        self.drive, self.config = drive, config
+        self.experiments: list[tuple[str, Any]] = []
+
+    def run_test(self, M_star: float, w_max: float, limits: sim.DriveLimits) -> Any:
+        rec = _check_record(self.drive.run_test(float(M_star), float(w_max), limits), "run_test")
+        self.experiments.append(("test", rec))
+        return rec
+
+    def run_closed_loop(self, law: Any, scenario: sim.Scenario, limits: sim.DriveLimits, kind: str) -> Any:
+        rec = _check_record(self.drive.run_closed_loop(law, scenario, limits), "run_closed_loop")
+        self.experiments.append((kind, rec))
+        return rec
+
+
+def limit_checks(experiments: list[tuple[str, Any]], limits: sim.DriveLimits, config: Any) -> dict[str, Any]:
+    """Were the limits kept in every experiment? From each measured record: peak ``|speed|``,
+    travel (largest ``|phi|`` of the integrated measured speed), peak ``|torque_ref|`` and the
+    drive's ``aborted`` flag (a stopped run passed a limit)."""
+    runs = []
+    cap = limits.torque_cap(config)
+    for kind, rec in experiments:
+        w = np.asarray(rec.speed, dtype=np.float64)
+        peak_M = float(np.abs(rec.torque_ref).max()) if rec.torque_ref is not None else math.nan
+        stopped = bool(rec.meta.get("aborted", False))
+        run = {"kind": kind, "peak_speed": float(np.abs(w).max()), "travel": float(np.abs(np.cumsum(w) * float(config.T_s)).max()),
+               "peak_torque_ref": peak_M, "aborted": stopped}
+        run["within_limits"] = bool(not stopped and run["peak_speed"] <= limits.w_max and run["travel"] <= limits.travel
+                                    and not peak_M > cap * (1 + 1e-9))
+        runs.append(run)
+    return {"runs": runs, "within_limits": all(r["within_limits"] for r in runs),
+            "peak_speed": max(r["peak_speed"] for r in runs), "peak_travel": max(r["travel"] for r in runs)}
 
 
 # --------------------------------------------------------------------------- stages
 
 
-def _excite(plant: Any, drive: Any, limits: ExcitationLimits, cfg: CommissioningConfig) -> tuple[ExcitationResult, Any, dict[str, Any]]:
-    """Stage 1: the test signal on the plant (the runner is the plant interface) and its record
-    without truth; the truth separately, for the report."""
-    ex = adapt_test_signal(sim_test_runner(plant, drive, seed=cfg.seed), drive, limits, cfg.rules, timeout=cfg.timeout)
-    record = sim.responses_to_records(ex.response, plant.reshape(1), drive, ex.signal, names=["commissioning"])[0]
-    record.meta.pop("truth", None)  # the chain sees what a drive delivers, nothing more
-    truth = plant.reshape(1).truth(drive, float(ex.signal.M_star))[0]
-    return ex, record, {k: truth[k] for k in _TRUTH_SHOWN}
-
-
 def _identify(identifier: Any, record: Any) -> IdentificationOutcome:
-    """Stage 2: what the maps say; an error the identifier raises becomes a failure (rule V1)."""
+    """What the maps say; an error the identifier raises becomes a failure (rule V1)."""
     try:
         return identifier.identify(record)
     except (ValueError, RuntimeError) as err:
@@ -159,153 +188,200 @@ def _identify(identifier: Any, record: Any) -> IdentificationOutcome:
 
 
 def _model_params(result: Any) -> dict[str, float | None]:
-    """The seven model parameters of an identification result (``V_J``, ``f_e`` None for ``stiff``:
-    a one-mass model, validation uses its documented stand-in)."""
+    """The seven model parameters of an identification result (``V_J``, ``f_e`` None for ``stiff``)."""
     out: dict[str, float | None] = {k: getattr(result.parameters, k) for k in sim.PARAM_NAMES}
     if result.structure == "stiff":
         out["V_J"], out["f_e"] = None, None
     return out
 
 
-def _validate(result: IdentificationOutcome, drive: Any, record: Any,
+def _validate(result: IdentificationOutcome, config: sim.DriveConfig, record: Any,
               cfg: CommissioningConfig) -> tuple[ValidationResult | None, tuple[CommissioningWarning, ...]]:
-    """Stage 3: does the identified model reproduce the record? (None: no result, or the
-    re-simulation could not run, with a warning saying why)."""
+    """Does the identified model reproduce the record? (None: no result, or the re-simulation
+    could not run, with a warning saying why)."""
     if not result.ok:
         return None, ()
     try:
-        return validate_model(_model_params(result), drive, record, mode=cfg.validation_mode, seed=cfg.seed,
+        return validate_model(_model_params(result), config, record, mode=cfg.validation_mode,
                               osc_metric=cfg.osc_metric), ()
     except ValueError as err:
         return None, (CommissioningWarning("validation_not_run", f"validation failed: {one_line(err)}"),)
 
 
-def _propose(result: Any, fallback: bool, drive: Any, spec: ControllerSpec) -> tuple[ControllerProposal, dict[str, Any]]:
-    """Stage 5: the proposal from the identified structure and parameters, or after a refusal the
-    cautious fallback F1 on ``J_sigma`` alone; with the parameters of the model it assumes."""
-    if fallback:
-        J_sigma = float(result.parameters.J_sigma)
-        return propose_cautious(J_sigma, drive, spec), {"J_sigma": J_sigma}
-    params = _model_params(result)
-    return propose_controller(result.structure, params, drive, spec), params
+def _accepted(ex: ExcitationResult) -> dict[str, Any]:
+    """The log entry of the test record the identification used (the last one the drive did not stop)."""
+    kept = [e for e in ex.log if not e["aborted"]]
+    return kept[-1] if kept else ex.log[-1]
 
 
-def _pretune(proposal: ControllerProposal, params: dict[str, Any], drive: Any, sc: TuningScenario,
-             cfg: CommissioningConfig, writer: Any, tag: str) -> tuple[TuningResult, list[tuple[float, float, float]]]:
-    """Stage 6a: Nelder-Mead on the identified linear model; the candidates for the plant: the
-    proposal, the pre-tuned gains and points back towards the proposal (log-linear)."""
-    tuning = tune_controller(proposal, LinearRunner(params, drive), drive, scenario=sc, max_evaluations=cfg.tune_evaluations)
-    cands = [(proposal.Kp, proposal.Ti, proposal.T_f)]
-    tc = tuning.controller
-    if tc is not proposal:
-        for frac in (1.0, 2 / 3, 1 / 3):
-            cands.append(tuple(float(math.exp((1 - frac) * math.log(a) + frac * math.log(b)))
-                               for a, b in ((proposal.Kp, tc.Kp), (proposal.Ti, tc.Ti), (proposal.T_f, tc.T_f))))
-    if writer is not None:
-        for i, h in enumerate(tuning.history):
-            writer.add_scalar(f"{tag}/pretune/cost", h["cost"], i)
-            writer.add_scalar(f"{tag}/pretune/Kp", h["Kp"], i)
-            writer.add_scalar(f"{tag}/pretune/Ti_ms", h["Ti"] * 1e3, i)
-    return tuning, cands
+def _test_J(ex: ExcitationResult) -> float:
+    """The one-mass inertia the accepted test run's mean acceleration gives, ``M* / accel`` [kg m^2]
+    (friction makes it larger, never smaller; inf when the run had no acceleration to measure)."""
+    e = _accepted(ex)
+    return e["M_star"] / e["accel"] if e.get("accel", 0.0) > 0 else math.inf
 
 
-@dataclass(frozen=True)
-class _PlantChoice:
-    """Stage 6b's outcome: the proposal's and the chosen gains' costs and speeds ``2 x N`` on the
-    plant; ``kept``: the proposal won; ``search``: the Nelder-Mead on the plant (or None)."""
-
-    cost_proposal: float
-    speed_proposal: torch.Tensor
-    cost: float
-    speed: torch.Tensor
-    gains: tuple[float, float, float]
-    kept: bool
-    search: TuningResult | None
-
-
-def _choose_on_plant(runner: SimRunner, proposal: ControllerProposal, cands: list[tuple[float, float, float]],
-                     drive: Any, sc: TuningScenario, evaluations: int, span: float) -> _PlantChoice:
-    """Stage 6b: the candidates side by side on the plant, the lowest cost wins (the proposal on a
-    tie); then an optional Nelder-Mead on the plant from the winner (``evaluations`` > 0)."""
-    K, T, F = (torch.tensor([c[j] for c in cands], dtype=torch.float64) for j in range(3))
-    costs, _, speeds = evaluate_gains(runner, proposal, drive, sc, K, T, F)
-    costs = costs.tolist()
-    best = int(np.argmin(costs))
-    if costs[best] >= costs[0]:
-        best = 0
-    cost, speed, gains = costs[best], speeds[best], cands[best]
-    search = None
-    if evaluations > 0:
-        start = replace(proposal, Kp=gains[0], Ti=gains[1], T_f=gains[2])
-        search = tune_controller(start, runner, drive, scenario=sc, max_evaluations=evaluations, span=span)
-        if search.cost_tuned < cost:
-            gains = (search.controller.Kp, search.controller.Ti, search.controller.T_f)
-            _, _, sp = evaluate_gains(runner, proposal, drive, sc, *(torch.tensor([g]) for g in gains))
-            cost, speed = search.cost_tuned, sp[0]
-    return _PlantChoice(float(costs[0]), speeds[0], float(cost), speed, gains,
-                        kept=best == 0 and gains == cands[0], search=search)
+def _run_candidates(run: _Run, proposal: ControllerProposal, gains: list[Gains], sc: TuningScenario,
+                    kind: str) -> list[PlantRun]:
+    """Each gain set on the drive over ``sc`` (one experiment each), scored from its record."""
+    out = []
+    mech = proposal.mechanics
+    for i, g in enumerate(gains):
+        law = proposal.law(run.config, Kp=g[0], Ti=g[1], T_f=g[2])
+        rec = run.drive.run_closed_loop(law, sc.scenario(), run.loop_limits, f"{kind} {i}")
+        stopped = bool(rec.meta.get("aborted", False))
+        w = np.asarray(rec.speed, dtype=np.float64)
+        cost, terms = closed_loop_cost(w, sc, mech, stopped)
+        bounded = not stopped and bool(np.isfinite(w).all()) and float(np.abs(w).max()) <= sc.divergence_factor * sc.w_step
+        out.append(PlantRun(gains=g, cost=float(cost), motor=float(terms["motor"]), load=float(terms["load"]),
+                            settled=not bool(terms["unstable"]), aborted=stopped, bounded=bounded,
+                            figures=response_figures(np.asarray(rec.speed, dtype=np.float64), sc, mech),
+                            speed=np.asarray(rec.speed, dtype=np.float64)))
+        if stopped:
+            run.warn("run_stopped", f"the drive stopped the closed-loop run {kind} {i} at a limit")
+    return out
 
 
-def _final_tuning(tuning: TuningResult, proposal: ControllerProposal, choice: _PlantChoice, drive: Any) -> TuningResult:
-    """The tuning result with the controller chosen on the plant."""
-    if choice.kept:
-        return replace(tuning, controller=proposal, warnings=[
-            *tuning.warnings, "on the plant no tuned gain set beat the proposal: the proposal is kept"])
-    g = choice.gains
-    final = proposal.with_gains(drive, *g, rule=(
-        f"T2 final choice on the plant: Kp {g[0]:.4g}, Ti {g[1]:.4g} s, T_f {g[2]:.3g} s; "
-        f"plant cost {choice.cost_proposal:.4g} -> {choice.cost:.4g}"))
-    return replace(tuning, controller=final)
-
-
-# --------------------------------------------------------------------------- the chain
-
-
-def _check_inputs(plant_params: Any, limits: Any, identifier: Any, config: Any) -> None:
-    if not isinstance(plant_params, sim.TwoMassParams):
-        raise TypeError(f"plant_params: expected sim.TwoMassParams, received {type(plant_params).__name__}")
-    if plant_params.J_sigma.numel() != 1:
-        raise ValueError(f"plant_params: expected one system, received batch {tuple(plant_params.batch_shape)}")
-    if not isinstance(limits, ExcitationLimits):
-        raise TypeError(f"limits: expected ExcitationLimits, received {type(limits).__name__}")
-    if not callable(getattr(identifier, "identify", None)):
-        raise TypeError(f"identifier: expected an object with identify(record), received {type(identifier).__name__}")
-    if not isinstance(config, CommissioningConfig):
-        raise TypeError(f"config: expected CommissioningConfig or None, received {type(config).__name__}")
+def _choose(runs: list[PlantRun]) -> int | None:
+    """The delivered candidate: the lowest cost among the settled runs that are not worse than the
+    proposal's (index 0) on the motor nor on the (estimated) load; with an unsettled proposal the
+    lowest settled one; None when none settled."""
+    settled = [i for i, r in enumerate(runs) if r.settled]
+    if not settled:
+        return None
+    if runs[0].settled:
+        settled = [i for i in settled if runs[i].motor <= runs[0].motor and runs[i].load <= runs[0].load]
+    return min(settled, key=lambda i: (runs[i].cost, i))
 
 
 @dataclass
 class _Run:
-    """One run of the chain: the plant, its settings, the outputs (progress, TensorBoard) and the
-    stage timings [s]."""
+    """One run of the chain: the drive, its settings, the outputs and the stage timings [s]."""
 
-    plant: Any
-    drive: Any
+    drive: _CheckedDrive
+    config: sim.DriveConfig
+    limits: sim.DriveLimits
     cfg: CommissioningConfig
     say: Callable[[str], None]
     writer: Any
     name: str
     tag: str
+    warnings: list[CommissioningWarning] = field(default_factory=list)
     timings: dict[str, float] = field(default_factory=dict)
+    loop_limits: sim.DriveLimits | None = None
+    """The limits handed to the drive for the closed-loop runs (E9: less the headroom after a stop)."""
     _start: float = field(default_factory=time.perf_counter)
     _last: float = 0.0
 
     def lap(self, stage: str) -> None:
-        """Time since the previous lap (or the start) as ``timings[stage]``."""
         now = time.perf_counter()
         self.timings[stage] = now - (self._last or self._start)
         self._last = now
 
-    def total(self) -> dict[str, float]:
-        """The timings with ``total`` (since the start)."""
-        self.timings["total"] = time.perf_counter() - self._start
-        return self.timings
+    def warn(self, code: str, text: str) -> None:
+        self.warnings.append(CommissioningWarning(code, text))
+
+
+def _model_based(run: _Run, result: Any, ex: ExcitationResult) -> tuple[ControllerProposal, Any, list[PlantRun], int | None, TuningScenario, dict[str, float]] | None:
+    """Propose, tune on the identified model, run the candidates on the drive, choose; None when no
+    design keeps the margins (R7)."""
+    cfg, config = run.cfg, run.config
+    params = _model_params(result)
+    spec, hidden, notch_at, why = cfg.spec, None, None, _uncertain(result)
+    if cfg.hidden_resonances and (params["f_e"] is None or UNDETERMINED_CODES.intersection(why)):
+        hidden, notch_at = hidden_bands(_accepted(ex), float(params["J_sigma"]), config, spec.class_V_J,
+                                        f_lo=spec.class_f_e[0], min_osc_quanta=cfg.rules.min_osc_quanta)
+    if why and params["f_e"] is not None:
+        spec = replace(spec, spread=max(spec.spread, cfg.uncertain_spread))
+        params["d"] = 0.5 * float(params["d"] or 0.0)
+    proposal = propose_controller(result.structure, params, config, spec, hidden=hidden, notch_at=notch_at)
+    if why and params["f_e"] is not None:
+        proposal = replace(proposal, rules=(f"R7c identification uncertain ({', '.join(why)}): the guarantee's spread of "
+                                            f"f_e and V_J is +-{spec.spread:.0%}, d halved to {params['d']:.3g}",) + proposal.rules)
+    if not proposal.meets(cfg.spec):
+        run.warn("margins_not_reached", f"R7: {proposal.warnings[-1]}")
+        return None
+    run.lap("proposal")
+    tuning = None
+    gains: list[Gains] = [(proposal.Kp, proposal.Ti, proposal.T_f)]
+    if cfg.tune:
+        sc0, _ = plan_scenario(proposal, [], config, run.limits, limit_use=cfg.limit_use, max_samples=cfg.max_samples)
+        run.say(f"{run.name}: tuning on the identified model ({cfg.tune_evaluations} evaluations)")
+        tuning = tune_controller(proposal, config, sc0, spec, max_evaluations=cfg.tune_evaluations)
+        tc = tuning.controller
+        if tc is not proposal:
+            gains.append((tc.Kp, tc.Ti, tc.T_f))
+            mid = tuple(math.sqrt(a * b) for a, b in zip(gains[0], gains[1]))
+            if proposal.models.margins(*mid, proposal.notch).meets(cfg.spec.min_phase_margin, cfg.spec.min_gain_margin_dB):
+                gains.append(mid)
+        if run.writer is not None:
+            for i, h in enumerate(tuning.history):
+                run.writer.add_scalar(f"{run.tag}/tune/cost", h["cost"], i)
+                run.writer.add_scalar(f"{run.tag}/tune/Kp", h["Kp"], i)
+    run.lap("tuning")
+    sc, prediction = plan_scenario(proposal, gains[1:], config, run.limits, limit_use=cfg.limit_use, max_samples=cfg.max_samples)
+    if prediction["speed_quanta"] < 20:
+        run.warn("scenario_small", f"the scenario's speed step is {prediction['speed_quanta']:.3g} speed quanta")
+    run.say(f"{run.name}: running {len(gains)} gain set(s) on the drive")
+    runs = _run_candidates(run, proposal, gains, sc, "closed loop")
+    run.lap("drive_runs")
+    return proposal, tuning, runs, _choose(runs), sc, prediction
+
+
+def _positive(x: Any) -> bool:
+    return isinstance(x, (int, float)) and math.isfinite(x) and x > 0
+
+
+def _uncertain(result: Any) -> list[str]:
+    """Why the identified elastic values are uncertain (warning codes of :data:`UNCERTAIN_CODES`,
+    ``outside_training``); empty when nothing says so."""
+    why = sorted({w.code for w in result.warnings if w.code in UNCERTAIN_CODES})
+    if result.quality.outside_training and "outside_training" not in why:
+        why.append("outside_training")
+    return why
+
+
+def _fallback(run: _Run, result: Any, ex: ExcitationResult) -> tuple[ControllerProposal, list[PlantRun], int | None, TuningScenario, dict[str, float]]:
+    """F1: the cautious PI on ``J_sigma`` with the highest crossover that keeps the margins on the
+    worst cases of the class the test run allows; one run on the drive, delivered when it stays
+    bounded (not stopped, not diverging: a slow loop that does not settle within the experiment is
+    slow, not unstable; its margins hold on every model of its set)."""
+    cfg, config = run.cfg, run.config
+    J = min(float(result.parameters.J_sigma), _test_J(ex))
+    bands = f1_bands(_accepted(ex), J, config, cfg.spec.class_V_J, cfg.spec.class_f_e, min_osc_quanta=cfg.rules.min_osc_quanta,
+                     osc_visible_ratio=cfg.osc_visible_ratio)
+    prop = propose_cautious(J, config, cfg.spec, bands=bands)
+    if J < float(result.parameters.J_sigma):
+        prop = replace(prop, rules=prop.rules + (f"F1 J_sigma from the test run's acceleration (M* / accel = {J:.4g} kg m^2), "
+                                                 f"below the identified {float(result.parameters.J_sigma):.4g} kg m^2",))
+    sc, prediction = plan_scenario(prop, [], config, run.limits, limit_use=cfg.fallback_limit_use, max_samples=cfg.max_samples)
+    runs = _run_candidates(run, prop, [(prop.Kp, prop.Ti, prop.T_f)], sc, "fallback F1")
+    run.lap("fallback")
+    return prop, runs, (0 if runs[0].bounded else None), sc, prediction
+
+
+def _truth_checks(drive: Any, delivered: ControllerProposal | None, config: sim.DriveConfig, M_star: float) -> dict[str, Any] | None:
+    """Simulation only: the true parameters and class, and the delivered loop's margins on the true
+    linear model (with the drive's own ``current_loop_damping`` / ``extra_delay`` where its truth
+    names them). None for a drive without ``truth()``."""
+    if not callable(getattr(drive, "truth", None)):
+        return None
+    t = dict(drive.truth())
+    p = sim.TwoMassParams.from_dicts({k: t[k] for k in sim.PARAM_NAMES})
+    row = p.truth(config, M_star)[0]
+    out: dict[str, Any] = {"parameters": {k: row[k] for k in (*sim.PARAM_NAMES, "C_F", "s_N", "r_osc")},
+                           "structure": row["structure"]}
+    if delivered is not None:
+        plant = linear_plant({k: t[k] for k in sim.PARAM_NAMES}, config, current_loop_damping=t.get("current_loop_damping"),
+                             extra_delay=int(t.get("extra_delay", 0)))
+        m = margins(plant, delivered.Kp, delivered.Ti, delivered.T_f, delivered.notch)
+        out.update(stable=m.stable, phase_margin=m.phase_margin, gain_margin_dB=m.gain_margin_dB, w_c=m.w_c)
+    return out
 
 
 def commission(
-    plant_params: Any,
     drive: Any,
-    limits: ExcitationLimits,
+    limits: sim.DriveLimits,
     *,
     identifier: Any,
     config: CommissioningConfig | None = None,
@@ -314,82 +390,89 @@ def commission(
     name: str = "plant",
     tag: str | None = None,
 ) -> CommissioningReport:
-    """Run the whole chain on one simulated plant.
+    """Run the whole chain on one drive (SPEC 8, 8.1).
 
     Args:
-        plant_params: the plant (one-system ``sim.TwoMassParams``; stands where a real drive would).
-        drive: ``sim.DriveConfig``.
-        limits: user limits for the test runs.
+        drive: a SPEC 8.1 drive: ``config`` (``T_s``, ``K_M``, ``T_Ei``, ``encoder_counts``,
+            ``M_N``, ``M_max``), ``run_test(M_star, w_max, limits) -> sim.Record``,
+            ``run_closed_loop(law, scenario, limits) -> sim.Record`` (e.g. :class:`sim.SimulatedDrive`).
+        limits: the user's limits (:class:`sim.DriveLimits`), handed to every experiment.
         identifier: object with ``identify(record)`` returning an identification result
             (``training.Identifier``); an error it raises (ValueError, RuntimeError) is rule V1.
-        config: the chain's settings (:class:`CommissioningConfig`; default: its defaults).
-        writer: optional TensorBoard ``SummaryWriter``: scalars of the search under ``tag``.
-        progress: optional callback with one-line stage messages.
+        config: the chain's settings (:class:`CommissioningConfig`).
+        writer: optional TensorBoard ``SummaryWriter``; progress: optional one-line callback.
         name, tag: report name and TensorBoard tag prefix (default: the name).
 
-    Returns :class:`CommissioningReport`. A refused identification is a normal outcome (the
-    report says why); errors in the inputs raise ValueError/TypeError.
+    Returns :class:`CommissioningReport`. A refusal is a normal outcome (the report says why); a
+    drive that breaks the interface raises :class:`training.errors.CommissioningError`.
     """
     cfg = CommissioningConfig() if config is None else config
-    _check_inputs(plant_params, limits, identifier, cfg)
-    run = _Run(plant_params.reshape(()), drive, cfg, progress or (lambda msg: None), writer, name, tag or name)
+    if not isinstance(limits, sim.DriveLimits):
+        raise TypeError(f"limits: expected sim.DriveLimits, received {type(limits).__name__}")
+    if not callable(getattr(identifier, "identify", None)):
+        raise TypeError(f"identifier: expected an object with identify(record), received {type(identifier).__name__}")
+    if not isinstance(cfg, CommissioningConfig):
+        raise TypeError(f"config: expected CommissioningConfig or None, received {type(cfg).__name__}")
+    conf = drive_config(drive)
+    run = _Run(_CheckedDrive(drive, conf), conf, limits, cfg, progress or (lambda msg: None), writer, name, tag or name)
     run.say(f"{name}: adapting the test signal")
-    ex, record, truth = _excite(run.plant, drive, limits, cfg)
+    ex = adapt_test_signal(run.drive, limits, cfg.rules)
+    if any(e["aborted"] for e in ex.log):
+        run.warn("run_stopped", "the drive stopped a test run at a limit")
     run.lap("excitation")
     run.say(f"{name}: identifying")
-    result = _identify(identifier, record)
-    validation, warnings = _validate(result, drive, record, cfg)
+    result = _identify(identifier, ex.record)
+    validation, vwarn = _validate(result, conf, ex.record, cfg)
+    run.warnings.extend(vwarn)
     if not ex.informative:
-        warnings = (CommissioningWarning("test_not_informative", f"test response not informative: {ex.reason}"), *warnings)
+        run.warn("test_not_informative", f"test response not informative: {ex.reason}")
     run.lap("identification_validation")
-    perm = may_propose_controller(result, validation, warnings=warnings, max_validation_error=cfg.max_validation_error,
+    J_loop = min(_test_J(ex), float(result.parameters.J_sigma) if result.ok and _positive(result.parameters.J_sigma) else math.inf)
+    cap = limits.torque_cap(conf)
+    run.loop_limits = guarded_limits(limits, stop_headroom(cap / J_loop, conf, cfg.rules) if math.isfinite(J_loop) else
+                                     cfg.rules.first_headroom * limits.w_max, conf, cfg.rules)
+    perm = may_propose_controller(result, validation, warnings=tuple(run.warnings), max_validation_error=cfg.max_validation_error,
                                   max_map_distance_ratio=cfg.max_map_distance_ratio)
-    report = CommissioningReport(
-        drive=drive, limits=limits, excitation=ex, record=record, identification=result, validation=validation,
-        permission=perm, warnings=warnings, max_map_distance_ratio=cfg.max_map_distance_ratio, truth=truth,
+    outcome = None
+    if perm.allowed:
+        outcome = _model_based(run, result, ex)
+    proposal = tuning = None
+    runs: list[PlantRun] = []
+    chosen = sc = prediction = None
+    fallback: str | None = None
+    if outcome is not None:
+        proposal, tuning, runs, chosen, sc, prediction = outcome
+        if chosen is None:
+            run.warn("loop_not_settled", "no candidate loop settled on the drive")
+            fallback = "loop_not_settled"
+    else:
+        fallback = "refused" if not perm.allowed else "margins_not_reached"
+    J = result.parameters.J_sigma if result.ok else None
+    f1, f1_runs, delivered, delivered_run = None, [], None, None
+    if fallback and cfg.fallback and _positive(J):
+        run.say(f"{name}: fallback F1 ({fallback})")
+        f1, f1_runs, f1_chosen, sc, prediction = _fallback(run, result, ex)
+        if f1_chosen is not None:
+            delivered, delivered_run = f1, f1_runs[f1_chosen]
+    elif chosen is not None:
+        delivered_run = runs[chosen]
+        if chosen == 0:
+            delivered = proposal
+        elif chosen == 1:
+            delivered = tuning.controller
+        else:
+            g = runs[chosen].gains
+            delivered = proposal.with_gains(conf, *g, rule=(
+                f"T2 on the drive: the geometric mean of the proposal's and the tuned gains: Kp {g[0]:.4g}, Ti {g[1]:.4g} s, "
+                f"T_f {g[2]:.3g} s"))
+    if prediction:
+        prediction = {**prediction, "stop_at": run.loop_limits.w_max}
+    checks = limit_checks(run.drive.experiments, limits, conf)
+    run.timings["total"] = time.perf_counter() - run._start
+    return CommissioningReport(
+        config=conf, limits=limits, excitation=ex, identification=result, validation=validation, permission=perm,
+        warnings=tuple(run.warnings), max_map_distance_ratio=cfg.max_map_distance_ratio,
         outside_training=outside_training(result, cfg.max_map_distance_ratio) if result.ok else None,
-        checks=limit_checks(ex, limits, drive), timings=run.timings, name=name)
-    if not perm.allowed:
-        run.say(f"{name}: refused ({perm.reason})")
-        J_sigma = result.parameters.J_sigma if result.ok else None
-        if not (cfg.fallback_evaluations > 0 and isinstance(J_sigma, (int, float)) and math.isfinite(J_sigma) and J_sigma > 0):
-            run.total()
-            return report
-        run.say(f"{name}: fallback F1, a cautious PI tuned on the plant ({cfg.fallback_evaluations} evaluations)")
-    return _control(run, result, report)
-
-
-def _control(run: _Run, result: Any, report: CommissioningReport) -> CommissioningReport:
-    """Stages 5-7 after the permission: propose (or the fallback F1 after a refusal), pre-tune on
-    the identified model, choose on the plant, check; ``report`` completed."""
-    cfg, drive, name = run.cfg, run.drive, run.name
-    fallback = report.refused
-    proposal, params = _propose(result, fallback, drive, cfg.spec)
-    sc = make_scenario(proposal, drive, max_samples=cfg.max_samples)
-    run.lap("proposal")
-    tuning, cands = None, [(proposal.Kp, proposal.Ti, proposal.T_f)]
-    if cfg.tune and not fallback:
-        run.say(f"{name}: tuning on the identified model ({cfg.tune_evaluations} evaluations)")
-        tuning, cands = _pretune(proposal, params, drive, sc, cfg, run.writer, run.tag)
-    run.lap("pretune")
-    run.say(f"{name}: checking {len(cands)} gain set(s) on the plant")
-    on_plant = (cfg.fallback_evaluations if fallback else cfg.plant_evaluations) if cfg.tune else 0
-    if on_plant > 0:
-        run.say(f"{name}: searching on the plant ({on_plant} evaluations)")
-    choice = _choose_on_plant(SimRunner(run.plant, drive), proposal, cands, drive, sc, on_plant,
-                              span=5.0 if fallback else 20.0)
-    tuning = choice.search if fallback else tuning
-    run.lap("plant_check")
-    if run.writer is not None:
-        run.writer.add_scalar(f"{run.tag}/plant/cost_proposal", choice.cost_proposal, 0)
-        run.writer.add_scalar(f"{run.tag}/plant/cost_tuned", choice.cost, 0)
-    if tuning is not None:
-        tuning = _final_tuning(tuning, proposal, choice, drive)
-    chosen = tuning.controller if tuning is not None else proposal
-    return replace(
-        report, proposal=proposal, tuning=tuning, fallback=fallback, timings=run.total(),
-        checks={**report.checks, **_true_loop_checks(run.plant, drive, chosen, choice, sc)},
-        plant_costs={"proposal": choice.cost_proposal, "tuned": choice.cost},
-        responses={"scenario": sc, "before": choice.speed_proposal.numpy(), "after": choice.speed.numpy()},
-        figures={"before": response_figures(choice.speed_proposal, sc), "after": response_figures(choice.speed, sc)},
-    )
+        proposal=proposal, tuning=tuning, fallback=f1, fallback_reason=fallback, runs=runs, fallback_runs=f1_runs,
+        delivered=delivered, delivered_run=delivered_run, scenario=sc, prediction=prediction or {}, checks=checks,
+        truth=_truth_checks(drive, delivered, conf, float(ex.log[-1]["M_star"])), timings=run.timings, name=name)

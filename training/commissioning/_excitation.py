@@ -1,12 +1,14 @@
 """Test-signal adaptation (knowledge base, SPEC 8): choose ``M_star`` and ``w_max`` for STEP 1.
 
-Start small, run the six-section test on the plant, judge from the response only (measured
-motor speed, the drive's own torque reference and section counter, the timeout flags; no truth)
+Start small, run the six-section test through the drive (``drive.run_test``, SPEC 8.1), judge from
+the returned record only (measured motor speed, the drive's own torque reference and section
+counter, the timeout flags; no truth)
 whether it is informative, and raise ``M_star`` and/or ``w_max`` by factor-2 steps until it is,
-never beyond the user's limits on torque (``M_max``, ``M_star_max``), speed (``w_limit``) and
-travel (``travel_limit``). The travel and the peak speed of the next run are predicted from the
+never beyond the user's limits (:class:`sim.DriveLimits`: torque ``M_max``, speed ``w_max``, travel
+``travel``). The travel and the peak speed of the next run are predicted from the
 current one before it runs (travel ~ ``w_max^2 J / M_star``), so a step that would cross a limit
-is shortened first. Rules E1-E7 in docs/commissioning.md.
+is shortened first; a run the drive stopped at a limit is never accepted (E8). Rules E1-E8 in
+docs/commissioning.md.
 
 Measured figures per run (all from the response):
 
@@ -15,45 +17,30 @@ Measured figures per run (all from the response):
 * ``range_quanta``: speed range ``max - min`` over the speed quantum ``q_w``,
 * ``osc_quanta``: RMS of the speed minus a per-section quadratic fit (the oscillating part), in ``q_w``,
 * ``peak_speed`` [rad/s], ``travel`` [rad] (largest ``|phi|`` of the integrated measured speed),
-  ``peak_torque_ref`` [Nm], ``peak_torque`` [Nm] (measured current x ``K_M``).
+  ``peak_torque_ref`` [Nm], ``peak_torque`` [Nm] (measured current x ``K_M``),
+* ``aborted``: the drive stopped the run at a limit (rule E8: never accepted, ``w_max`` halved),
+* ``f_osc`` [Hz]: the dominant frequency of the oscillating part (summed power spectra of the
+  sections), ``longest_section`` [s] (for the fallback F1's eigenfrequency band),
+* ``accel`` [rad/s^2]: the larger mean acceleration of sections I and IV (``M*`` over it is a
+  one-mass inertia that friction only makes larger; for the headroom after a stop and F1).
+
+Headroom (E9): the drive stops at its limit and the plant runs on: each run hands the drive the
+user's limits less the speed a run can gain after the stop (:func:`stop_headroom`, from ``accel``
+and the overshoot beyond ``w_max`` measured so far; the first run, before anything is known, a
+share ``first_headroom`` of the speed limit), and plans inside those.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-import torch
 
-__all__ = [
-    "ExcitationLimits",
-    "ExcitationRules",
-    "ExcitationResult",
-    "measure_response",
-    "adapt_test_signal",
-    "sim_test_runner",
-]
+import sim
 
-
-@dataclass(frozen=True)
-class ExcitationLimits:
-    """User limits. ``M_star_max`` [Nm] (None: the drive's ``M_max``), ``w_limit`` [rad/s] on
-    ``|speed|``, ``travel_limit`` [rad] on ``|phi|`` (motor angle from the start position)."""
-
-    w_limit: float
-    travel_limit: float
-    M_star_max: float | None = None
-
-    def __post_init__(self) -> None:
-        for name in ("w_limit", "travel_limit"):
-            v = getattr(self, name)
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
-                raise ValueError(f"ExcitationLimits.{name}: expected a finite number > 0, received {v!r}")
-        if self.M_star_max is not None and not (math.isfinite(self.M_star_max) and self.M_star_max > 0):
-            raise ValueError(f"ExcitationLimits.M_star_max: expected > 0 or None, received {self.M_star_max!r}")
+__all__ = ["ExcitationRules", "ExcitationResult", "measure_response", "adapt_test_signal", "stop_headroom", "guarded_limits"]
 
 
 @dataclass(frozen=True)
@@ -65,6 +52,12 @@ class ExcitationRules:
     ``J_prior_max`` [kg m^2]). ``factor``: raise step. ``min_section_samples``,
     ``min_range_quanta``, ``min_osc_quanta``: what "informative" means. ``speed_margin``,
     ``travel_margin``: fractions of the limits a predicted run may use. ``max_iterations``.
+    Headroom after a stop (E9, :func:`stop_headroom`): ``coast_factor``, ``delay_allowance``
+    [samples of dead time the drive may have beyond its own], ``first_headroom`` (share of the
+    speed limit for the first run). ``swing_allowance``: E6 plans the next peak at ``w_max' (1 +
+    swing_allowance)`` at least: once a section lasts longer than half a period of a soft mode, the
+    load swings the motor on after section I (the torque is 0 there, a stop changes nothing) by far
+    more than the short runs before showed.
     """
 
     M_star_start: float = 0.1
@@ -77,65 +70,50 @@ class ExcitationRules:
     speed_margin: float = 0.9
     travel_margin: float = 0.8
     max_iterations: int = 10
+    coast_factor: float = 2.0
+    swing_allowance: float = 0.5
+    delay_allowance: int = 1
+    first_headroom: float = 0.25
 
 
 @dataclass
 class ExcitationResult:
-    """``signal``: the final TestSignalConfig; ``response``: its response (as the plant returned
-    it); ``log``: one dict per run (``iteration, M_star, w_max``, the measured figures of
+    """``record``: the last test record that the drive did not stop (else the last one); ``records``:
+    every test record;
+    ``log``: one dict per run (``iteration, M_star, w_max``, the measured figures of
     :func:`measure_response`, ``decision``, ``reason``); ``informative``: the final run passed."""
 
-    signal: Any
-    response: Any
+    record: Any
+    records: list[Any] = field(default_factory=list)
     log: list[dict[str, Any]] = field(default_factory=list)
     informative: bool = False
     reason: str = ""
 
 
-def _np(x: Any) -> np.ndarray:
-    if isinstance(x, torch.Tensor):
-        return x.detach().to(torch.float64).cpu().numpy()
-    return np.asarray(x, dtype=np.float64)
+def _dominant_frequency(resid: list[np.ndarray], T_s: float) -> float:
+    """The frequency [Hz] of the largest summed power of the sections' oscillating parts (each
+    zero-padded to one length; 0 when there is nothing to analyse)."""
+    if not resid:
+        return 0.0
+    n = 1 << int(math.ceil(math.log2(max(len(r) for r in resid) * 4)))
+    power = sum(np.abs(np.fft.rfft(r * np.hanning(len(r)), n)) ** 2 for r in resid)
+    f = np.fft.rfftfreq(n, T_s)
+    return float(f[1 + int(np.argmax(power[1:]))])
 
 
-def _signals(resp: Any) -> dict[str, np.ndarray]:
-    """One system's signals from a Response (batch ``()`` or ``(1,)``) or a Record-like object."""
-    def get(name: str) -> Any:
-        if isinstance(resp, dict):
-            return resp.get(name)
-        return getattr(resp, name, None)
+def measure_response(record: Any, config: Any) -> dict[str, Any]:
+    """Measured figures of one test record (see module docstring); uses no truth.
 
-    speed = get("speed")
-    if speed is None:
-        raise TypeError(f"response: expected a Response/Record with 'speed', received {type(resp).__name__}")
-    speed = _np(speed).reshape(-1, _np(speed).shape[-1])
-    if speed.shape[0] != 1:
-        raise ValueError(f"response: expected one system, received a batch of {speed.shape[0]}")
-    n = speed.shape[1]
-    length = get("length")
-    if length is not None:
-        n = int(_np(length).reshape(-1)[0])
-    out = {"speed": speed[0, :n]}
-    for name in ("torque_ref", "current", "torque", "section", "timed_out"):
-        v = get(name)
-        if v is not None:
-            a = _np(v)
-            out[name] = a.reshape(-1)[:n] if name != "timed_out" else a.reshape(-1)
-    return out
-
-
-def measure_response(resp: Any, drive: Any) -> dict[str, Any]:
-    """Measured figures of one test response (see module docstring); uses no truth.
-
-    ``resp``: the plant's answer for one system (``speed`` ``N`` [rad/s], ``section`` ``N`` (1..6,
-    0 = tail), optional ``torque_ref``, ``current``/``torque``, ``timed_out``, ``length``).
+    ``record``: a :class:`sim.Record` (``speed`` ``N`` [rad/s], ``section`` ``N`` (1..6, 0 = tail),
+    optional ``torque_ref``, ``current``/``torque``; ``meta``: optional ``timed_out`` (six flags)
+    and ``aborted``). ``config``: the drive's ``T_s``, ``K_M``, ``encoder_counts``.
     """
-    s = _signals(resp)
-    T_s, q_w = float(drive.T_s), float(drive.q_w)
-    w = s["speed"]
+    T_s = float(config.T_s)
+    q_w = sim.speed_quantum(float(config.encoder_counts), T_s)
+    w = np.asarray(record.speed, dtype=np.float64)
     if len(w) < 2 or not np.isfinite(w).all():
-        raise ValueError("response: expected a finite speed with at least 2 samples")
-    sec = s.get("section")
+        raise ValueError("record: expected a finite speed with at least 2 samples")
+    sec = None if record.section is None else np.asarray(record.section)
     counts = [int((sec == k).sum()) for k in range(1, 7)] if sec is not None else [0] * 6
     resid: list[np.ndarray] = []
     if sec is not None:
@@ -147,86 +125,105 @@ def measure_response(resp: Any, drive: Any) -> dict[str, Any]:
                 resid.append(w[idx] - np.polyval(coef, t))
     osc = float(np.sqrt(np.mean(np.concatenate(resid) ** 2))) / q_w if resid else 0.0
     phi = np.cumsum(w) * T_s
-    timed = s.get("timed_out")
-    torque = s.get("torque")
-    if torque is None and s.get("current") is not None:
-        torque = s["current"] * float(drive.K_M)
+    accel = 0.0
+    if sec is not None:
+        for k in (1, 4):
+            idx = np.nonzero(sec == k)[0]
+            if len(idx) >= 2:
+                accel = max(accel, abs(float(w[idx[-1]] - w[idx[0]])) / ((len(idx) - 1) * T_s))
+    meta = record.meta or {}
+    torque = record.torque if record.torque is not None else (
+        None if record.current is None else np.asarray(record.current) * float(config.K_M))
     return {
         "samples_per_section": counts,
         "samples_min": min(counts),
-        "timed_out": bool(timed is not None and np.any(timed)),
+        "timed_out": bool(np.any(meta.get("timed_out", False))),
+        "aborted": bool(meta.get("aborted", False)),
         "range_quanta": float((w.max() - w.min()) / q_w),
         "osc_quanta": osc,
+        "f_osc": _dominant_frequency(resid, T_s),
+        "longest_section": max(counts) * T_s,
+        "accel": accel,
         "peak_speed": float(np.abs(w).max()),
         "travel": float(np.abs(phi).max()),
-        "peak_torque_ref": float(np.abs(s["torque_ref"]).max()) if "torque_ref" in s else math.nan,
+        "peak_torque_ref": float(np.abs(record.torque_ref).max()) if record.torque_ref is not None else math.nan,
         "peak_torque": float(np.abs(torque).max()) if torque is not None else math.nan,
         "duration": len(w) * T_s,
     }
 
 
-def sim_test_runner(params: Any, drive: Any, *, seed: int = 0, **kwargs: Any) -> Callable[[Any], Any]:
-    """``signal -> Response`` running ``sim.simulate_test`` on one simulated plant (a stand-in
-    for the real drive; a real drive adapter has the same shape)."""
-    import sim
-
-    counter = {"n": 0}
-
-    def run(signal: Any) -> Any:
-        counter["n"] += 1
-        return sim.simulate_test(params, drive, signal, seed=seed + counter["n"], **kwargs)
-
-    return run
+def stop_headroom(accel: float, config: Any, rules: ExcitationRules) -> float:
+    """The speed [rad/s] a run can still gain after the drive stops it (torque reference 0) at the
+    measured limit, accelerating at ``accel`` [rad/s^2]: over the current loop's ``T_Ei``, the
+    computation and speed-measurement delays (2 ``T_s``) and ``delay_allowance`` more samples,
+    times ``coast_factor`` (a slower current loop, friction that made ``accel`` small)."""
+    return rules.coast_factor * accel * (float(config.T_Ei) + (2 + rules.delay_allowance) * float(config.T_s))
 
 
-def adapt_test_signal(
-    run_test: Callable[[Any], Any],
-    drive: Any,
-    limits: ExcitationLimits,
-    rules: ExcitationRules | None = None,
-    *,
-    signal_type: Any = None,
-    timeout: float = 10.0,
-    tail: float = 0.05,
-) -> ExcitationResult:
-    """Adapt ``M_star`` and ``w_max`` until the test response is informative (rules E1-E7).
+def guarded_limits(limits: sim.DriveLimits, headroom: float, config: Any, rules: ExcitationRules) -> sim.DriveLimits:
+    """The limits handed to the drive for one experiment: the user's speed limit less ``headroom``
+    [rad/s] (at most half of it), the travel less what the stop's delays let the plant run on."""
+    w = limits.w_max - min(headroom, 0.5 * limits.w_max)
+    t_stop = rules.coast_factor * (float(config.T_Ei) + (2 + rules.delay_allowance) * float(config.T_s))
+    return sim.DriveLimits(w_max=w, travel=max(limits.travel - limits.w_max * t_stop, 0.5 * limits.travel), M_max=limits.M_max)
+
+
+def adapt_test_signal(drive: Any, limits: sim.DriveLimits, rules: ExcitationRules | None = None) -> ExcitationResult:
+    """Adapt ``M_star`` and ``w_max`` until the test record is informative (rules E1-E8).
 
     Args:
-        run_test: the plant: ``signal -> response`` (e.g. :func:`sim_test_runner` or a real drive).
-        drive: DriveConfig (``M_max``, ``T_s``, ``K_M``, ``q_w``).
-        limits: user limits (torque, speed, travel).
+        drive: a SPEC 8.1 drive (``config``, ``run_test(M_star, w_max, limits) -> Record``).
+        limits: the user's limits (torque, speed, travel), handed to every run.
         rules: rule constants.
-        signal_type: the TestSignalConfig class (default ``sim.TestSignalConfig``).
-        timeout, tail: passed to every TestSignalConfig [s].
 
-    Returns :class:`ExcitationResult` with the last run's signal and response (every run stayed
-    within the limits by prediction; the log records the measured peaks of each run).
+    Returns :class:`ExcitationResult` with the last run's record (every run planned within the
+    limits by prediction; the log records the measured peaks of each run and whether the drive
+    stopped it at a limit).
     """
     rules = rules or ExcitationRules()
-    if not isinstance(limits, ExcitationLimits) or not isinstance(rules, ExcitationRules):
-        raise TypeError(f"limits, rules: expected ExcitationLimits, ExcitationRules, received "
+    if not isinstance(limits, sim.DriveLimits) or not isinstance(rules, ExcitationRules):
+        raise TypeError(f"limits, rules: expected sim.DriveLimits, ExcitationRules, received "
                         f"{type(limits).__name__}, {type(rules).__name__}")
-    if not callable(run_test):
-        raise TypeError(f"run_test: expected a callable signal -> response, received {type(run_test).__name__}")
-    if signal_type is None:
-        import sim
-
-        signal_type = sim.TestSignalConfig
+    if not callable(getattr(drive, "run_test", None)):
+        raise TypeError(f"drive: expected a SPEC 8.1 drive with run_test(M_star, w_max, limits), received {type(drive).__name__}")
     if rules.factor <= 1 or rules.max_iterations < 1:
         raise ValueError(f"rules: expected factor > 1 and max_iterations >= 1, received {rules.factor}, {rules.max_iterations}")
-    M_cap = float(drive.M_max) if limits.M_star_max is None else min(float(drive.M_max), limits.M_star_max)
+    config = drive.config
+    w_limit, travel_limit = limits.w_max, limits.travel
+    M_cap = limits.torque_cap(config)
     # E1: start small; the first travel is bounded by an a-priori inertia bound (w^2 J / M* x 3)
     M_star = rules.M_star_start * M_cap
-    w_travel0 = math.sqrt(rules.travel_margin * 0.25 * limits.travel_limit * M_star / (3.0 * rules.J_prior_max))
-    w_max = min(rules.w_max_start, 0.1 * limits.w_limit, w_travel0)
+    w_travel0 = math.sqrt(rules.travel_margin * 0.25 * travel_limit * M_star / (3.0 * rules.J_prior_max))
+    w_max = min(rules.w_max_start, 0.1 * w_limit, w_travel0)
     log: list[dict[str, Any]] = []
-    signal = resp = None
+    records: list[Any] = []
+    w_ceiling = math.inf
     informative, reason = False, ""
+    accel_per_M = over_per_M = 0.0  # E9: what a stop can add, per Nm of M*, from the runs so far
+
+    def headroom(M: float) -> float:
+        if accel_per_M == 0.0:
+            return rules.first_headroom * w_limit
+        return stop_headroom(accel_per_M * M, config, rules) + over_per_M * M
+
     for it in range(rules.max_iterations):
-        signal = signal_type(M_star=M_star, w_max=w_max, timeout=timeout, tail=tail)
-        resp = run_test(signal)
-        m = measure_response(resp, drive)
-        entry: dict[str, Any] = {"iteration": it, "M_star": M_star, "w_max": w_max, **m}
+        guarded = guarded_limits(limits, headroom(M_star), config, rules)
+        rec = drive.run_test(M_star, w_max, guarded)
+        records.append(rec)
+        m = measure_response(rec, config)
+        entry: dict[str, Any] = {"iteration": it, "M_star": M_star, "w_max": w_max, "stop_at": guarded.w_max, **m}
+        accel_per_M = max(accel_per_M, m["accel"] / M_star)
+        if not m["aborted"]:
+            over_per_M = max(over_per_M, max(m["peak_speed"] - w_max, 0.0) / M_star)
+        if m["aborted"]:
+            # E8: the drive stopped the run at a limit: never accepted; half the speed target, and
+            # no later run above factor^-0.5 of the stopped one's
+            w_next = w_max / rules.factor
+            w_ceiling = min(w_ceiling, w_max / math.sqrt(rules.factor))
+            entry.update(decision=f"w_max {w_max:.4g} -> {w_next:.4g} rad/s", reason="stopped by the drive at a limit")
+            log.append(entry)
+            w_max = w_next
+            continue
         # E2: what is missing
         short = m["samples_min"] < rules.min_section_samples
         small = m["range_quanta"] < rules.min_range_quanta
@@ -243,23 +240,25 @@ def adapt_test_signal(
         if m["timed_out"] and M_next <= M_star:
             w_next = w_max / rules.factor  # E3b: torque at its cap: lower the speed target instead
         # E6: predict the next run's peak speed and travel from this one; shorten the step
-        over = max(m["peak_speed"] - w_max, 0.0)
-        w_cap_speed = (rules.speed_margin * limits.w_limit - over * M_next / M_star)
+        # the overshoot beyond w_max (an elastic mode swinging on after section I) depends on the
+        # phase at the switch, not only on M*: counted twice
+        over = 2.0 * max(m["peak_speed"] - w_max, 0.0)
+        w_cap_speed = min((rules.speed_margin * (w_limit - headroom(M_next)) - over * M_next / M_star) / (1 + rules.swing_allowance), w_ceiling)
         # travel ~ w_max^2 J / M_star; the benefit of a larger M_star is counted with exponent
         # 1/2 only (friction and the coasting section II do not scale): conservative
         travel_per = m["travel"] / w_max**2 if m["travel"] > 0 else 0.0
         def travel_gain(M_new: float) -> float:
             return math.sqrt(M_star / M_new)
-        w_cap_travel = math.sqrt(rules.travel_margin * limits.travel_limit / (travel_per * travel_gain(M_next))) if travel_per > 0 else math.inf
+        w_cap_travel = math.sqrt(rules.travel_margin * travel_limit / (travel_per * travel_gain(M_next))) if travel_per > 0 else math.inf
         if want_w and w_cap_travel < w_next and M_next < M_cap:
             # E6b: travel ~ w_max^2 / M_star: more torque buys speed range within the same travel
             M_next = min(M_next * rules.factor, M_cap)
-            w_cap_speed = rules.speed_margin * limits.w_limit - over * M_next / M_star
-            w_cap_travel = math.sqrt(rules.travel_margin * limits.travel_limit / (travel_per * travel_gain(M_next)))
+            w_cap_speed = min((rules.speed_margin * (w_limit - headroom(M_next)) - over * M_next / M_star) / (1 + rules.swing_allowance), w_ceiling)
+            w_cap_travel = math.sqrt(rules.travel_margin * travel_limit / (travel_per * travel_gain(M_next)))
         w_next = min(w_next, w_cap_speed, w_cap_travel)  # may lower w_max: the limits come first
         if w_max < w_next < w_max * rules.factor**0.1 and M_next <= M_star:
             w_next = w_max  # E6c: a raise of less than factor^0.1 is no progress
-        entry["predicted_peak_speed"] = w_next + over * M_next / M_star
+        entry["predicted_peak_speed"] = w_next * (1 + rules.swing_allowance) + over * M_next / M_star
         entry["predicted_travel"] = travel_per * w_next**2 * travel_gain(M_next)
         problems = [p for p, on in (("section timed out", m["timed_out"]), ("sections too short", short),
                                     ("speed range too small", small), ("oscillation not visible", hidden)) if on]
@@ -290,4 +289,6 @@ def adapt_test_signal(
         M_star, w_max = M_next, w_next
     else:
         reason = f"no informative response after {rules.max_iterations} runs"
-    return ExcitationResult(signal=signal, response=resp, log=log, informative=informative, reason=reason)
+    kept = [r for r, e in zip(records, log) if not e["aborted"]]
+    return ExcitationResult(record=kept[-1] if kept else records[-1], records=records, log=log, informative=informative,
+                            reason=reason)

@@ -1,8 +1,9 @@
-"""Linear loop analysis: the exact sampled linear model of a mechanic on a drive and the
-closed-loop figures of a PI design on it (margins, bandwidth, poles, step and load responses).
+"""Linear loop analysis: the exact sampled linear model of a mechanic on a drive, the margins of a
+PI design on it and on a set of models (the guarantee of rule R7), the closed-loop figures.
 
 The linear model follows SPEC 1 without backlash and Coulomb friction: current loop
-``1/(1+s T_Ei)``, two-mass mechanic with ``C_F, D_F`` (:func:`sim.two_mass_derived`), viscous
+``1/(1+s T_Ei)`` (or a second-order lag with the same sum time constant, and extra samples of
+dead time, for the guarantee's pessimistic models), two-mass mechanic with ``C_F, D_F`` (:func:`sim.two_mass_derived`), viscous
 load friction ``mu_F``; the sampled loop has the real timing of the drive: ``M_ref`` computed at
 sample ``k`` acts from ``k+1`` (zero-order hold) and the measured speed is the angle difference
 over the last sample. Units SI.
@@ -11,8 +12,8 @@ over the last sample. Units SI.
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
-from dataclasses import dataclass
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -25,7 +26,8 @@ from ._law import NotchSpec
 
 __all__ = [
     "Mechanics", "mechanics_from", "drive_value", "LinearPlant", "linear_plant", "loop_figures",
-    "closed_loop_matrices", "constant_input_response",
+    "closed_loop_matrices", "constant_input_response", "frequency_grid", "Margins", "loop_margins", "margins",
+    "ModelSet", "model_set", "bode",
 ]
 
 
@@ -126,22 +128,22 @@ def drive_value(drive: Any, name: str) -> float:
 
 @dataclass(frozen=True)
 class LinearPlant:
-    """Exact sampled linear model from ``M_ref`` to the measured speed (no backlash/Coulomb).
+    """Exact sampled linear model from the applied torque reference to the measured speed (no
+    backlash, no Coulomb friction).
 
-    ``x[k+1] = Ad x[k] + Bd u[k] + Ed M_load[k]``; ``dphi_M[k] = Cd x[k] + Dd u[k] + Fd M_load[k]``
-    is the motor angle gained over sample ``k``; ``w_meas[k] = dphi_M[k-1] / T_s``;
-    ``u[k]`` (air-gap torque reference held over sample ``k``) = ``M_ref`` computed at ``k-1``.
-    States: ``[M_M, w_M, w_L, dphi]`` (two-mass) or ``[M_M, w]`` (one-mass). ``M_load`` acts on
-    the load (opposing positive speed).
+    ``x[k+1] = Ad x[k] + Bd u[k]``; ``dphi_M[k] = Cd x[k] + Dd u[k]`` is the motor angle gained over
+    sample ``k``; ``w_meas[k] = dphi_M[k-1] / T_s``; ``w_L[k] = Lw x[k]`` the load speed (the motor
+    speed for one-mass); ``u[k]`` (held over sample ``k``) = ``M_ref`` computed at ``k-1``.
+    ``resonances`` [rad/s]: ``w_0`` and ``w_A`` (two-mass), for the frequency grids.
     """
 
     Ad: np.ndarray
     Bd: np.ndarray
-    Ed: np.ndarray
     Cd: np.ndarray
     Dd: float
-    Fd: float
+    Lw: np.ndarray
     T_s: float
+    resonances: tuple[float, ...] = ()
 
     def speed_response(self, z: np.ndarray) -> np.ndarray:
         """Frequency response ``M_ref -> w_meas`` at complex ``z`` (array ``F``), incl. both delays."""
@@ -151,40 +153,63 @@ class LinearPlant:
         return (g + self.Dd) / (z * z * self.T_s)
 
 
-def linear_plant(mech: Mechanics | Mapping[str, Any], drive: Any) -> LinearPlant:
-    """Discretize (zero-order hold, ``T_s``) the SPEC-1 linear plant of ``mech`` on ``drive``."""
+def _current_loop(T_Ei: float, damping: float | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The current loop ``M_ref -> M_M`` as ``(A, B, c)``: first order ``1/(1 + s T_Ei)`` (damping None)
+    or second order ``1/(1 + 2 D s/w + s^2/w^2)`` with the same sum time constant ``2 D / w = T_Ei``."""
+    if damping is None:
+        return np.array([[-1 / T_Ei]]), np.array([1 / T_Ei]), np.array([1.0, 0.0])[:1]
+    if not damping > 0:
+        raise ValueError(f"current_loop_damping: expected > 0 or None, received {damping}")
+    w = 2.0 * damping / T_Ei
+    return np.array([[0.0, 1.0], [-w * w, -2 * damping * w]]), np.array([0.0, w * w]), np.array([1.0, 0.0])
+
+
+def linear_plant(mech: Mechanics | Mapping[str, Any], drive: Any, *, current_loop_damping: float | None = None,
+                 extra_delay: int = 0) -> LinearPlant:
+    """Discretize (zero-order hold, ``T_s``) the SPEC-1 linear plant of ``mech`` on ``drive``.
+
+    ``current_loop_damping``: None = the SPEC's first-order current loop, else a second-order lag
+    of that damping (same sum time constant ``T_Ei``); ``extra_delay``: samples of dead time
+    between the torque reference and the current loop (beyond the computation delay of one)."""
     m = mechanics_from(mech)
     T_s, T_Ei = drive_value(drive, "T_s"), drive_value(drive, "T_Ei")
+    if isinstance(extra_delay, bool) or not isinstance(extra_delay, int) or extra_delay < 0:
+        raise ValueError(f"extra_delay: expected an int >= 0, received {extra_delay!r}")
+    Ac, Bc, cc = _current_loop(T_Ei, current_loop_damping)
+    q = Ac.shape[0]
     if m.two_mass:
         dv = m.derived
         J_M, J_L, C, D, mu = dv.J_M, dv.J_L, dv.C_F, dv.D_F, m.mu_F
-        A = np.array([
-            [-1 / T_Ei, 0, 0, 0],
-            [1 / J_M, -D / J_M, D / J_M, -C / J_M],
-            [0, D / J_L, -(D + mu) / J_L, C / J_L],
-            [0, 1, -1, 0],
-        ])
-        B = np.array([1 / T_Ei, 0, 0, 0])
-        E = np.array([0, 0, -1 / J_L, 0])
-        c_w = np.array([0, 1.0, 0, 0])
+        Am = np.array([[-D / J_M, D / J_M, -C / J_M], [D / J_L, -(D + mu) / J_L, C / J_L], [1.0, -1.0, 0.0]])
+        bm = np.array([1 / J_M, 0.0, 0.0])
+        c_w, c_L = np.array([1.0, 0, 0]), np.array([0, 1.0, 0])
+        res = (dv.w_0, m.w_A)
     else:
-        J, mu = m.J_sigma, m.mu_F
-        A = np.array([[-1 / T_Ei, 0], [1 / J, -mu / J]])
-        B = np.array([1 / T_Ei, 0])
-        E = np.array([0, -1 / J])
-        c_w = np.array([0, 1.0])
-    n = A.shape[0]
-    # augmented [x; phi_M; u; M_load], inputs held constant: one matrix exponential gives all
-    big = np.zeros((n + 3, n + 3))
-    big[:n, :n] = A
-    big[n, :n] = c_w
-    big[:n, n + 1] = B
-    big[:n, n + 2] = E
+        Am, bm = np.array([[-m.mu_F / m.J_sigma]]), np.array([1 / m.J_sigma])
+        c_w = c_L = np.array([1.0])
+        res = ()
+    k = Am.shape[0]
+    n = q + k
+    A = np.zeros((n, n))
+    A[:q, :q], A[q:, q:], A[q:, :q] = Ac, Am, np.outer(bm, cc)
+    B = np.concatenate([Bc, np.zeros(k)])
+    cw, cL = np.concatenate([np.zeros(q), c_w]), np.concatenate([np.zeros(q), c_L])
+    # augmented [x; phi_M; u], the input held constant: one matrix exponential gives all
+    big = np.zeros((n + 2, n + 2))
+    big[:n, :n], big[n, :n], big[:n, n + 1] = A, cw, B
     Phi = scipy.linalg.expm(big * T_s)
-    return LinearPlant(
-        Ad=Phi[:n, :n], Bd=Phi[:n, n + 1], Ed=Phi[:n, n + 2],
-        Cd=Phi[n, :n], Dd=float(Phi[n, n + 1]), Fd=float(Phi[n, n + 2]), T_s=T_s,
-    )
+    Ad, Bd, Cd, Dd = Phi[:n, :n], Phi[:n, n + 1], Phi[n, :n], float(Phi[n, n + 1])
+    if extra_delay:
+        d = extra_delay  # a delay line q_1..q_d in front of the plant: q_1 <- u, x <- Bd q_d
+        Ad2 = np.zeros((n + d, n + d))
+        Ad2[:n, :n], Ad2[:n, n + d - 1] = Ad, Bd
+        for i in range(1, d):
+            Ad2[n + i, n + i - 1] = 1.0
+        Bd = np.zeros(n + d)
+        Bd[n] = 1.0
+        Cd = np.concatenate([Cd, np.zeros(d - 1), [Dd]])
+        Ad, Dd, cL = Ad2, 0.0, np.concatenate([cL, np.zeros(d)])
+    return LinearPlant(Ad=Ad, Bd=Bd, Cd=Cd, Dd=Dd, Lw=cL, T_s=T_s, resonances=res)
 
 
 def _controller_response(Kp: float, Ti: float, T_f: float, notch: NotchSpec | None, T_s: float, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -202,12 +227,15 @@ def _controller_response(Kp: float, Ti: float, T_f: float, notch: NotchSpec | No
     return C, F
 
 
-def closed_loop_matrices(plant: LinearPlant, Kp: float, Ti: float, T_f: float, notch: NotchSpec | None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Closed loop of the (unclamped) controller law on ``plant`` as ``s[k+1] = A s + b_r r + b_d M_load``.
+def closed_loop_matrices(plant: LinearPlant, Kp: float, Ti: float, T_f: float,
+                         notch: NotchSpec | None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Closed loop of the (unclamped) law on ``plant`` as ``s[k+1] = A s + b_r r + b_d M_dist``, the
+    disturbance added to the torque reference as a drive injects it (SPEC 8.1).
 
-    State ``s = [x, u_applied, dphi_prev, w_f, I, u1, u2, v1, v2]``; output ``w_meas[k] = c s[k]``.
-    Built by applying one linear sample of the law (same order as :class:`PISpeedController`) to
-    unit vectors, so model and controller cannot drift apart. Returns ``(A, b_r, b_d, c)``.
+    State ``s = [x, u_applied, dphi_prev, w_f, I, u1, u2, v1, v2]``; outputs ``w_meas[k] = c s[k]``,
+    ``w_L[k] = c_L s[k]``. Built by applying one linear sample of the law (same order as
+    :class:`PISpeedLaw`) to unit vectors, so model and law cannot drift apart. Returns
+    ``(A, b_r, b_d, c, c_L)``.
     """
     n = plant.Ad.shape[0]
     ki, a_f = Kp * plant.T_s / Ti, (math.exp(-plant.T_s / T_f) if T_f > 0 else 0.0)
@@ -221,16 +249,17 @@ def closed_loop_matrices(plant: LinearPlant, Kp: float, Ti: float, T_f: float, n
         I = I + ki * e
         u = Kp * e + I
         v = b[0] * u + b[1] * u1 + b[2] * u2 - a[1] * v1 - a[2] * v2
-        dphi = plant.Cd @ x + plant.Dd * u_app + plant.Fd * d
-        x_new = plant.Ad @ x + plant.Bd * u_app + plant.Ed * d
-        return np.concatenate([x_new, [v, dphi, wf, I, u, u1, v, v1]])
+        dphi = plant.Cd @ x + plant.Dd * u_app
+        x_new = plant.Ad @ x + plant.Bd * u_app
+        return np.concatenate([x_new, [v + d, dphi, wf, I, u, u1, v, v1]])
 
     m = n + 8
     A = np.stack([one(col, 0.0, 0.0) for col in np.eye(m)], axis=1)
     zero = np.zeros(m)
     c = np.zeros(m)
     c[n + 1] = 1.0 / plant.T_s
-    return A, one(zero, 1.0, 0.0), one(zero, 0.0, 1.0), c
+    c_L = np.concatenate([plant.Lw, np.zeros(8)])
+    return A, one(zero, 1.0, 0.0), one(zero, 0.0, 1.0), c, c_L
 
 
 def constant_input_response(A: np.ndarray, b: np.ndarray, c: np.ndarray, n: int) -> np.ndarray:
@@ -248,6 +277,124 @@ def constant_input_response(A: np.ndarray, b: np.ndarray, c: np.ndarray, n: int)
             P = np.nan_to_num(P, nan=np.inf)
     with np.errstate(invalid="ignore", over="ignore"):
         return c @ S[:m, :n]
+
+
+def frequency_grid(T_s: float, resonances: Sequence[float] = (), n: int = 600) -> np.ndarray:
+    """Angular frequencies [rad/s] for margins and Bode plots: ``n`` log-spaced points from
+    ``1e-5`` of the Nyquist frequency to just below it, dense (+-15 %, 0.2 % steps) around each
+    of ``resonances`` (a lightly damped resonance is a few per mille wide)."""
+    w_ny = math.pi / T_s
+    parts = [np.logspace(math.log10(w_ny * 1e-5), math.log10(w_ny * 0.999), n)]
+    for w_r in resonances:
+        if math.isfinite(w_r) and 0 < w_r < w_ny:
+            parts.append(w_r * np.exp(np.linspace(-0.15, 0.15, 151)))
+    w = np.unique(np.concatenate(parts))
+    return w[w < w_ny]
+
+
+@dataclass(frozen=True)
+class Margins:
+    """Stability margins of a loop: ``phase_margin`` [deg] (smallest angular distance of ``L`` from
+    -1 at any gain crossover), ``gain_margin_dB`` (smallest distance from ``|L| = 1`` at any crossing
+    of the negative real axis above the first crossover, up or down), ``w_c`` [rad/s] (first gain
+    crossover), ``stable`` (closed-loop poles inside the unit circle), ``model`` (which model)."""
+
+    phase_margin: float
+    gain_margin_dB: float
+    w_c: float
+    stable: bool
+    model: str = "nominal"
+
+    def meets(self, min_phase_margin: float, min_gain_margin_dB: float) -> bool:
+        return self.stable and self.phase_margin >= min_phase_margin and self.gain_margin_dB >= min_gain_margin_dB
+
+
+def loop_margins(L: np.ndarray, w: np.ndarray, stable: bool, model: str = "nominal") -> Margins:
+    """:class:`Margins` of an open-loop frequency response ``L`` on the grid ``w`` [rad/s] (each
+    crossing interpolated linearly in log magnitude and phase between its two grid points)."""
+    lm = np.log(np.maximum(np.abs(L), 1e-300))
+    ph = np.unwrap(np.angle(L))
+
+    def at(i: int, frac: float) -> tuple[float, float, float]:
+        return (float(w[i] * (w[i + 1] / w[i]) ** frac), float(lm[i] + frac * (lm[i + 1] - lm[i])),
+                float(ph[i] + frac * (ph[i + 1] - ph[i])))
+
+    cross = np.nonzero((lm[:-1] >= 0) != (lm[1:] >= 0))[0]
+    pts = [at(i, -lm[i] / (lm[i + 1] - lm[i])) for i in cross]
+    down = [p for i, p in zip(cross, pts) if lm[i] >= 0]
+    w_c = down[0][0] if down else math.nan
+    pm = min((180.0 - abs(math.degrees(math.remainder(p[2], 2 * math.pi))) for p in pts), default=math.inf)
+    # crossings of the negative real axis: phase through -180 deg (mod 360)
+    k = np.floor((ph + math.pi) / (2 * math.pi))
+    gms = []
+    for i in np.nonzero(k[:-1] != k[1:])[0]:
+        target = (max(k[i], k[i + 1])) * 2 * math.pi - math.pi
+        _, m, _ = at(i, (target - ph[i]) / (ph[i + 1] - ph[i]))
+        if w[i] > (w_c if math.isfinite(w_c) else 0.0):
+            gms.append(abs(20 * m / math.log(10)))
+    return Margins(float(pm), float(min(gms, default=math.inf)), float(w_c), bool(stable), model)
+
+
+def margins(plant: LinearPlant, Kp: float, Ti: float, T_f: float = 0.0, notch: NotchSpec | None = None, *,
+            w: np.ndarray | None = None, model: str = "nominal") -> Margins:
+    """:class:`Margins` of the PI law on ``plant`` (poles from :func:`closed_loop_matrices`)."""
+    w = frequency_grid(plant.T_s, plant.resonances) if w is None else w
+    z = np.exp(1j * w * plant.T_s)
+    C, F = _controller_response(Kp, Ti, T_f, notch, plant.T_s, z)
+    A = closed_loop_matrices(plant, Kp, Ti, T_f, notch)[0]
+    stable = bool(np.abs(np.linalg.eigvals(A)).max() < 1.0)
+    return loop_margins(C * F * plant.speed_response(z), w, stable, model)
+
+
+@dataclass(frozen=True)
+class ModelSet:
+    """The models a delivered loop must keep its margins on: the identified mechanics and its
+    plausible spread (``f_e``, ``V_J`` x (1 -+ spread)), each with the current loop as a
+    second-order lag and extra samples of delay, plus the identified model as it is."""
+
+    plants: tuple[LinearPlant, ...]
+    labels: tuple[str, ...]
+
+    def margins(self, Kp: float, Ti: float, T_f: float = 0.0, notch: NotchSpec | None = None) -> Margins:
+        """The worst margins over the set (any unstable model: ``stable`` False)."""
+        each = [margins(p, Kp, Ti, T_f, notch, model=lab) for p, lab in zip(self.plants, self.labels)]
+        worst_pm = min(each, key=lambda m: m.phase_margin)
+        worst_gm = min(each, key=lambda m: m.gain_margin_dB)
+        unstable = [m for m in each if not m.stable]
+        worst = unstable[0] if unstable else (worst_pm if worst_pm.phase_margin - 40 <= worst_gm.gain_margin_dB - 6 else worst_gm)
+        return Margins(worst_pm.phase_margin, worst_gm.gain_margin_dB, each[0].w_c, not unstable, worst.model)
+
+
+def model_set(mechanics: Sequence[Mechanics | Mapping[str, Any]], drive: Any, *, spread: float = 0.3,
+              current_loop_damping: float | None = 1 / math.sqrt(2), extra_delay: int = 1) -> ModelSet:
+    """:class:`ModelSet` over ``mechanics`` (the identified one first; more for a class's worst
+    cases): each as it is, and with the second-order current loop and ``extra_delay``, at ``f_e``,
+    ``V_J`` scaled by ``1 - spread``, 1, ``1 + spread`` (two-mass mechanics)."""
+    plants, labels = [], []
+    for mech in mechanics:
+        m = mechanics_from(mech)
+        base = f"J_sigma {m.J_sigma:.3g}" if not m.two_mass else f"f_e {m.f_e:.3g} Hz, V_J {m.V_J:.3g}"
+        plants.append(linear_plant(m, drive))
+        labels.append(base)
+        scales = (1 - spread, 1.0, 1 + spread) if m.two_mass and spread > 0 else (1.0,)
+        for sf in scales:
+            for sv in scales:
+                mm = replace(m, f_e=m.f_e * sf, V_J=m.V_J * sv) if m.two_mass else m
+                plants.append(linear_plant(mm, drive, current_loop_damping=current_loop_damping, extra_delay=extra_delay))
+                labels.append((f"f_e {mm.f_e:.3g} Hz, V_J {mm.V_J:.3g}" if m.two_mass else base)
+                              + f", 2nd-order current loop, +{extra_delay} sample delay")
+    return ModelSet(tuple(plants), tuple(labels))
+
+
+def bode(plant: LinearPlant, Kp: float, Ti: float, T_f: float = 0.0, notch: NotchSpec | None = None) -> dict[str, np.ndarray]:
+    """Open-loop Bode data of the law on ``plant``: ``w`` [rad/s], ``mag_dB``, ``phase_deg``."""
+    w = frequency_grid(plant.T_s, plant.resonances)
+    z = np.exp(1j * w * plant.T_s)
+    C, F = _controller_response(Kp, Ti, T_f, notch, plant.T_s, z)
+    L = C * F * plant.speed_response(z)
+    phase = np.degrees(np.unwrap(np.angle(L)))
+    phase -= 360.0 * np.round((phase[0] + 180.0) / 360.0)
+    return {"w": w, "mag_dB": 20 * np.log10(np.maximum(np.abs(L), 1e-300)), "phase_deg": phase}
 
 
 def _step_figures(t: np.ndarray, y: np.ndarray, final: float) -> dict[str, float]:
@@ -270,66 +417,44 @@ def loop_figures(
     Ti: float,
     T_f: float = 0.0,
     notch: NotchSpec | None = None,
-    *,
-    n_freq: int = 1500,
 ) -> dict[str, float]:
-    """Expected closed-loop figures of a PI design on the exact sampled linear model.
+    """Expected closed-loop figures of a PI design on the exact sampled linear model (SPEC 1's
+    first-order current loop, no extra delay).
 
     Returns a dict (SI): ``w_c`` [rad/s] (first gain crossover), ``f_c`` [Hz], ``phase_margin``
-    [deg] (signed at the first crossover; angular distance to -180 deg at further ones, e.g. a
-    resonance peak; the smallest), ``gain_margin_dB`` (smallest over -180 deg crossings),
-    ``modulus_margin`` (min ``|1+L|``), ``bandwidth`` [rad/s] (-3 dB of reference -> speed),
-    ``stable`` (1/0: all closed-loop poles inside the unit circle), ``spectral_radius``,
-    ``decay_time`` [s] (slowest closed-loop mode), and from a linear step response: ``overshoot_pct``, ``rise_time``,
-    ``settling_time`` [s], plus ``load_dip`` [rad/s per Nm] (largest speed drop after a 1 Nm load
-    step). Delays included: computation (1 sample), zero-order hold, speed-by-difference.
+    [deg], ``gain_margin_dB`` (:class:`Margins`), ``bandwidth`` [rad/s] (-3 dB of reference ->
+    speed), ``stable`` (1/0: all closed-loop poles inside the unit circle), ``spectral_radius``,
+    ``decay_time`` [s] (slowest closed-loop mode), and from a linear step response:
+    ``overshoot_pct``, ``rise_time``, ``settling_time`` [s], plus ``load_dip`` [rad/s per Nm]
+    (largest speed drop after a 1 Nm disturbance step at the torque reference). Delays included:
+    computation (1 sample), zero-order hold, speed-by-difference.
     """
     plant = linear_plant(mech, drive)
     T_s = plant.T_s
-    w_ny = math.pi / T_s
-    w = np.logspace(math.log10(w_ny * 1e-5), math.log10(w_ny * 0.999), n_freq)
+    w = frequency_grid(T_s, plant.resonances)
     z = np.exp(1j * w * T_s)
     P = plant.speed_response(z)
     C, F = _controller_response(Kp, Ti, T_f, notch, T_s, z)
-    L = C * P * F
-    mag = np.abs(L)
-    phase = np.unwrap(np.angle(L))
-    # a PI loop starts with phase near -180 deg (two integrators): shift the branch accordingly
-    phase = phase - 2 * math.pi * np.round((phase[0] + math.pi) / (2 * math.pi))
-    down = np.nonzero((mag[:-1] >= 1) & (mag[1:] < 1))[0]
-    up = np.nonzero((mag[:-1] < 1) & (mag[1:] >= 1))[0]
-    cross = np.concatenate([down, up])
-    # main crossover: signed margin 180 + phase; further crossings (resonance peak): angular
-    # distance of L to -1 (a phase-stabilized resonance has a large one)
-    pms = [abs(((math.degrees(phase[i]) + 180.0 + 180.0) % 360.0) - 180.0) for i in cross]
-    if len(down):
-        pms.append(((math.degrees(phase[down[0]]) + 180.0 + 180.0) % 360.0) - 180.0)
-    w_c = float(w[down[0]]) if len(down) else math.nan
-    pc = np.nonzero(np.diff(np.floor((phase + math.pi) / (2 * math.pi))) != 0)[0]
-    gms = [-20 * math.log10(max(mag[i], 1e-300)) for i in pc if w[i] > (w_c if math.isfinite(w_c) else 0) * 0.5]
-    T_ref = C * P / (1 + L)
-    bw_idx = np.nonzero(np.abs(T_ref) < 1 / math.sqrt(2))[0]
-    bandwidth = float(w[bw_idx[0]]) if len(bw_idx) else float(w_ny)
-    # closed-loop poles, step and load responses over ~ 40/w_c (bounded)
-    A, b_r, b_d, c = closed_loop_matrices(plant, Kp, Ti, T_f, notch)
+    A, b_r, b_d, c, _ = closed_loop_matrices(plant, Kp, Ti, T_f, notch)
     rho = float(np.abs(np.linalg.eigvals(A)).max())
-    w_c_for_time = w_c if math.isfinite(w_c) and w_c > 0 else 1.0 / T_s
+    mg = loop_margins(C * P * F, w, rho < 1.0)
+    T_ref = C * P / (1 + C * P * F)
+    bw_idx = np.nonzero(np.abs(T_ref) < 1 / math.sqrt(2))[0]
+    bandwidth = float(w[bw_idx[0]]) if len(bw_idx) else math.pi / T_s
+    w_c_for_time = mg.w_c if math.isfinite(mg.w_c) and mg.w_c > 0 else 1.0 / T_s
     n = int(min(max(40.0 / (w_c_for_time * T_s), 200), 100000))
     t = np.arange(n) * T_s
-    y = constant_input_response(A, b_r, c, n)
-    figs = _step_figures(t, y, 1.0)
+    figs = _step_figures(t, constant_input_response(A, b_r, c, n), 1.0)
     yl = constant_input_response(A, b_d, c, n)
-    stable = bool(rho < 1.0)
     return {
-        "w_c": w_c,
-        "f_c": w_c / (2 * math.pi),
-        "phase_margin": float(min(pms)) if pms else math.nan,
-        "gain_margin_dB": float(min(gms)) if gms else math.inf,
-        "modulus_margin": float(np.abs(1 + L).min()),
+        "w_c": mg.w_c,
+        "f_c": mg.w_c / (2 * math.pi),
+        "phase_margin": mg.phase_margin,
+        "gain_margin_dB": mg.gain_margin_dB,
         "bandwidth": bandwidth,
-        "stable": float(stable),
+        "stable": float(mg.stable),
         "spectral_radius": rho,
         "decay_time": (-T_s / math.log(rho)) if 0 < rho < 1 else math.inf,
         **figs,
-        "load_dip": float(-np.nanmin(yl)) if np.isfinite(yl).all() else math.inf,
+        "load_dip": float(np.nanmax(np.abs(yl))) if np.isfinite(yl).all() else math.inf,
     }

@@ -40,6 +40,10 @@ REFUSAL_RULES: dict[str, str] = {
 COMMISSIONING_WARNING_CODES: dict[str, str] = {
     "test_not_informative": "the test signal adaptation ended without an informative response",
     "validation_not_run": "the identified model could not be re-simulated under the record's test signal",
+    "margins_not_reached": "no model-based design keeps the guaranteed margins on the identified model's spread (R7)",
+    "loop_not_settled": "no candidate loop settled on the drive within the scenario",
+    "run_stopped": "the drive stopped an experiment at a limit (never scored as a good run)",
+    "scenario_small": "the limits leave a scenario speed step of few speed quanta: the figures on the drive are coarse",
 }
 
 #: Warning codes that refuse a controller (rule V6). No identification code blocks by default.

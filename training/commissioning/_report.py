@@ -1,5 +1,12 @@
-"""What the commissioning chain did: the report of one plant (text and JSON) and the summary over
-many plants."""
+"""What the commissioning chain did: the report of one drive (text and JSON) and the summary over
+many.
+
+Wording rules: a loop that did not settle within the experiment is "not settled" (slow or
+unstable: the margins say which), never called unstable from the record alone; an improvement
+percentage is given only against a proposal that settled on the drive; rules, refusals and
+warnings carry their codes. Figures computed from a simulated drive's truth stand apart, under
+"simulation only".
+"""
 
 from __future__ import annotations
 
@@ -8,84 +15,112 @@ import statistics
 from dataclasses import dataclass, field
 from typing import Any
 
+import numpy as np
+
 import sim
 from training._json import json_safe
 
-from ._excitation import ExcitationLimits, ExcitationResult
+from ._excitation import ExcitationResult
 from ._permission import CommissioningWarning, IdentificationOutcome, Permission
 from ._rules import ControllerProposal
-from ._tuning import TuningResult
+from ._tuning import Gains, TuningResult, TuningScenario
 from ._validation import ValidationResult
 
-__all__ = ["CommissioningReport", "summarize", "summary_text"]
+__all__ = ["CommissioningReport", "PlantRun", "summarize", "summary_text"]
 
-#: The parameters shown beside the truth in the text report.
-_SHOWN: tuple[str, ...] = sim.PARAM_NAMES + ("C_F",)
-_UNITS = {"J_sigma": "kg m^2", "f_e": "Hz", "backlash": "rad (2s)", "M_FC": "Nm", "mu_F": "Nm s/rad", "C_F": "Nm/rad"}
+_SHOWN: tuple[str, ...] = sim.PARAM_NAMES
+_UNITS = {"J_sigma": "kg m^2", "f_e": "Hz", "backlash": "rad (2s)", "M_FC": "Nm", "mu_F": "Nm s/rad"}
+
+
+@dataclass(frozen=True)
+class PlantRun:
+    """One closed-loop experiment on the drive: the gains, the cost from the measured record
+    (``motor`` + ``load`` terms; the load estimated by the identified model), ``settled`` (not
+    stopped, finite, settled near its reference), ``aborted`` (the drive stopped it), ``bounded``
+    (not stopped, finite, within the divergence bound: slow at worst), the figures
+    (:func:`response_figures`) and the measured speed ``N``."""
+
+    gains: Gains
+    cost: float
+    motor: float
+    load: float
+    settled: bool
+    aborted: bool
+    figures: dict[str, float]
+    speed: np.ndarray = field(repr=False)
+    bounded: bool = True
+    """Not stopped by the drive, finite, within the divergence bound: a run that is only slow."""
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"Kp": self.gains[0], "Ti": self.gains[1], "T_f": self.gains[2], "cost": self.cost, "motor": self.motor,
+                "load": self.load, "settled": self.settled, "bounded": self.bounded, "aborted": self.aborted,
+                "figures": self.figures}
 
 
 @dataclass(frozen=True)
 class CommissioningReport:
-    """Everything the chain did on one plant.
+    """Everything the chain did on one drive.
 
-    ``excitation``: :class:`ExcitationResult` (log per run); ``record``: the final test record
-    (no truth inside); ``identification``: what the identifier answered, unchanged (an
-    ``IdentificationResult``, or a failure with ``error``); ``validation``:
-    :class:`ValidationResult` (None when the identification failed or the re-simulation could not
-    run); ``permission``: :class:`Permission` (``allowed``, ``rule``, ``reason``); the
-    commissioning's own findings: ``warnings`` (:class:`CommissioningWarning`) and
-    ``outside_training`` (its reading of the map distances with ``max_map_distance_ratio``; None
-    when the identification failed); ``proposal`` / ``tuning``: the model-based proposal and its
-    tuning, or after a refusal the cautious fallback F1 and its search on the plant (``fallback``
-    True; None when no fallback ran); ``plant_costs``: ``{"proposal", "tuned"}`` on the plant;
-    ``figures``: step-response figures on the plant ``{"before", "after"}``; ``responses``: the
-    plant's speed ``2 x N`` (ref run, load run) before/after and the scenario; ``truth``: the
-    plant's true parameters (report only); ``checks``: evaluation checks (limits kept, closed loop
-    stable); ``timings`` [s] per stage.
+    ``config``: the drive's own description; ``excitation``: the test runs (log per run, records);
+    ``identification``: the identifier's answer, unchanged; ``validation``; ``permission``
+    (``rule`` code when refused); ``warnings``: the commissioning's own (with codes);
+    ``proposal`` / ``tuning``: the model-based proposal and its tuning on the identified model;
+    ``runs``: its candidates on the drive (the proposal first); ``fallback``: the cautious F1 when
+    it ran, ``fallback_reason`` (``refused``, ``margins_not_reached`` or ``loop_not_settled``) and
+    ``fallback_runs``; ``delivered``: the controller to use (None: none) and ``delivered_run``;
+    ``scenario`` and ``prediction`` (the model's predicted peaks); ``checks``: the limits in every
+    experiment, from the measured records; ``truth``: simulation-only figures (None for a drive
+    without truth); ``timings`` [s].
     """
 
-    drive: Any
-    limits: ExcitationLimits
+    config: sim.DriveConfig
+    limits: sim.DriveLimits
     excitation: ExcitationResult
-    record: Any
     identification: IdentificationOutcome
     validation: ValidationResult | None
     permission: Permission
     warnings: tuple[CommissioningWarning, ...] = ()
-    outside_training: bool | None = None
     max_map_distance_ratio: float | None = None
+    outside_training: bool | None = None
     proposal: ControllerProposal | None = None
     tuning: TuningResult | None = None
-    plant_costs: dict[str, float] = field(default_factory=dict)
-    figures: dict[str, dict[str, float]] = field(default_factory=dict)
-    responses: dict[str, Any] = field(default_factory=dict)
-    truth: dict[str, Any] = field(default_factory=dict)
+    fallback: ControllerProposal | None = None
+    fallback_reason: str | None = None
+    runs: list[PlantRun] = field(default_factory=list)
+    fallback_runs: list[PlantRun] = field(default_factory=list)
+    delivered: ControllerProposal | None = None
+    delivered_run: PlantRun | None = None
+    scenario: TuningScenario | None = None
+    prediction: dict[str, float] = field(default_factory=dict)
     checks: dict[str, Any] = field(default_factory=dict)
+    truth: dict[str, Any] | None = None
     timings: dict[str, float] = field(default_factory=dict)
     name: str = "plant"
-    fallback: bool = False
+
+    @property
+    def record(self) -> Any:
+        """The final test record (what was identified)."""
+        return self.excitation.record
 
     @property
     def refused(self) -> bool:
-        """The identification was refused for a model-based controller."""
         return not self.permission.allowed
 
     @property
-    def improvement(self) -> float | None:
-        """Relative cost reduction on the plant ``1 - tuned/proposal`` (None without a controller)."""
-        c0, c1 = self.plant_costs.get("proposal"), self.plant_costs.get("tuned")
-        if c0 is None or c1 is None or not c0 > 0:
-            return None
-        return 1.0 - c1 / c0
+    def controller(self) -> ControllerProposal | None:
+        """The delivered controller (None: none delivered)."""
+        return self.delivered
 
     @property
-    def controller(self) -> ControllerProposal | None:
-        """The controller to use: the tuned one, else the proposal, else None (refused, no fallback)."""
-        return self.tuning.controller if self.tuning is not None else self.proposal
+    def improvement(self) -> float | None:
+        """``1 - cost(delivered) / cost(proposal)`` on the drive, only against a proposal that
+        settled (a model-based delivery); None otherwise."""
+        if self.delivered_run is None or self.fallback is not None or not self.runs or not self.runs[0].settled:
+            return None
+        return 1.0 - self.delivered_run.cost / self.runs[0].cost
 
     @property
     def identified_structure(self) -> str | None:
-        """The identified structure (None when the identification failed)."""
         return self.identification.structure if self.identification.ok else None
 
     # ------------------------------------------------------------------ output
@@ -95,10 +130,9 @@ class CommissioningReport:
         v, ex = self.validation, self.excitation
         return json_safe({
             "name": self.name,
-            "limits": {"w_limit": self.limits.w_limit, "travel_limit": self.limits.travel_limit,
-                       "M_star_max": self.limits.M_star_max},
-            "excitation": {"informative": ex.informative, "reason": ex.reason, "M_star": float(ex.signal.M_star),
-                           "w_max": float(ex.signal.w_max), "log": ex.log},
+            "drive": self.config.to_dict(),
+            "limits": {"w_max": self.limits.w_max, "travel": self.limits.travel, "M_max": self.limits.M_max},
+            "excitation": {"informative": ex.informative, "reason": ex.reason, "log": ex.log},
             "identification": self.identification.to_dict(),
             "validation": None if v is None else {
                 "passed": v.passed, "mode": v.mode, "nrmse": v.nrmse, "osc_nrmse": v.osc_nrmse, "threshold": v.threshold,
@@ -107,102 +141,150 @@ class CommissioningReport:
                            "warnings": [{"code": w.code, "text": w.text} for w in self.warnings]},
             "permission": {"allowed": self.permission.allowed, "rule": self.permission.rule,
                            "reason": self.permission.reason, "notes": list(self.permission.notes)},
-            "fallback": self.fallback,
-            "proposal": self.proposal,
-            "tuned": None if self.tuning is None else self.tuning.controller,
+            "proposal": None if self.proposal is None else self.proposal.to_dict(),
             "tuning": None if self.tuning is None else {
-                "pretune_cost_proposal": self.tuning.cost_proposal, "pretune_cost_tuned": self.tuning.cost_tuned,
-                "n_evaluations": self.tuning.n_evaluations, "warnings": list(self.tuning.warnings)},
-            "plant_costs": self.plant_costs,
+                "model_cost_proposal": self.tuning.cost_proposal, "model_cost_tuned": self.tuning.cost_tuned,
+                "n_evaluations": self.tuning.n_evaluations, "rejected_for_margins": self.tuning.rejected,
+                "warnings": list(self.tuning.warnings)},
+            "runs": [r.to_dict() for r in self.runs],
+            "fallback": None if self.fallback is None else {"reason": self.fallback_reason, **self.fallback.to_dict(),
+                                                           "runs": [r.to_dict() for r in self.fallback_runs]},
+            "delivered": None if self.delivered is None else self.delivered.to_dict(),
+            "scenario": None if self.scenario is None else self.scenario.to_dict(),
+            "prediction": self.prediction,
             "improvement": self.improvement,
-            "figures": self.figures,
-            "truth": self.truth,
             "checks": self.checks,
+            "simulation_only": self.truth,
             "timings": self.timings,
         })
 
     def to_text(self) -> str:
-        """A readable report (one plant)."""
-        d = self.drive
-        M_cap = self.limits.M_star_max if self.limits.M_star_max is not None else d.M_max
+        """A readable report (one drive)."""
+        c, lim = self.config, self.limits
         L = [f"== commissioning {self.name} ==",
-             f"limits: |w| <= {self.limits.w_limit:g} rad/s, travel <= {self.limits.travel_limit:g} rad, "
-             f"M* <= {M_cap:g} Nm (drive M_max {d.M_max:g} Nm)"]
+             f"limits: |w| <= {lim.w_max:g} rad/s, travel <= {lim.travel:g} rad, |M_ref| <= {lim.torque_cap(c):g} Nm "
+             f"(drive M_max {c.M_max:g} Nm, T_s {c.T_s * 1e6:g} us, T_Ei {c.T_Ei * 1e3:g} ms)"]
         L += self._excitation_lines() + self._identification_lines()
         if self.validation is not None:
             v = self.validation
             osc = "n/a (oscillation below 3 q_w)" if v.osc_nrmse is None else f"{v.osc_nrmse:.3g} (<= {v.osc_threshold:g})"
             L.append(f"3 validation ({v.mode}): speed error {v.nrmse:.3g} (<= {v.threshold:g}), oscillation error {osc}: "
                      f"{'passed' if v.passed else 'FAILED'} - {v.reason}")
-        if self.refused:
-            L.append(f"4 REFUSED: no controller from the identified model. {self.permission.reason}")
-        else:
-            L.append(f"4 permission: {self.permission.reason}")
+        L.append(f"4 REFUSED [{self.permission.rule}]: no controller from the identified model. {self.permission.reason}"
+                 if self.refused else f"4 permission: {self.permission.reason}")
+        L += [f"   warning [{w.code}]: {w.text}" for w in self.warnings]
         if self.proposal is not None:
-            L += self._controller_lines()
-        if self.checks:
-            L.append("checks: " + ", ".join(f"{k} {_check(v)}" for k, v in self.checks.items()))
+            L += self._proposal_lines()
+        if self.fallback is not None:
+            L += self._fallback_lines()
+        L += self._delivered_lines() + self._limit_lines() + self._truth_lines()
         return "\n".join(line.rstrip() for line in L)
 
     def _excitation_lines(self) -> list[str]:
-        L = ["1 test signal (rules E1-E7):",
-             "   run  M* [Nm]  w_max [rad/s]  peak w [rad/s]  travel [rad]  osc [q_w]  decision"]
+        L = ["1 test signal (rules E1-E9; stop at: the speed limit handed to the drive, the user's less the headroom after a stop):",
+             "   run  M* [Nm]  w_max [rad/s]  stop at [rad/s]  peak w [rad/s]  travel [rad]  osc [q_w]  decision"]
         for e in self.excitation.log:
-            L.append(f"   {e['iteration']:3d}  {e['M_star']:7.3g}  {e['w_max']:13.4g}  {e['peak_speed']:14.4g}  "
+            L.append(f"   {e['iteration']:3d}  {e['M_star']:7.3g}  {e['w_max']:13.4g}  {e.get('stop_at', math.nan):15.4g}  {e['peak_speed']:14.4g}  "
                      f"{e['travel']:12.4g}  {e['osc_quanta']:9.3g}  {e['decision']} ({e['reason']})")
         L.append(f"   -> {self.excitation.reason}; record {len(self.record.t)} samples, "
-                 f"{len(self.record.t) * float(self.drive.T_s):.3f} s")
+                 f"{len(self.record.t) * float(self.config.T_s):.3f} s")
         return L
 
     def _identification_lines(self) -> list[str]:
         ident = self.identification
         if not ident.ok:
             return [f"2 identification failed: {ident.error}"]
-        L = [f"2 identification: structure {ident.structure} (true {self.truth.get('structure', '?')})",
-             "   parameter        identified          true"]
-        for k in _SHOWN:
-            L.append(f"   {k:<10} {_fmt(getattr(ident.parameters, k)):>16} {_fmt(self.truth.get(k)):>13}  {_UNITS.get(k, '')}")
+        L = [f"2 identification: structure {ident.structure}"]
+        L += [f"   {k:<10} {_fmt(getattr(ident.parameters, k)):>12}  {_UNITS.get(k, '')}" for k in _SHOWN]
         ratios = ident.quality.map_distance_ratio
         if ratios:
             L.append("   map distance / training 99 % quantile: " + ", ".join(f"{k} {v:.2f}" for k, v in ratios.items()))
-        L += [f"   warning: {w.text}" for w in (*ident.warnings, *self.warnings)]
+        L += [f"   warning [{w.code}]: {w.text}" for w in ident.warnings]
         return L
 
-    def _controller_lines(self) -> list[str]:
-        pr = self.proposal
-        if self.fallback:
-            L = [f"5 fallback F1 (cautious, J_sigma only): {pr.concept}, Kp {pr.Kp:.4g} Nm s/rad, "
-                 f"Ti {pr.Ti * 1e3:.4g} ms, T_f {pr.T_f * 1e3:.3g} ms, w_c {pr.figures['w_c']:.4g} rad/s"]
-        else:
-            L = [f"5 proposal: {pr.concept}, Kp {pr.Kp:.4g} Nm s/rad, Ti {pr.Ti * 1e3:.4g} ms, T_f {pr.T_f * 1e3:.3g} ms; "
-                 f"on the identified model: w_c {pr.figures['w_c']:.4g} rad/s, PM {pr.figures['phase_margin']:.1f} deg, "
-                 f"GM {pr.figures['gain_margin_dB']:.1f} dB"]
-        L += [f"   warning: {w}" for w in pr.warnings]
+    def _proposal_lines(self) -> list[str]:
+        L = _design_lines("5 proposal", self.proposal)
         if self.tuning is not None:
-            tc = self.tuning.controller
-            where = "on the plant" if self.fallback else "on the identified model, final choice on the plant"
-            L.append(f"6 tuned: Kp {tc.Kp:.4g} Nm s/rad, Ti {tc.Ti * 1e3:.4g} ms, T_f {tc.T_f * 1e3:.3g} ms "
-                     f"({self.tuning.n_evaluations} evaluations {where})")
-            L.append(f"   cost on the plant: proposal {self.plant_costs['proposal']:.4g} -> tuned "
-                     f"{self.plant_costs['tuned']:.4g} ({100 * (self.improvement or 0):.1f} % better)")
-            L += [f"   note: {w}" for w in self.tuning.warnings]
-        if self.figures:
-            sc = self.responses.get("scenario")
-            L.append(f"   step response on the plant (step {sc.w_step:.3g} rad/s, load {sc.M_L:.3g} Nm):" if sc
-                     else "   step response:")
-            L.append("                 rise [ms]  overshoot [%]  settling [ms]  load dip [rad/s]  recovery [ms]")
-            for k in ("before", "after"):
-                f = self.figures.get(k)
-                if f:
-                    L.append(f"   {k:<12} {_ms(f['rise_time']):>10} {f['overshoot_pct']:>14.1f} {_ms(f['settling_time']):>14} "
-                             f"{f['load_dip']:>17.4g} {_ms(f['load_recovery_time']):>14}")
+            t = self.tuning
+            L.append(f"6 tuning on the identified model: {t.n_evaluations} evaluations ({t.rejected} rejected for the margins), "
+                     f"model cost {t.cost_proposal:.4g} -> {t.cost_tuned:.4g}")
+            L += [f"   note: {w}" for w in t.warnings]
+        L += self._runs_lines(self.runs, ("proposal", "tuned", "between"))
+        return L
+
+    def _fallback_lines(self) -> list[str]:
+        return _design_lines(f"5 fallback F1 ({self.fallback_reason})", self.fallback) + self._runs_lines(self.fallback_runs, ("F1",))
+
+    def _runs_lines(self, runs: list[PlantRun], names: tuple[str, ...]) -> list[str]:
+        if not runs or self.scenario is None:
+            return []
+        sc = self.scenario
+        L = [f"7 on the drive (steps +-{sc.w_step:.3g} rad/s, disturbance {sc.M_dist:.3g} Nm, {sc.n_samples} samples; "
+             f"predicted peak {self.prediction.get('peak_speed', math.nan):.3g} rad/s, travel {self.prediction.get('travel', math.nan):.3g} rad; "
+             f"the drive stops at {self.prediction.get('stop_at', math.nan):.3g} rad/s):",
+             "   run       Kp      Ti [ms]  cost (motor+load)  rise [ms]  overshoot [%]  load overshoot [%]  settled"]
+        for name, r in zip(names, runs):
+            f = r.figures
+            cost = "-" if not r.settled else f"{r.cost:.4g} ({r.motor:.3g}+{r.load:.3g})"
+            state = "yes" if r.settled else ("NO: stopped by the drive at a limit" if r.aborted else
+                                               "no: slow (bounded, not settled within the experiment)" if r.bounded else
+                                               "NO: diverging")
+            L.append(f"   {name:<8} {r.gains[0]:8.4g} {r.gains[1] * 1e3:9.4g}  {cost:>18}  {_ms(f['rise_time']):>9}  "
+                     f"{f['overshoot_pct']:13.1f}  {f['load_overshoot_pct']:18.1f}  {state}")
+        return L
+
+    def _delivered_lines(self) -> list[str]:
+        d = self.delivered
+        if d is None:
+            return ["8 delivered: none" + (f" ({self.permission.rule})" if self.refused else "")]
+        m = d.margins
+        L = [f"8 delivered: {_controller_text(d)}",
+             f"   guaranteed margins (worst of {len(d.models.plants)} models: {m.model}): PM {m.phase_margin:.1f} deg, "
+             f"GM {m.gain_margin_dB:.1f} dB; crossover w_c {d.figures['w_c']:.4g} rad/s on the design model"]
+        imp = self.improvement
+        if imp is not None:
+            L.append(f"   cost on the drive: proposal {self.runs[0].cost:.4g} -> delivered {self.delivered_run.cost:.4g} "
+                     f"({100 * imp:.1f} % better)")
+        elif self.fallback is None and self.runs and not self.runs[0].settled:
+            L.append("   the proposal did not settle on the drive: no improvement percentage")
+        return L
+
+    def _limit_lines(self) -> list[str]:
+        ch = self.checks
+        if not ch:
+            return []
+        bad = [f"{r['kind']} (peak {r['peak_speed']:.3g} rad/s, travel {r['travel']:.3g} rad"
+               + (", stopped by the drive" if r["aborted"] else "") + ")" for r in ch["runs"] if not r["within_limits"]]
+        return [f"limits kept in every experiment ({len(ch['runs'])}, from the measured records): "
+                f"{'yes' if ch['within_limits'] else 'NO'}; peak speed {ch['peak_speed']:.4g} rad/s, peak travel {ch['peak_travel']:.4g} rad"]\
+            + [f"   outside the limits: {b}" for b in bad]
+
+    def _truth_lines(self) -> list[str]:
+        t = self.truth
+        if t is None:
+            return []
+        ident = self.identification
+        L = ["-- simulation only (from the drive's truth, never used by the chain) --",
+             f"   true structure {t['structure']}" + (f" (identified {ident.structure})" if ident.ok else ""),
+             "   parameter     identified          true"]
+        for k in _SHOWN:
+            got = getattr(ident.parameters, k) if ident.ok else None
+            L.append(f"   {k:<10} {_fmt(got):>13} {_fmt(t['parameters'].get(k)):>13}  {_UNITS.get(k, '')}")
+        if "stable" in t:
+            L.append(f"   delivered loop on the true linear model: {'stable' if t['stable'] else 'UNSTABLE'}, "
+                     f"PM {t['phase_margin']:.1f} deg, GM {t['gain_margin_dB']:.1f} dB, w_c {t['w_c']:.4g} rad/s")
         return L
 
 
-def _check(v: Any) -> str:
-    if isinstance(v, bool):
-        return "yes" if v else "NO"
-    return f"{v:.4g}" if isinstance(v, float) else str(v)
+def _design_lines(title: str, p: ControllerProposal) -> list[str]:
+    """A design, its rule lines (codes first) and its warnings."""
+    return [f"{title}: {_controller_text(p)}", *(f"   rule {r}" for r in p.rules), *(f"   warning: {w}" for w in p.warnings)]
+
+
+def _controller_text(p: ControllerProposal) -> str:
+    notch = "" if p.notch is None else f", notch f_n {p.notch.f_n:.4g} Hz (D_z {p.notch.D_z:.3g}, D_p {p.notch.D_p:.3g})"
+    return (f"{p.concept}, Kp {p.Kp:.4g} Nm s/rad, Ti {p.Ti * 1e3:.4g} ms, T_f {p.T_f * 1e3:.3g} ms{notch}; "
+            f"w_c {p.figures['w_c']:.4g} rad/s, PM {p.margins.phase_margin:.1f} deg, GM {p.margins.gain_margin_dB:.1f} dB (guarantee set)")
 
 
 def _fmt(v: Any) -> str:
@@ -220,36 +302,39 @@ def _ms(v: float) -> str:
     return "inf" if not math.isfinite(v) else f"{v * 1e3:.1f}"
 
 
-# --------------------------------------------------------------------------- many plants
+# --------------------------------------------------------------------------- many drives
 
 
 def summarize(reports: list[CommissioningReport], wall_s: float) -> dict[str, Any]:
-    """Figures over many plants: refusals by rule, limit checks, stability over the plants that end
-    with a controller (model-based or fallback), improvement over the model-based proposals
-    (improvement = 1 - tuned/proposal cost on the plant; a fallback starts from a loop too slow to
-    settle in the test window, so its 'improvement' says little)."""
-    acc = [r for r in reports if r.controller is not None]
+    """Figures over many drives: refusals by rule code, limits kept in every experiment, delivered
+    loops (model-based, F1), improvement over the model-based deliveries whose proposal settled,
+    the F1 crossovers; with simulated drives the truth checks (stable, margins on the true linear
+    model)."""
     by_rule: dict[str, int] = {}
     for r in reports:
         if r.refused:
             by_rule[r.permission.rule] = by_rule.get(r.permission.rule, 0) + 1
-    imps = [(r.improvement, r.name) for r in acc if r.improvement is not None and not r.fallback]
+    delivered = [r for r in reports if r.delivered is not None]
+    imps = [(r.improvement, r.name) for r in delivered if r.improvement is not None]
     worst = min(imps) if imps else (None, None)
+    truths = [r.truth for r in delivered if r.truth is not None and "stable" in r.truth]
     return {
         "plants": len(reports),
-        "with_controller": len(acc),
-        "model_based": sum(1 for r in acc if not r.fallback),
-        "fallback": sum(1 for r in acc if r.fallback),
+        "delivered": len(delivered),
+        "model_based": sum(1 for r in delivered if r.fallback is None),
+        "fallback": sum(1 for r in delivered if r.fallback is not None),
+        "fallback_w_c": [r.fallback.figures["w_c"] for r in reports if r.fallback is not None],
         "refused": sum(by_rule.values()),
         "refused_by_rule": by_rule,
         "within_limits": sum(bool(r.checks.get("within_limits")) for r in reports),
-        "stable": sum(bool(r.checks.get("stable")) for r in acc),
-        "tuned_not_worse": sum(bool(r.checks.get("tuned_not_worse")) for r in acc),
         "median_improvement": statistics.median(i for i, _ in imps) if imps else None,
         "worst_improvement": worst[0],
         "worst_plant": worst[1],
-        "best_improvement": max(i for i, _ in imps) if imps else None,
-        "structure_correct": sum(r.identified_structure == r.truth.get("structure") for r in reports),
+        "structure_correct": sum(r.truth is not None and r.identified_structure == r.truth["structure"] for r in reports),
+        "with_truth": sum(r.truth is not None for r in reports),
+        "true_stable": sum(bool(t["stable"]) for t in truths),
+        "true_min_phase_margin": min((t["phase_margin"] for t in truths), default=None),
+        "true_min_gain_margin_dB": min((t["gain_margin_dB"] for t in truths), default=None),
         "wall_s": wall_s,
     }
 
@@ -259,17 +344,19 @@ def summary_text(s: dict[str, Any]) -> str:
     def pct(v: float | None) -> str:
         return "-" if v is None else f"{100 * v:.1f} %"
     rules = ", ".join(f"{k} {v}" for k, v in sorted(s["refused_by_rule"].items())) or "none"
-    return "\n".join([
-        f"== summary over {s['plants']} plants ==",
-        f"limits kept in every test run: {s['within_limits']}/{s['plants']}",
-        f"identified structure = true class: {s['structure_correct']}/{s['plants']}",
-        f"refused for a model-based controller: {s['refused']}/{s['plants']} ({rules}); "
-        f"ended with a controller: {s['with_controller']}/{s['plants']} "
-        f"({s['model_based']} model-based, {s['fallback']} cautious fallback F1 tuned on the plant)",
-        f"over those: stable closed loop {s['stable']}/{s['with_controller']}, "
-        f"tuned cost <= proposal cost on the plant {s['tuned_not_worse']}/{s['with_controller']}",
-        f"cost improvement of the model-based proposals on the plant (1 - tuned/proposal): "
-        f"median {pct(s['median_improvement'])}, "
-        f"worst {pct(s['worst_improvement'])} ({s['worst_plant']}), best {pct(s['best_improvement'])}",
-        f"wall time {s['wall_s']:.0f} s",
-    ])
+    w_c = s["fallback_w_c"]
+    L = [f"== summary over {s['plants']} drives ==",
+         f"limits kept in every experiment (test, tuning, validation): {s['within_limits']}/{s['plants']}",
+         f"refused for a model-based controller: {s['refused']}/{s['plants']} ({rules}); delivered: {s['delivered']}/{s['plants']} "
+         f"({s['model_based']} model-based, {s['fallback']} fallback F1)",
+         "F1 crossovers [rad/s]: " + (", ".join(f"{v:.3g}" for v in sorted(w_c)) if w_c else "none"),
+         f"improvement on the drive over the model-based deliveries with a settled proposal (1 - delivered/proposal cost): "
+         f"median {pct(s['median_improvement'])}, worst {pct(s['worst_improvement'])} ({s['worst_plant']})"]
+    if s["with_truth"]:
+        pm, gm = s["true_min_phase_margin"], s["true_min_gain_margin_dB"]
+        L += ["-- simulation only --",
+              f"identified structure = true class: {s['structure_correct']}/{s['with_truth']}",
+              f"delivered loops stable on the true linear model: {s['true_stable']}/{s['delivered']}; smallest true PM "
+              f"{'-' if pm is None else f'{pm:.1f} deg'}, GM {'-' if gm is None else f'{gm:.1f} dB'}"]
+    L.append(f"wall time {s['wall_s']:.0f} s")
+    return "\n".join(L)

@@ -15,7 +15,10 @@ from functools import partial
 from pathlib import Path
 from typing import Any
 
+import torch
+
 from sim import DriveConfig, Record, TestSignalConfig, iter_records
+from training._distributed import process_group
 from training._pool import worker_pool
 from training.config import checkpoints_folder
 from training.errors import one_line
@@ -140,10 +143,19 @@ def truth_rows(eval_set: EvalSet, drive: DriveConfig, signal: TestSignalConfig) 
 
 def _compute(eval_set: EvalSet, methods: tuple[str, ...], drive: DriveConfig, signal: TestSignalConfig,
              checkpoints: str, workers: int, progress: Callable[[int], None] | None) -> dict[str, list[Any]]:
-    """Per method, the result of every system of ``eval_set`` (simulated once, lazily), in order."""
-    n = eval_set.size
+    """Per method, the result of every system of ``eval_set`` (simulated once, lazily), in order.
+
+    Under torchrun each rank simulates and runs its block of the systems (with the substeps and
+    noise seeds of the whole set: the records one process makes) and every rank gets all results."""
+    from sim._integrate_fast import default_substeps
+
+    group = process_group()
+    params = eval_set.params()
+    share = group.block(eval_set.size)
+    n = len(share)
     fresh: dict[str, list[Any]] = {m: [None] * n for m in methods}
-    records = iter_records(eval_set.params(), drive, signal, seed=eval_set.noise_seed, group=64)
+    records = iter_records(params[torch.arange(share.start, share.stop)], drive, signal,
+                           seed=eval_set.noise_seed + share.start, group=64, substeps=default_substeps(params, drive))
     job = partial(_process, checkpoints=checkpoints, methods=methods)
 
     def keep(done: Iterable[tuple[int, dict[str, Any]]]) -> None:
@@ -161,7 +173,10 @@ def _compute(eval_set: EvalSet, methods: tuple[str, ...], drive: DriveConfig, si
     missing = [m for m in methods if any(r is None for r in fresh[m])]
     if missing:
         raise RuntimeError(f"run_set: expected {n} results per method, some missing for {missing}")
-    return fresh
+    parts = group.all_gather(fresh)
+    if progress and group.main:
+        progress(eval_set.size - n)  # the other ranks' systems
+    return {m: [r for part in parts for r in part[m]] for m in methods}
 
 
 def run_set(eval_set: EvalSet, *, methods: Sequence[str] = METHODS, drive: DriveConfig | None = None,
@@ -198,8 +213,9 @@ def run_set(eval_set: EvalSet, *, methods: Sequence[str] = METHODS, drive: Drive
     cache = Path(cache_dir) if cache_dir is not None else None
     results: dict[str, list[Any]] = {}
     info: dict[str, dict[str, Any]] = {}
+    group = process_group()  # under torchrun: rank 0 reads and writes the cache
     for m in methods:
-        hit = load_cached(cache, cfgs[m], eval_set.size) if cache is not None else None
+        hit = group.on_main(partial(load_cached, cache, cfgs[m], eval_set.size)) if cache is not None else None
         if hit is not None:
             results[m], info[m] = hit[0], {"cached": True, **hit[1]}
     todo = tuple(m for m in methods if m not in results)
@@ -210,7 +226,7 @@ def run_set(eval_set: EvalSet, *, methods: Sequence[str] = METHODS, drive: Drive
                 "loadavg": [load0, _loadavg()], "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())}
         for m in todo:
             results[m], info[m] = fresh[m], {"cached": False, **meta}
-            if cache is not None:
+            if cache is not None and group.main:
                 save_cached(cache, cfgs[m], fresh[m], meta)
     elif progress:
         progress(eval_set.size)

@@ -2,6 +2,9 @@
 model-based refinement -> one typed result (SPEC sections 4 and 9)."""
 
 from ._analysis import FEATURE_NAMES, FEATURE_VERSION, REFERENCE_DRIVE, Analysis, analyze
+from ._drive import DriveValues
+from ._envelope import SPEC_ENVELOPE, Envelope, trained_envelope
+from ._batch import CHUNK
 from ._features import eigenfrequency_features, extra_features, structure_features
 from ._identifier import Identifier
 from ._maps import MAP_SPECS, SUBSETS, TARGETS, MapSpec, TrainedMap, load_map, recall_targets
@@ -9,14 +12,15 @@ from ._one_mass import FORMULATIONS, OneMassFit, fit_one_mass, speed_from_positi
 from ._oscillation import OscillationFit, fit_oscillation
 from ._plausibility import check_record
 from ._refine import RefineConfig, RefineProblem, Refined, refine, torque_reference
-from ._result import (PARAMETER_NAMES, WARNING_CODES, IdentificationFailure, IdentificationResult, IdentWarning,
-                      Outcome, Parameters, Quality)
+from ._result import (PARAMETER_NAMES, PARAMETER_UNITS, WARNING_CODES, IdentificationFailure, IdentificationResult,
+                      IdentWarning, Outcome, Parameters, Quality)
 from ._sections import SectionSplit, detect_sections
 
 __all__ = [
-    "Identifier", "IdentificationResult", "IdentificationFailure", "Outcome", "Parameters", "Quality",
-    "IdentWarning", "WARNING_CODES", "PARAMETER_NAMES",
-    "analyze", "Analysis", "FEATURE_NAMES", "FEATURE_VERSION", "REFERENCE_DRIVE",
+    "Identifier", "CHUNK", "IdentificationResult", "IdentificationFailure", "Outcome", "Parameters", "Quality",
+    "IdentWarning", "WARNING_CODES", "PARAMETER_NAMES", "PARAMETER_UNITS",
+    "analyze", "Analysis", "FEATURE_NAMES", "FEATURE_VERSION", "REFERENCE_DRIVE", "DriveValues",
+    "Envelope", "SPEC_ENVELOPE", "trained_envelope",
     "detect_sections", "SectionSplit", "fit_one_mass", "FORMULATIONS", "OneMassFit", "speed_from_position",
     "eigenfrequency_features", "structure_features", "extra_features", "fit_oscillation", "OscillationFit",
     "check_record", "MAP_SPECS", "MapSpec", "TrainedMap", "TARGETS", "SUBSETS", "load_map", "recall_targets",

@@ -11,8 +11,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from sim import DriveConfig, Record, speed_quantum
+from sim import Record
 from training.errors import IdentificationError, one_line
+from training.identification._drive import REFERENCE_DRIVE, DriveValues, drive_values
 from training.identification._features import (EIG_NAMES, EXTRA_NAMES, STRUCT_NAMES, eigenfrequency_features,
                                                extra_features, structure_features)
 from training.identification._one_mass import OneMassFit, fit_one_mass
@@ -29,9 +30,7 @@ FEATURE_NAMES: tuple[str, ...] = (
     EIG_NAMES + STRUCT_NAMES + EXTRA_NAMES + ("log10_osc_quanta", "log10_f_fit", "log10_V_J_fit", "d_fit", "r2_fit")
 )
 
-#: The SPEC reference drive: its encoder and current loop are assumed where a record's metadata
-#: does not give ``encoder_counts`` or ``T_Ei``.
-REFERENCE_DRIVE = DriveConfig()
+__all__ = ["FEATURE_VERSION", "FEATURE_NAMES", "REFERENCE_DRIVE", "Analysis", "analyze"]
 
 
 @dataclass(frozen=True)
@@ -40,27 +39,45 @@ class Analysis:
 
     ``features``: ``(F,)`` float64 in the order of :data:`FEATURE_NAMES`.
     ``fit``: the STEP 2 one-mass fit (``J_sigma``, ``M_FC``, ``mu_F``, ``M_0``, ``w_osc``).
-    ``M_star``: the test's torque amplitude [Nm] (metadata, else estimated from the record).
+    ``drive``: the drive and test values (SPEC 3: from the record, else estimated or defaulted;
+    :mod:`training.identification._drive`); ``M_star``, ``T_s``, ``T_Ei``, ``encoder_counts``,
+    ``M_N``, ``q_w`` read from it.
     ``osc_quanta``: rms of ``w_osc`` over the speed quantum :attr:`q_w` (how visible the oscillation is).
-    ``encoder_counts``, ``T_Ei`` [s]: the record's metadata, else the :data:`REFERENCE_DRIVE`'s.
-    ``warnings``: STEP 2's (coded); ``section_flags``: the section detection's notes.
+    ``warnings``: STEP 2's and the drive values' (coded); ``section_flags``: the section detection's notes.
     """
 
     sections: SectionSplit
     fit: OneMassFit
     features: np.ndarray
-    M_star: float
-    T_s: float
+    drive: DriveValues
     osc_quanta: float
-    encoder_counts: int
-    T_Ei: float
     warnings: tuple[IdentWarning, ...] = ()
     section_flags: tuple[str, ...] = ()
 
     @property
+    def M_star(self) -> float:
+        return self.drive.M_star
+
+    @property
+    def T_s(self) -> float:
+        return self.drive.T_s
+
+    @property
+    def T_Ei(self) -> float:
+        return self.drive.T_Ei
+
+    @property
+    def encoder_counts(self) -> int:
+        return self.drive.encoder_counts
+
+    @property
+    def M_N(self) -> float:
+        return self.drive.M_N
+
+    @property
     def q_w(self) -> float:
         """Speed quantum ``2 pi / (encoder_counts T_s)`` [rad/s]."""
-        return speed_quantum(self.encoder_counts, self.T_s)
+        return self.drive.q_w
 
     def feature(self, name: str) -> float:
         return float(self.features[FEATURE_NAMES.index(name)])
@@ -93,8 +110,8 @@ def _analyze(record: Record) -> Analysis:
     steps = np.diff(np.r_[0.0, split.levels])  # torque step at each section start [Nm]
     extra = extra_features(w_osc, T_s, split.bounds, J_sigma=fit.J_sigma, torque_steps=steps,
                            speed_span=float(np.ptp(record.speed)), structure=struct)
-    counts = record.encoder_counts or REFERENCE_DRIVE.encoder_counts
-    q_w = speed_quantum(counts, T_s)
+    drive, drive_warnings = drive_values(record, split, torque)
+    q_w = drive.q_w
     sel = np.concatenate([w_osc[a:b] for a, b in split.bounds.tolist()])
     osc_quanta = float(np.sqrt(np.mean(sel * sel))) / q_w if sel.size else 0.0
     log10_f_peak = extra[EXTRA_NAMES.index("log10_f_peak")]
@@ -105,7 +122,5 @@ def _analyze(record: Record) -> Analysis:
         math.log10(osc.f_0) if osc.f_0 > 0 else 0.0,
         math.log10(V_J_fit) if V_J_fit > 1e-3 else -3.0,
         osc.d, osc.r2]])
-    return Analysis(sections=split, fit=fit, features=features, M_star=float(split.M_star), T_s=T_s,
-                    osc_quanta=osc_quanta, encoder_counts=counts,
-                    T_Ei=float(record.meta.get("T_Ei") or REFERENCE_DRIVE.T_Ei), warnings=fit.warnings,
-                    section_flags=split.flags)
+    return Analysis(sections=split, fit=fit, features=features, drive=drive, osc_quanta=osc_quanta,
+                    warnings=fit.warnings + tuple(drive_warnings), section_flags=split.flags)

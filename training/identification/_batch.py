@@ -4,10 +4,10 @@ forked worker processes (the analysis is the slow, record-by-record part of the 
 from __future__ import annotations
 
 import multiprocessing
-import os
 from collections.abc import Iterator, Sequence
 
 from sim import Record, read_record
+from training._distributed import process_group
 from training.config import blas_threads
 from training.errors import one_line
 from training.identification._analysis import Analysis, analyze
@@ -19,11 +19,12 @@ CHUNK = 8
 
 def analysis_outcome(record: Record, name: str | None = None) -> Analysis | IdentificationFailure:
     """:func:`analyze` of ``record``, or an :class:`IdentificationFailure` (``record`` = ``name``)
-    with the one-line reason; an exception that is no ``ValueError`` is named as unexpected."""
+    with the one-line reason, which starts with ``name`` where given (as the reading errors do);
+    an exception that is no ``ValueError`` is named as unexpected."""
     try:
         return analyze(record)
     except ValueError as err:  # IdentificationError: the record cannot be identified
-        return IdentificationFailure(one_line(err), name)
+        return IdentificationFailure(one_line(err) if name is None else f"{name}: {one_line(err)}", name)
     except Exception as err:  # noqa: BLE001 - a bug in the analysis must not cost the other records their answer
         return IdentificationFailure(f"unexpected {type(err).__name__} in the analysis: {one_line(err)}", name)
 
@@ -39,12 +40,9 @@ def file_outcome(path: str) -> Analysis | IdentificationFailure:
 
 
 def default_jobs(n_records: int) -> int:
-    """Worker processes for ``n_records``: one for a few records, else up to 2 (the CPUs we may use)."""
-    try:
-        cpus = len(os.sched_getaffinity(0))
-    except (AttributeError, OSError):
-        cpus = os.cpu_count() or 1
-    return 1 if n_records < 8 else max(1, min(2, cpus))
+    """Worker processes for ``n_records``: one for a few records, else up to 2 (the CPUs we may use;
+    under torchrun this process's share of them)."""
+    return 1 if n_records < 8 else min(2, process_group().cpus())
 
 
 def file_outcomes(paths: Sequence[str], jobs: int | None) -> Iterator[Analysis | IdentificationFailure]:

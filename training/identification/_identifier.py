@@ -17,7 +17,7 @@ from __future__ import annotations
 import math
 import os
 from collections.abc import Callable, Iterable, Iterator, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -28,6 +28,9 @@ from training.config import blas_threads, checkpoints_folder
 from training.errors import one_line
 from training.identification._analysis import FEATURE_NAMES, Analysis, analyze
 from training.identification._batch import CHUNK, analysis_outcome, file_outcomes
+from training.identification._envelope import Envelope, Finding, envelope_warnings, trained_envelope
+from training.identification._limits import (BACKLASH_NEGLIGIBLE, backlash_resolution, implausible, impossible,
+                                             travel)
 from training.identification._maps import MAP_SPECS, TrainedMap, load_map, recall_targets
 from training.identification._refine import RefineConfig, RefineProblem, Refined, refine, torque_reference
 from training.identification._result import (IdentificationFailure, IdentificationResult, IdentWarning, Outcome,
@@ -39,8 +42,9 @@ _BACKLASH_CLASSES = ("elastic_backlash", "stiff_backlash")
 @dataclass(frozen=True)
 class _MapsAnswer:
     """What the maps say about one record, before the refinement: the structure and its
-    probabilities, ``f_e`` [Hz], ``V_J``, ``d``, the structure map's ``s_N``, the backlash map's
-    ``log10_s_N``, and each map's recall distance over its training 99 % quantile."""
+    probabilities, ``f_e`` [Hz], ``V_J``, ``d``, the structure map's and the backlash map's
+    ``s_N`` (on the record's own ``M_N``: :meth:`Identifier._s_N`), and each map's recall
+    distance over its training 99 % quantile."""
 
     structure: str
     probabilities: dict[str, float]
@@ -48,7 +52,7 @@ class _MapsAnswer:
     V_J: float
     d: float
     s_N: float
-    log10_s_N_backlash: float
+    s_N_backlash: float
     distance_ratio: dict[str, float]
 
     @property
@@ -66,10 +70,17 @@ class Identifier:
     """Trained maps, loaded once; identifies records (one at a time or many in one batch).
 
     ``refine``: the model-based refinement of the maps' answer (:mod:`training.identification._refine`); ``None``
-    gives the maps' answer alone (the paper's method). The work runs with one BLAS thread
-    (:func:`training.config.blas_threads`) whoever calls it."""
+    gives the maps' answer alone (the paper's method). ``envelope``: the drive envelope and what
+    the maps were trained on (:mod:`training.identification._envelope`; default: from the maps'
+    metadata). The work runs with one BLAS thread (:func:`training.config.blas_threads`) whoever
+    calls it.
 
-    def __init__(self, maps: dict[str, TrainedMap], refine: RefineConfig | None = RefineConfig()) -> None:
+    Every drive value comes from the record (:mod:`training.identification._drive`), never from
+    the maps: the maps' normalized backlash is a torque over their training test's ``M*``, turned
+    into the record's ``s_N = s C_F / M_N`` by the record's own ``M*`` and ``M_N``."""
+
+    def __init__(self, maps: dict[str, TrainedMap], refine: RefineConfig | None = RefineConfig(),
+                 envelope: Envelope | None = None) -> None:
         missing = [n for n in MAP_SPECS if n not in maps]
         if missing:
             raise ValueError(f"Identifier: maps missing: {missing}; expected {list(MAP_SPECS)}")
@@ -77,7 +88,9 @@ class Identifier:
             raise TypeError(f"refine: expected a RefineConfig or None, received {type(refine).__name__}")
         self.maps = maps
         self.refine = refine
-        self.M_N = float(maps["backlash"].metadata["dataset"]["drive"]["M_N"])
+        self.envelope = envelope if envelope is not None else trained_envelope(maps["structure"].metadata)
+        # s C_F over the training test's M*, per unit of a map's s_N target (s C_F / its M_N)
+        self._M_N_over_M_star = {n: _M_N_over_M_star(m.metadata) for n, m in maps.items()}
 
     @classmethod
     def load(cls, folder: str | os.PathLike[str] | None = None, *,
@@ -87,7 +100,8 @@ class Identifier:
         SHA-256 of each file."""
         folder = Path(folder) if folder is not None else checkpoints_folder()
         st.verify_manifest(folder)
-        return cls({name: load_map(folder / f"{name}.pt") for name in MAP_SPECS}, refine)
+        maps = {name: load_map(folder / f"{name}.pt") for name in MAP_SPECS}
+        return cls(maps, refine, Envelope.load(folder, maps["structure"].metadata))
 
     # -- public entries ---------------------------------------------------------------------
     def identify(self, record: Record) -> IdentificationResult:
@@ -172,16 +186,19 @@ class Identifier:
         if not analyses:
             return []
         answers = self._recall(analyses)
+        drive_findings = [self.envelope.check(_drive_quantities(a)) for a in analyses]
         refined: list[Refined | None] = [None] * len(analyses)
         if self.refine is not None:
             # stiff answers are refined too where the oscillation shows above the quantization
-            # (near the w_e T_Ei = 1 threshold the maps' f_e decides the class)
-            todo = [i for i, (a, m) in enumerate(zip(analyses, answers))
-                    if m.structure != "stiff" or a.osc_quanta >= 1.0]
+            # (near the w_e T_Ei = 1 threshold the maps' f_e decides the class), and where the
+            # drive lies outside the maps' training (their stiff verdict is then unproven)
+            todo = [i for i, (a, m, f) in enumerate(zip(analyses, answers, drive_findings))
+                    if m.structure != "stiff" or a.osc_quanta >= 1.0 or f]
             problems = [self._problem(analyses[i], answers[i]) for i in todo]
             for i, r in zip(todo, refine(problems, self.refine)):
                 refined[i] = r
-        return [self._result(a, m, r, name) for a, m, r, name in zip(analyses, answers, refined, names)]
+        return [self._result(a, m, r, f, name)
+                for a, m, r, f, name in zip(analyses, answers, refined, drive_findings, names)]
 
     def _recall(self, analyses: Sequence[Analysis]) -> list[_MapsAnswer]:
         """The maps' answer per analysis (one batched recall per map)."""
@@ -198,7 +215,7 @@ class Identifier:
         f_e = 10.0 ** (a.feature("log10_f_fit") + r["f_e"]["dlog10_f_e"])
         V_J = 10.0 ** (a.feature("log10_V_J_fit") + r["V_J"]["dlog10_V_J"])
         d = min(max(r["f_e"]["d"], 0.0), 0.9)
-        s_N = 10.0 ** r["structure"]["log10_s_N"]
+        s_N = self._s_N(a, "structure", r["structure"]["log10_s_N"])
         probs = {c: r["structure"][f"p_{c}"] for c in STRUCTURE_CLASSES}
         # SPEC's stiff rule on the identified values; otherwise the structure map's most likely other class
         if _spec_class(a, a.fit.J_sigma, V_J, f_e, d, s_N) == "stiff":
@@ -209,7 +226,14 @@ class Identifier:
         for name, m in self.maps.items():  # recall distance over the training 99 % quantile
             q99 = m.metadata["distance_quantiles"]["0.99"]
             ratio[name] = r[name]["distance"] / q99 if q99 > 0 else float("inf")
-        return _MapsAnswer(structure, probs, f_e, V_J, d, s_N, r["backlash"]["log10_s_N"], ratio)
+        return _MapsAnswer(structure, probs, f_e, V_J, d, s_N, self._s_N(a, "backlash", r["backlash"]["log10_s_N"]),
+                           ratio)
+
+    def _s_N(self, a: Analysis, name: str, log10_s_N: float) -> float:
+        """The record's ``s_N = s C_F / M_N`` from map ``name``'s ``log10_s_N``: the map learned
+        ``s C_F`` over its training test's ``M*`` (what the speed shows), so ``s C_F`` is that
+        times the record's ``M*``."""
+        return 10.0 ** log10_s_N * self._M_N_over_M_star[name] * a.M_star / a.M_N
 
     def _problem(self, a: Analysis, m: _MapsAnswer) -> RefineProblem:
         """The refinement of one maps' answer: the record's replayed test signal, STEP 2's
@@ -217,27 +241,39 @@ class Identifier:
         b = a.sections.bounds
         start, level = torque_reference(b, a.M_star)
         segments = np.concatenate([b, [[b[5, 1], len(a.fit.speed)]]])  # the six sections and the tail
+        segments = segments[segments[:, 1] > segments[:, 0]]  # a record that ends with VI has no tail
         return RefineProblem(speed=a.fit.speed, start=start, level=level, segments=segments, J_sigma=a.fit.J_sigma,
                              M_FC=max(a.fit.M_FC, 0.0), mu_F=max(a.fit.mu_F, 0.0), T_s=a.T_s, T_Ei=a.T_Ei,
-                             encoder_counts=a.encoder_counts, M_N=self.M_N, free_one_mass=bool(a.fit.warnings),
+                             encoder_counts=a.encoder_counts, M_N=a.M_N, free_one_mass=bool(a.fit.warnings),
                              theta=np.array([math.log10(m.f_e), math.log10(m.V_J), m.d,
                                              math.log10(max(m.s_N, 1e-3))]))
 
     # -- the result, assembled once ---------------------------------------------------------------
-    def _result(self, a: Analysis, m: _MapsAnswer, r: Refined | None, name: str | None) -> IdentificationResult:
-        quality = Quality(
-            structure_probabilities=m.probabilities, map_distance_ratio=m.distance_ratio, osc_quanta=a.osc_quanta,
-            oscillation_fit_r2=a.feature("r2_fit"), one_mass_rel_residual=a.fit.rel_residual,
-            outside_training=m.outside_training, section_flags=a.section_flags,
-            maps_estimate={"f_e": m.f_e, "V_J": m.V_J, "d": m.d, "s_N": m.s_N},
-            **({} if r is None else dict(maps_structure=m.structure, refine_residual=r.residual,
-                                         refine_start_residual=r.start_residual, refined_s_N=r.s_N)))
+    def _result(self, a: Analysis, m: _MapsAnswer, r: Refined | None, drive_findings: list[Finding],
+                name: str | None) -> IdentificationResult:
         warnings = list(a.warnings) + self._maps_warnings(a, m)
         if r is None:
             structure, parameters = m.structure, self._maps_parameters(a, m)
         else:
             structure, parameters = self._refined_parameters(a, r)
             warnings += _refine_warnings(r, structure)
+        if structure != "stiff" and m.structure == "stiff" and a.osc_quanta < 1.0:
+            warnings.append(_below_quantum(a))
+        findings = drive_findings + self.envelope.check(_mechanics_quantities(a, parameters))
+        warnings += envelope_warnings(findings)
+        parameters, impossible_warnings = impossible(parameters)
+        warnings += impossible_warnings + implausible(parameters, T_s=a.T_s, T_Ei=a.T_Ei, travel=travel(a.fit.speed, a.T_s),
+                                                      J_sigma_one_mass=a.fit.J_sigma)
+        parameters, bound, bound_warnings = _backlash_bound(a, parameters)
+        warnings += bound_warnings
+        quality = Quality(
+            structure_probabilities=m.probabilities, map_distance_ratio=m.distance_ratio, osc_quanta=a.osc_quanta,
+            oscillation_fit_r2=a.feature("r2_fit"), one_mass_rel_residual=a.fit.rel_residual,
+            outside_training=m.outside_training or any("trained" in f.outside for f in drive_findings),
+            section_flags=a.section_flags, maps_estimate={"f_e": m.f_e, "V_J": m.V_J, "d": m.d, "s_N": m.s_N},
+            outside_envelope={f.quantity: f.to_dict() for f in findings}, backlash_upper_bound=bound,
+            **({} if r is None else dict(maps_structure=m.structure, refine_residual=r.residual,
+                                         refine_start_residual=r.start_residual, refined_s_N=r.s_N)))
         return IdentificationResult(structure, parameters, quality, tuple(warnings), name)
 
     def _maps_parameters(self, a: Analysis, m: _MapsAnswer) -> Parameters:
@@ -248,7 +284,7 @@ class Identifier:
             return Parameters(**one_mass)
         dv = two_mass_derived(fit.J_sigma, m.V_J, m.f_e, m.d)
         if m.structure in _BACKLASH_CLASSES:  # s_N = s C_F / M_N, backlash = 2 s
-            one_mass["backlash"] = 2.0 * 10.0 ** m.log10_s_N_backlash * self.M_N / dv.C_F
+            one_mass["backlash"] = 2.0 * m.s_N_backlash * a.M_N / dv.C_F
         return Parameters(**one_mass, f_e=m.f_e, V_J=m.V_J, d=m.d, J_M=dv.J_M, J_L=dv.J_L, C_F=dv.C_F)
 
     def _refined_parameters(self, a: Analysis, r: Refined) -> tuple[str, Parameters]:
@@ -259,7 +295,7 @@ class Identifier:
         fit = a.fit
         J_sigma, M_FC = (fit.J_sigma, max(fit.M_FC, 0.0)) if r.J_sigma is None else (r.J_sigma, r.M_FC)
         dv = two_mass_derived(J_sigma, r.V_J, r.f_e, r.d)
-        structure = _spec_class(a, J_sigma, r.V_J, r.f_e, r.d, 0.5 * r.backlash * dv.C_F / self.M_N)
+        structure = _spec_class(a, J_sigma, r.V_J, r.f_e, r.d, 0.5 * r.backlash * dv.C_F / a.M_N)
         one_mass = dict(J_sigma=J_sigma, M_FC=M_FC, mu_F=max(fit.mu_F, 0.0))
         if structure == "stiff":
             return structure, Parameters(**one_mass, backlash=0.0)
@@ -273,9 +309,50 @@ class Identifier:
                                                     f"(distance {m.distance_ratio[name]:.2f} x its 99 % quantile)")
                for name in m.used if m.distance_ratio[name] > 1.0]
         if a.osc_quanta < 1.0 and m.structure != "stiff":
-            out.append(IdentWarning("oscillation_below_quantum", f"oscillation only {a.osc_quanta:.2f} speed quanta "
-                                                                 "rms: elastic parameters uncertain"))
+            out.append(_below_quantum(a))
         return out
+
+
+def _below_quantum(a: Analysis) -> IdentWarning:
+    return IdentWarning("oscillation_below_quantum", f"oscillation only {a.osc_quanta:.2f} speed quanta "
+                                                     "rms: elastic parameters uncertain")
+
+
+def _M_N_over_M_star(metadata: dict) -> float:
+    """A map's training drive's ``M_N`` over its training test's ``M*`` (1 for the shipped maps)."""
+    ds = metadata["dataset"]
+    return float(ds["drive"]["M_N"]) / float(ds["signal"]["M_star"])
+
+
+def _drive_quantities(a: Analysis) -> dict[str, float | None]:
+    """The record's drive and test values the envelope (:mod:`training.identification._envelope`) checks."""
+    d = a.drive
+    return {"T_s": d.T_s, "encoder_counts": float(d.encoder_counts), "T_Ei": d.T_Ei,
+            "M_N": d.M_N if d.sources["M_N"] == "record" else None,
+            "M_max_over_M_N": d.M_max / d.M_N if d.M_max is not None and d.sources["M_N"] == "record" else None,
+            "M_star_over_M_max": d.M_star / d.M_max if d.M_max is not None else None,
+            "time_scale": a.fit.J_sigma * d.w_max / d.M_star, "current_noise": d.current_noise / d.M_star}
+
+
+def _mechanics_quantities(a: Analysis, p: Parameters) -> dict[str, float | None]:
+    """The identified mechanics the envelope checks (``d`` is not: it is the least certain value)."""
+    s_N = (0.5 * p.backlash * p.C_F / a.M_N) if p.backlash is not None and p.C_F is not None else None
+    return {"f_e": p.f_e, "V_J": p.V_J, "s_N": s_N,
+            "M_FC_over_M_star": None if p.M_FC is None else p.M_FC / a.M_star}
+
+
+def _backlash_bound(a: Analysis, p: Parameters) -> tuple[Parameters, float | None, list[IdentWarning]]:
+    """Where the record cannot show a backlash of the width that matters (:mod:`._limits`): ``p``
+    without a width (``None`` instead of 0 or an unresolved value), the upper bound and a warning."""
+    if p.J_sigma is None:
+        return p, None, []
+    bound = backlash_resolution(a.q_w, a.drive.q_phi, p.J_sigma, a.M_star)
+    if bound <= BACKLASH_NEGLIGIBLE or (p.backlash is not None and p.backlash >= bound):
+        return p, None, []
+    return replace(p, backlash=None), bound, [IdentWarning(
+        "backlash_below_resolution", f"a backlash up to {bound:.3g} rad ({math.degrees(bound):.3g} deg) would not show "
+                                     f"in this record (encoder {a.encoder_counts} counts, T_s {a.T_s:.3g} s): backlash "
+                                     "not identified, at most that wide")]
 
 
 def _refine_warnings(r: Refined, structure: str) -> list[IdentWarning]:

@@ -116,11 +116,18 @@ def recall_targets(trained: TrainedMap, features: np.ndarray, interpolate: int) 
 
 
 def load_map(path: Path) -> TrainedMap:
-    """Load one map checkpoint (safe loading; version, hash and feature version checked)."""
+    """Load one map checkpoint (safe loading; version, hash and feature version checked). The file
+    ``<name>.pt`` must hold the map ``name`` of :data:`MAP_SPECS` with its features and targets:
+    a map saved under another map's name is refused here, not at its first recall."""
     som, meta = st.load_checkpoint(path)
     if meta.get("feature_version") != FEATURE_VERSION:
         raise st.CheckpointError(f"{path}: trained on features {meta.get('feature_version')!r}, "
                                  f"this toolkit computes {FEATURE_VERSION!r}; retrain with `twomass train`")
     spec = MapSpec(meta["map"], tuple(meta["spec"]["features"]), tuple(meta["spec"]["targets"]),
                    meta["spec"]["subset"])
+    expected = MAP_SPECS.get(Path(path).stem)
+    if expected is None or spec.name != expected.name or spec.components != expected.components:
+        raise st.CheckpointError(f"{path}: holds the map {spec.name!r} ({len(spec.features)} features, targets "
+                                 f"{list(spec.targets)}), expected the map {Path(path).stem!r} of {sorted(MAP_SPECS)} "
+                                 "with its own features and targets; retrain with `twomass train`")
     return TrainedMap(spec, som, meta)

@@ -83,8 +83,10 @@ class OneMassFit:
     speed for ``"trajectory"`` (below 2 % for a good test-run fit), speed increments over short
     windows for ``"integral"`` (noise dominated: 7 % on EMPS), filtered torque for ``"derivative"``.
     ``std``: standard deviations of ``(J_sigma, mu_F, M_FC, M_0)`` from the least squares.
-    ``warnings``: reasons (coded) to distrust a ``"trajectory"`` fit (residual above 5 %, sections
-    shorter than two periods of the oscillation); empty when none.
+    ``warnings``: reasons (coded) to distrust the fit: any formulation's collinear regressors
+    (variance inflation above :data:`COLLINEAR_INFLATION`) or a residual above
+    :data:`UNINFORMATIVE_RESIDUAL`; a ``"trajectory"`` fit's residual above 5 % or sections
+    shorter than two periods of the oscillation; empty when none.
     """
 
     J_sigma: float
@@ -245,6 +247,38 @@ def _lstsq(X: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]
     return theta, std, float(np.sqrt(np.mean(r * r)))
 
 
+#: Variance inflation ``1 / (1 - R^2)`` of a parameter's regressor on the others above which the
+#: parameter is not determined (test runs: at most 10^2.4; a speed that never reverses makes
+#: Coulomb friction and offset collinear: 10^5 and more).
+COLLINEAR_INFLATION = 1e4
+#: Relative residual above which the one-mass model explains too little to be trusted (the
+#: trajectory fit of a test run: below 0.05; the integral form on EMPS: 0.07).
+UNINFORMATIVE_RESIDUAL = 0.5
+_PARAMETERS = ("J_sigma", "mu_F", "M_FC", "M_0")
+
+
+def _trust_warnings(X: np.ndarray, n_par: int, rel: float) -> tuple[IdentWarning, ...]:
+    """Reasons to distrust any formulation's fit with regressors ``X`` (the first ``n_par`` columns
+    carry ``J_sigma, mu_F, M_FC, M_0``): collinear regressors, a residual near the signal's rms."""
+    scale = np.sqrt(np.sum(X * X, axis=0))
+    Xs = X / np.where(scale > 0, scale, 1.0)
+    try:
+        inflation = np.diag(np.linalg.inv(Xs.T @ Xs))[:n_par]
+    except np.linalg.LinAlgError:
+        inflation = np.full(n_par, np.inf)
+    out = []
+    collinear = [_PARAMETERS[j] for j in range(n_par) if not inflation[j] < COLLINEAR_INFLATION]
+    if collinear:
+        out.append(IdentWarning("one_mass_fit_collinear", f"one-mass fit: the regressors of {', '.join(collinear)} are "
+                                "nearly collinear (does the speed never reverse? try offset=False): those values are "
+                                "not determined by this record"))
+    if rel > UNINFORMATIVE_RESIDUAL:
+        out.append(IdentWarning("one_mass_fit_uninformative", f"one-mass fit: residual {rel:.2f} of the signal's rms: "
+                                "the model explains little of this record (noisy current, too little acceleration?); "
+                                "J_sigma and friction cannot be trusted"))
+    return tuple(out)
+
+
 @dataclass(frozen=True)
 class _Signals:
     """One record, checked, as every formulation sees it (arrays ``(N,)``)."""
@@ -325,7 +359,8 @@ def _fit_integral(s: _Signals, opt: _Options) -> _Estimate:
     theta, std, rms = _lstsq(X, y)
     J_sigma, mu_F, M_FC, M_0, std_t = _inverse_inertia_values(theta, std, s.n_par, -1.0)
     rel = rms / max(float(np.sqrt(np.mean(y * y))), 1e-300)
-    return _Estimate(J_sigma, mu_F, M_FC, M_0, std_t, rel, int(X.shape[0]), s.sgn)
+    return _Estimate(J_sigma, mu_F, M_FC, M_0, std_t, rel, int(X.shape[0]), s.sgn,
+                     warnings=_trust_warnings(X, s.n_par, rel))
 
 
 def _trajectory_rows(s: _Signals, sgn: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -374,7 +409,7 @@ def _fit_trajectory(s: _Signals, opt: _Options) -> _Estimate:
     J_sigma, mu_F, M_FC, M_0, std_t = _inverse_inertia_values(theta, std, s.n_par, 1.0)
     rel = rms / max(float(np.sqrt(np.mean((y - y.mean()) ** 2))), 1e-300)
     return _Estimate(J_sigma, mu_F, M_FC, M_0, std_t, rel, int(X.shape[0]), sgn, f_osc, d_osc,
-                     _trajectory_warnings(rel, f_osc, s.bounds, s.T_s))
+                     _trajectory_warnings(rel, f_osc, s.bounds, s.T_s) + _trust_warnings(X, s.n_par, rel))
 
 
 def _trajectory_warnings(rel: float, f_osc: float, bounds: list[tuple[int, int]],
@@ -407,7 +442,8 @@ def _fit_derivative(s: _Signals, opt: _Options) -> _Estimate:
     M_0 = float(theta[3]) if s.n_par == 4 else 0.0
     std_t = tuple(float(v) for v in std) + ((0.0,) if s.n_par == 3 else ())
     rel = rms / max(float(np.sqrt(np.mean(y * y))), 1e-300)
-    return _Estimate(J_sigma, mu_F, M_FC, M_0, std_t, rel, int(X.shape[0]), s.sgn)
+    return _Estimate(J_sigma, mu_F, M_FC, M_0, std_t, rel, int(X.shape[0]), s.sgn,
+                     warnings=_trust_warnings(X, s.n_par, rel))
 
 
 #: The formulations of :func:`fit_one_mass` (see the module docstring), by ``method`` name.

@@ -16,6 +16,10 @@ from training.errors import CodedWarning
 #: The parameters of SPEC section 9, in output order (SI units; ``backlash`` = total width ``2s``).
 PARAMETER_NAMES: tuple[str, ...] = ("J_sigma", "V_J", "J_M", "J_L", "f_e", "C_F", "d", "backlash", "M_FC", "mu_F")
 
+#: The unit of each parameter of :data:`PARAMETER_NAMES` (SI; ``"-"``: dimensionless).
+PARAMETER_UNITS: dict[str, str] = {"J_sigma": "kg m^2", "V_J": "-", "J_M": "kg m^2", "J_L": "kg m^2", "f_e": "Hz",
+                                   "C_F": "Nm/rad", "d": "-", "backlash": "rad", "M_FC": "Nm", "mu_F": "Nm s/rad"}
+
 
 #: Every warning code the identification emits, with what it means.
 WARNING_CODES: dict[str, str] = {
@@ -25,6 +29,17 @@ WARNING_CODES: dict[str, str] = {
     "one_mass_fit_replaced": "STEP 2's one-mass fit was not trusted; J_sigma and M_FC come from the whole-record fit",
     "one_mass_fit_residual": "STEP 2's one-mass fit leaves a residual above 5 % of the speed: not one mass",
     "one_mass_fit_short_sections": "a test section holds fewer than two periods of the oscillation (STEP 2 unsure)",
+    "one_mass_fit_uninformative": "the one-mass model explains little of the data (residual near its rms): its values "
+                                  "cannot be trusted",
+    "one_mass_fit_collinear": "two regressors of the one-mass fit are nearly collinear (e.g. Coulomb friction and an "
+                              "offset when the speed never reverses): those parameters are not determined",
+    "drive_value_default": "a drive value is missing from the record; a documented default stands in for it",
+    "drive_outside_training": "a drive or test value lies outside what the maps were trained on",
+    "outside_envelope": "a drive, test or identified value lies outside SPEC 3.1's drive envelope",
+    "backlash_below_resolution": "a backlash narrower than the encoder resolves may hide: an upper bound is given",
+    "implausible_output": "an identified value the record cannot support (above Nyquist or the current loop's "
+                          "bandwidth, wider than the travel, off the one-mass fit)",
+    "impossible_output": "an identified value no mechanic can have; it is not reported",
 }
 
 
@@ -64,13 +79,15 @@ class Quality:
     osc_quanta: float  # rms of the oscillation in speed quanta (below 1: elastic values uncertain)
     oscillation_fit_r2: float  # R^2 of the eq.-1 oscillation fit
     one_mass_rel_residual: float  # STEP 2's residual over the speed's rms
-    outside_training: bool  # a map the answer rests on lies beyond its 99 % quantile
+    outside_training: bool  # a map the answer rests on lies beyond its 99 % quantile, or the drive beyond its training
     section_flags: tuple[str, ...]  # the section detection's notes
     maps_estimate: dict[str, float]  # f_e, V_J, d, s_N as the maps said them
+    outside_envelope: dict[str, dict[str, Any]]  # quantity -> value, trained and envelope ranges, which it leaves
     maps_structure: str | None = None  # the maps' class (the refined values decide the structure)
     refine_residual: float | None = None  # refined model's detrended speed error over the oscillation
     refine_start_residual: float | None = None  # the same for the maps' answer
     refined_s_N: float | None = None  # the refined normalized backlash
+    backlash_upper_bound: float | None = None  # [rad] the widest backlash the record cannot show, where it matters
 
     def to_dict(self) -> dict[str, Any]:
         out: dict[str, Any] = {}

@@ -9,6 +9,14 @@ transitions, spikes, ringing) are dropped, and the first occurrence of the level
 the interpolated crossing of the mid level minus ``T_Ei*ln 2`` (the first-order lag's delay to
 half the step), rounded to the nearest sample; as in ``sim``, the sample that starts a section
 is measured at the instant its new ``M_ref`` is applied (its current still shows the old level). When the record carries ``torque_ref`` the classification uses it directly.
+
+A noisy current (its sample-to-sample noise above :data:`NOISY` of ``M*``) cannot be classified
+sample by sample; the switching law itself is known, though, so the sections are then found by
+replaying it on the measured speed (:func:`_switching_law`: I ends at ``w_max``, II after I's
+duration or at ``0.2 w_max``, III at the zero crossing, ...), from the start of section I (where
+the heavily smoothed torque first reaches ``M*/2``) and ``w_max`` (metadata, else the speed where
+the smoothed torque drops after I). The torque only has to confirm the levels on average over
+each section. Records with ``torque_ref`` need none of this: record it where the drive can.
 """
 
 from __future__ import annotations
@@ -20,15 +28,19 @@ from typing import Any
 import numpy as np
 from scipy.ndimage import median_filter
 
-from sim import SECTION_LEVELS, SECTION_NAMES, Record
+from sim import SECTION_LEVELS, SECTION_NAMES, SPEED_RETURN, Record
 from training._checks import as_signal
 
-__all__ = ["SectionSplit", "detect_sections", "sections_from_column"]
+__all__ = ["SectionSplit", "detect_sections", "sections_from_column", "diff_noise"]
 
 #: The distinct torque levels of the test signal over ``M*``, highest first: ``(1, 0.7, 0, -0.7, -1)``.
 _CLASS_LEVELS = np.array(sorted(set(SECTION_LEVELS), reverse=True))
 _PATTERN = [int(np.flatnonzero(_CLASS_LEVELS == v)[0]) for v in SECTION_LEVELS]  # sections I..VI
 _ZERO = int(np.flatnonzero(_CLASS_LEVELS == 0.0)[0])
+#: Torque noise (std over ``M*``) above which the sections come from the switching law on the speed.
+NOISY = 0.03
+#: A section's mean torque may miss its level by this much of ``M*`` (plus its noise) on the speed path.
+_LEVEL_TOL = 0.25
 
 
 @dataclass(frozen=True)
@@ -67,7 +79,7 @@ def _from_record(record: Record) -> dict[str, Any]:
     """What :func:`detect_sections` reads from a record."""
     return {"speed": record.speed, "torque": record.motor_torque, "T_s": record.T_s,
             "torque_ref": record.torque_ref, "M_star": record.meta.get("M_star"),
-            "T_Ei": record.meta.get("T_Ei"), "section": record.section}
+            "T_Ei": record.meta.get("T_Ei"), "section": record.section, "w_max": record.meta.get("w_max")}
 
 
 def sections_from_column(section: Any, torque: Any = None, M_star: float | None = None) -> SectionSplit:
@@ -129,6 +141,7 @@ def detect_sections(
     torque_ref: Any = None,
     use_column: bool = False,
     min_run: float = 2e-3,
+    w_max: float | None = None,
 ) -> SectionSplit:
     """Find sections I..VI of a test run.
 
@@ -143,6 +156,7 @@ def detect_sections(
         torque_ref: ``(N,)`` ``M_ref`` [Nm]; when given it is classified instead of the torque.
         use_column: take the record's ``section`` column when present (else ignore it).
         min_run: runs of one level shorter than this [s] are transitions and dropped.
+        w_max: the test's speed limit [rad/s] (the switching law on a noisy torque; estimated when ``None``).
         (A keyword given overrides the record's value.)
 
     Returns:
@@ -153,7 +167,7 @@ def detect_sections(
     """
     info: dict[str, Any] = {"section": None} if record is None else _from_record(record)
     for key, val in (("speed", speed), ("torque", torque), ("T_s", T_s), ("M_star", M_star), ("T_Ei", T_Ei),
-                     ("torque_ref", torque_ref)):
+                     ("torque_ref", torque_ref), ("w_max", w_max)):
         if val is not None:
             info[key] = val
     w, y, Ts = _checked_signals(info)
@@ -161,17 +175,25 @@ def detect_sections(
         return sections_from_column(info["section"], y, info.get("M_star"))
     _check_speed(w, y)
     ys, source, lag = _classified_signal(y, info, Ts)
+    noise = diff_noise(y)
+    if source == "torque" and noise > NOISY * _amplitude(ys, info.get("M_star"))[0]:
+        return _switching_law(w, y, info, Ts, noise)
     Ms, estimated = _amplitude(ys, info.get("M_star"))
     runs = _level_runs(ys, Ms, max(3, int(round(min_run / Ts))))
-    hit = _pattern_start(runs, Ms)
+    try:
+        hit = _pattern_start(runs, Ms)
+    except ValueError:
+        if source == "torque_ref":
+            raise
+        try:  # the switching law may still find it
+            return _switching_law(w, y, info, Ts, noise)
+        except ValueError:
+            pass
+        raise
     step = _StepLocator(y, Ms, lag, exact=source == "torque_ref")
     bounds, tail, flags = _boundaries(runs, hit, step, Ts)
     _check_speed_follows(w, bounds)
-    lens = bounds[:, 1] - bounds[:, 0]
-    if lens[1] >= lens[0] - 2:
-        flags.append("II ended by duration")
-    if lens[4] >= lens[3] - 2:
-        flags.append("V ended by duration")
+    flags += _duration_flags(bounds)
     levels = np.array([y[a:b].mean() for a, b in bounds])
     return SectionSplit(bounds, tail, Ms, estimated, levels, tuple(flags), source, w.size)
 
@@ -205,6 +227,125 @@ def _classified_signal(y: np.ndarray, info: dict[str, Any], Ts: float) -> tuple[
         return ref, "torque_ref", 0.0
     ys = median_filter(y, size=5, mode="nearest") if y.size >= 5 else y
     return ys, "torque", float(info.get("T_Ei") or 0.0) * math.log(2.0) / Ts
+
+
+def diff_noise(*parts: np.ndarray) -> float:
+    """Std of the white noise on signals ``parts`` that are otherwise piecewise smooth: the median
+    absolute sample-to-sample difference over ``0.6745 sqrt 2`` (the few steps of the test signal
+    do not move the median)."""
+    d = np.concatenate([np.diff(p) for p in parts]) if parts else np.zeros(0)
+    return float(np.median(np.abs(d)) / (0.6745 * math.sqrt(2.0))) if d.size else 0.0
+
+
+def _duration_flags(bounds: np.ndarray) -> list[str]:
+    """Sections II and V that ended by their duration (as long as I, IV) rather than by the speed."""
+    lens = bounds[:, 1] - bounds[:, 0]
+    return ((["II ended by duration"] if lens[1] >= lens[0] - 2 else [])
+            + (["V ended by duration"] if lens[4] >= lens[3] - 2 else []))
+
+
+def _first(mask: np.ndarray, start: int) -> int:
+    """The first index ``>= start`` where ``mask`` holds; raises ValueError when there is none."""
+    hit = np.flatnonzero(mask[start:])
+    if hit.size == 0:
+        raise ValueError("none")
+    return start + int(hit[0])
+
+
+def _crossing(ys: np.ndarray, level: float, start: int, up: bool) -> float:
+    """The interpolated instant [samples] at which ``ys`` first crosses ``level`` from ``start`` on."""
+    j = _first(ys >= level if up else ys < level, start)
+    if j == 0:
+        return 0.0
+    y0, y1 = ys[j - 1], ys[j]
+    return j - 1 + (float(np.clip((level - y0) / (y1 - y0), 0.0, 1.0)) if y1 != y0 else 1.0)
+
+
+def _replay(w: np.ndarray, k0: int, w_max: float) -> np.ndarray:
+    """``(6, 2)`` bounds of the switching law (SPEC 2, :class:`sim.SwitchingController`) replayed on
+    the measured speed ``w`` from section I's first sample ``k0``: a section ends at the sample
+    whose speed meets its condition, the next starts with the following sample. Raises
+    ValueError when a condition is never met."""
+    n, w_low = w.size, SPEED_RETURN * w_max
+    k = np.arange(n)
+    b1 = _first(w >= w_max, k0) + 1
+    b2 = _first((k - b1 + 1 >= b1 - k0) | (w <= w_low), b1) + 1  # II: as long as I, or down to 0.2 w_max
+    b3 = _first(w <= 0.0, b2) + 1
+    b4 = _first(w <= -w_max, b3) + 1
+    b5 = _first((k - b4 + 1 >= b4 - b3) | (w >= -w_low), b4) + 1
+    b6 = min(_first(w >= 0.0, b5) + 1, n)
+    return np.array([[k0, b1], [b1, b2], [b2, b3], [b3, b4], [b4, b5], [b5, b6]], dtype=np.int64)
+
+
+def _level_fit(y: np.ndarray, bounds: np.ndarray, M_star: float | None) -> tuple[float, float]:
+    """``M*`` (given, else least squares of the section torques on the levels) and the squared error
+    of the torque against the levels over the sections."""
+    sums = np.array([y[a:b].sum() for a, b in bounds.tolist()])
+    L, nk = np.asarray(SECTION_LEVELS), bounds[:, 1] - bounds[:, 0]
+    Ms = float(np.sum(L * sums) / np.sum(L * L * nk)) if M_star is None else float(M_star)
+    ref = np.concatenate([np.full(b - a, lv * Ms) for (a, b), lv in zip(bounds.tolist(), SECTION_LEVELS)])
+    got = np.concatenate([y[a:b] for a, b in bounds.tolist()])
+    return Ms, float(np.sum((got - ref) ** 2))
+
+
+def _switching_law(w: np.ndarray, y: np.ndarray, info: dict[str, Any], Ts: float, noise: float) -> SectionSplit:
+    """Sections I..VI of a record whose torque is too noisy to classify sample by sample: the
+    switching law replayed on the measured speed (module docstring, :func:`_replay`). Without
+    ``w_max``, each speed near the fall of the smoothed torque after I is tried and the one whose
+    sections best fit the torque levels wins."""
+    n = y.size
+    a_rough = float(np.percentile(np.abs(y), 99.0))
+    smooth_len = max(5, 2 * int(math.ceil((2.5 * noise / max(0.05 * a_rough, 1e-300)) ** 2 / 2)) + 1)
+    ys = median_filter(y, size=min(smooth_len, max(5, n // 20) | 1), mode="nearest")
+    M_rough = float(np.percentile(np.abs(ys), 99.0))
+    lag = float(info.get("T_Ei") or 0.0) * math.log(2.0) / Ts  # [samples] of the torque behind its reference
+    expected = ",".join(_level_text(v) for v in SECTION_LEVELS)
+    fail = (f"no recognisable test-signal sections: expected torque levels {expected} x M* and the speed to follow "
+            f"the switching law (w_max, 0.2 w_max, 0), received a noisy torque ({noise / max(M_rough, 1e-300):.2g} "
+            "of M*) and a speed that does not")
+    try:
+        rise = _crossing(ys, 0.5 * M_rough, 0, True)
+        fall = _crossing(ys, 0.5 * M_rough, int(rise) + 1, False)
+    except ValueError:
+        raise ValueError(fail) from None
+    k0 = int(round(rise - lag))
+    k0 = 0 if k0 < max(3, int(round(2e-3 / Ts))) else k0  # no run before I: the record starts in I
+    if info.get("w_max") is not None:
+        candidates = [float(info["w_max"])]
+    else:  # the controller saw w_max one sample before the fall; the smoothed fall is a few samples unsure
+        j = int(round(fall - lag)) - 1
+        h = smooth_len // 2 + 3
+        candidates = sorted(set(w[max(j - h, k0):min(j + h + 1, n)].tolist()))
+    best = None
+    for w_max in candidates:
+        try:
+            bounds = _replay(w, k0, w_max)
+        except ValueError:
+            continue
+        if np.all(bounds[:, 1] > bounds[:, 0]):
+            Ms, cost = _level_fit(y, bounds, info.get("M_star"))
+            if best is None or cost < best[2]:
+                best = (bounds, Ms, cost)
+    if best is None:
+        raise ValueError(fail)
+    bounds, Ms, _ = best
+    levels = np.array([y[a:b].mean() for a, b in bounds.tolist()])
+    miss = np.abs(levels - np.asarray(SECTION_LEVELS) * Ms)
+    if not Ms > 0 or np.any(miss > _LEVEL_TOL * Ms + 3.0 * noise / np.sqrt(bounds[:, 1] - bounds[:, 0])):
+        raise ValueError(f"no recognisable test-signal sections: expected torque levels {expected} x M* "
+                         f"(M*={Ms:.4g}) in order, received section means "
+                         f"{','.join(f'{v / max(abs(Ms), 1e-300):+.2f}' for v in levels)} x M*")
+    _check_speed_follows(w, bounds)
+    b6 = int(bounds[5, 1])
+    flags = [f"sections from the switching law on the speed (torque noise {noise / Ms:.2g} of M*)"]
+    if b6 >= n:
+        flags.append("record ends in section VI (no tail)")
+    elif n - b6 < int(round(0.05 / Ts)) - 2:
+        flags.append("tail shorter than 50 ms")
+    if k0 > 0:
+        flags.append(f"{k0} samples before section I")
+    flags += _duration_flags(bounds)
+    return SectionSplit(bounds, (b6, int(n)), Ms, info.get("M_star") is None, levels, tuple(flags), "speed", n)
 
 
 def _amplitude(ys: np.ndarray, M_star: float | None) -> tuple[float, bool]:

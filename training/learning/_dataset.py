@@ -8,7 +8,8 @@ A dataset is a folder::
                           ok (S; False where the analysis failed), written atomically
 
 Generation is resumable: an interrupted run continues with the missing shards; a folder made
-with another config is refused rather than mixed or overwritten.
+with another config is refused rather than mixed or overwritten. Under ``torchrun`` the ranks
+share the shards and rank 0 writes them (see :func:`generate`).
 """
 
 from __future__ import annotations
@@ -25,8 +26,9 @@ import numpy as np
 import torch
 
 from sim import (DERIVED_NAMES, PARAM_NAMES, STRUCTURE_CLASSES, DriveConfig, PopulationRanges, TestSignalConfig,
-                 iter_records, sample_population)
+                 TwoMassParams, iter_records, sample_population)
 from som_torch import atomic_write
+from training._distributed import process_group
 from training._pool import worker_pool
 from training._json import dumps
 from training.errors import UserError
@@ -95,13 +97,8 @@ def _truth_row(truth: dict[str, Any], drive: DriveConfig) -> np.ndarray:
     return np.array([float(row[k]) for k in TRUTH_NAMES])
 
 
-def generate(out_dir: str | os.PathLike[str], config: GenerateConfig, *, workers: int | None = None,
-             progress: Callable[[int], None] | None = None) -> Path:
-    """Make (or complete) the dataset of ``config`` in ``out_dir``; returns the folder.
-
-    ``progress(k)`` is called with the number of systems finished since the last call.
-    """
-    out = Path(out_dir)
+def _prepare(out: Path, config: GenerateConfig) -> list[int]:
+    """Check (or write) ``out/dataset.json``; the shards still missing."""
     out.mkdir(parents=True, exist_ok=True)
     cfg_path = out / "dataset.json"
     want = json.loads(dumps(config.to_dict()))  # as it reads back (tuples become lists)
@@ -112,29 +109,59 @@ def generate(out_dir: str | os.PathLike[str], config: GenerateConfig, *, workers
                             "choose a new folder or remove it")
     else:
         atomic_write(cfg_path, lambda f: f.write(dumps(want, indent=1)), text=True)
+    return [k for k in range(config.n_shards) if not (out / f"shard_{k:05d}.npz").exists()]
+
+
+def _bounds(config: GenerateConfig, k: int) -> tuple[int, int]:
+    """Systems ``[lo, hi)`` of shard ``k``."""
+    return k * config.shard_size, min(config.n, (k + 1) * config.shard_size)
+
+
+def _shard(k: int, params: TwoMassParams, config: GenerateConfig, pool: Any,
+           progress: Callable[[int], None] | None) -> dict[str, np.ndarray]:
+    """The arrays of shard ``k``: a function of ``config`` and ``k`` alone (noise seeded per system)."""
+    lo, hi = _bounds(config, k)
+    sub = params[torch.arange(lo, hi)]
+    records = list(iter_records(sub, config.drive, config.signal, seed=config.seed * 1_000_003 + lo))
+    records.sort(key=lambda r: int(r.name[3:]))  # iter_records yields duration-sorted groups
+    F = np.zeros((hi - lo, len(FEATURE_NAMES)))
+    E = np.full((hi - lo, len(ESTIMATE_NAMES)), np.nan)
+    T = np.stack([_truth_row(r.meta["truth"], config.drive) for r in records])
+    ok = np.zeros(hi - lo, dtype=bool)
+    for i, res in enumerate(pool.map(_analyze_one, records, chunksize=8)):
+        if res is not None:
+            F[i], E[i], ok[i] = res[0], res[1], True
+        if progress:
+            progress(1)
+    return {"features": F, "estimate": E, "truth": T, "ok": ok}
+
+
+def generate(out_dir: str | os.PathLike[str], config: GenerateConfig, *, workers: int | None = None,
+             progress: Callable[[int], None] | None = None) -> Path:
+    """Make (or complete) the dataset of ``config`` in ``out_dir``; returns the folder.
+
+    ``progress(k)`` is called with the number of systems finished since the last call.
+    ``workers``: analysis processes (default: this process's share of the CPUs).
+
+    Under ``torchrun`` the missing shards are dealt out to the ranks, one per rank and round; rank
+    0 checks the folder and writes every shard (the same bytes a process alone writes) and is the
+    only one to call ``progress``.
+    """
+    out = Path(out_dir)
+    group = process_group()
+    missing = group.on_main(lambda: _prepare(out, config))
+    own = progress if group.main else None
+    if own:
+        own(config.n - sum(hi - lo for lo, hi in (_bounds(config, k) for k in missing)))
     params = sample_population(config.n, config.seed, config.ranges)
-    workers = workers or max(1, os.cpu_count() or 1)
-    with worker_pool(workers) as pool:
-        for k in range(config.n_shards):
-            path = out / f"shard_{k:05d}.npz"
-            lo, hi = k * config.shard_size, min(config.n, (k + 1) * config.shard_size)
-            if path.exists():
-                if progress:
-                    progress(hi - lo)
-                continue
-            sub = params[torch.arange(lo, hi)]
-            records = list(iter_records(sub, config.drive, config.signal, seed=config.seed * 1_000_003 + lo))
-            records.sort(key=lambda r: int(r.name[3:]))  # iter_records yields duration-sorted groups
-            F = np.zeros((hi - lo, len(FEATURE_NAMES)))
-            E = np.full((hi - lo, len(ESTIMATE_NAMES)), np.nan)
-            T = np.stack([_truth_row(r.meta["truth"], config.drive) for r in records])
-            ok = np.zeros(hi - lo, dtype=bool)
-            for i, res in enumerate(pool.map(_analyze_one, records, chunksize=8)):
-                if res is not None:
-                    F[i], E[i], ok[i] = res[0], res[1], True
-                if progress:
-                    progress(1)
-            atomic_write(path, lambda f: np.savez(f, features=F, estimate=E, truth=T, ok=ok))
+    with worker_pool(workers or group.cpus()) as pool:
+        for r in range(0, len(missing), group.world):
+            deal = missing[r:r + group.world]  # shard deal[i] goes to rank i
+            mine = _shard(deal[group.rank], params, config, pool, own) if group.rank < len(deal) else None
+            for i, (k, arrays) in enumerate(zip(deal, group.gather(mine) or [])):
+                atomic_write(out / f"shard_{k:05d}.npz", lambda f: np.savez(f, **arrays))
+                if own and i != group.rank:
+                    own(len(arrays["ok"]))
     return out
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
@@ -12,10 +13,17 @@ import numpy as np
 import torch
 
 import som_torch as st
+from training._distributed import CallRecorder, Group, process_group
 from training.errors import OutputExistsError
+from training.figures import log_map_figures
 from training.identification import (FEATURE_NAMES, FEATURE_VERSION, MAP_SPECS, SUBSETS, TARGETS, MapSpec, TrainedMap,
-                                     recall_targets)
+                                     load_map, recall_targets)
 from training.learning._dataset import Dataset
+
+
+#: Training rules: the paper's online rule (ensemble members dealt out to the ranks under torchrun)
+#: and the batch SOM (data-parallel under torchrun: the ranks' sums all-reduced).
+TRAIN_MODES = {"online": "the paper's online rule (eq. 3)", "batch": "batch SOM, neighbourhood-weighted means"}
 
 
 @dataclass(frozen=True)
@@ -34,11 +42,14 @@ class TrainConfig:
     normalization: str = "standard"
     interpolate: int = 4
     seed: int = 0
+    mode: str = "online"
 
     def __post_init__(self) -> None:
         if min(self.rows, self.cols) < 2 or self.ensemble < 1 or self.epochs < 1:
             raise ValueError(f"TrainConfig: expected rows, cols >= 2, ensemble >= 1, epochs >= 1, received "
                              f"{self.rows} x {self.cols}, {self.ensemble}, {self.epochs}")
+        if self.mode not in TRAIN_MODES:
+            raise ValueError(f"TrainConfig: mode: expected one of {list(TRAIN_MODES)}, received {self.mode!r}")
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -52,30 +63,112 @@ def training_matrix(spec: MapSpec, dataset: Dataset) -> np.ndarray:
     return np.stack(cols, axis=1)[mask]
 
 
-def train_map(spec: MapSpec, dataset: Dataset, config: TrainConfig, *, progress: bool = False,
-              writer: Any = None, calibration_share: float = 0.1) -> TrainedMap:
-    """Train the ensemble of ``spec`` on its subset of ``dataset``; with a TensorBoard ``writer``,
-    log QE/TE/learning rate/radius per epoch and U-matrix, hit and parameter maps (tag prefix = map name).
-
-    A seeded ``calibration_share`` of the rows is held out of training: the recall distances of
-    those unseen rows give the quantiles against which identification flags records unlike the
-    training data (distances of training rows themselves are much smaller: measured 3x)."""
+def _split_rows(spec: MapSpec, dataset: Dataset, config: TrainConfig,
+                calibration_share: float) -> tuple[np.ndarray, np.ndarray]:
+    """The subset's rows split by a seeded permutation into ``(training, calibration)``."""
     rows = training_matrix(spec, dataset)
     n_cal = max(5, int(round(calibration_share * rows.shape[0])))
     if rows.shape[0] < n_cal + 10:
         raise ValueError(f"map {spec.name}: expected >= {n_cal + 10} training systems, received {rows.shape[0]}")
     perm = np.random.default_rng(config.seed).permutation(rows.shape[0])
-    calibration, rows = rows[perm[:n_cal]], rows[perm[n_cal:]]
-    data = torch.as_tensor(rows, dtype=torch.float32).expand(config.ensemble, *rows.shape)  # E x N x C
+    return rows[perm[n_cal:]], rows[perm[:n_cal]]
+
+
+def _new_som(spec: MapSpec, config: TrainConfig, maps: int, device: str | torch.device) -> st.SOM:
     active = [True] * len(spec.features) + [False] * len(spec.targets)
-    som = st.SOM(st.Grid(config.rows, config.cols, config.topology), spec.components, active,
-                 batch_shape=(config.ensemble,))
-    hooks = [st.tensorboard_hook(writer, data, prefix=spec.name)] if writer is not None else []
+    return st.SOM(st.Grid(config.rows, config.cols, config.topology), spec.components, active,
+                  batch_shape=(maps,)).to(device)
+
+
+def _member_hook(writer: Any, data: torch.Tensor, name: str, members: list[int]) -> Callable[[int, st.SOM, dict], None]:
+    """TensorBoard logging of ensemble members ``members`` trained as one batch: each under its
+    own tags ``<name>/map_<member>/...``, as :func:`som_torch.tensorboard_hook` names a whole ensemble."""
+    hooks = [st.tensorboard_hook(writer, data, prefix=f"{name}/map_{b}", images_every=0) for b in members]
+
+    def hook(epoch: int, som: st.SOM, info: dict) -> None:
+        for i, one in enumerate(hooks):
+            one(epoch, som[i].to("cpu"), {**info, "learning_rate": info["learning_rate"][i], "sigma": info["sigma"][i]})
+
+    return hook
+
+
+def _train_online(spec: MapSpec, rows: np.ndarray, config: TrainConfig, members: list[int], *, progress: bool,
+                  writer: Any, device: str | torch.device) -> st.SOM:
+    """Ensemble members ``members`` of ``spec`` (member ``b`` seeded ``config.seed + b``), online rule."""
+    data = torch.as_tensor(rows, dtype=torch.float32)  # N x C
+    som = _new_som(spec, config, len(members), device)
+    hooks = [_member_hook(writer, data, spec.name, members)] if writer is not None else []
+    st.fit(som, data.expand(len(members), *data.shape), mode="online", init="random",
+           normalization=config.normalization, seed=[config.seed + b for b in members], epochs=config.epochs,
+           learning_rate=config.learning_rate, sigma=config.sigma, schedule=config.schedule,
+           neighbourhood=config.neighbourhood, progress=progress, hooks=hooks)
+    return som.to("cpu")
+
+
+def _train_batch(spec: MapSpec, rows: np.ndarray, config: TrainConfig, group: Group, *, progress: bool,
+                 writer: Any, device: str | torch.device) -> st.SOM:
+    """The whole ensemble of ``spec`` with the batch SOM; under torchrun data-parallel: each rank
+    sums over its block of the rows, the sums are all-reduced (float64)."""
+    data = torch.as_tensor(rows, dtype=torch.float32).expand(config.ensemble, *rows.shape)  # E x N x C
+    som = _new_som(spec, config, config.ensemble, device)
+    som.fit_normalization(data, config.normalization)
+    st.initialize(som, data, "random", config.seed)
+    share = group.block(rows.shape[0])
+    hooks = ([st.tensorboard_hook(writer, data, prefix=spec.name, images_every=0)] if writer is not None and group.main
+             else [])
+    st.train_batch(som, data[:, share.start:share.stop], epochs=config.epochs, sigma=config.sigma,
+                   schedule=config.schedule, neighbourhood=config.neighbourhood, progress=progress, hooks=hooks,
+                   reduce=group.all_reduce_sum if group.distributed else None)
+    return som.to("cpu")
+
+
+def _assemble(parts: list[tuple[list[int], st.SOM | None, float]], ensemble: int) -> tuple[st.SOM, float]:
+    """The ensemble from the ranks' ``(members, maps, seconds)``; the seconds summed."""
+    som = next(m for _, m, _ in parts if m is not None)
+    weights = torch.empty(ensemble, som.n_units, som.n_components, dtype=som.weights.dtype)  # E x U x C
+    offset, scale = (torch.empty(ensemble, som.n_components, dtype=torch.float64) for _ in range(2))  # E x C
+    for members, part, _ in parts:
+        if part is not None:
+            weights[members], offset[members], scale[members] = part.weights, part.offset, part.scale
+    whole = st.SOM(som.grid, som.component_names, som.active[:1].expand(ensemble, -1), weights=weights,
+                   offset=offset, scale=scale, dtype=weights.dtype)
+    return whole, sum(t for _, _, t in parts)
+
+
+def train_map(spec: MapSpec, dataset: Dataset, config: TrainConfig, *, progress: bool = False,
+              writer: Any = None, calibration_share: float = 0.1, device: str | torch.device = "cpu") -> TrainedMap:
+    """Train the ensemble of ``spec`` on its subset of ``dataset``; with a TensorBoard ``writer``,
+    log QE/TE/learning rate/radius per epoch and, after the last, the figures of
+    :func:`training.figures.map_figures`: U-matrix, hit map, parameter maps, contour plot (tag prefix = map name).
+
+    A seeded ``calibration_share`` of the rows is held out of training: the recall distances of
+    those unseen rows give the quantiles against which identification flags records unlike the
+    training data (distances of training rows themselves are much smaller: measured 3x).
+
+    ``device``: where the maps train (``"cuda"``: the torch path on the GPU; the C kernel is CPU only).
+    Under torchrun every rank calls it and gets the same map: the online rule deals the ensemble
+    members out to the ranks (member ``b`` to rank ``b mod world``; each is trained exactly as in
+    one process) and gathers them; the batch SOM all-reduces its sums over the ranks' rows. Only
+    rank 0 writes to ``writer`` (the other ranks' log calls are sent to it)."""
+    group = process_group()
+    rows, calibration = _split_rows(spec, dataset, config, calibration_share)
+    if not group.main and writer is not None:
+        writer = CallRecorder()
     t0 = time.perf_counter()
-    st.fit(som, data, mode="online", init="random", normalization=config.normalization,
-           seed=config.seed, epochs=config.epochs, learning_rate=config.learning_rate, sigma=config.sigma,
-           schedule=config.schedule, neighbourhood=config.neighbourhood, progress=progress, hooks=hooks)
-    seconds = time.perf_counter() - t0
+    if config.mode == "batch":
+        som = _train_batch(spec, rows, config, group, progress=progress, writer=writer, device=device)
+        seconds = time.perf_counter() - t0
+    else:
+        members = group.strided(list(range(config.ensemble)))
+        part = (_train_online(spec, rows, config, members, progress=progress, writer=writer, device=device)
+                if members else None)
+        calls = writer.take() if isinstance(writer, CallRecorder) else []
+        parts = group.all_gather((members, part, time.perf_counter() - t0, calls))
+        if group.main and writer is not None:
+            for *_, recorded in parts:
+                CallRecorder.replay(recorded, writer)
+        som, seconds = _assemble([p[:3] for p in parts], config.ensemble)
+    data = torch.as_tensor(rows, dtype=torch.float32).expand(config.ensemble, *rows.shape)  # E x N x C
     trained = TrainedMap(spec, som)
     distance = recall_targets(trained, calibration[:, : len(spec.features)], config.interpolate)["distance"]
     trained.metadata = {
@@ -83,46 +176,89 @@ def train_map(spec: MapSpec, dataset: Dataset, config: TrainConfig, *, progress:
                                    "subset": spec.subset},
         "feature_version": FEATURE_VERSION, "train_config": config.to_dict(),
         "dataset": {"sha256": dataset.sha256, "n": int(dataset.config["n"]), "seed": int(dataset.config["seed"]),
-                    "n_used": int(rows.shape[0]), "n_calibration": int(n_cal),
+                    "n_used": int(rows.shape[0]), "n_calibration": int(calibration.shape[0]),
                     "drive": dataset.config["drive"], "signal": dataset.config["signal"]},
         "quality": st.quality_report(som, data), "train_seconds": seconds,
         "distance_quantiles": {q: float(np.quantile(distance, float(q))) for q in ("0.5", "0.95", "0.99")},
     }
+    if writer is not None and group.main:  # the finished map's figures (the epochs log scalars only)
+        log_map_figures(writer, trained, data, config.epochs)
     return trained
 
 
+#: Metadata that differs between identical runs: kept in memory, not written (identical runs, identical files).
+_VOLATILE = ("train_seconds",)
+
+
 def save_map(folder: Path, trained: TrainedMap) -> str:
-    """Write ``folder/<name>.pt`` atomically; returns its SHA-256."""
-    return st.save_checkpoint(folder / f"{trained.spec.name}.pt", trained.som, trained.metadata)
+    """Write ``folder/<name>.pt`` atomically (without the :data:`_VOLATILE` metadata); returns its SHA-256."""
+    metadata = {k: v for k, v in trained.metadata.items() if k not in _VOLATILE}
+    return st.save_checkpoint(folder / f"{trained.spec.name}.pt", trained.som, metadata)
+
+
+def _resumable(folder: Path, name: str, config: TrainConfig, dataset: Dataset) -> bool:
+    """Whether ``folder/<name>.pt`` is a map an interrupted run of ``config`` on ``dataset`` finished."""
+    try:
+        meta = load_map(folder / f"{name}.pt").metadata
+    except (ValueError, OSError):
+        return False
+    return (meta.get("map") == name and meta.get("train_config") == json.loads(json.dumps(config.to_dict()))
+            and meta.get("dataset", {}).get("sha256") == dataset.sha256)
+
+
+def _check_folder(folder: Path, overwrite: bool, config: TrainConfig, dataset: Dataset) -> list[str]:
+    """The maps already finished in ``folder`` by an interrupted run (no manifest yet) of the same
+    config on the same dataset (resumed, not retrained); other maps there are refused unless ``overwrite``."""
+    existing = [n for n in MAP_SPECS if (folder / f"{n}.pt").exists()]
+    interrupted = not overwrite and not (folder / "manifest.json").exists()  # a finished run wrote its manifest
+    finished = [n for n in existing if _resumable(folder, n, config, dataset)] if interrupted else []
+    foreign = [n for n in existing if n not in finished]
+    if foreign and not overwrite:
+        raise OutputExistsError(f"{folder} already holds maps {foreign} (from another config or dataset); "
+                                "pass --overwrite to replace them")
+    folder.mkdir(parents=True, exist_ok=True)
+    return finished
 
 
 def train_maps(dataset: Dataset, folder: Path, config: TrainConfig, *, logdir: Path | None = None,
-               overwrite: bool = False, progress: Callable[[int], None] | None = None) -> dict[str, TrainedMap]:
+               overwrite: bool = False, progress: Callable[[int], None] | None = None,
+               device: str | torch.device = "cpu", epoch_progress: bool = False) -> dict[str, TrainedMap]:
     """Train every map of :data:`training.identification.MAP_SPECS` on ``dataset``, write each to
     ``folder/<name>.pt`` and then ``folder/manifest.json``; returns the trained maps by name.
 
-    ``logdir``: TensorBoard folder (config and per-map figures); ``progress(1)`` after each map.
-    Raises :class:`training.errors.OutputExistsError` where ``folder`` holds maps and not ``overwrite``.
+    ``logdir``: TensorBoard folder (config and per-map figures); ``progress(1)`` after each map;
+    ``epoch_progress``: a progress bar per map over its epochs (on stderr, rank 0).
+    Resumable: maps that an interrupted run of the same ``config`` on the same dataset left in
+    ``folder`` are loaded, not retrained. Raises :class:`training.errors.OutputExistsError` where
+    ``folder`` holds other maps and not ``overwrite``.
+    Under torchrun every rank trains its share (see :func:`train_map`) and returns the same maps;
+    rank 0 alone checks the folder, writes the checkpoints and the TensorBoard logs and calls ``progress``.
     """
-    existing = [n for n in MAP_SPECS if (folder / f"{n}.pt").exists()]
-    if existing and not overwrite:
-        raise OutputExistsError(f"{folder} already holds maps {existing}; pass --overwrite to replace them")
-    folder.mkdir(parents=True, exist_ok=True)
+    group = process_group()
+    finished = group.on_main(lambda: _check_folder(folder, overwrite, config, dataset))
     writer = None
-    if logdir is not None:
+    if logdir is not None and group.main:
         from torch.utils.tensorboard import SummaryWriter
 
         writer = SummaryWriter(str(logdir))
         st.log_config(writer, {"train": config.to_dict(), "dataset": dataset.config, "dataset_sha256": dataset.sha256})
+    elif logdir is not None:
+        writer = CallRecorder()
     trained: dict[str, TrainedMap] = {}
     try:
         for name, spec in MAP_SPECS.items():
-            trained[name] = train_map(spec, dataset, config, writer=writer)
-            save_map(folder, trained[name])
-            if progress is not None:
+            if name in finished:  # resumed: an interrupted run of this config on this dataset made it
+                trained[name] = load_map(folder / f"{name}.pt")
+            else:
+                trained[name] = train_map(spec, dataset, config, writer=writer, device=device,
+                                          progress=epoch_progress and group.main)
+                if group.main:
+                    save_map(folder, trained[name])
+            if group.main and progress is not None:
                 progress(1)
     finally:
         if writer is not None:
             writer.close()
-    st.write_manifest(folder)
+    if group.main:
+        st.write_manifest(folder)
     return trained

@@ -84,3 +84,68 @@ def test_the_thread_policy_is_applied_before_the_command(monkeypatch):
     _command(monkeypatch, ValueError("x"))
     main(["boom"])
     assert calls == ["defaults"]
+
+
+def _subparsers() -> dict:
+    parser = cli.build_parser()
+    return parser._subparsers._group_actions[0].choices
+
+
+def test_help_imports_no_heavy_module():
+    """``twomass --help`` and every ``twomass CMD --help`` build their text without torch, numpy,
+    scipy or the rooms (they cost seconds of start-up; imports happen in ``run``)."""
+    import subprocess
+
+    code = ("import sys; import training.cli as c; p = c.build_parser(); p.format_help(); "
+            "[s.format_help() for s in p._subparsers._group_actions[0].choices.values()]; "
+            "print(sorted({m.split('.')[0] for m in sys.modules} & {'torch', 'numpy', 'scipy', 'sim', 'som_torch'}), "
+            "sorted(m for m in sys.modules if m.split('.')[:2] in [['training', r] for r in "
+            "('identification', 'learning', 'evaluation', 'commissioning')]))")
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert res.returncode == 0, res.stderr
+    assert res.stdout.strip() == "[] []"
+
+
+def test_every_option_has_a_help_text():
+    for name, sub in _subparsers().items():
+        for action in sub._actions:
+            if action.dest != "help":
+                assert action.help, f"twomass {name} {action.option_strings or action.dest}: no help text"
+
+
+def _help(name: str) -> str:
+    return " ".join(_subparsers()[name].format_help().split())
+
+
+def test_help_defaults_match_the_library():
+    """Where the defaults live in heavy modules, the help texts state them; these checks keep them in step."""
+    from training.evaluation import GRID_BACKLASH_DEG, GRID_F_E
+    from training.learning import TRAIN_MODES, TrainConfig
+
+    d = TrainConfig()
+    train = _help("train")
+    for text in (f"(default {d.rows} {d.cols}, the paper's)", f"(default {d.ensemble})", f"(default {d.epochs})",
+                 f"(default {d.seed})", f"(default {d.mode})", "{" + ",".join(TRAIN_MODES) + "}"):
+        assert text in train, text
+    evaluate = _help("evaluate")
+    assert "the paper's " + ",".join(f"{v:g}" for v in GRID_F_E) + ")" in evaluate
+    assert "the paper's " + ",".join(f"{v:g}" for v in GRID_BACKLASH_DEG) + ")" in evaluate
+    assert "DEGREES" in evaluate and "use rad" in evaluate  # unlike the parameter files
+
+
+def test_train_options_not_given_keep_the_library_defaults():
+    from training.commands import train
+    from training.learning import TrainConfig
+
+    args = cli.build_parser().parse_args(["train", "--data", "d", "--out", "o", "--epochs", "3"])
+    assert train._config(args) == TrainConfig(epochs=3)
+
+
+@pytest.mark.parametrize("tty, flag, shown", [(True, False, True), (True, True, False), (False, False, False)])
+def test_progress_only_on_a_terminal(monkeypatch, tty, flag, shown):
+    import argparse
+
+    from training.commands import _progress
+
+    monkeypatch.setattr(sys.stderr, "isatty", lambda: tty)
+    assert _progress.wanted(argparse.Namespace(no_progress=flag)) is shown

@@ -265,3 +265,45 @@ def test_bench_identify_small(tmp_path, capsys):
     assert set(figures) == {"identify", "identify --no-refine"}
     assert all(0 < f["min_s"] <= f["median_s"] <= f["max_s"] for f in figures.values())
     assert main(["bench", "identify", "--records", "0"]) == 2
+
+
+def test_every_error_names_its_file(batch):
+    """Unit, section and analysis errors start with the record's path, as reading errors do."""
+    _, results, _ = batch
+    for res in results:
+        if "error" in res:
+            assert str(Path(res["record"]).with_suffix("")) in res["error"], res["error"]
+
+
+def test_time_error_prints_plain_numbers(good, tmp_path, capsys):
+    t = good.t.copy()
+    t[100:] -= 0.01  # time runs backwards after sample 100
+    _write_raw(tmp_path, "backwards", {**good.columns(), "t": t}, _meta(good))
+    assert main(["identify", str(tmp_path / "backwards.csv"), "--no-progress"]) == 1
+    err = _strict_loads(capsys.readouterr().out)["error"]
+    assert "time is not increasing at row 101 (t=0.015 s after 0.02475 s)" in err and "np." not in err
+
+
+def test_map_saved_under_another_name_is_refused(records, tmp_path, capsys):
+    """A valid map copied over another (manifest updated): refused at load, one line, exit 2."""
+    from som_torch import write_manifest
+
+    ck = tmp_path / "ck"
+    shutil.copytree(checkpoints_folder(), ck)
+    shutil.copy(ck / "f_e.pt", ck / "structure.pt")
+    write_manifest(ck)
+    assert main(["identify", str(records / "good.csv"), "--checkpoints", str(ck), "--no-progress"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "structure.pt: holds the map 'f_e'" in err and "KeyError" not in err
+
+
+def test_help_states_output_units(capsys):
+    with pytest.raises(SystemExit):
+        main(["identify", "--help"])
+    out = " ".join(capsys.readouterr().out.split())
+    assert "SI units" in out and "f_e [Hz]" in out and "backlash [rad, total width 2s]" in out
+
+
+def test_missing_maps_say_how_to_point_at_them(records, tmp_path, capsys):
+    assert main(["identify", str(records / "good.csv"), "--checkpoints", str(tmp_path / "none")]) == 2
+    assert "TWOMASS_CHECKPOINTS" in capsys.readouterr().err

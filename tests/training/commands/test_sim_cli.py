@@ -20,7 +20,7 @@ def test_simulate_from_json_writes_records(tmp_path, capsys):
     assert abs(read_record(out / "sys00001").meta["truth"]["J_M"] - 0.005) < 1e-12
     # refuses to overwrite, one-line error, exit code 2
     assert main(["simulate", "--params", str(tmp_path / "p.json"), "--out", str(out), "--no-progress"]) == 2
-    assert "exists" in capsys.readouterr().err
+    assert "2 of the 2 records exist" in capsys.readouterr().err
 
 
 def test_simulate_population(tmp_path):
@@ -68,3 +68,31 @@ def test_params_column_wise_and_text(tmp_path):
     with pytest.raises(UserError, match="one length"):
         read_params_file(path)
     assert main(["simulate", "--params", str(path), "--out", str(tmp_path / "o")]) == 2
+
+
+def test_simulate_into_a_folder_with_some_records_writes_nothing(tmp_path, capsys):
+    """The batch is written whole or not at all, and the message names the command's flag."""
+    params = [{"name": n, "J_sigma": 0.01, "V_J": 1.0, "f_e": 40.0} for n in ("a", "b", "c")]
+    (tmp_path / "p.json").write_text(json.dumps(params))
+    out = tmp_path / "rec"
+    out.mkdir()
+    (out / "b.csv").write_text("keep me")
+    assert main(["simulate", "--params", str(tmp_path / "p.json"), "--out", str(out), "--no-progress"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "1 of the 3 records exist (b)" in err
+    assert "--overwrite" in err and "overwrite=True" not in err
+    assert sorted(p.name for p in out.iterdir()) == ["b.csv"] and (out / "b.csv").read_text() == "keep me"
+
+
+def test_generate_shards_a_small_run(monkeypatch, tmp_path):
+    """``--n 200`` without ``--shard-size`` is 10 shards (an interrupt loses one), 20000 are 40 of 500."""
+    import training.learning as learning
+    from training.commands.generate import default_shard_size
+
+    seen = []
+    monkeypatch.setattr(learning, "generate", lambda out, config, **kw: seen.append(config))
+    monkeypatch.setattr(learning, "load_dataset", lambda out: pytest.skip("only the config is checked"))
+    with pytest.raises(pytest.skip.Exception):
+        main(["generate", "--n", "200", "--out", str(tmp_path), "--no-progress"])
+    assert seen[0].n == 200 and seen[0].shard_size == 20
+    assert default_shard_size(20000) == 500 and default_shard_size(10000) == 500 and default_shard_size(3) == 1

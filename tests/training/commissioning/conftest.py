@@ -10,12 +10,19 @@ from training.commissioning import ValidationResult
 from training.identification import IdentificationResult, IdentWarning, Parameters, Quality
 
 
+def _quality_extras() -> dict:
+    """Fields of ``Quality`` that some versions of the identification room have (none outside the envelope)."""
+    import dataclasses
+    names = {f.name for f in dataclasses.fields(Quality)}
+    return {"outside_envelope": {}} if "outside_envelope" in names else {}
+
+
 def identification_result(structure: str, params: dict, *, outside_training: bool = False,
                           ratios: dict | None = None, warnings: tuple = ()) -> IdentificationResult:
     """A typed identification result; ``warnings`` as ``(code, text)`` pairs."""
     quality = Quality(structure_probabilities={}, map_distance_ratio=dict(ratios or {}), osc_quanta=5.0,
                       oscillation_fit_r2=0.9, one_mass_rel_residual=0.01, outside_training=outside_training,
-                      section_flags=(), maps_estimate={})
+                      section_flags=(), maps_estimate={}, **_quality_extras())
     return IdentificationResult(structure, Parameters(**params), quality, tuple(IdentWarning(c, t) for c, t in warnings))
 
 
@@ -29,9 +36,10 @@ class StubIdentifier:
     (to check that the chain does not hand it the truth)."""
 
     def __init__(self, structure: str, params: dict, *, outside_training: bool = False, ratios: dict | None = None,
-                 **factors: float) -> None:
+                 warnings: tuple = (), **factors: float) -> None:
         params = {k: (v * factors.get(k, 1.0) if v is not None else None) for k, v in params.items()}
-        self.result = identification_result(structure, params, outside_training=outside_training, ratios=ratios)
+        self.result = identification_result(structure, params, outside_training=outside_training, ratios=ratios,
+                                            warnings=warnings)
         self.records: list = []
 
     def identify(self, record):

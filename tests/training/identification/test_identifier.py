@@ -19,7 +19,7 @@ from training.identification import _batch, _identifier
 #: The keys of SPEC section 9's object and of its ``quality`` (the refinement's last four).
 SPEC9_KEYS = ["structure", "parameters", "quality", "warnings"]
 QUALITY_KEYS = ["structure_probabilities", "map_distance_ratio", "osc_quanta", "oscillation_fit_r2",
-                "one_mass_rel_residual", "outside_training", "section_flags", "maps_estimate"]
+                "one_mass_rel_residual", "outside_training", "section_flags", "maps_estimate", "outside_envelope"]
 REFINE_KEYS = ["maps_structure", "refine_residual", "refine_start_residual", "refined_s_N"]
 
 
@@ -41,7 +41,7 @@ def files(good, tmp_path_factory) -> Path:
 def _quality(**kw) -> Quality:
     base = dict(structure_probabilities={"stiff": 1.0}, map_distance_ratio={"structure": 0.5}, osc_quanta=2.0,
                 oscillation_fit_r2=0.9, one_mass_rel_residual=0.01, outside_training=False, section_flags=("x",),
-                maps_estimate={"f_e": 30.0})
+                maps_estimate={"f_e": 30.0}, outside_envelope={})
     return Quality(**{**base, **kw})
 
 

@@ -1,0 +1,50 @@
+"""The drive matrix of issue 11 (``twomass evaluate --drives``): every drive inside SPEC 3.1's
+envelope, and the figures (silent-wrong rate included) on hand-made rows."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+
+from training.evaluation import DRIVES, drive_figures, drives_markdown
+from training.identification import SPEC_ENVELOPE
+
+
+def test_the_matrix_spans_the_envelope():
+    assert len(DRIVES) >= 6 and "reference" in DRIVES
+    env = SPEC_ENVELOPE
+    for case in DRIVES.values():
+        d, s = case.drive, case.signal
+        assert env["T_s"][0] <= d.T_s <= env["T_s"][1]
+        assert env["encoder_counts"][0] <= d.encoder_counts <= env["encoder_counts"][1]
+        assert env["T_Ei"][0] <= d.T_Ei <= env["T_Ei"][1]
+        assert env["M_max_over_M_N"][0] <= d.M_max / d.M_N <= env["M_max_over_M_N"][1]
+        assert s.M_star <= d.M_max and d.current_noise_std * d.K_M / s.M_star <= env["current_noise"][1]
+        J = case.ranges().J_sigma
+        assert env["time_scale"][0] <= J[0] * s.w_max / s.M_star and J[1] * s.w_max / s.M_star <= env["time_scale"][1]
+    assert {c.drive.T_s for c in DRIVES.values()} >= {125e-6, 1e-3, 5e-4, 62.5e-6, 2.5e-4}
+
+
+def _row(cls, f_e, V_J, J, s_N=0.0, backlash=0.0, som=None, warnings=0):
+    truth = dict(structure=cls, f_e=f_e, V_J=V_J, J_sigma=J, s_N=s_N, backlash=backlash, r_osc=100.0,
+                 w_e_T_Ei=0.1)
+    est = dict(structure=cls, f_e=f_e, V_J=V_J, J_sigma=J, backlash=backlash, n_warnings=warnings, error=None)
+    est.update(som or {})
+    return {"truth": truth, "som": est}
+
+
+def test_figures_and_the_silent_wrong_rate():
+    rows = [
+        _row("elastic", 30.0, 1.0, 0.1),  # right
+        _row("elastic", 30.0, 1.0, 0.1, som=dict(f_e=45.0)),  # outside E_30, unwarned: silent wrong
+        _row("elastic", 30.0, 1.0, 0.1, som=dict(f_e=45.0), warnings=2),  # wrong but warned
+        _row("elastic_backlash", 30.0, 1.0, 0.1, s_N=0.5, backlash=0.01, som=dict(backlash=0.012)),  # within 30 %
+        _row("stiff", math.nan, math.nan, 0.1, som=dict(structure="elastic", J_sigma=0.2)),  # class and J wrong
+    ]
+    f = drive_figures(rows)
+    assert f["n"] == 5 and f["n_elastic"] == 4 and f["n_backlash"] == 1
+    assert f["E_30"] == pytest.approx(50.0) and f["backlash_30"] == 100.0
+    assert f["structure"] == pytest.approx(80.0) and f["J_sigma_5"] == pytest.approx(80.0)
+    assert f["silent_wrong"] == pytest.approx(40.0) and f["warned"] == pytest.approx(20.0)
+    assert "| reference" not in drives_markdown({"x": f}, "cmd") and "`cmd`" in drives_markdown({"x": f}, "cmd")

@@ -1,0 +1,39 @@
+"""Training resumes after an interrupt, and identical runs write identical files (no timing stored)."""
+
+from __future__ import annotations
+
+import pytest
+
+from training.errors import OutputExistsError
+from training.identification import MAP_SPECS
+from training.learning import GenerateConfig, TrainConfig, generate, load_dataset, train_maps
+
+CONFIG = TrainConfig(rows=4, cols=4, ensemble=2, epochs=1)
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory):
+    out = tmp_path_factory.mktemp("ds")
+    generate(out, GenerateConfig(n=40, seed=11, shard_size=20), workers=1)
+    return load_dataset(out)
+
+
+def test_train_resumes_and_writes_identical_files(dataset, tmp_path):
+    ck = tmp_path / "ck"
+    train_maps(dataset, ck, CONFIG)
+    first = {p.name: p.read_bytes() for p in ck.iterdir()}
+    assert sorted(first) == sorted([f"{n}.pt" for n in MAP_SPECS] + ["manifest.json"])
+    # an interrupt after two maps: two maps, no manifest
+    names = list(MAP_SPECS)
+    for p in [ck / f"{n}.pt" for n in names[2:]] + [ck / "manifest.json"]:
+        p.unlink()
+    kept = {n: (ck / f"{n}.pt").stat().st_mtime_ns for n in names[:2]}
+    trained = train_maps(dataset, ck, CONFIG)  # resumes: no overwrite needed
+    assert {n: (ck / f"{n}.pt").stat().st_mtime_ns for n in names[:2]} == kept  # loaded, not retrained
+    assert ["train_seconds" in trained[n].metadata for n in names] == [False, False, True, True]
+    assert {p.name: p.read_bytes() for p in ck.iterdir()} == first  # the same bytes as the whole run
+    with pytest.raises(OutputExistsError, match="overwrite"):  # a finished run (manifest) is not resumed
+        train_maps(dataset, ck, CONFIG)
+    (ck / "manifest.json").unlink()
+    with pytest.raises(OutputExistsError, match="another config or dataset"):
+        train_maps(dataset, ck, TrainConfig(rows=4, cols=4, ensemble=2, epochs=1, seed=5))

@@ -1,0 +1,90 @@
+"""What a test run cannot exclude: the eigenfrequency bands per inertia ratio of the mechanics a
+measured test allows, for the fallback F1 and for the resonances a ``stiff`` answer may hide.
+
+Both rest on the last accepted test run's figures (:func:`measure_response`), never on the truth:
+
+* a visible oscillation at ``f_osc`` (``osc_quanta >= min_osc_quanta``): around ``f_osc``, widened
+  by the spectrum's resolution ``1 / longest_section`` (a few periods in a section make ``f_osc``
+  uncertain; fewer than 3: from the class's lowest);
+* below resolution: a resonance at ``w_0`` rings after a torque step ``M*`` with the motor-speed
+  amplitude ``V_J M* / (J_sigma w_0)`` (SPEC 1's ``r_osc q_w``), seen through the current loop
+  (``|1 / (1 + j w_0 T_Ei)|``) and the speed measurement over one sample
+  (``|sinc(w_0 T_s / 2)|``); it stays unseen where that amplitude is below what the test resolves.
+
+Units SI, frequencies in Hz.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+__all__ = ["ringing_amplitude", "f1_bands", "hidden_bands"]
+
+#: The spectrum's resolution ``1 / longest_section`` [Hz] counted this many times either side of ``f_osc``.
+F_OSC_RESOLUTIONS = 2.0
+#: Relative width of F1's band around ``f_osc`` (``f_osc / w .. f_osc * w``).
+F_OSC_WIDTH = 1.5
+
+
+def ringing_amplitude(f: np.ndarray, V_J: float, J_sigma: float, M_step: float, config: Any) -> np.ndarray:
+    """Amplitude [rad/s] of the motor-speed ringing of a resonance at ``f`` [Hz] (array) after a
+    torque-reference step ``M_step`` [Nm], as the measured speed shows it (module docstring)."""
+    w = 2 * math.pi * np.asarray(f, dtype=np.float64)
+    T_s, T_Ei = float(config.T_s), float(config.T_Ei)
+    return V_J * M_step / (J_sigma * w) / np.hypot(1.0, w * T_Ei) * np.abs(np.sinc(w * T_s / (2 * math.pi)))
+
+
+def _unseen_from(V_J: float, J_sigma: float, M_step: float, amplitude: float, config: Any, f_lo: float, f_top: float) -> float:
+    """The lowest frequency [Hz] in ``[f_lo, f_top]`` from which a resonance of ``V_J`` rings below
+    ``amplitude`` [rad/s] up to ``f_top``."""
+    f = np.geomspace(f_lo, f_top, 400)
+    seen = np.nonzero(ringing_amplitude(f, V_J, J_sigma, M_step, config) >= amplitude)[0]
+    return float(f[min(seen[-1] + 1, len(f) - 1)]) if len(seen) else f_lo
+
+
+def f1_bands(entry: dict[str, Any], J_sigma: float, config: Any, class_V_J: tuple[float, ...], class_f_e: tuple[float, float],
+             *, min_osc_quanta: float, osc_visible_ratio: float) -> dict[float, tuple[float, float]]:
+    """F1's eigenfrequency band [Hz] per inertia ratio from one test run's figures ``entry``
+    (``osc_quanta``, ``f_osc``, ``longest_section``, ``M_star``): a visible oscillation: ``(f_osc -
+    2/T) / 1.5 .. (f_osc + 2/T) * 1.5`` with ``T`` the longest section (from the class's lowest
+    when fewer than 3 periods fit in it); below resolution: from where a resonance rings below
+    ``osc_visible_ratio`` speed quanta up to the class's highest."""
+    lo, hi = class_f_e
+    if entry["osc_quanta"] >= min_osc_quanta and entry["f_osc"] > 0:
+        f, T = entry["f_osc"], entry["longest_section"]
+        df = F_OSC_RESOLUTIONS / T if T > 0 else f
+        band = (max((f - df) / F_OSC_WIDTH, lo) if f * T >= 3 else lo, (f + df) * F_OSC_WIDTH)
+        return {v: band for v in class_V_J}
+    amp = osc_visible_ratio * float(config.q_w)
+    return {v: (_unseen_from(v, J_sigma, entry["M_star"], amp, config, lo, hi), hi) for v in class_V_J}
+
+
+def hidden_bands(entry: dict[str, Any], J_sigma: float, config: Any, class_V_J: tuple[float, ...], *, f_lo: float,
+                 min_osc_quanta: float, peak_factor: float = 4.0, peak_width: float = 1.2,
+                 nyquist_share: float = 0.45) -> tuple[dict[float, tuple[float, float]], float | None]:
+    """The resonances a ``stiff`` answer cannot exclude, from the accepted test run's figures
+    ``entry`` (``M_star``, ``osc_quanta``, ``f_osc``): per inertia ratio of ``class_V_J`` the band
+    [Hz] from where a resonance rings below ``sqrt(2) max(osc_quanta, min_osc_quanta)`` speed quanta
+    (a sustained ringing of that RMS) up to ``nyquist_share / T_s`` (beyond it the measurement
+    aliases; the current loop hides the top of the band). A visible oscillation (``osc_quanta >=
+    min_osc_quanta``) at ``f_osc`` is a resonance the answer left out: ``f_osc / peak_width ..
+    f_osc * peak_width`` is added at the inertia ratio its amplitude allows (RMS x ``peak_factor``:
+    a damped ringing shows less RMS than its amplitude), at most the class's largest.
+
+    Returns ``(bands, f_osc or None)``: ``V_J -> (f_lo, f_hi)`` and the visible resonance (a notch may sit there).
+    """
+    f_top = nyquist_share / float(config.T_s)
+    osc, q_w, M = float(entry["osc_quanta"]), float(config.q_w), float(entry["M_star"])
+    amp = math.sqrt(2.0) * max(osc, min_osc_quanta) * q_w
+    bands = {v: (_unseen_from(v, J_sigma, M, amp, config, f_lo, f_top), f_top) for v in class_V_J}
+    f_osc = float(entry.get("f_osc", 0.0))
+    if not (osc >= min_osc_quanta and f_lo <= f_osc < f_top):
+        return bands, None
+    ring_per_V_J = float(ringing_amplitude(np.array([f_osc]), 1.0, J_sigma, M, config)[0])
+    V_J = min(peak_factor * osc * q_w / ring_per_V_J, max(class_V_J))
+    lo, hi = bands.get(V_J, (math.inf, 0.0))
+    bands[V_J] = (min(lo, f_osc / peak_width), max(hi, min(f_osc * peak_width, f_top)))
+    return bands, f_osc

@@ -1,0 +1,94 @@
+"""A SPEC 8.1 drive made of files, for any real drive and its scope: the chain writes each
+experiment it wants as JSON into a folder and stops; a person runs it on the drive, drops the
+recording (SPEC 3 record) beside it, and the chain goes on (``twomass commission --resume DIR``).
+
+The folder::
+
+    drive.json              {"config": {T_s, K_M, T_Ei, encoder_counts, M_N, M_max},
+                             "limits": {w_max, travel, M_max (optional)}, "name": optional}
+    001_request.json        written by the chain: {"experiment": 1, "kind": "test", "M_star", "w_max",
+                            "limits"} or {"kind": "closed_loop", "law": law.params, "scenario":
+                            {"T_s", "w_ref": [...], "M_dist": [...]}, "limits"}
+    001.csv + 001.json      the recording, dropped by the person (SPEC 3; ``aborted: true`` in the
+                            JSON when the drive stopped the run at a limit)
+
+The chain is deterministic: on ``--resume`` it runs again from the start, each experiment with a
+recording is answered from it (its request must be the one written before, else the folder belongs
+to another run), and the first one without a recording stops the run again.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+import sim
+from som_torch import atomic_write
+from training._json import dumps, json_safe
+from training.errors import CommissioningError, ExperimentPending, UserError
+
+__all__ = ["FileDrive", "ExperimentPending", "read_recording"]
+
+
+def read_recording(path: Path) -> sim.Record:
+    """A SPEC 3 record; its metadata's ``aborted`` flag (SPEC 8.1) is a bool, False when absent."""
+    rec = sim.read_record(path)
+    rec.meta["aborted"] = bool(rec.meta.get("aborted", False))
+    return rec
+
+
+class FileDrive:
+    """The drive of the folder ``folder`` (module docstring): ``config`` and ``limits`` from its
+    ``drive.json``; ``run_test`` / ``run_closed_loop`` answer from the recordings or raise
+    :class:`ExperimentPending` after writing the request."""
+
+    def __init__(self, folder: str | Path) -> None:
+        self.folder = Path(folder)
+        spec = self.folder / "drive.json"
+        try:
+            d = json.loads(spec.read_text())
+        except FileNotFoundError:
+            raise UserError(f"{spec}: not found (expected {{\"config\": {{...}}, \"limits\": {{...}}}})") from None
+        except (OSError, json.JSONDecodeError) as err:
+            raise UserError(f"{spec}: {err}") from None
+        if not isinstance(d, dict) or not isinstance(d.get("config"), dict) or not isinstance(d.get("limits"), dict):
+            raise UserError(f"{spec}: expected an object with 'config' and 'limits' objects")
+        self.config = d["config"]
+        try:
+            self.limits = sim.DriveLimits(**d["limits"])
+        except (TypeError, ValueError) as err:
+            raise UserError(f"{spec}: limits: {err}") from None
+        self.name = str(d.get("name", self.folder.name))
+        self.count = 0
+
+    def _exchange(self, request: dict[str, Any]) -> sim.Record:
+        self.count += 1
+        stem = self.folder / f"{self.count:03d}"
+        req_path = Path(f"{stem}_request.json")
+        text = dumps({"experiment": self.count, **request}, indent=1)
+        if req_path.exists():
+            if json.loads(req_path.read_text()) != json.loads(text):
+                raise CommissioningError(f"{req_path}: the chain now asks for a different experiment (another run's folder, "
+                                         f"or changed settings); remove it and the later files to go on from there")
+        else:
+            atomic_write(req_path, lambda f: f.write(text), text=True)
+        if not stem.with_suffix(".csv").exists():
+            raise ExperimentPending(f"experiment {self.count} ({request['kind']}) written to {req_path}; run it on the drive, "
+                                    f"drop the recording as {stem}.csv + {stem}.json, then: twomass commission --resume "
+                                    f"{self.folder}", str(req_path))
+        return read_recording(stem)
+
+    def run_test(self, M_star: float, w_max: float, limits: sim.DriveLimits) -> sim.Record:
+        return self._exchange({"kind": "test", "M_star": M_star, "w_max": w_max, "limits": _limits(limits)})
+
+    def run_closed_loop(self, law: Any, scenario: sim.Scenario, limits: sim.DriveLimits) -> sim.Record:
+        return self._exchange({"kind": "closed_loop", "law": json_safe(law.params), "limits": _limits(limits),
+                               "scenario": {"w_ref": np.round(scenario.w_ref, 12).tolist(),
+                                            "M_dist": np.round(scenario.M_dist, 12).tolist()}})
+
+
+def _limits(limits: sim.DriveLimits) -> dict[str, Any]:
+    return {"w_max": limits.w_max, "travel": limits.travel, "M_max": limits.M_max}

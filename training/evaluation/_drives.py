@@ -1,0 +1,134 @@
+"""The study of SPEC 7 on a matrix of drives across SPEC 3.1's envelope (issue 11,
+``twomass evaluate --drives``): per drive, a population whose test time scale, friction and
+torque fit that drive, simulated on it, identified with the maps, scored.
+
+Figures per drive: structure accuracy over systems at least 20 % from every class threshold,
+``E_30`` and ``E_10`` over ``elastic`` + ``elastic_backlash``, ``J_sigma`` within 5 %, backlash
+width within 30 % for ``s_N >= 0.3``, and the **silent-wrong rate**: the share of systems whose
+answer is wrong (class wrong, or an elastic answer outside ``E_30``, or ``J_sigma`` off by 30 %)
+with no warning at all.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from sim import DriveConfig, PopulationRanges, TestSignalConfig, iter_records, sample_population
+from training.evaluation._metrics import recognized, relative_error, threshold_margin
+
+_ELASTIC = ("elastic", "elastic_backlash")
+
+
+@dataclass(frozen=True)
+class DriveCase:
+    """One drive of the matrix: the drive, its test signal and the test's time-scale range
+    ``J_sigma w_max / M*`` [s] (the population's inertias follow from it)."""
+
+    name: str
+    description: str
+    drive: DriveConfig
+    signal: TestSignalConfig
+    time_scale: tuple[float, float] = (0.1, 2.0)
+
+    def ranges(self) -> PopulationRanges:
+        """The default population's mechanics with inertias for :attr:`time_scale` and friction
+        scaled to the test's torque (``M_FC`` up to 5 % of ``M*``, ``mu_F w_max`` up to 5 %)."""
+        M, w = self.signal.M_star, self.signal.w_max
+        return PopulationRanges(J_sigma=(self.time_scale[0] * M / w, self.time_scale[1] * M / w),
+                                M_FC=(0.0, 0.05 * M), mu_F=(0.0, 0.05 * M / w))
+
+
+def _case(name: str, description: str, M_N: float, w_max: float, time_scale: tuple[float, float] = (0.1, 2.0),
+          noise: float = 0.001, **drive: Any) -> DriveCase:
+    """A drive tested at ``M* = M_N`` with current noise ``noise`` x ``M*`` (std)."""
+    K_M = drive.pop("K_M", 1.0)
+    d = DriveConfig(M_N=M_N, M_max=drive.pop("M_max", 2.0 * M_N), K_M=K_M, current_noise_std=noise * M_N / K_M,
+                    **drive)
+    return DriveCase(name, description, d, TestSignalConfig(M_star=M_N, w_max=w_max), time_scale)
+
+
+#: The matrix of issue 11 (each inside SPEC 3.1's envelope).
+DRIVES: dict[str, DriveCase] = {c.name: c for c in (
+    _case("reference", "SPEC 1 reference drive", 10.0, 100.0),
+    _case("servo_200w", "200 W servo, 125 us, 2^17 counts", 0.64, 300.0, (0.05, 1.0), M_max=1.9, K_M=0.4,
+          T_s=125e-6, T_Ei=2e-4, encoder_counts=2**17, noise=0.005),
+    _case("low_res_1ms", "low-resolution drive, 1 ms, 2^13 counts", 10.0, 100.0, T_s=1e-3, T_Ei=1e-3,
+          encoder_counts=2**13),
+    _case("noisy", "reference drive with current noise 5 % of M*", 10.0, 100.0, noise=0.05),
+    _case("large_axis", "large industrial axis, 500 us, 2^16 counts", 200.0, 150.0, M_max=600.0, K_M=2.0,
+          T_s=5e-4, T_Ei=1.5e-3, encoder_counts=2**16),
+    _case("fast_spindle", "fast spindle, 62.5 us, 2^22 counts", 5.0, 600.0, (0.05, 1.0), M_max=12.0,
+          T_s=62.5e-6, T_Ei=1e-4, encoder_counts=2**22),
+)}
+
+
+def drive_rows(case: DriveCase, n: int, seed: int, identifier: Any,
+               progress: Callable[[int], object] | None = None) -> list[dict[str, Any]]:
+    """Simulate ``n`` systems of ``case`` and identify them; one row per system: ``truth``
+    (true parameters, ``s_N``, ``r_osc``, ``w_e_T_Ei``, class) and ``som`` (``structure``, the
+    parameters, ``n_warnings``, ``error``)."""
+    params = sample_population(n, seed, case.ranges())
+    records = list(iter_records(params, case.drive, case.signal, seed=seed, progress=progress))
+    rows = []
+    for rec, out in zip(records, identifier.identify_records(records)):
+        truth = dict(rec.meta["truth"])
+        truth["w_e_T_Ei"] = truth["w_e"] * case.drive.T_Ei
+        som: dict[str, Any] = {"structure": None, "n_warnings": 0, "error": None}
+        if out.ok:
+            som.update(out.parameters.to_dict(), structure=out.structure, n_warnings=len(out.warnings))
+        else:
+            som["error"] = out.error
+        rows.append({"truth": truth, "som": som})
+    return rows
+
+
+def _values(rows: Sequence[dict[str, Any]], part: str, key: str) -> np.ndarray:
+    return np.array([np.nan if r[part].get(key) is None else float(r[part][key]) for r in rows])
+
+
+def drive_figures(rows: Sequence[dict[str, Any]]) -> dict[str, Any]:
+    """The figures of one drive (module docstring), in percent, with the counts they rest on."""
+    truth = {k: _values(rows, "truth", k) for k in ("w_e_T_Ei", "s_N", "r_osc", "backlash")}
+    far = threshold_margin({k: truth[k] for k in ("w_e_T_Ei", "s_N", "r_osc")}) >= 0.2
+    cls_true = np.array([r["truth"]["structure"] for r in rows])
+    cls_som = np.array([str(r["som"]["structure"]) for r in rows])
+    correct = cls_true == cls_som
+    elastic = np.isin(cls_true, _ELASTIC)
+    err = {k: relative_error(_values(rows, "som", k), _values(rows, "truth", k)) for k in ("f_e", "V_J", "J_sigma")}
+    e30, e10 = recognized(err, 30), recognized(err, 10)
+    j_err = np.nan_to_num(err["J_sigma"], nan=np.inf)
+    wide = truth["s_N"] >= 0.3
+    bl = np.zeros(len(rows), dtype=bool)
+    bl[wide] = np.nan_to_num(relative_error(_values(rows, "som", "backlash")[wide], truth["backlash"][wide]),
+                             nan=np.inf) <= 0.3
+    wrong = ~correct | (elastic & np.isin(cls_som, _ELASTIC) & ~e30) | (j_err > 0.3)
+    silent = wrong & (np.array([r["som"]["n_warnings"] for r in rows]) == 0) & np.array(
+        [r["som"]["error"] is None for r in rows])
+    pct = lambda mask, over: float(100.0 * mask[over].mean()) if over.any() else None  # noqa: E731
+    every = np.ones(len(rows), dtype=bool)
+    return {"n": len(rows), "failed": int(sum(r["som"]["error"] is not None for r in rows)),
+            "structure": pct(correct, far), "n_structure": int(far.sum()),
+            "E_30": pct(e30, elastic), "E_10": pct(e10, elastic), "n_elastic": int(elastic.sum()),
+            "J_sigma_5": pct(j_err <= 0.05, every), "backlash_30": pct(bl, wide), "n_backlash": int(wide.sum()),
+            "silent_wrong": pct(silent, every), "warned": pct(np.array([r["som"]["n_warnings"] > 0 for r in rows]), every)}
+
+
+def drives_markdown(figures: dict[str, dict[str, Any]], command: str) -> str:
+    """The per-drive table (``figures``: drive name -> :func:`drive_figures`)."""
+    fmt = lambda v: "n/a" if v is None else f"{v:.1f}"  # noqa: E731
+    lines = ["# Identification on a matrix of drives (issue 11)", "", f"Made by `{command}`.", "",
+             "| drive | n | failed | structure (n) | E_30 | E_10 (n elastic) | J_sigma 5 % | backlash 30 % (n) "
+             "| silent wrong | warned |", "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+    for name, f in figures.items():
+        lines.append(f"| {name}: {DRIVES[name].description if name in DRIVES else ''} | {f['n']} | {f['failed']} | "
+                     f"{fmt(f['structure'])} ({f['n_structure']}) | {fmt(f['E_30'])} | {fmt(f['E_10'])} "
+                     f"({f['n_elastic']}) | {fmt(f['J_sigma_5'])} | {fmt(f['backlash_30'])} ({f['n_backlash']}) | "
+                     f"{fmt(f['silent_wrong'])} | {fmt(f['warned'])} |")
+    lines += ["", "Figures in %. Structure over systems >= 20 % from every class threshold; E_x over elastic + "
+              "elastic_backlash; silent wrong: class wrong, or an elastic answer outside E_30, or J_sigma off by "
+              "30 %, with no warning.", ""]
+    return "\n".join(lines)

@@ -1,0 +1,182 @@
+"""The drive envelope (SPEC 3.1) as data, stored with the maps (``envelope.json`` beside the
+checkpoints), and the check of a record's drive and test values against it.
+
+Two ranges per quantity: ``envelope``, SPEC 3.1's (the drives one set of shipped maps must
+serve), and ``trained``, what the maps' training data covered (a single value where the maps were
+trained on one drive). A value outside either gives a coded warning that names the quantity, its
+value and the range; the answer is still given.
+
+Quantities (the ones the features and the class rule depend on; a drive's absolute torque scale
+is not among them: torque and inertia scaled together give the same speed, so ``M*`` enters only
+through the test's time scale and the ratios):
+
+| quantity | meaning |
+| --- | --- |
+| ``T_s`` [s] | sample time |
+| ``encoder_counts`` | counts per revolution |
+| ``T_Ei`` [s] | current-loop time constant |
+| ``M_N`` [Nm] | rated torque |
+| ``M_max_over_M_N`` | maximum over rated torque |
+| ``M_star_over_M_max`` | the test's torque over the maximum torque |
+| ``time_scale`` [s] | ``J_sigma w_max / M*``: how long the test's torque takes to reach ``w_max`` |
+| ``current_noise`` | std of the measured torque's noise over ``M*`` |
+| ``f_e`` [Hz], ``V_J``, ``d``, ``s_N``, ``M_FC_over_M_star`` | the identified mechanics |
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from sim import PopulationRanges
+from som_torch import atomic_write
+from training.identification._result import IdentWarning
+
+FORMAT = "twomass-envelope/1"
+FILE_NAME = "envelope.json"
+
+#: Quantity -> unit (for the warning text).
+UNITS: dict[str, str] = {"T_s": "s", "encoder_counts": "counts/rev", "T_Ei": "s", "M_N": "Nm", "M_max_over_M_N": "",
+                         "M_star_over_M_max": "", "time_scale": "s", "current_noise": "of M*", "f_e": "Hz", "V_J": "",
+                         "d": "", "s_N": "", "M_FC_over_M_star": ""}
+
+#: SPEC 3.1's envelope.
+SPEC_ENVELOPE: dict[str, tuple[float, float]] = {
+    "T_s": (62.5e-6, 1e-3), "encoder_counts": (2.0**12, 2.0**24), "T_Ei": (1e-4, 2e-3), "M_N": (0.1, 1000.0),
+    "M_max_over_M_N": (1.5, 4.0), "M_star_over_M_max": (0.0, 1.0), "time_scale": (0.02, 5.0),
+    "current_noise": (0.0, 0.05), "f_e": (5.0, 500.0), "V_J": (0.2, 5.0), "d": (0.005, 0.1), "s_N": (0.0, 10.0),
+    "M_FC_over_M_star": (0.0, 0.05),
+}
+
+#: The record's noise is estimated (:func:`training.identification._drive.torque_noise`, a few %
+#: spread): the trained range reaches this much above the training drive's noise.
+NOISE_SPREAD = 1.25
+
+#: Relative tolerance of every range (a drive's T_s read from its time column, rounding of metadata).
+REL_TOL = 0.01
+
+
+@dataclass(frozen=True)
+class Finding:
+    """One quantity outside a range: its ``value``, the ``trained`` and ``envelope`` ranges, and
+    which of them it leaves (``outside``: ``"trained"``, ``"envelope"`` or both)."""
+
+    quantity: str
+    value: float
+    trained: tuple[float, float] | None
+    envelope: tuple[float, float] | None
+    outside: tuple[str, ...]
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"value": self.value, "trained": None if self.trained is None else list(self.trained),
+                "envelope": None if self.envelope is None else list(self.envelope), "outside": list(self.outside)}
+
+
+def _inside(value: float, rng: tuple[float, float]) -> bool:
+    lo, hi = rng
+    return lo * (1.0 - REL_TOL) - 1e-300 <= value <= hi * (1.0 + REL_TOL) + 1e-300
+
+
+def _fmt(v: float) -> str:
+    return f"2^{math.log2(v):.4g}" if v >= 1024 and float(math.log2(v)).is_integer() else f"{v:.4g}"
+
+
+@dataclass(frozen=True)
+class Envelope:
+    """``envelope`` (SPEC 3.1) and ``trained`` (the maps' training data) ranges per quantity."""
+
+    trained: dict[str, tuple[float, float]]
+    envelope: dict[str, tuple[float, float]] = field(default_factory=lambda: dict(SPEC_ENVELOPE))
+
+    def check(self, values: Mapping[str, float | None]) -> list[Finding]:
+        """The quantities of ``values`` (``None``: unknown, not checked) outside a range."""
+        out = []
+        for name, value in values.items():
+            if value is None or not math.isfinite(value):
+                continue
+            tr, env = self.trained.get(name), self.envelope.get(name)
+            outside = tuple(k for k, rng in (("trained", tr), ("envelope", env)) if rng is not None
+                            and not _inside(value, rng))
+            if outside:
+                out.append(Finding(name, float(value), tr, env, outside))
+        return out
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"format": FORMAT, "envelope": {k: list(v) for k, v in self.envelope.items()},
+                "trained": {k: list(v) for k, v in self.trained.items()}}
+
+    def write(self, path: str | os.PathLike[str]) -> Path:
+        """Write ``path`` (one line per quantity), atomically."""
+        d = self.to_dict()
+        parts = [f' "{part}": {{\n' + ",\n".join(f'  "{k}": {json.dumps(v)}' for k, v in d[part].items()) + "\n }"
+                 for part in ("envelope", "trained")]
+        text = "{\n" + f' "format": "{FORMAT}",\n' + ",\n".join(parts) + "\n}\n"
+        atomic_write(Path(path), lambda f: f.write(text), text=True)
+        return Path(path)
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any], where: str = FILE_NAME) -> "Envelope":
+        if not isinstance(data, Mapping) or data.get("format") != FORMAT:
+            raise ValueError(f"{where}: expected format {FORMAT!r}, received "
+                             f"{data.get('format') if isinstance(data, Mapping) else type(data).__name__!r}")
+        parts = {}
+        for part in ("envelope", "trained"):
+            ranges = data.get(part)
+            if not isinstance(ranges, Mapping):
+                raise ValueError(f"{where}: expected an object {part!r} of quantity -> [low, high]")
+            unknown = sorted(set(ranges) - set(UNITS))
+            if unknown:
+                raise ValueError(f"{where}: unknown quantities {unknown} in {part!r}; valid: {sorted(UNITS)}")
+            parts[part] = {k: (float(v[0]), float(v[1])) for k, v in ranges.items()}
+        return cls(trained=parts["trained"], envelope=parts["envelope"])
+
+    @classmethod
+    def load(cls, folder: str | os.PathLike[str], maps_metadata: Mapping[str, Any]) -> "Envelope":
+        """``folder/envelope.json`` where it exists, else :func:`trained_envelope` of the maps'
+        metadata (maps trained by ``twomass train`` record their drive and test there)."""
+        path = Path(folder) / FILE_NAME
+        if not path.is_file():
+            return trained_envelope(maps_metadata)
+        try:
+            data = json.loads(path.read_text())
+        except (OSError, ValueError) as err:
+            raise ValueError(f"{path}: unreadable ({err})") from None
+        return cls.from_dict(data, str(path))
+
+
+def trained_envelope(metadata: Mapping[str, Any]) -> Envelope:
+    """The ranges one map's ``metadata`` (its ``dataset``: drive, test signal, population) covers:
+    one drive and one test (single values), the population's ``J_sigma`` range as the time scale,
+    noise from none up to the training drive's."""
+    ds = metadata["dataset"]
+    drive, signal = ds["drive"], ds["signal"]
+    ranges = ds.get("ranges") or {}
+    J = tuple(ranges.get("J_sigma", PopulationRanges().J_sigma))
+    M_star, w_max = float(signal["M_star"]), float(signal["w_max"])
+    point = lambda v: (float(v), float(v))  # noqa: E731
+    # M_N, M_max and M* themselves do not enter the features (torque and inertia scale together)
+    trained = {"T_s": point(drive["T_s"]), "encoder_counts": point(drive["encoder_counts"]), "T_Ei": point(drive["T_Ei"]),
+               "time_scale": (J[0] * w_max / M_star, J[1] * w_max / M_star),
+               # up to the training drive's noise, with room for the estimate's own spread
+               "current_noise": (0.0, NOISE_SPREAD * drive["current_noise_std"] * drive["K_M"] / M_star)}
+    return Envelope(trained=trained)
+
+
+def envelope_warnings(findings: list[Finding]) -> list[IdentWarning]:
+    """One coded warning per finding: ``drive_outside_training`` when only the training range is
+    left, ``outside_envelope`` when SPEC 3.1's is."""
+    out = []
+    for f in findings:
+        unit = UNITS[f.quantity]
+        rng = f.envelope if "envelope" in f.outside else f.trained
+        what = "SPEC 3.1's drive envelope" if "envelope" in f.outside else "what the maps were trained on"
+        code = "outside_envelope" if "envelope" in f.outside else "drive_outside_training"
+        out.append(IdentWarning(code, f"{f.quantity} = {_fmt(f.value)} {unit} is outside {what} "
+                                      f"({_fmt(rng[0])} .. {_fmt(rng[1])} {unit}): the answer is less certain".replace(
+                                          "  ", " ")))
+    return out

@@ -1,0 +1,88 @@
+"""What a record can show, and what an answer may claim.
+
+- **Backlash resolution**: a gap of width ``2s`` shows in the motor speed when the motor crosses
+  it alone: under the smallest torque step that closes it (``0.7 M*``, sections III and VI) it
+  reaches the relative speed ``sqrt(2 * 2s * 0.7 M* / J_M)`` at the contact. Below
+  :data:`BACKLASH_VISIBLE_QUANTA` speed quanta (with ``J_M <= J_sigma``), or below one encoder
+  count of angle, the record cannot show it:
+  ``2s_res = max(q_phi, k^2 q_w^2 J_sigma / (1.4 M*))``. A stiff answer (or a backlash below that
+  width) then reports no width but this upper bound, with a warning, where the bound exceeds
+  :data:`BACKLASH_NEGLIGIBLE` (precision gearboxes: about 1 arcmin).
+- **Implausible outputs** (kept, warned): ``f_e`` above Nyquist ``0.5/T_s`` or above the current
+  loop's bandwidth ``1/(2 pi T_Ei)`` (the test does not excite it), a backlash wider than the
+  motor's travel in the test, a two-mass ``J_sigma`` off STEP 2's one-mass fit by more than
+  :data:`J_SIGMA_RATIO`.
+- **Impossible outputs** (not reported: ``None``, warned): non-finite or non-positive inertias,
+  ``V_J``, ``f_e``, ``C_F``; a damping outside ``[0, 1)``; a negative or non-finite backlash.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import numpy as np
+
+from training.identification._result import IdentWarning, Parameters
+
+BACKLASH_VISIBLE_QUANTA = 2.0  # speed quanta the motor's gap crossing must reach to be seen
+BACKLASH_NEGLIGIBLE = math.radians(0.01)  # [rad] a bound below this is not worth a warning
+J_SIGMA_RATIO = 2.0  # two-mass J_sigma over STEP 2's beyond this (either way): warned
+_LOW_LEVEL = 0.7  # the torque of sections III and VI over M* (sim.SECTION_LEVELS)
+
+_POSITIVE = ("J_sigma", "V_J", "J_M", "J_L", "f_e", "C_F")
+
+
+def backlash_resolution(q_w: float, q_phi: float, J_sigma: float, M_star: float) -> float:
+    """The widest backlash ``2s`` [rad] the record cannot show (see the module docstring)."""
+    k = BACKLASH_VISIBLE_QUANTA
+    return max(q_phi, k * k * q_w * q_w * J_sigma / (2.0 * _LOW_LEVEL * M_star))
+
+
+def travel(speed: np.ndarray, T_s: float) -> float:
+    """The motor's travel in the test [rad]: the span of its angle (the integrated speed)."""
+    angle = np.cumsum(np.asarray(speed, dtype=np.float64)) * T_s
+    return float(np.ptp(angle)) if angle.size else 0.0
+
+
+def impossible(p: Parameters) -> tuple[Parameters, list[IdentWarning]]:
+    """``p`` without the values no mechanic can have (set to ``None``), and a warning for each."""
+    bad: dict[str, float] = {}
+    for name in _POSITIVE:
+        v = getattr(p, name)
+        if v is not None and not (math.isfinite(v) and v > 0):
+            bad[name] = v
+    if p.d is not None and not (math.isfinite(p.d) and 0.0 <= p.d < 1.0):
+        bad["d"] = p.d
+    for name in ("backlash", "M_FC", "mu_F"):
+        v = getattr(p, name)
+        if v is not None and not (math.isfinite(v) and v >= 0):
+            bad[name] = v
+    if not bad:
+        return p, []
+    warns = [IdentWarning("impossible_output", f"{name} = {v!r} is physically impossible: not reported")
+             for name, v in bad.items()]
+    return replace(p, **dict.fromkeys(bad)), warns
+
+
+def implausible(p: Parameters, *, T_s: float, T_Ei: float, travel: float, J_sigma_one_mass: float) -> list[IdentWarning]:
+    """A warning for each value of ``p`` that the record cannot support (module docstring)."""
+    out = []
+    if p.f_e is not None:
+        nyquist, bandwidth = 0.5 / T_s, 1.0 / (2.0 * math.pi * T_Ei)
+        if p.f_e > nyquist:
+            out.append(IdentWarning("implausible_output", f"f_e = {p.f_e:.4g} Hz lies above Nyquist ({nyquist:.4g} Hz "
+                                                          "= 0.5/T_s): the record cannot show it"))
+        elif p.f_e > bandwidth:
+            out.append(IdentWarning("implausible_output", f"f_e = {p.f_e:.4g} Hz lies above the current loop's "
+                                                          f"bandwidth ({bandwidth:.4g} Hz = 1/(2 pi T_Ei)): the test "
+                                                          "excites it weakly, f_e is less certain"))
+    if p.backlash is not None and travel > 0 and p.backlash > travel:
+        out.append(IdentWarning("implausible_output", f"backlash = {p.backlash:.4g} rad is wider than the motor's "
+                                                      f"travel in the test ({travel:.4g} rad)"))
+    if p.J_sigma is not None and J_sigma_one_mass > 0:
+        ratio = p.J_sigma / J_sigma_one_mass
+        if not 1.0 / J_SIGMA_RATIO <= ratio <= J_SIGMA_RATIO:
+            out.append(IdentWarning("implausible_output", f"J_sigma = {p.J_sigma:.4g} kg m^2 is {ratio:.3g} x the "
+                                                          f"one-mass fit's ({J_sigma_one_mass:.4g} kg m^2)"))
+    return out
