@@ -1,66 +1,74 @@
-"""``twomass bench identify``: wall time of ``twomass identify`` on simulated records, start-up included."""
+"""``twomass bench identify``: ``twomass identify`` on one record and on N records, each a fresh
+process (start-up included): wall time, CPU time (user + system) and peak resident memory, and
+the cost per record from the difference of the two."""
 
 from __future__ import annotations
 
 import argparse
-import os
-import statistics
-import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
 
-from training.bench._run import write_figures
+from training.bench._report import Table, machine_line, ProcessCost, run_process, write_figures
 from training.errors import UserError
 
-HELP = "wall time of 'twomass identify' on N population records (start-up included), with and without the refinement"
+HELP = "'twomass identify' on 1 and on N population records, fresh processes: wall, CPU, peak memory, per record"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--records", type=int, default=100, help="population records to identify (default 100)")
+    parser.add_argument("--n", type=int, default=1000, help="population records of the large run (default 1000)")
     parser.add_argument("--seed", type=int, default=7, help="population and noise seed (default 7)")
-    parser.add_argument("--repeat", type=int, default=5, help="runs per variant (default 5)")
+    parser.add_argument("--records-dir", default=None,
+                        help="keep the simulated records in this folder and reuse those already there (writing "
+                             "CSV records is slow); default: a temporary folder")
+    parser.add_argument("--no-refine", action="store_true", help="time 'twomass identify --no-refine'")
     parser.add_argument("--json", dest="json_out", default=None, help="also write the figures to this JSON file")
 
 
-def _time_identify(paths: list[str], extra: list[str], out: Path) -> float:
-    """Wall time [s] of one ``twomass identify`` process (a fresh interpreter: start-up included)."""
-    cmd = [sys.executable, "-m", "training.cli", "identify", *paths, "--no-progress", "--out", str(out),
-           "--overwrite", *extra]
-    t0 = time.perf_counter()
-    res = subprocess.run(cmd, capture_output=True, text=True)
-    wall = time.perf_counter() - t0
-    if res.returncode not in (0, 1):
-        raise UserError(f"twomass identify failed (exit {res.returncode}): {res.stderr.strip().splitlines()[-1:]}")
-    return wall
+def _records(folder: Path, n: int, seed: int) -> list[str]:
+    """Paths of ``n`` population records in ``folder``, simulated and written where missing."""
+    import sim
+
+    paths = [folder / f"sys{i:05d}.csv" for i in range(n)]  # iter_records' names
+    if all(p.exists() for p in paths):
+        return [str(p) for p in paths]
+    folder.mkdir(parents=True, exist_ok=True)
+    print(f"simulating and writing {n} records to {folder} (not timed)...", flush=True)
+    drive, signal = sim.DriveConfig(), sim.TestSignalConfig()
+    params = sim.sample_population(n, seed)
+    for rec in sim.iter_records(params, drive, signal, seed=seed):
+        path = folder / f"{rec.name}.csv"
+        if not path.exists():
+            sim.write_record(path, rec)
+    missing = [p for p in paths if not p.exists()]
+    if missing:
+        raise UserError(f"records missing after simulation (names differ?): {missing[0]}")
+    return [str(p) for p in paths]
 
 
 def run(args: argparse.Namespace) -> int:
-    import sim
-
-    if args.records < 1 or args.repeat < 1:
-        raise UserError(f"--records and --repeat: expected >= 1, received {args.records}, {args.repeat}")
-    drive, signal = sim.DriveConfig(), sim.TestSignalConfig()
-    params = sim.sample_population(args.records, args.seed)
+    if args.n < 2:
+        raise UserError(f"--n: expected >= 2, received {args.n}")
     with tempfile.TemporaryDirectory(prefix="twomass-bench-") as tmp:
-        records = sim.responses_to_records(sim.simulate_test(params, drive, signal, seed=args.seed), params, drive,
-                                           signal, names=[f"rec{i:04d}" for i in range(args.records)])
-        paths = []
-        for r in records:
-            path = Path(tmp) / f"{r.name}.csv"
-            sim.write_record(path, r)
-            paths.append(str(path))
-        samples = statistics.mean(len(r.speed) for r in records)
-        print(f"{args.records} records, {samples:.0f} samples each on average; {os.cpu_count()} CPUs, "
-              f"1-min load average {os.getloadavg()[0]:.2f}")
-        figures: dict[str, dict[str, float]] = {}
-        for label, extra in (("identify", []), ("identify --no-refine", ["--no-refine"])):
-            walls = [_time_identify(paths, extra, Path(tmp) / "out.jsonl") for _ in range(args.repeat)]
-            figures[label] = {"min_s": min(walls), "median_s": statistics.median(walls), "max_s": max(walls)}
-            print(f"twomass {label}: wall {min(walls):.2f} / {statistics.median(walls):.2f} / {max(walls):.2f} s "
-                  f"(min / median / max of {args.repeat})")
+        folder = Path(args.records_dir) if args.records_dir else Path(tmp) / "records"
+        paths = _records(folder, args.n, args.seed)
+        extra = ["--no-refine"] if args.no_refine else []
+        out = str(Path(tmp) / "out.jsonl")
+        cmd = [sys.executable, "-m", "training.cli", "identify", "--no-progress", "--out", out, "--overwrite", *extra]
+        print(machine_line())
+        one = run_process([*cmd, paths[0]])
+        many = run_process([*cmd, *paths])
+    per_wall, per_cpu = (many.wall - one.wall) / (args.n - 1), (many.cpu - one.cpu) / (args.n - 1)
+    table = Table(["run", "wall s", "CPU s", *ProcessCost.MEMORY])
+    label = "twomass identify" + (" --no-refine" if args.no_refine else "")
+    table.add(f"{label}, 1 record", f"{one.wall:.2f}", f"{one.cpu:.2f}", *one.memory())
+    table.add(f"{label}, {args.n} records", f"{many.wall:.2f}", f"{many.cpu:.2f}", *many.memory())
+    table.add("per record ((N records - 1 record) / (N - 1))", f"{per_wall:.3f}", f"{per_cpu:.3f}", "-", "-")
+    print(table.render())
+    print(f"records: population seed {args.seed}, the default drive and test; each run a fresh process "
+          "(start-up included)")
+    print(f"reproduce: {args.command_line}")
     if args.json_out:
-        write_figures(args.json_out, {"records": args.records, "seed": args.seed, "mean_samples": samples,
-                                      "figures": figures})
+        write_figures(args.json_out, {"n": args.n, "seed": args.seed, "one": vars(one), "many": vars(many),
+                                      "per_record_wall_s": per_wall, "per_record_cpu_s": per_cpu})
     return 0

@@ -4,11 +4,9 @@ from __future__ import annotations
 
 import argparse
 import importlib
-from collections.abc import Mapping, Sequence
-from pathlib import Path
-from typing import Any
+import shlex
+from collections.abc import Sequence
 
-from training._json import dumps
 from training.errors import UserError
 
 #: target name -> module (imported only when the target runs)
@@ -16,6 +14,7 @@ TARGETS: dict[str, str] = {
     "identify": "training.bench._identify",
     "sim": "training.bench._sim",
     "som": "training.bench._som",
+    "train": "training.bench._train",
 }
 
 
@@ -29,12 +28,6 @@ def run_target(target: str | None, argv: Sequence[str]) -> int:
     module = importlib.import_module(TARGETS[target])
     parser = argparse.ArgumentParser(prog=f"twomass bench {target}", description=module.HELP)
     module.add_arguments(parser)
-    return int(module.run(parser.parse_args(list(argv))) or 0)
-
-
-def write_figures(path: str | Path, figures: Mapping[str, Any]) -> None:
-    """A target's figures as JSON at ``path`` (atomically)."""
-    from som_torch import atomic_write  # here: `twomass --help` lists the targets without torch
-
-    text = dumps(figures, indent=1)
-    atomic_write(path, lambda f: f.write(text), text=True)
+    args = parser.parse_args(list(argv))
+    args.command_line = shlex.join(["twomass", "bench", target, *argv])  # printed by the target: reproduces it
+    return int(module.run(args) or 0)

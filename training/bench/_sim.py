@@ -43,7 +43,7 @@ def _inputs(batch: int, seed: int, dtype: torch.dtype):
     drive, signal = DriveConfig(), TestSignalConfig()
     params = sample_population(batch, seed)
     fp = FastParams.build(params, drive, default_substeps(params, drive), dtype)
-    return params, drive, signal, fp
+    return drive, signal, fp
 
 
 def kernel_test(fp, drive, signal, nk: int, threads: int | None = None) -> tuple[float, dict[str, torch.Tensor]]:
@@ -124,7 +124,7 @@ def run(args: argparse.Namespace) -> int:
         if getattr(args, name) < 1:
             raise ValueError(f"--{name}: expected a positive integer, received {getattr(args, name)}")
     dtype = torch.float64 if args.float64 else torch.float32
-    _params, drive, signal, fp = _inputs(args.batch, args.seed, dtype)
+    drive, signal, fp = _inputs(args.batch, args.seed, dtype)
     nk, S, B = args.samples, fp.S, args.batch
     all_threads = kernel_threads()
     kernel_test(fp, drive, signal, 2)  # load (or build) the kernel outside the timings
@@ -133,7 +133,8 @@ def run(args: argparse.Namespace) -> int:
           f"{S} RK4 substeps per sample, {str(dtype)[6:]}; the fastest of {args.repeat} runs")
     flop = {t: matmul_gflops(dtype, t) for t in sorted({1, all_threads})}
     print("machine FLOP rate: " + ", ".join(f"{v:.1f} GFLOP/s on {t} thread(s)" for t, v in flop.items())
-          + f" ({str(dtype)[6:]} matmul 1024 x 1024, 2 n^3 FLOP; it uses FMA, the kernel may not)")
+          + f" ({str(dtype)[6:]} matmul 1024 x 1024, the faster of numpy's BLAS and torch, 2 n^3 FLOP; "
+          "it uses fused multiply-add, the kernel is compiled without: at most half of it is reachable)")
 
     work = B * nk * S  # system-substeps
     rows: list[tuple[str, int, float]] = []
@@ -160,7 +161,7 @@ def run(args: argparse.Namespace) -> int:
     print(table.render())
     print(f"GFLOP/s counts {FLOPS_PER_SUBSTEP} add/sub/mul per system-substep (sim/_kernel.c as written; "
           "compares and selects not counted); the solve_ivp line counts its samples at the same substeps")
-    print(f"reproduce: twomass bench sim --batch {B} --samples {nk}{' --float64' if args.float64 else ''}")
+    print(f"reproduce: {args.command_line}")
     if args.json_out:
         write_figures(args.json_out, figures)
     return 0

@@ -12,8 +12,9 @@ HELP = f"performance figures (targets: {', '.join(sorted(TARGETS))}; `twomass be
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     targets = ", ".join(sorted(TARGETS))
     parser.add_argument("target", nargs="?", metavar="TARGET",
-                        help=f"what to measure, one of: {targets} (sim: simulator throughput; som: SOM training "
-                             "against MiniSom; identify: wall time of `twomass identify` on N records)")
+                        help=f"what to measure, one of: {targets} (sim: C kernel vs vectorized numpy RK4; som: "
+                             "som_torch vs MiniSom/XPySom with QE and TE; identify: `twomass identify` on 1 and N "
+                             "records; train: `twomass generate` + `train` of N systems; wall, CPU, peak memory)")
     parser.add_argument("target_args", nargs=argparse.REMAINDER, metavar="...",
                         help="the target's own options; `twomass bench TARGET --help` lists them")
 

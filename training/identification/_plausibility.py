@@ -13,7 +13,9 @@ signal produces on the default population, measured on 800 simulated systems):
 - torque scale: the 99th percentile of ``|torque|`` (``|current| * K_M``) within 0.3..3 x
   ``M_star`` (simulated: 1.00), else at most 1.5 x ``M_max`` (mA give 1000x);
 - speed scale: the peak ``|speed|`` within 0.3..3 x ``w_max`` (simulated: 1.00..1.61; the lower
-  bound only when no section timed out); rpm give 9.5x, deg/s 57x, counts/s ``counts/2pi`` x;
+  bound only when no section timed out) plus the overshoot the record's own acceleration explains
+  through the current loop's lag (:func:`overshoot_allowance`: a small drive with a small inertia
+  overshoots several times ``w_max``); rpm give 9.5x, deg/s 57x, counts/s ``counts/2pi`` x;
 - speed quantum: when ``encoder_counts`` is given and the speed is exactly quantized, but in
   steps of the encoder's speed quantum expressed in another unit (rpm, deg/s, counts/s...);
 - inertia: a one-mass estimate (``J = int M dt / delta w``, least squares over the record;
@@ -40,7 +42,8 @@ T_EI_MAX = 0.05  # largest plausible current-loop time constant [s]
 T_S_OVER_T_EI_MAX = 50.0
 TORQUE_RATIO = (0.3, 3.0)  # 99th percentile of |torque| over M_star
 TORQUE_OVER_M_MAX = 1.5  # 99th percentile of |torque| over M_max (when M_star is not given)
-SPEED_RATIO = (0.3, 3.0)  # peak |speed| over w_max
+SPEED_RATIO = (0.3, 3.0)  # peak |speed| over w_max (above: beyond the overshoot the record's acceleration explains)
+_ACCEL_WINDOW = 8  # samples over which the acceleration is measured
 J_RANGE = (1e-7, 1e4)  # plausible one-mass inertia [kg m^2]
 _MIN_CORRELATION = 0.5  # |correlation| of torque integral and speed change needed to judge the inertia
 _QUANTIZED_SHARE = 0.99  # share of nonzero speed samples on a quantum grid to call the speed quantized
@@ -65,7 +68,7 @@ def check_record(record: Record) -> None:
     if not np.any(torque != 0) or not np.ptp(speed) > 0:
         return  # zero torque / constant speed: the section detection says so
     _check_torque_scale(torque, name, meta)
-    _check_speed_scale(speed, meta)
+    _check_speed_scale(speed, T_s, meta)
     _check_speed_quantum(speed, T_s, meta)
     _check_inertia(torque, speed, T_s, name)
 
@@ -120,7 +123,19 @@ def _guess(ratio: float, units: dict[str, float]) -> str:
     return f"; {best} instead of rad/s?" if abs(math.log(ratio / units[best]) - 0.2) < 0.6 else ""
 
 
-def _check_speed_scale(speed: np.ndarray, meta: dict[str, Any]) -> None:
+def overshoot_allowance(speed: np.ndarray, T_s: float, T_Ei: float | None) -> float:
+    """The speed [units of ``speed``] a motor can still gain after the switching law has taken its
+    torque away: the record's own acceleration times the current loop's lag and the sampling delays
+    (a first-order current loop adds ``M* T_Ei / J``; detection and application add up to ~2.5
+    samples). Small drives with small inertias overshoot ``w_max`` by several times this way."""
+    m = _ACCEL_WINDOW
+    if speed.size <= m or T_Ei is None:
+        return 0.0
+    accel = np.abs(speed[m:] - speed[:-m]) / (m * T_s)  # window of m samples: quantization / m
+    return float(np.percentile(accel, 99)) * (2.0 * float(T_Ei) + 3.0 * T_s)
+
+
+def _check_speed_scale(speed: np.ndarray, T_s: float, meta: dict[str, Any]) -> None:
     w_max = meta.get("w_max")
     if w_max is None:
         return
@@ -128,7 +143,7 @@ def _check_speed_scale(speed: np.ndarray, meta: dict[str, Any]) -> None:
     ratio = peak / float(w_max)
     lo, hi = SPEED_RATIO
     timed_out = any(bool(x) for x in (meta.get("timed_out") or []))
-    if ratio > hi or (ratio < lo and not timed_out):
+    if peak > hi * float(w_max) + overshoot_allowance(speed, T_s, meta.get("T_Ei")) or (ratio < lo and not timed_out):
         guess = _guess(ratio, _speed_units(meta, meta.get("T_s")))
         raise ValueError(f"speed looks like wrong units (peak |speed| {peak:.4g} is {ratio:.3g} x metadata "
                          f"w_max = {float(w_max):.4g} rad/s, expected {lo:g}..{hi:g} x{guess})")

@@ -44,10 +44,9 @@ def test_bench_without_or_with_unknown_target(capsys):
 
 
 def test_bench_sim_small(capsys):
-    assert main(["bench", "sim", "--sizes", "1,64", "--work", "1e5", "--baseline-systems", "1",
-                 "--baseline-samples", "20", "--records", "4"]) == 0
+    assert main(["bench", "sim", "--batch", "40", "--samples", "5", "--repeat", "1", "--naive-samples", "2"]) == 0
     out = capsys.readouterr().out
-    assert "system-substeps/s" in out and "solve_ivp" in out and "records for 4" in out
+    assert "numpy RK4" in out and "fused C kernel" in out and "solve_ivp" in out
 
 
 

@@ -8,7 +8,10 @@ import math
 import numpy as np
 import pytest
 
-from sim import Record, iter_records, sample_population
+import torch
+
+from sim import (DriveConfig, Record, TestSignalConfig, TwoMassParams, iter_records, responses_to_records,
+                 sample_population, simulate_test)
 from training.identification._plausibility import check_record
 
 RPM = 60.0 / (2.0 * math.pi)
@@ -70,6 +73,21 @@ def test_torque_in_wrong_units(good):
 def test_speed_in_rpm_against_w_max(good):
     with pytest.raises(ValueError, match=r"^speed looks like wrong units \(peak \|speed\| .* x metadata w_max .*rpm"):
         check_record(variant(good, speed=good.speed * RPM))
+
+
+@pytest.mark.parametrize("J_sigma, w_max, T_Ei", [(1e-4, 2.0, 1e-3), (1e-4, 1.0, 2e-3), (2e-4, 0.5, 1e-3)])
+def test_small_drive_overshoot_is_not_wrong_units(J_sigma, w_max, T_Ei):
+    # issue 13: a tiny inertia keeps accelerating while the current loop takes the torque away, so
+    # the motor overshoots w_max 5-8x; that is physics the record itself shows, not rpm
+    p = TwoMassParams(J_sigma=torch.tensor([J_sigma]), V_J=torch.tensor([1.0]), f_e=torch.tensor([200.0]),
+                      d=torch.tensor([0.05]), backlash=torch.tensor([0.0]), M_FC=torch.tensor([1e-3]),
+                      mu_F=torch.tensor([0.0]))
+    drive, signal = DriveConfig(T_Ei=T_Ei, M_max=1.0), TestSignalConfig(M_star=0.5, w_max=w_max)
+    rec = responses_to_records(simulate_test(p, drive, signal, seed=0), p, drive, signal)[0]
+    assert np.abs(rec.speed).max() > 3.0 * w_max  # beyond the fixed ratio bound
+    check_record(rec)
+    with pytest.raises(ValueError, match=r"speed looks like wrong units"):  # rpm still refused
+        check_record(variant(rec, speed=rec.speed * RPM))
 
 
 def test_speed_in_rpm_from_the_encoder_quantum(good):

@@ -1,0 +1,51 @@
+"""``twomass bench`` targets on tiny inputs: they run, print their table and the command that reproduces it."""
+
+from __future__ import annotations
+
+import pytest
+
+from sim._kernel import load_kernel
+from training.bench import TARGETS, run_target
+from training.bench._report import Table
+from training.errors import UserError
+
+
+def test_table_renders_markdown() -> None:
+    t = Table(["a", "b"])
+    t.add(1, "x")
+    assert t.render() == "| a | b |\n| --- | --- |\n| 1 | x |"
+
+
+def test_targets() -> None:
+    assert sorted(TARGETS) == ["identify", "sim", "som", "train"]
+    with pytest.raises(UserError, match="valid targets: identify, sim, som, train"):
+        run_target("nope", [])
+
+
+@pytest.mark.skipif(load_kernel() is None, reason="no C compiler: no kernel to bench")
+def test_bench_sim_tiny(capsys: pytest.CaptureFixture[str]) -> None:
+    argv = ["--batch", "40", "--samples", "5", "--repeat", "1", "--naive-samples", "2"]
+    assert run_target("sim", argv) == 0
+    out = capsys.readouterr().out
+    assert "machine: " in out and "GFLOP/s on 1 thread(s)" in out
+    assert "| numpy RK4, vectorized over systems | 1 |" in out
+    assert "| fused C kernel | 1 |" in out and "naive script: solve_ivp" in out
+    assert out.rstrip().endswith("reproduce: twomass bench sim " + " ".join(argv))
+
+
+def test_bench_som_tiny(capsys: pytest.CaptureFixture[str]) -> None:
+    pytest.importorskip("minisom")
+    argv = ["--maps", "2", "--rows", "3", "--cols", "4", "--samples", "30", "--epochs", "1", "--active", "3",
+            "--inactive", "1", "--sigma", "1"]
+    assert run_target("som", argv) == 0
+    out = capsys.readouterr().out
+    for row in ("float64 | 1 |", "float64 | 2 |", "float32 | 2 |", "MiniSom 2.3.6 online | float64 | 1 |"):
+        assert row in out
+    assert "vs MiniSom (float64)" in out
+    assert out.rstrip().endswith("reproduce: twomass bench som " + " ".join(argv))
+
+
+@pytest.mark.parametrize("target", ["identify", "train"])
+def test_process_targets_reject_too_few_records(target: str) -> None:
+    with pytest.raises(UserError, match="--n: expected"):
+        run_target(target, ["--n", "0"])
