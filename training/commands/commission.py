@@ -54,12 +54,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--validation", choices=("switching", "replay"), default="replay",
                         help="re-simulation mode of the validation (default replay: the recorded torque "
                              "reference open loop; switching: the test's switching law)")
-    parser.add_argument("--plots", type=Path, help="folder for PNG plots: test record vs model, the runs on the drive, "
-                        "the delivered loop's Bode plot (needs matplotlib, the 'plot' extra)")
+    parser.add_argument("--plots", type=Path, help="folder for one PNG page per drive: the test runs, the closed loop before and after "
+                        "tuning (motor; load as the model estimates it), the delivered loop's Bode plot with its "
+                        "margins (needs matplotlib, the 'plot' extra)")
     parser.add_argument("--logdir", type=Path, help="TensorBoard log folder (scalars of the search)")
     parser.add_argument("--json", type=Path, help="write the reports (and the summary) as JSON to this file "
                         "(NaN and inf as null)")
-    parser.add_argument("--overwrite", action="store_true", help="replace an existing --json file")
+    parser.add_argument("--overwrite", action="store_true", help="replace an existing --json file or --plots page")
     parser.add_argument("--checkpoints", type=Path, help="folder with the maps (default: the shipped checkpoints/)")
     parser.add_argument("--quiet", action="store_true", help="print only the summary over several drives")
     _progress.add_option(parser)
@@ -70,67 +71,11 @@ def _check_positive(name: str, v: float | None) -> None:
         raise UserError(f"{name}: expected a finite number > 0, received {v}")
 
 
-def _pyplot() -> Any:
-    try:
-        import matplotlib
+def _plot(report: Any, folder: Path, overwrite: bool) -> None:
+    """``folder/<name>.png``: the commissioning page (:func:`training.figures.commission_figure`)."""
+    from training.figures import commission_figure, save_png
 
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-    except ImportError:
-        raise UserError("--plots needs matplotlib: pip install -e '.[plot]'") from None
-    return plt
-
-
-def _plot(report: Any, folder: Path) -> None:
-    """``folder/<name>.png``: the test record against its re-simulation, the runs on the drive, and
-    the delivered loop's open-loop Bode plot on the guarantee's worst model and the design model."""
-    import numpy as np
-
-    from som_torch import atomic_write  # imported here: `twomass --help` loads no torch
-
-    from training.commissioning import bode
-
-    plt = _pyplot()
-    T_s = float(report.config.T_s)
-    fig, axes = plt.subplots(4, 1, figsize=(8, 12))
-    ax = axes[0]
-    if report.validation is not None:
-        v = report.validation
-        t = np.arange(len(v.measured)) * T_s
-        ax.plot(t, v.measured, label="measured")
-        ax.plot(t, v.simulated, "--", label="identified model")
-        ax.set_title(f"{report.name}: test record vs re-simulation ({v.reason})", fontsize=9)
-        ax.legend(fontsize=8)
-    ax.set_xlabel("t [s]")
-    ax.set_ylabel("w_M [rad/s]")
-    ax = axes[1]
-    for label, r in [*zip(("proposal", "tuned", "between"), report.runs), *zip(("F1",), report.fallback_runs)]:
-        ax.plot(np.arange(len(r.speed)) * T_s, r.speed, label=label, lw=0.8)
-    ax.set_title("closed-loop experiments on the drive", fontsize=9)
-    ax.set_xlabel("t [s]")
-    ax.set_ylabel("w_M [rad/s]")
-    ax.legend(fontsize=8)
-    d = report.delivered
-    if d is not None:
-        m = d.margins
-        worst = d.models.plants[d.models.labels.index(m.model)] if m.model in d.models.labels else d.models.plants[0]
-        for name, plant in (("design model", d.models.plants[0]), (f"worst: {m.model}", worst)):
-            b = bode(plant, d.Kp, d.Ti, d.T_f, d.notch)
-            axes[2].semilogx(b["w"], b["mag_dB"], label=name, lw=0.8)
-            axes[3].semilogx(b["w"], b["phase_deg"], label=name, lw=0.8)
-        axes[2].axhline(0, color="k", lw=0.5)
-        axes[3].axhline(-180, color="k", lw=0.5)
-        axes[2].set_title(f"delivered loop: PM {m.phase_margin:.1f} deg, GM {m.gain_margin_dB:.1f} dB, "
-                          f"w_c {d.figures['w_c']:.4g} rad/s", fontsize=9)
-        axes[2].set_ylabel("|L| [dB]")
-        axes[3].set_ylabel("phase L [deg]")
-        axes[3].set_xlabel("w [rad/s]")
-        axes[2].legend(fontsize=7)
-    fig.tight_layout()
-    try:
-        atomic_write(folder / f"{report.name}.png", lambda f: fig.savefig(f, format="png", dpi=90))
-    finally:
-        plt.close(fig)
+    save_png(commission_figure(report), folder / f"{report.name}.png", overwrite=overwrite)
 
 
 def _refuse_existing(path: Path | None, overwrite: bool) -> None:
@@ -217,7 +162,11 @@ def run(args: argparse.Namespace) -> int:
 
         writer = SummaryWriter(str(args.logdir))
     if args.plots is not None:
-        _pyplot()
+        from training.figures import PLOT_HINT, plots_available
+
+        if not plots_available():  # the job still runs; the pages are what is missing
+            print(f"twomass commission: --plots: {PLOT_HINT}", file=sys.stderr)
+            args.plots = None
     n = len(drives)
     say = (lambda msg: print(msg, file=sys.stderr, flush=True)) if _progress.wanted(args) else (lambda msg: None)
     reports = []
@@ -239,7 +188,7 @@ def run(args: argparse.Namespace) -> int:
                     if v is not None:
                         writer.add_scalar(f"commission/{k}", v, i)
             if args.plots is not None:
-                _plot(rep, args.plots)
+                _plot(rep, args.plots, args.overwrite)
             if not (args.quiet and n > 1):
                 print(rep.to_text(), flush=True)
                 print(flush=True)
