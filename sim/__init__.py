@@ -2,7 +2,7 @@
 
 from sim.measurement import encoder_count, speed_from_angle
 from sim.params import (DERIVED_NAMES, PARAM_NAMES, R_OSC_VISIBLE, S_N_ELASTIC, S_N_STIFF_BACKLASH, STRUCTURE_CLASSES,
-                        W_E_T_EI_STIFF, DriveConfig, TwoMassDerived, TwoMassParams, class_index, speed_quantum, structure_class,
+                        W_E_T_EI_STIFF, DriveConfig, TwoMassDerived, TwoMassParams, class_index, one_mass_stand_in, speed_quantum, structure_class,
                         two_mass_derived)
 from sim.plant import Controller, Plant, Response, SimulatedPlant, simulate, simulate_test
 from sim.population import EnvelopeRanges, EnvelopeSample, PopulationRanges, sample_envelope, sample_population
@@ -13,7 +13,7 @@ from sim._signal import SECTION_LEVELS, SECTION_NAMES, SPEED_RETURN, SwitchingCo
 
 __all__ = [
     "STRUCTURE_CLASSES", "SECTION_NAMES", "SECTION_LEVELS", "SPEED_RETURN", "PARAM_NAMES", "DERIVED_NAMES",
-    "TwoMassDerived", "two_mass_derived", "class_index", "speed_quantum", "S_N_ELASTIC", "S_N_STIFF_BACKLASH", "W_E_T_EI_STIFF",
+    "TwoMassDerived", "two_mass_derived", "class_index", "one_mass_stand_in", "speed_quantum", "S_N_ELASTIC", "S_N_STIFF_BACKLASH", "W_E_T_EI_STIFF",
     "R_OSC_VISIBLE", "Controller", "DriveConfig", "Plant", "PopulationRanges", "Record",
     "RecordError", "Response", "SimulatedPlant", "SwitchingController", "TestSignalConfig", "TwoMassParams",
     "encoder_count", "iter_records", "read_record", "replay_speed", "responses_to_records", "sample_population", "simulate",

@@ -89,6 +89,13 @@ def speed_quantum(encoder_counts: float, T_s: float) -> float:
     return 2.0 * math.pi / (encoder_counts * T_s)
 
 
+def one_mass_stand_in(T_s: float) -> dict[str, float]:
+    """``V_J``, ``f_e`` [Hz] and ``d`` that make the two-mass model act as one mass at sample time
+    ``T_s`` [s]: 1 % of the inertia on a shaft at the highest frequency the sampling resolves
+    (``0.25 / T_s``, at most 1 kHz), well damped. For replaying a ``stiff`` answer (no ``f_e``, ``V_J``)."""
+    return {"V_J": 0.01, "f_e": min(1000.0, 0.25 / T_s), "d": 0.1}
+
+
 def _as_tensor(name: str, value: Any) -> torch.Tensor:
     if isinstance(value, torch.Tensor):
         t = value.detach().to(torch.float64)

@@ -81,11 +81,6 @@ def _measured(record: Any) -> tuple[np.ndarray, np.ndarray | None, dict[str, Any
     return w[:n], (_one(tr)[:n] if tr is not None else None), dict(meta)
 
 
-def _stiff_surrogate(params: Any, drive: Any) -> dict[str, float]:
-    """A one-mass model as sim parameters: tiny ``V_J`` (0.01), ``f_e = min(1000, 0.25/T_s)`` Hz."""
-    return {"V_J": 0.01, "f_e": min(1000.0, 0.25 / float(drive.T_s)), "d": 0.1}
-
-
 def _as_sim_params(params: Any, drive: Any) -> Any:
     import sim
 
@@ -95,7 +90,7 @@ def _as_sim_params(params: Any, drive: Any) -> Any:
         raise TypeError(f"params: expected TwoMassParams or a dict, received {type(params).__name__}")
     row = {k: params.get(k) for k in sim.PARAM_NAMES}
     if row["V_J"] is None or row["f_e"] is None:
-        row.update(_stiff_surrogate(params, drive))
+        row.update(sim.one_mass_stand_in(float(drive.T_s)))
     row = {k: (0.0 if v is None else float(v)) for k, v in row.items()}
     return sim.TwoMassParams.from_dicts(row)
 

@@ -21,7 +21,8 @@ import numpy as np
 import torch
 
 import som_torch as st
-from sim import SECTION_NAMES, DriveConfig, Record, TwoMassParams, read_record, replay_speed, two_mass_derived
+from sim import (SECTION_NAMES, DriveConfig, Record, TwoMassParams, one_mass_stand_in, read_record, replay_speed,
+                 two_mass_derived)
 from training.errors import UserError, one_line
 from training.figures._planes import PARAMETER_PLANES, draw_plane, unit_weights
 from training.figures._style import (MARK, MEASURED, MODEL, new_figure, number, refuse_existing, require_matplotlib,
@@ -42,9 +43,8 @@ def model_speed(analysis: Analysis, parameters: Parameters) -> np.ndarray:
     frequency the sampling resolves carrying 1 % of the inertia."""
     p = parameters
     elastic = p.f_e is not None and p.V_J is not None
-    row = dict(J_sigma=p.J_sigma, V_J=p.V_J if elastic else 0.01,
-               f_e=p.f_e if elastic else min(1000.0, 0.25 / analysis.T_s), d=(p.d or 0.0) if elastic else 0.1,
-               backlash=p.backlash or 0.0, M_FC=p.M_FC or 0.0, mu_F=p.mu_F or 0.0)
+    shaft = dict(V_J=p.V_J, f_e=p.f_e, d=p.d or 0.0) if elastic else one_mass_stand_in(analysis.T_s)
+    row = dict(J_sigma=p.J_sigma, **shaft, backlash=p.backlash or 0.0, M_FC=p.M_FC or 0.0, mu_F=p.mu_F or 0.0)
     start, level = torque_reference(analysis.sections.bounds, analysis.M_star)
     drive = DriveConfig(M_max=1e9, T_Ei=analysis.T_Ei, T_s=analysis.T_s, encoder_counts=analysis.encoder_counts)
     w = replay_speed(TwoMassParams.from_dicts(row), drive, torch.as_tensor(start)[None], torch.as_tensor(level)[None],

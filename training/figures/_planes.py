@@ -23,7 +23,7 @@ import torch
 import som_torch as st
 from sim import STRUCTURE_CLASSES
 from training.figures._style import MARK, new_figure, refuse_existing, save_png, with_unit
-from training.identification import TrainedMap
+from training.identification import TrainedMap, from_correction
 
 #: Label with unit of each stored component (every key of ``training.identification.TARGETS``).
 COMPONENT_LABELS: dict[str, str] = {
@@ -61,8 +61,8 @@ class ParameterPlane:
 #: eq.-1 fit (``training.identification.TARGETS``): a unit's value is its fit feature plus its correction.
 PARAMETER_PLANES: dict[str, ParameterPlane] = {p.map: p for p in (
     ParameterPlane("structure", "s_N", "normalized backlash s_N = C_F s / M_N", "-", lambda w: w["log10_s_N"]),
-    ParameterPlane("f_e", "f_e", "eigenfrequency f_e", "Hz", lambda w: w["log10_f_fit"] + w["dlog10_f_e"]),
-    ParameterPlane("V_J", "V_J", "inertia ratio V_J = J_L / J_M", "-", lambda w: w["log10_V_J_fit"] + w["dlog10_V_J"]),
+    ParameterPlane("f_e", "f_e", "eigenfrequency f_e", "Hz", lambda w: np.log10(from_correction("f_e", w.__getitem__))),
+    ParameterPlane("V_J", "V_J", "inertia ratio V_J = J_L / J_M", "-", lambda w: np.log10(from_correction("V_J", w.__getitem__))),
     ParameterPlane("backlash", "backlash", "backlash width 2s", "rad", lambda w: w["log10_backlash"]),
 )}
 

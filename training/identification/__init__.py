@@ -7,7 +7,7 @@ from ._envelope import SPEC_ENVELOPE, Envelope, trained_envelope
 from ._batch import CHUNK
 from ._features import eigenfrequency_features, extra_features, structure_features
 from ._identifier import Identifier
-from ._maps import MAP_SPECS, SUBSETS, TARGETS, MapSpec, TrainedMap, load_map, recall_targets
+from ._maps import CORRECTIONS, MAP_SPECS, SUBSETS, TARGETS, from_correction, MapSpec, TrainedMap, load_map, recall_targets
 from ._one_mass import FORMULATIONS, OneMassFit, fit_one_mass, speed_from_position
 from ._oscillation import OscillationFit, fit_oscillation
 from ._plausibility import check_record
@@ -23,6 +23,6 @@ __all__ = [
     "Envelope", "SPEC_ENVELOPE", "trained_envelope",
     "detect_sections", "SectionSplit", "fit_one_mass", "FORMULATIONS", "OneMassFit", "speed_from_position",
     "eigenfrequency_features", "structure_features", "extra_features", "fit_oscillation", "OscillationFit",
-    "check_record", "MAP_SPECS", "MapSpec", "TrainedMap", "TARGETS", "SUBSETS", "load_map", "recall_targets",
+    "check_record", "MAP_SPECS", "MapSpec", "TrainedMap", "TARGETS", "CORRECTIONS", "from_correction", "SUBSETS", "load_map", "recall_targets",
     "refine", "RefineConfig", "RefineProblem", "Refined", "torque_reference",
 ]

@@ -31,7 +31,7 @@ from training.identification._batch import CHUNK, analysis_outcome, file_outcome
 from training.identification._envelope import Envelope, Finding, envelope_warnings, trained_envelope
 from training.identification._limits import (BACKLASH_NEGLIGIBLE, backlash_resolution, implausible, impossible,
                                              travel)
-from training.identification._maps import MAP_SPECS, TrainedMap, load_map, recall_targets
+from training.identification._maps import MAP_SPECS, TrainedMap, from_correction, load_map, recall_targets
 from training.identification._refine import RefineConfig, RefineProblem, Refined, refine, torque_reference
 from training.identification._result import (IdentificationFailure, IdentificationResult, IdentWarning, Outcome,
                                               Parameters, Quality)
@@ -212,8 +212,7 @@ class Identifier:
 
     def _maps_answer(self, a: Analysis, r: dict[str, dict[str, float]]) -> _MapsAnswer:
         # the maps store corrections to the eq.-1 fit (training.identification._maps.TARGETS)
-        f_e = 10.0 ** (a.feature("log10_f_fit") + r["f_e"]["dlog10_f_e"])
-        V_J = 10.0 ** (a.feature("log10_V_J_fit") + r["V_J"]["dlog10_V_J"])
+        f_e, V_J = (from_correction(p, lambda k, p=p: r[p][k] if k in r[p] else a.feature(k)) for p in ("f_e", "V_J"))
         d = min(max(r["f_e"]["d"], 0.0), 0.9)
         s_N = self._s_N(a, "structure", r["structure"]["log10_s_N"])
         probs = {c: r["structure"][f"p_{c}"] for c in STRUCTURE_CLASSES}

@@ -32,14 +32,26 @@ def _feature(f: np.ndarray, name: str) -> np.ndarray:
     return f[:, FEATURE_NAMES.index(name)]
 
 
+#: The parameters stored as corrections to the eq.-1 oscillation fit: parameter -> (its fit feature,
+#: the correction component); see :func:`from_correction`.
+CORRECTIONS: dict[str, tuple[str, str]] = {"f_e": ("log10_f_fit", "dlog10_f_e"), "V_J": ("log10_V_J_fit", "dlog10_V_J")}
+
+
+def from_correction(param: str, value: Callable[[str], Any]) -> Any:
+    """The parameter ``param`` (a key of :data:`CORRECTIONS`) from its eq.-1 fit and its stored
+    correction, each read by ``value(component name)``: ``10^(log10 fit + correction)`` (the inverse
+    of its :data:`TARGETS` entry; floats or arrays alike)."""
+    fit, correction = CORRECTIONS[param]
+    return 10.0 ** (value(fit) + value(correction))
+
+
 #: Inactive components: name -> transform of (truth columns, feature matrix ``N x F``).
 #: ``dlog10_*`` are corrections to the eq.-1 oscillation fit: ~0 for a linear elastic mechanic,
 #: so the fit's precision survives recall, while the map learns how backlash shifts the fit.
 TARGETS: dict[str, Callable[[dict[str, np.ndarray], np.ndarray], np.ndarray]] = {
     "log10_f_e": lambda t, f: _log10(t["f_e"]),
     "log10_V_J": lambda t, f: _log10(t["V_J"]),
-    "dlog10_f_e": lambda t, f: _log10(t["f_e"]) - _feature(f, "log10_f_fit"),
-    "dlog10_V_J": lambda t, f: _log10(t["V_J"]) - _feature(f, "log10_V_J_fit"),
+    **{corr: (lambda t, f, p=p, fit=fit: _log10(t[p]) - _feature(f, fit)) for p, (fit, corr) in CORRECTIONS.items()},
     "d": lambda t, f: t["d"],
     "log10_s_N": lambda t, f: _log10(t["s_N"], 1e-4),
     "log10_w_e_T_Ei": lambda t, f: _log10(t["w_e_T_Ei"]),
