@@ -12,6 +12,24 @@ from sim._signal import TestSignalConfig
 from sim.params import DriveConfig, TwoMassParams
 
 
+def _check_ranges(ranges: object, log_uniform: tuple[str, ...]) -> None:
+    """Every ``(low, high)`` field of the dataclass ``ranges`` with ``0 <= low <= high`` (``low > 0``
+    where log-uniform), ``backlash_zero_share`` in 0..1, ``cell`` an int >= 1; else ``ValueError``."""
+    cls = type(ranges).__name__
+    for f in fields(ranges):  # type: ignore[arg-type]
+        v, where = getattr(ranges, f.name), f"{cls}.{f.name}"
+        if f.name == "backlash_zero_share":
+            if not 0.0 <= v <= 1.0:
+                raise ValueError(f"{where}: expected 0..1, received {v}")
+        elif f.name == "cell":
+            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+                raise ValueError(f"{where}: expected an int >= 1, received {v!r}")
+        elif len(v) != 2 or not 0 <= v[0] <= v[1]:
+            raise ValueError(f"{where}: expected (low, high) with 0 <= low <= high, received {v}")
+        elif f.name in log_uniform and v[0] <= 0:
+            raise ValueError(f"{where}: log-uniform range needs low > 0, received {v}")
+
+
 @dataclass(frozen=True)
 class PopulationRanges:
     """Sampling ranges. ``*_log`` ranges are log-uniform; backlash in degrees (total width)."""
@@ -26,16 +44,7 @@ class PopulationRanges:
     mu_F: tuple[float, float] = (0.0, 0.005)  # uniform [Nm s/rad]
 
     def __post_init__(self) -> None:
-        for f in fields(self):
-            v = getattr(self, f.name)
-            if f.name == "backlash_zero_share":
-                if not (0.0 <= v <= 1.0):
-                    raise ValueError(f"PopulationRanges.backlash_zero_share: expected 0..1, received {v}")
-                continue
-            if len(v) != 2 or not (v[0] <= v[1]):
-                raise ValueError(f"PopulationRanges.{f.name}: expected (low, high) with low <= high, received {v}")
-            if f.name in ("J_sigma", "V_J", "f_e", "backlash_deg") and v[0] <= 0:
-                raise ValueError(f"PopulationRanges.{f.name}: log-uniform range needs low > 0, received {v}")
+        _check_ranges(self, log_uniform=("J_sigma", "V_J", "f_e", "backlash_deg"))
 
 
 def _log_uniform(u: torch.Tensor, lo: float, hi: float) -> torch.Tensor:
@@ -98,18 +107,8 @@ class EnvelopeRanges:
     cell: int = 8  # systems per drive and test run
 
     def __post_init__(self) -> None:
-        for f in fields(self):
-            v = getattr(self, f.name)
-            if f.name == "backlash_zero_share":
-                if not (0.0 <= v <= 1.0):
-                    raise ValueError(f"EnvelopeRanges.backlash_zero_share: expected 0..1, received {v}")
-            elif f.name == "cell":
-                if isinstance(v, bool) or not isinstance(v, int) or v < 1:
-                    raise ValueError(f"EnvelopeRanges.cell: expected an int >= 1, received {v!r}")
-            elif len(v) != 2 or not (0 <= v[0] <= v[1]):
-                raise ValueError(f"EnvelopeRanges.{f.name}: expected (low, high) with 0 <= low <= high, received {v}")
-            elif f.name not in ("d", "M_FC", "mu_F", "encoder_bits") and v[0] <= 0:
-                raise ValueError(f"EnvelopeRanges.{f.name}: log-uniform range needs low > 0, received {v}")
+        _check_ranges(self, log_uniform=tuple(f.name for f in fields(self) if f.name not in
+                                              ("d", "M_FC", "mu_F", "encoder_bits", "backlash_zero_share", "cell")))
 
 
 @dataclass(frozen=True)
