@@ -2,12 +2,12 @@
 propose a speed controller with guaranteed margins, fine-tune it on the identified model, run the
 candidates on the drive inside the limits, deliver, report.
 
-Rooms: ``_chain`` (the chain and its settings), ``_excitation`` (test signal E1-E8),
-``_validation`` (re-simulation), ``_permission`` (refusal rules V1-V6, warning codes), ``_law``
-(the PI speed law of SPEC 8.1), ``_loop`` (linear loop analysis, margins, model sets), ``_rules``
-(controller rules R1-R8, fallback F1), ``_tuning`` (scenario, cost, Nelder-Mead), ``_report``
-(one drive's report, the summary over many), ``_filedrive`` (a drive that exchanges experiments
-as files with a person at a real drive).
+Rooms: ``_chain`` (the chain and its settings), ``_excitation`` (test signal E1-E9), ``_bands``
+(what a test run cannot exclude), ``_validation`` (re-simulation), ``_permission`` (refusal rules
+V1-V6, warning codes), ``_law`` (the PI speed law of SPEC 8.1), ``_loop`` (linear loop analysis,
+margins, model sets), ``_rules`` (controller rules R1-R8, R7b, R7c, fallback F1), ``_tuning``
+(scenario, cost, Nelder-Mead), ``_report`` (one drive's report, the summary over many),
+``_filedrive`` (a drive that exchanges experiments as files with a person at a real drive).
 """
 
 from ._chain import CommissioningConfig, commission, drive_config, limit_checks

@@ -1,7 +1,7 @@
 """The self-commissioning chain (SPEC 8, the paper's section 2) through a SPEC 8.1 drive, one
 function per stage.
 
-    adapt the test signal (E1-E8, drive.run_test) -> identify (shipped maps) -> validate
+    adapt the test signal (E1-E9, drive.run_test) -> identify (shipped maps) -> validate
     (re-simulate) -> may a controller be proposed? (V1-V6) -> propose (R1-R8, margins guaranteed)
     or the fallback F1 -> tune on the identified model (Nelder-Mead, margins kept) -> plan the
     closed-loop experiment inside the limits -> run the candidates on the drive
@@ -350,6 +350,10 @@ def _fallback(run: _Run, result: Any, ex: ExcitationResult) -> tuple[ControllerP
     J = min(float(result.parameters.J_sigma), _test_J(ex))
     bands = f1_bands(_accepted(ex), J, config, cfg.spec.class_V_J, cfg.spec.class_f_e, min_osc_quanta=cfg.rules.min_osc_quanta,
                      osc_visible_ratio=cfg.osc_visible_ratio)
+    p = _model_params(result)
+    if _positive(p["f_e"]) and _positive(p["V_J"]):  # the identified resonance too (+-50 %), trusted or not
+        lo, hi = bands.get(p["V_J"], (math.inf, 0.0))
+        bands[p["V_J"]] = (min(lo, p["f_e"] / 1.5), max(hi, p["f_e"] * 1.5))
     prop = propose_cautious(J, config, cfg.spec, bands=bands)
     if J < float(result.parameters.J_sigma):
         prop = replace(prop, rules=prop.rules + (f"F1 J_sigma from the test run's acceleration (M* / accel = {J:.4g} kg m^2), "

@@ -7,7 +7,7 @@ whether it is informative, and raise ``M_star`` and/or ``w_max`` by factor-2 ste
 never beyond the user's limits (:class:`sim.DriveLimits`: torque ``M_max``, speed ``w_max``, travel
 ``travel``). The travel and the peak speed of the next run are predicted from the
 current one before it runs (travel ~ ``w_max^2 J / M_star``), so a step that would cross a limit
-is shortened first; a run the drive stopped at a limit is never accepted (E8). Rules E1-E8 in
+is shortened first; a run the drive stopped at a limit is never accepted (E8). Rules E1-E9 in
 docs/commissioning.md.
 
 Measured figures per run (all from the response):
@@ -45,7 +45,7 @@ __all__ = ["ExcitationRules", "ExcitationResult", "measure_response", "adapt_tes
 
 @dataclass(frozen=True)
 class ExcitationRules:
-    """Rule constants (docs/commissioning.md, E1-E7).
+    """Rule constants (docs/commissioning.md, E1-E9).
 
     ``M_star_start``: first ``M_star`` as a fraction of the torque cap. ``w_max_start`` [rad/s]:
     first ``w_max`` (further bounded by ``0.1 w_limit`` and by the travel of an inertia
@@ -71,7 +71,7 @@ class ExcitationRules:
     travel_margin: float = 0.8
     max_iterations: int = 10
     coast_factor: float = 2.0
-    swing_allowance: float = 0.5
+    swing_allowance: float = 1.0
     delay_allowance: int = 1
     first_headroom: float = 0.25
 
@@ -169,7 +169,7 @@ def guarded_limits(limits: sim.DriveLimits, headroom: float, config: Any, rules:
 
 
 def adapt_test_signal(drive: Any, limits: sim.DriveLimits, rules: ExcitationRules | None = None) -> ExcitationResult:
-    """Adapt ``M_star`` and ``w_max`` until the test record is informative (rules E1-E8).
+    """Adapt ``M_star`` and ``w_max`` until the test record is informative (rules E1-E9).
 
     Args:
         drive: a SPEC 8.1 drive (``config``, ``run_test(M_star, w_max, limits) -> Record``).
@@ -197,7 +197,7 @@ def adapt_test_signal(drive: Any, limits: sim.DriveLimits, rules: ExcitationRule
     w_max = min(rules.w_max_start, 0.1 * w_limit, w_travel0)
     log: list[dict[str, Any]] = []
     records: list[Any] = []
-    w_ceiling = math.inf
+    w_ceiling = M_ceiling = math.inf
     informative, reason = False, ""
     accel_per_M = over_per_M = 0.0  # E9: what a stop can add, per Nm of M*, from the runs so far
 
@@ -235,30 +235,41 @@ def adapt_test_signal(drive: Any, limits: sim.DriveLimits, rules: ExcitationRule
             want_w = True  # E4: sections too short / speed range too small: higher w_max
         if hidden and not m["timed_out"]:
             want_M = True  # E5: oscillation below resolution: r_osc ~ M_star, raise it
-        M_next = min(M_star * rules.factor, M_cap) if want_M else M_star
+        M_next = min(M_star * rules.factor, M_cap, M_ceiling) if want_M else M_star
         w_next = w_max * rules.factor if want_w else w_max
         if m["timed_out"] and M_next <= M_star:
             w_next = w_max / rules.factor  # E3b: torque at its cap: lower the speed target instead
         # E6: predict the next run's peak speed and travel from this one; shorten the step
         # the overshoot beyond w_max (an elastic mode swinging on after section I) depends on the
-        # phase at the switch, not only on M*: counted twice
+        # phase at the switch, not only on M*: counted twice; at least the swing allowance
         over = 2.0 * max(m["peak_speed"] - w_max, 0.0)
-        w_cap_speed = min((rules.speed_margin * (w_limit - headroom(M_next)) - over * M_next / M_star) / (1 + rules.swing_allowance), w_ceiling)
         # travel ~ w_max^2 J / M_star; the benefit of a larger M_star is counted with exponent
         # 1/2 only (friction and the coasting section II do not scale): conservative
         travel_per = m["travel"] / w_max**2 if m["travel"] > 0 else 0.0
+
         def travel_gain(M_new: float) -> float:
             return math.sqrt(M_star / M_new)
-        w_cap_travel = math.sqrt(rules.travel_margin * travel_limit / (travel_per * travel_gain(M_next))) if travel_per > 0 else math.inf
-        if want_w and w_cap_travel < w_next and M_next < M_cap:
+
+        def cap(M_new: float) -> float:
+            """The largest w_max' whose predicted peak w_max' + max(swing w_max', over) and travel fit."""
+            room = rules.speed_margin * (w_limit - headroom(M_new))
+            speed = min(room / (1 + rules.swing_allowance), max(room - over * M_new / M_star, 0.0), w_ceiling)
+            travel = math.sqrt(rules.travel_margin * travel_limit / (travel_per * travel_gain(M_new))) if travel_per > 0 else math.inf
+            return min(speed, travel)
+
+        if want_w and cap(M_next) < w_next and M_next < M_cap:
             # E6b: travel ~ w_max^2 / M_star: more torque buys speed range within the same travel
-            M_next = min(M_next * rules.factor, M_cap)
-            w_cap_speed = min((rules.speed_margin * (w_limit - headroom(M_next)) - over * M_next / M_star) / (1 + rules.swing_allowance), w_ceiling)
-            w_cap_travel = math.sqrt(rules.travel_margin * travel_limit / (travel_per * travel_gain(M_next)))
-        w_next = min(w_next, w_cap_speed, w_cap_travel)  # may lower w_max: the limits come first
+            M_up = min(M_next * rules.factor, M_cap, M_ceiling)
+            M_next = M_up if cap(M_up) > cap(M_next) else M_next
+        if short and not (hidden or m["timed_out"]) and cap(M_next) < w_max * rules.factor**0.5 \
+                and M_star / rules.factor >= rules.M_star_start * M_cap:
+            # E4b: the limits keep w_max from rising: less torque makes the sections longer (and
+            # the headroom after a stop smaller); no later raise above it
+            M_next = M_ceiling = M_star / rules.factor
+        w_next = min(w_next, cap(M_next))  # may lower w_max: the limits come first
         if w_max < w_next < w_max * rules.factor**0.1 and M_next <= M_star:
             w_next = w_max  # E6c: a raise of less than factor^0.1 is no progress
-        entry["predicted_peak_speed"] = w_next * (1 + rules.swing_allowance) + over * M_next / M_star
+        entry["predicted_peak_speed"] = w_next + max(rules.swing_allowance * w_next, over * M_next / M_star)
         entry["predicted_travel"] = travel_per * w_next**2 * travel_gain(M_next)
         problems = [p for p, on in (("section timed out", m["timed_out"]), ("sections too short", short),
                                     ("speed range too small", small), ("oscillation not visible", hidden)) if on]
@@ -273,7 +284,7 @@ def adapt_test_signal(drive: Any, limits: sim.DriveLimits, rules: ExcitationRule
             entry.update(decision="accept", reason=reason)
             log.append(entry)
             break
-        changed = (M_next > M_star * (1 + 1e-9)) or abs(w_next - w_max) > 1e-9 * w_max
+        changed = abs(M_next - M_star) > 1e-9 * M_star or abs(w_next - w_max) > 1e-9 * w_max
         if not changed or w_next <= 0:
             reason = f"limits reached before the response was informative: {', '.join(problems)}"
             entry.update(decision="stop", reason=reason)

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -336,14 +336,15 @@ def loop_margins(L: np.ndarray, w: np.ndarray, stable: bool, model: str = "nomin
 
 
 def margins(plant: LinearPlant, Kp: float, Ti: float, T_f: float = 0.0, notch: NotchSpec | None = None, *,
-            w: np.ndarray | None = None, model: str = "nominal") -> Margins:
-    """:class:`Margins` of the PI law on ``plant`` (poles from :func:`closed_loop_matrices`)."""
+            w: np.ndarray | None = None, model: str = "nominal", response: np.ndarray | None = None) -> Margins:
+    """:class:`Margins` of the PI law on ``plant`` (poles from :func:`closed_loop_matrices`);
+    ``response``: the plant's ``speed_response`` on the grid ``w``, where already computed."""
     w = frequency_grid(plant.T_s, plant.resonances) if w is None else w
     z = np.exp(1j * w * plant.T_s)
     C, F = _controller_response(Kp, Ti, T_f, notch, plant.T_s, z)
     A = closed_loop_matrices(plant, Kp, Ti, T_f, notch)[0]
     stable = bool(np.abs(np.linalg.eigvals(A)).max() < 1.0)
-    return loop_margins(C * F * plant.speed_response(z), w, stable, model)
+    return loop_margins(C * F * (plant.speed_response(z) if response is None else response), w, stable, model)
 
 
 @dataclass(frozen=True)
@@ -354,10 +355,16 @@ class ModelSet:
 
     plants: tuple[LinearPlant, ...]
     labels: tuple[str, ...]
+    _responses: list[tuple[np.ndarray, np.ndarray]] = field(default_factory=list, compare=False, repr=False)
 
     def margins(self, Kp: float, Ti: float, T_f: float = 0.0, notch: NotchSpec | None = None) -> Margins:
         """The worst margins over the set (any unstable model: ``stable`` False)."""
-        each = [margins(p, Kp, Ti, T_f, notch, model=lab) for p, lab in zip(self.plants, self.labels)]
+        if not self._responses:  # each plant's frequency response, once (it does not depend on the law)
+            for p in self.plants:
+                w = frequency_grid(p.T_s, p.resonances)
+                self._responses.append((w, p.speed_response(np.exp(1j * w * p.T_s))))
+        each = [margins(p, Kp, Ti, T_f, notch, model=lab, w=w, response=P)
+                for p, lab, (w, P) in zip(self.plants, self.labels, self._responses)]
         worst_pm = min(each, key=lambda m: m.phase_margin)
         worst_gm = min(each, key=lambda m: m.gain_margin_dB)
         unstable = [m for m in each if not m.stable]
