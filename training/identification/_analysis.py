@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -33,6 +34,16 @@ FEATURE_NAMES: tuple[str, ...] = (
 __all__ = ["FEATURE_VERSION", "FEATURE_NAMES", "REFERENCE_DRIVE", "Analysis", "analyze"]
 
 
+class _FromDrive:
+    """A drive value of an :class:`Analysis`: the attribute of the same name of its ``drive``."""
+
+    def __set_name__(self, owner: type, name: str) -> None:
+        self.name = name
+
+    def __get__(self, obj: Any, owner: type | None = None) -> Any:
+        return self if obj is None else getattr(obj.drive, self.name)
+
+
 @dataclass(frozen=True)
 class Analysis:
     """One record, analysed.
@@ -54,30 +65,7 @@ class Analysis:
     warnings: tuple[IdentWarning, ...] = ()
     section_flags: tuple[str, ...] = ()
 
-    @property
-    def M_star(self) -> float:
-        return self.drive.M_star
-
-    @property
-    def T_s(self) -> float:
-        return self.drive.T_s
-
-    @property
-    def T_Ei(self) -> float:
-        return self.drive.T_Ei
-
-    @property
-    def encoder_counts(self) -> int:
-        return self.drive.encoder_counts
-
-    @property
-    def M_N(self) -> float:
-        return self.drive.M_N
-
-    @property
-    def q_w(self) -> float:
-        """Speed quantum ``2 pi / (encoder_counts T_s)`` [rad/s]."""
-        return self.drive.q_w
+    M_star, T_s, T_Ei, encoder_counts, M_N, q_w = (_FromDrive() for _ in range(6))  # read from ``drive``
 
     def feature(self, name: str) -> float:
         return float(self.features[FEATURE_NAMES.index(name)])
