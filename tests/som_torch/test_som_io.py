@@ -3,9 +3,7 @@
 from __future__ import annotations
 
 import argparse
-import io
 import re
-from contextlib import redirect_stdout
 from pathlib import Path
 
 import pytest
@@ -146,37 +144,6 @@ def test_docs_example_runs():
     blocks = re.findall(r"```python\n(.*?)```", text, flags=re.S)
     assert blocks, "docs/som_torch.md has no python example"
     exec(compile(blocks[0], "docs/som_torch.md", "exec"), {})
-
-
-def test_bench_cli_small():
-    from training.bench import _som as bench_som
-
-    parser = argparse.ArgumentParser()
-    bench_som.add_arguments(parser)
-    args = parser.parse_args(["--maps", "2", "--rows", "6", "--cols", "6", "--samples", "60", "--epochs", "2",
-                              "--active", "4", "--inactive", "1", "--sigma", "2", "--minisom-maps", "1"])
-    out = io.StringIO()
-    with redirect_stdout(out):
-        assert bench_som.run(args) == 0
-    text = out.getvalue()
-    assert "som_torch online" in text and "som_torch batch" in text
-    assert ("speed-up per map" in text) or ("minisom not installed" in text)
-
-
-def test_bench_minisom_missing(monkeypatch):
-    import sys
-
-    from training.bench import _som as bench_som
-
-    monkeypatch.setitem(sys.modules, "minisom", None)  # import fails
-    parser = argparse.ArgumentParser()
-    bench_som.add_arguments(parser)
-    args = parser.parse_args(["--maps", "1", "--rows", "3", "--cols", "3", "--samples", "10", "--epochs", "1",
-                              "--active", "2", "--inactive", "1", "--sigma", "1"])
-    out = io.StringIO()
-    with redirect_stdout(out):
-        assert bench_som.run(args) == 0
-    assert "minisom not installed" in out.getvalue()
 
 
 def test_twomass_bench_som_cli(capsys):

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import sys
+
 import pytest
 
 from sim._kernel import load_kernel
@@ -49,3 +51,14 @@ def test_bench_som_tiny(capsys: pytest.CaptureFixture[str]) -> None:
 def test_process_targets_reject_too_few_records(target: str) -> None:
     with pytest.raises(UserError, match="--n: expected"):
         run_target(target, ["--n", "0"])
+
+
+def test_bench_som_without_minisom(capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setitem(sys.modules, "minisom", None)  # as if not installed: its lines are skipped, the rest runs
+    monkeypatch.setitem(sys.modules, "xpysom", None)
+    argv = ["--maps", "2", "--rows", "3", "--cols", "3", "--samples", "20", "--epochs", "1", "--active", "2",
+            "--inactive", "1", "--sigma", "1"]
+    assert run_target("som", argv) == 0
+    out = capsys.readouterr().out
+    assert "MiniSom not installed (pip install 'minisom==2.3.6'" in out and "float64 | 2 |" in out
+    assert out.rstrip().endswith("reproduce: twomass bench som " + " ".join(argv))
