@@ -45,6 +45,12 @@ def _unseen_from(V_J: float, J_sigma: float, M_step: float, amplitude: float, co
     return float(f[min(seen[-1] + 1, len(f) - 1)]) if len(seen) else f_lo
 
 
+def widen(bands: dict[float, tuple[float, float]], V_J: float, lo: float, hi: float) -> None:
+    """Widen the band of ``V_J`` in ``bands`` (``V_J -> (f_lo, f_hi)`` [Hz], in place) to cover ``lo .. hi``."""
+    old_lo, old_hi = bands.get(V_J, (math.inf, 0.0))
+    bands[V_J] = (min(old_lo, lo), max(old_hi, hi))
+
+
 def f1_bands(entry: dict[str, Any], J_sigma: float, config: Any, class_V_J: tuple[float, ...], class_f_e: tuple[float, float],
              *, min_osc_quanta: float, osc_visible_ratio: float) -> dict[float, tuple[float, float]]:
     """F1's eigenfrequency band [Hz] per inertia ratio from one test run's figures ``entry``
@@ -85,6 +91,5 @@ def hidden_bands(entry: dict[str, Any], J_sigma: float, config: Any, class_V_J: 
         return bands, None
     ring_per_V_J = float(ringing_amplitude(np.array([f_osc]), 1.0, J_sigma, M, config)[0])
     V_J = min(peak_factor * osc * q_w / ring_per_V_J, max(class_V_J))
-    lo, hi = bands.get(V_J, (math.inf, 0.0))
-    bands[V_J] = (min(lo, f_osc / peak_width), max(hi, min(f_osc * peak_width, f_top)))
+    widen(bands, V_J, f_osc / peak_width, min(f_osc * peak_width, f_top))
     return bands, f_osc

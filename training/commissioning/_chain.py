@@ -26,7 +26,7 @@ import numpy as np
 import sim
 from training.errors import CommissioningError, one_line
 
-from ._bands import f1_bands, hidden_bands
+from ._bands import f1_bands, hidden_bands, widen
 from ._excitation import ExcitationResult, ExcitationRules, adapt_test_signal, guarded_limits, stop_headroom
 from ._loop import linear_plant, margins
 from ._permission import (CommissioningWarning, IdentificationFailed, IdentificationOutcome, may_propose_controller,
@@ -235,8 +235,7 @@ def _run_candidates(run: _Run, proposal: ControllerProposal, gains: list[Gains],
         bounded = not stopped and bool(np.isfinite(w).all()) and float(np.abs(w).max()) <= sc.divergence_factor * sc.w_step
         out.append(PlantRun(gains=g, cost=float(cost), motor=float(terms["motor"]), load=float(terms["load"]),
                             settled=not bool(terms["unstable"]), aborted=stopped, bounded=bounded,
-                            figures=response_figures(np.asarray(rec.speed, dtype=np.float64), sc, mech),
-                            speed=np.asarray(rec.speed, dtype=np.float64)))
+                            figures=response_figures(w, sc, mech), speed=w))
         if stopped:
             run.warn("run_stopped", f"the drive stopped the closed-loop run {kind} {i} at a limit")
     return out
@@ -352,8 +351,7 @@ def _fallback(run: _Run, result: Any, ex: ExcitationResult) -> tuple[ControllerP
                      osc_visible_ratio=cfg.osc_visible_ratio)
     p = _model_params(result)
     if _positive(p["f_e"]) and _positive(p["V_J"]):  # the identified resonance too (+-50 %), trusted or not
-        lo, hi = bands.get(p["V_J"], (math.inf, 0.0))
-        bands[p["V_J"]] = (min(lo, p["f_e"] / 1.5), max(hi, p["f_e"] * 1.5))
+        widen(bands, p["V_J"], p["f_e"] / 1.5, p["f_e"] * 1.5)
     prop = propose_cautious(J, config, cfg.spec, bands=bands)
     if J < float(result.parameters.J_sigma):
         prop = replace(prop, rules=prop.rules + (f"F1 J_sigma from the test run's acceleration (M* / accel = {J:.4g} kg m^2), "

@@ -164,7 +164,7 @@ def guarded_limits(limits: sim.DriveLimits, headroom: float, config: Any, rules:
     """The limits handed to the drive for one experiment: the user's speed limit less ``headroom``
     [rad/s] (at most half of it), the travel less what the stop's delays let the plant run on."""
     w = limits.w_max - min(headroom, 0.5 * limits.w_max)
-    t_stop = rules.coast_factor * (float(config.T_Ei) + (2 + rules.delay_allowance) * float(config.T_s))
+    t_stop = stop_headroom(1.0, config, rules)  # the stop's delay [s]: the headroom per unit acceleration
     return sim.DriveLimits(w_max=w, travel=max(limits.travel - limits.w_max * t_stop, 0.5 * limits.travel), M_max=limits.M_max)
 
 

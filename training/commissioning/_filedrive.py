@@ -19,6 +19,7 @@ to another run), and the first one without a recording stops the run again.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 from typing import Any
@@ -91,4 +92,4 @@ class FileDrive:
 
 
 def _limits(limits: sim.DriveLimits) -> dict[str, Any]:
-    return {"w_max": limits.w_max, "travel": limits.travel, "M_max": limits.M_max}
+    return dataclasses.asdict(limits)
