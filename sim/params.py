@@ -269,7 +269,9 @@ class TwoMassParams:
     def truth(self, drive: DriveConfig, M_star: float) -> list[dict[str, Any]]:
         """Per system: the parameters, the derived values and the structure class name."""
         cls_idx = structure_class(self, drive, M_star).reshape(-1).tolist()
-        cols = {n: getattr(self, n).reshape(-1).tolist() for n in PARAM_NAMES + DERIVED_NAMES}
+        dv = self.derived  # once: each derived attribute would compute all of them
+        cols = {n: getattr(dv if n in TwoMassDerived._fields else self, n).reshape(-1).tolist()
+                for n in PARAM_NAMES + DERIVED_NAMES}
         cols["s_N"] = self.s_N(drive).reshape(-1).tolist()
         cols["r_osc"] = self.r_osc(drive, M_star).reshape(-1).tolist()
         out = []

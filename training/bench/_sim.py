@@ -118,7 +118,7 @@ def _solve_ivp_test(p: dict, n_samples: int) -> tuple[float, int]:
 
 def run(args: argparse.Namespace) -> int:
     from sim import DriveConfig, sample_population
-    from sim._config import kernel_threads
+    from sim._integrate_fast import kernel_threads
 
     for name in ("batch", "samples", "repeat"):
         if getattr(args, name) < 1:
@@ -126,7 +126,7 @@ def run(args: argparse.Namespace) -> int:
     dtype = torch.float64 if args.float64 else torch.float32
     drive, signal, fp = _inputs(args.batch, args.seed, dtype)
     nk, S, B = args.samples, fp.S, args.batch
-    all_threads = kernel_threads()
+    all_threads = kernel_threads(B)  # the threads the kernel really uses: at most one per block of systems
     kernel_test(fp, drive, signal, 2)  # load (or build) the kernel outside the timings
     print(machine_line())
     print(f"test: the switching test (SPEC 2), first {nk} samples of {B} population systems (seed {args.seed}), "

@@ -34,7 +34,6 @@ from pathlib import Path
 from typing import Any
 
 from sim import PopulationRanges
-from som_torch import atomic_write
 from training.identification._result import IdentWarning
 
 FORMAT = "twomass-envelope/1"
@@ -105,19 +104,6 @@ class Envelope:
             if outside:
                 out.append(Finding(name, float(value), tr, env, outside))
         return out
-
-    def to_dict(self) -> dict[str, Any]:
-        return {"format": FORMAT, "envelope": {k: list(v) for k, v in self.envelope.items()},
-                "trained": {k: list(v) for k, v in self.trained.items()}}
-
-    def write(self, path: str | os.PathLike[str]) -> Path:
-        """Write ``path`` (one line per quantity), atomically."""
-        d = self.to_dict()
-        parts = [f' "{part}": {{\n' + ",\n".join(f'  "{k}": {json.dumps(v)}' for k, v in d[part].items()) + "\n }"
-                 for part in ("envelope", "trained")]
-        text = "{\n" + f' "format": "{FORMAT}",\n' + ",\n".join(parts) + "\n}\n"
-        atomic_write(Path(path), lambda f: f.write(text), text=True)
-        return Path(path)
 
     @classmethod
     def from_dict(cls, data: Mapping[str, Any], where: str = FILE_NAME) -> "Envelope":

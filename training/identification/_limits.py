@@ -23,12 +23,14 @@ from dataclasses import replace
 
 import numpy as np
 
+from sim import SECTION_LEVELS
+
 from training.identification._result import IdentWarning, Parameters
 
 BACKLASH_VISIBLE_QUANTA = 2.0  # speed quanta the motor's gap crossing must reach to be seen
 BACKLASH_NEGLIGIBLE = math.radians(0.01)  # [rad] a bound below this is not worth a warning
 J_SIGMA_RATIO = 2.0  # two-mass J_sigma over STEP 2's beyond this (either way): warned
-_LOW_LEVEL = 0.7  # the torque of sections III and VI over M* (sim.SECTION_LEVELS)
+_LOW_LEVEL = SECTION_LEVELS[5]  # the torque of sections III and VI over M*
 
 _POSITIVE = ("J_sigma", "V_J", "J_M", "J_L", "f_e", "C_F")
 
