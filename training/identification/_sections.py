@@ -21,6 +21,8 @@ each section. Records with ``torque_ref`` need none of this: record it where the
 
 from __future__ import annotations
 
+import contextlib
+
 import math
 from dataclasses import dataclass
 from typing import Any
@@ -175,20 +177,17 @@ def detect_sections(
         return sections_from_column(info["section"], y, info.get("M_star"))
     _check_speed(w, y)
     ys, source, lag = _classified_signal(y, info, Ts)
-    noise = diff_noise(y)
-    if source == "torque" and noise > NOISY * _amplitude(ys, info.get("M_star"))[0]:
-        return _switching_law(w, y, info, Ts, noise)
     Ms, estimated = _amplitude(ys, info.get("M_star"))
+    noise = diff_noise(y) if source == "torque" else 0.0  # the reference is noiseless
+    if noise > NOISY * Ms:
+        return _switching_law(w, y, info, Ts, noise)
     runs = _level_runs(ys, Ms, max(3, int(round(min_run / Ts))))
     try:
         hit = _pattern_start(runs, Ms)
     except ValueError:
-        if source == "torque_ref":
-            raise
-        try:  # the switching law may still find it
-            return _switching_law(w, y, info, Ts, noise)
-        except ValueError:
-            pass
+        if source == "torque":  # the switching law may still find it; else the levels' error stands
+            with contextlib.suppress(ValueError):
+                return _switching_law(w, y, info, Ts, noise)
         raise
     step = _StepLocator(y, Ms, lag, exact=source == "torque_ref")
     bounds, tail, flags = _boundaries(runs, hit, step, Ts)
