@@ -20,7 +20,7 @@ from setuptools.command.build_ext import build_ext
 
 ROOT = Path(__file__).resolve().parent
 #: The modules that declare a C kernel.
-KERNEL_MODULES = ("sim/_kernel.py", "som_torch/_native.py")
+KERNEL_MODULES = ("sim/_kernel.py", "sim/_csv.py", "som_torch/_native.py", "training/identification/_resonance.py")
 REALS = ("float", "double")
 
 

@@ -17,8 +17,10 @@
 from __future__ import annotations
 
 import os
-from functools import lru_cache
 from pathlib import Path
+from typing import Any
+
+from som_torch import env_threads
 
 
 def c_kernel_enabled() -> bool:
@@ -36,19 +38,13 @@ def compiler() -> str | None:
     return os.environ.get("CC") or None
 
 
-@lru_cache(maxsize=1)
-def _usable_cpus() -> int:
-    """The CPUs this process may run on (its affinity mask where the OS has one)."""
-    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
-
-
 def kernel_threads() -> int:
     """``$TWOMASS_SIM_THREADS``, else the first value of ``$OMP_NUM_THREADS``, else the usable CPUs."""
-    for var in ("TWOMASS_SIM_THREADS", "OMP_NUM_THREADS"):
-        text = os.environ.get(var, "").split(",")[0].strip()
-        if not text:
-            continue
-        if not text.isdigit() or int(text) < 1:
-            raise ValueError(f"{var}: expected a positive integer, received {os.environ[var]!r}")
-        return int(text)
-    return _usable_cpus()
+    return env_threads("TWOMASS_SIM_THREADS", "OMP_NUM_THREADS")
+
+
+def load_c_kernel(kernel: Any) -> Any:
+    """The toolkit's C ``kernel`` (a :class:`som_torch.CKernel`) loaded with these settings (its
+    :class:`som_torch.CLibrary`), or None when ``TWOMASS_NO_C_KERNEL`` is set or (after one
+    warning) it cannot be built: its caller then runs its reference path."""
+    return kernel.load(cache_dir(), compiler()) if c_kernel_enabled() else None

@@ -1,7 +1,13 @@
 /* Fused fixed-step two-mass kernel (see sim/_integrate_fast.py for the torch twin; the
    signatures are declared in sim/_kernel.py). Compiled once per float type: -DREAL=float or
    -DREAL=double. Every floating-point operation is written in the same order as the torch eager
-   twin, compiled with -ffp-contract=off, so both give the same numbers. */
+   twin, compiled with -ffp-contract=off, so both give the same numbers.
+
+   Systems run in blocks of BLK lanes (one thread's unit of work). A substep runs as four loops
+   over the block's lanes (mode and stage 1; stage 2; stage 3; stage 4 and the update), each
+   vectorized by the compiler, the values between them kept in the block: the lanes' RK4 chains
+   are independent, so the CPU overlaps them instead of waiting on one chain's latency. The
+   substeps and the switching test's controller are branch-free (compares and selects). */
 #ifndef REAL
 #error "compile with -DREAL=float or -DREAL=double"
 #endif
@@ -15,66 +21,102 @@ typedef struct {
     REAL wM[BLK], wL[BLK], dp[BLK], MM[BLK], Mref[BLK];
     REAL cwM[BLK], cwL[BLK], cdp[BLK], cMM[BLK];  /* Kahan compensations */
     double phi[BLK], cntp[BLK];
+    /* within a substep: the mode, the next stage's state, the stage sums, the angle increment */
+    REAL stuck[BLK], sgn[BLK], fric[BLK];
+    REAL xwM[BLK], xwL[BLK], xdp[BLK], xMM[BLK];
+    REAL sa[BLK], sb[BLK], sc[BLK], sd[BLK], sw[BLK], inc[BLK];
 } block_t;
 
-static inline void rhs(REAL wM, REAL wL, REAL dp, REAL MM, REAL Mref, REAL Mext, int stuck, REAL fric,
-                       REAL iJM, REAL iJL, REAL CF, REAL DF, REAL s, REAL muF, REAL iTE,
-                       REAL *a, REAL *b, REAL *c, REAL *d) {
-    REAL cl = dp < -s ? -s : dp;
-    cl = cl > s ? s : cl;
-    REAL e = dp - cl;
-    REAL MS = CF * e + (e != (REAL)0 ? DF * (wM - wL) : (REAL)0);
-    *a = (MM - MS) * iJM;
-    *b = stuck ? (REAL)0 : (MS - Mext - fric - muF * wL) * iJL;
-    *c = wM - wL;
-    *d = (Mref - MM) * iTE;
+/* Shaft torque M_S = C_F e + [e != 0] D_F dw, e = dp - clamp(dp, -s, s), dw = w_M - w_L. */
+static inline REAL shaft(const block_t *B, int l, REAL dp, REAL dw) {
+    REAL ns = -B->s[l];
+    REAL cl = dp < ns ? ns : dp;
+    cl = cl > B->s[l] ? B->s[l] : cl;
+    REAL e = dp - cl, Ddw = B->DF[l] * dw;  /* computed, then selected (a conditional load would be masked) */
+    return B->CF[l] * e + (e != (REAL)0 ? Ddw : (REAL)0);
+}
+
+/* The right-hand side's dw_M, dw_L, dM_M given the shaft torque MS and net = MS - Mext (ddphi is dw). */
+static inline void rhs(const block_t *B, int l, REAL wL, REAL MM, REAL MS, REAL net, REAL iTE, REAL *a, REAL *b,
+                       REAL *d) {
+    REAL bl = (net - B->fric[l] - B->muF[l] * wL) * B->iJL[l];  /* computed, then selected (as Ddw) */
+    *a = (MM - MS) * B->iJM[l];
+    *b = B->stuck[l] != (REAL)0 ? (REAL)0 : bl;
+    *d = (B->Mref[l] - MM) * iTE;
+}
+
+/* The phases of one RK4 substep for lane l: the mode (frozen over the substep: stuck, friction
+   sign) and stage 1, whose shaft torque is the mode's; stage 2 or 3 (f = h, then dt: the next
+   stage's state); stage 4 and the Kahan-compensated update (a load that changed sign against its
+   friction stops). Stage sums as ((k1 + 2 k2) + 2 k3) + k4. */
+static inline void stage1(block_t *B, int l, REAL h, REAL iTE) {
+    REAL wM = B->wM[l], wL = B->wL[l], dp = B->dp[l], MM = B->MM[l];
+    REAL dw = wM - wL;
+    REAL MS = shaft(B, l, dp, dw);
+    REAL net = MS - B->Mext[l];
+    int rest = wL == (REAL)0;
+    REAL anet = net < 0 ? -net : net;
+    int stuck = rest && (anet <= B->MFC[l]);
+    REAL sn = (REAL)((net > 0) - (net < 0));
+    REAL sw = (REAL)((wL > 0) - (wL < 0));
+    REAL sgn = rest ? sn : sw;
+    B->stuck[l] = (REAL)stuck; B->sgn[l] = sgn; B->fric[l] = B->MFC[l] * sgn;
+    REAL a, b, d;
+    rhs(B, l, wL, MM, MS, net, iTE, &a, &b, &d);
+    B->sa[l] = a; B->sb[l] = b; B->sc[l] = dw; B->sd[l] = d; B->sw[l] = wM;
+    B->xwM[l] = wM + h * a; B->xwL[l] = wL + h * b; B->xdp[l] = dp + h * dw; B->xMM[l] = MM + h * d;
+}
+
+/* The slopes at the stage's state xw*: its w_M, dw (= ddphi), dw_M, dw_L, dM_M. */
+static inline void stage_slopes(const block_t *B, int l, REAL iTE, REAL *wM, REAL *dw, REAL *a, REAL *b, REAL *d) {
+    REAL wL = B->xwL[l];
+    *wM = B->xwM[l];
+    *dw = *wM - wL;
+    REAL MS = shaft(B, l, B->xdp[l], *dw);
+    rhs(B, l, wL, B->xMM[l], MS, MS - B->Mext[l], iTE, a, b, d);
+}
+
+static inline void stage23(block_t *B, int l, REAL f, REAL iTE) {
+    REAL wM, dw, a, b, d;
+    stage_slopes(B, l, iTE, &wM, &dw, &a, &b, &d);
+    B->sa[l] = B->sa[l] + (REAL)2 * a; B->sb[l] = B->sb[l] + (REAL)2 * b; B->sc[l] = B->sc[l] + (REAL)2 * dw;
+    B->sd[l] = B->sd[l] + (REAL)2 * d; B->sw[l] = B->sw[l] + (REAL)2 * wM;
+    B->xwM[l] = B->wM[l] + f * a; B->xwL[l] = B->wL[l] + f * b; B->xdp[l] = B->dp[l] + f * dw;
+    B->xMM[l] = B->MM[l] + f * d;
+}
+
+static inline void stage4(block_t *B, int l, REAL k6, REAL iTE) {
+    REAL wM, dw, a, b, d;
+    stage_slopes(B, l, iTE, &wM, &dw, &a, &b, &d);
+    B->inc[l] = B->inc[l] + k6 * (B->sw[l] + wM);
+    REAL y, t, x;
+    x = B->wM[l]; y = k6 * (B->sa[l] + a) - B->cwM[l];
+    t = x + y; B->cwM[l] = (t - x) - y; B->wM[l] = t;
+    x = B->wL[l]; y = k6 * (B->sb[l] + b) - B->cwL[l];
+    t = x + y;
+    int clamp = (B->stuck[l] != (REAL)0) | (t * B->sgn[l] < (REAL)0);
+    B->cwL[l] = clamp ? (REAL)0 : (t - x) - y;
+    B->wL[l] = clamp ? (REAL)0 : t;
+    x = B->dp[l]; y = k6 * (B->sc[l] + dw) - B->cdp[l];
+    t = x + y; B->cdp[l] = (t - x) - y; B->dp[l] = t;
+    x = B->MM[l]; y = k6 * (B->sd[l] + d) - B->cMM[l];
+    t = x + y; B->cMM[l] = (t - x) - y; B->MM[l] = t;
 }
 
 /* S substeps of RK4 for all lanes of a block; the motor-angle increment goes to phi. */
 static inline void advance_block(block_t *B, int S, REAL dt, REAL h, REAL k6, REAL iTE) {
-    REAL inc[BLK];
-    for (int l = 0; l < BLK; ++l) inc[l] = 0;
+    for (int l = 0; l < BLK; ++l) B->inc[l] = 0;
     for (int j = 0; j < S; ++j) {
 #pragma GCC ivdep
-        for (int l = 0; l < BLK; ++l) {
-            REAL wM = B->wM[l], wL = B->wL[l], dp = B->dp[l], MM = B->MM[l];
-            REAL s = B->s[l];
-            REAL cl = dp < -s ? -s : dp;
-            cl = cl > s ? s : cl;
-            REAL e = dp - cl;
-            REAL MS = B->CF[l] * e + (e != (REAL)0 ? B->DF[l] * (wM - wL) : (REAL)0);
-            REAL net = MS - B->Mext[l];
-            int rest = wL == (REAL)0;
-            REAL anet = net < 0 ? -net : net;
-            int stuck = rest && (anet <= B->MFC[l]);
-            REAL sn = (REAL)((net > 0) - (net < 0));
-            REAL sw = (REAL)((wL > 0) - (wL < 0));
-            REAL sgn = rest ? sn : sw;
-            REAL fric = B->MFC[l] * sgn;
-            REAL a1, b1, c1, d1, a2, b2, c2, d2, a3, b3, c3, d3, a4, b4, c4, d4;
-            rhs(wM, wL, dp, MM, B->Mref[l], B->Mext[l], stuck, fric, B->iJM[l], B->iJL[l], B->CF[l], B->DF[l], s, B->muF[l], iTE, &a1, &b1, &c1, &d1);
-            REAL wM2 = wM + h * a1, wL2 = wL + h * b1, dp2 = dp + h * c1, MM2 = MM + h * d1;
-            rhs(wM2, wL2, dp2, MM2, B->Mref[l], B->Mext[l], stuck, fric, B->iJM[l], B->iJL[l], B->CF[l], B->DF[l], s, B->muF[l], iTE, &a2, &b2, &c2, &d2);
-            REAL wM3 = wM + h * a2, wL3 = wL + h * b2, dp3 = dp + h * c2, MM3 = MM + h * d2;
-            rhs(wM3, wL3, dp3, MM3, B->Mref[l], B->Mext[l], stuck, fric, B->iJM[l], B->iJL[l], B->CF[l], B->DF[l], s, B->muF[l], iTE, &a3, &b3, &c3, &d3);
-            REAL wM4 = wM + dt * a3, wL4 = wL + dt * b3, dp4 = dp + dt * c3, MM4 = MM + dt * d3;
-            rhs(wM4, wL4, dp4, MM4, B->Mref[l], B->Mext[l], stuck, fric, B->iJM[l], B->iJL[l], B->CF[l], B->DF[l], s, B->muF[l], iTE, &a4, &b4, &c4, &d4);
-            inc[l] = inc[l] + k6 * (wM + (REAL)2 * wM2 + (REAL)2 * wM3 + wM4);
-            REAL y, t;
-            y = k6 * (a1 + (REAL)2 * a2 + (REAL)2 * a3 + a4) - B->cwM[l];
-            t = wM + y; B->cwM[l] = (t - wM) - y; B->wM[l] = t;
-            y = k6 * (b1 + (REAL)2 * b2 + (REAL)2 * b3 + b4) - B->cwL[l];
-            t = wL + y;
-            int clamp = stuck || t * sgn < (REAL)0;
-            B->cwL[l] = clamp ? (REAL)0 : (t - wL) - y;
-            B->wL[l] = clamp ? (REAL)0 : t;
-            y = k6 * (c1 + (REAL)2 * c2 + (REAL)2 * c3 + c4) - B->cdp[l];
-            t = dp + y; B->cdp[l] = (t - dp) - y; B->dp[l] = t;
-            y = k6 * (d1 + (REAL)2 * d2 + (REAL)2 * d3 + d4) - B->cMM[l];
-            t = MM + y; B->cMM[l] = (t - MM) - y; B->MM[l] = t;
-        }
+        for (int l = 0; l < BLK; ++l) stage1(B, l, h, iTE);
+#pragma GCC ivdep
+        for (int l = 0; l < BLK; ++l) stage23(B, l, h, iTE);
+#pragma GCC ivdep
+        for (int l = 0; l < BLK; ++l) stage23(B, l, dt, iTE);
+#pragma GCC ivdep
+        for (int l = 0; l < BLK; ++l) stage4(B, l, k6, iTE);
     }
-    for (int l = 0; l < BLK; ++l) B->phi[l] = B->phi[l] + (double)inc[l];
+    for (int l = 0; l < BLK; ++l) B->phi[l] = B->phi[l] + (double)B->inc[l];
 }
 
 static inline int load_block(block_t *B, int64_t i0, int64_t n,
@@ -133,60 +175,65 @@ int64_t run_test(int64_t n, int S, REAL dt, REAL h, REAL k6, REAL iTE, int nthre
                  REAL *o_speed, REAL *o_torque, REAL *o_tref, int8_t *o_sec) {
     int64_t nb = (n + BLK - 1) / BLK;
     int64_t left = 0;
+    /* the reference of each section state (0 unused, 1..6, 7 tail, 8 done), clamped to +-Mmax */
+    REAL lev[9] = {0, Mstar, 0, -Mlow, -Mstar, 0, Mlow, 0, 0};
+    for (int q = 0; q < 9; ++q) {
+        lev[q] = lev[q] < -Mmax ? -Mmax : lev[q];
+        lev[q] = lev[q] > Mmax ? Mmax : lev[q];
+    }
 #pragma omp parallel for schedule(dynamic, 1) num_threads(nthreads) reduction(+:left)
     for (int64_t b = 0; b < nb; ++b) {
-        block_t B;
+        block_t B __attribute__((aligned(64)));
         int64_t i0 = b * BLK;
         int m = load_block(&B, i0, n, iJM, iJL, CF, DF, s, MFC, muF, Mext, wM, wL, dp, MM, Mref, phi, cntp, comp);
-        int32_t csec[BLK], ccnt[BLK], cnI[BLK], cnIV[BLK], clen[BLK], ctmo[BLK];
+        int32_t csec[BLK], ccnt[BLK], cnI[BLK], cnIV[BLK], clen[BLK], ctmo[BLK], osec[BLK];
+        REAL wv[BLK];
         for (int l = 0; l < BLK; ++l) {
             int64_t i = i0 + (l < m ? l : 0);
             csec[l] = l < m ? sec[i] : 8; ccnt[l] = cnt[i]; cnI[l] = nI[i]; cnIV[l] = nIV[i];
             clen[l] = len[i]; ctmo[l] = tmo[i];
         }
-        REAL newref[BLK];
         for (int64_t kk = 0; kk < nk; ++kk) {
-            int64_t k = k0 + kk;
+            int32_t kp1 = (int32_t)(k0 + kk + 1);
             int active = 0;
-            for (int l = 0; l < BLK; ++l) newref[l] = B.Mref[l];
-            for (int l = 0; l < m; ++l) {
-                if (csec[l] >= 8) continue;
-                active = 1;
+            /* measure, then the controller's step, branch-free over the lanes */
+            for (int l = 0; l < BLK; ++l) {
+                int32_t q = csec[l], act = q < 8;
                 double c = floor(B.phi[l] * scale);
                 REAL w = (REAL)((c - B.cntp[l]) * qw);
-                B.cntp[l] = c;
-                int64_t o = (i0 + l) * ostride + ocol0 + kk;
-                o_speed[o] = w; o_torque[o] = B.MM[l]; o_tref[o] = B.Mref[l];
-                o_sec[o] = (int8_t)(csec[l] == 7 ? 0 : csec[l]);
-                int q = csec[l];
+                B.cntp[l] = act ? c : B.cntp[l];
+                wv[l] = w;
+                osec[l] = q;
                 int32_t t = ccnt[l] + 1;
-                int end;
-                switch (q) {
-                    case 1: end = w >= wmax; break;
-                    case 2: end = (t >= cnI[l]) || (w <= wlow); break;
-                    case 3: end = w <= (REAL)0; break;
-                    case 4: end = w <= -wmax; break;
-                    case 5: end = (t >= cnIV[l]) || (w >= -wlow); break;
-                    case 6: end = w >= (REAL)0; break;
-                    default: end = t >= n_tail; break;
-                }
-                if (!end && q <= 6 && t >= n_timeout) { end = 1; ctmo[l] |= (1 << (q - 1)); }
-                if (end) {
-                    if (q == 1) cnI[l] = t;
-                    if (q == 4) cnIV[l] = t;
-                    q += 1; t = 0;
-                    if (q == 8) clen[l] = (int32_t)(k + 1);
-                }
-                csec[l] = q; ccnt[l] = t;
-                REAL mr = (q == 1) ? Mstar : (q == 3) ? -Mlow : (q == 4) ? -Mstar
-                        : (q == 6) ? Mlow : (REAL)0;
-                mr = mr < -Mmax ? -Mmax : mr;
-                mr = mr > Mmax ? Mmax : mr;
-                newref[l] = mr;
+                int32_t end = ((q == 1) & (w >= wmax)) | ((q == 2) & ((t >= cnI[l]) | (w <= wlow)))
+                            | ((q == 3) & (w <= (REAL)0)) | ((q == 4) & (w <= -wmax))
+                            | ((q == 5) & ((t >= cnIV[l]) | (w >= -wlow))) | ((q == 6) & (w >= (REAL)0))
+                            | ((q >= 7) & (t >= n_tail));
+                int32_t tmo_now = !end & (q <= 6) & (t >= n_timeout);
+                ctmo[l] |= (act & tmo_now) << ((q - 1) & 7);
+                end = (end | tmo_now) & act;
+                cnI[l] = (end & (q == 1)) ? t : cnI[l];
+                cnIV[l] = (end & (q == 4)) ? t : cnIV[l];
+                q += end;
+                clen[l] = (end & (q == 8)) ? kp1 : clen[l];
+                ccnt[l] = act ? (end ? 0 : t) : ccnt[l];
+                csec[l] = q;
+                active |= act;
             }
             if (!active) break;
+            /* record (the reference applied over this sample) */
+            for (int l = 0; l < m; ++l) {
+                if (osec[l] >= 8) continue;
+                int64_t o = (i0 + l) * ostride + ocol0 + kk;
+                o_speed[o] = wv[l]; o_torque[o] = B.MM[l]; o_tref[o] = B.Mref[l];
+                o_sec[o] = (int8_t)(osec[l] == 7 ? 0 : osec[l]);
+            }
             advance_block(&B, S, dt, h, k6, iTE);
-            for (int l = 0; l < BLK; ++l) B.Mref[l] = newref[l];
+            /* the controller's new reference applies from the next sample */
+            for (int l = 0; l < BLK; ++l) {
+                REAL r = lev[csec[l]];
+                B.Mref[l] = osec[l] < 8 ? r : B.Mref[l];
+            }
         }
         for (int l = 0; l < m; ++l) {
             int64_t i = i0 + l;

@@ -25,6 +25,14 @@ _PLANT = ("n: int64", "S: int", "dt: REAL", "h: REAL", "k6: REAL", "iTE: REAL", 
 #: The measurement constants: speed quantum and counts per radian.
 _ENCODER = ("qw: double", "scale: double")
 
+#: add/sub/mul per system-substep in ``_kernel.c`` as written (and as compiled: the vectorized
+#: loops hold 129 add/sub/mul instructions per vector of lanes): 23 for the mode and stage 1 (shaft
+#: torque, net torque, friction, slopes, stage-2 state), 32 each for stages 2 and 3 (shaft torque,
+#: slopes, RK4 sums, next stage's state), 42 for stage 4 and the update (shaft torque, slopes,
+#: angle increment, four Kahan updates, the stop test's product). Compares, min/max, selects and
+#: negations are not counted, nor the per-sample encoder and controller.
+FLOPS_PER_SUBSTEP = 129
+
 #: Build facts as plain literals (``setup.py`` reads them without importing torch). ``-ffp-contract=off``
 #: keeps the arithmetic of the torch twin (no fused multiply-add), on every CPU and variant.
 NAME, SOURCE = "twomass_kernel", "_kernel.c"
@@ -54,4 +62,4 @@ KERNEL = CKernel(
 @lru_cache(maxsize=1)
 def load_kernel() -> CLibrary | None:
     """The compiled kernel, or ``None`` when disabled or (with one warning) when it cannot be built."""
-    return KERNEL.load(_config.cache_dir(), _config.compiler()) if _config.c_kernel_enabled() else None
+    return _config.load_c_kernel(KERNEL)

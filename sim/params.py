@@ -7,6 +7,7 @@ system); every derived value has the same shape.
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, fields
@@ -96,7 +97,7 @@ def one_mass_stand_in(T_s: float) -> dict[str, float]:
     return {"V_J": 0.01, "f_e": min(1000.0, 0.25 / T_s), "d": 0.1}
 
 
-def _as_tensor(name: str, value: Any) -> torch.Tensor:
+def _as_tensor(name: str, value: Any, check_finite: bool = True) -> torch.Tensor:
     if isinstance(value, torch.Tensor):
         t = value.detach().to(torch.float64)
     elif isinstance(value, (int, float)) and not isinstance(value, bool):
@@ -106,9 +107,24 @@ def _as_tensor(name: str, value: Any) -> torch.Tensor:
             t = torch.as_tensor(value, dtype=torch.float64)
         except (TypeError, ValueError, RuntimeError) as err:
             raise TypeError(f"TwoMassParams.{name}: expected a number or tensor, received {type(value).__name__}") from err
-    if not bool(torch.isfinite(t).all()):
+    if check_finite and not bool(torch.isfinite(t).all()):
         raise ValueError(f"TwoMassParams.{name}: expected finite values, received {t}")
     return t
+
+
+#: The valid range of each parameter, as the error states it (checked by :func:`_out_of_range`).
+_RANGE_TEXT = {"J_sigma": "> 0", "V_J": "> 0", "f_e": "> 0", "d": "0 <= d < 1", "backlash": ">= 0", "M_FC": ">= 0",
+               "mu_F": ">= 0"}
+
+
+def _out_of_range(v: torch.Tensor) -> int | None:
+    """Index into :data:`PARAM_NAMES` of the first parameter with a value outside its range, or None;
+    ``v``: ``7 x n``, the rows in :data:`PARAM_NAMES` order (all finite)."""
+    positive, d, nonneg = v[:3], v[3], v[4:]
+    ok = torch.cat([(positive > 0).all(1), ((d >= 0) & (d < 1)).all()[None], (nonneg >= 0).all(1)])
+    if bool(ok.all()):
+        return None
+    return int((~ok).nonzero()[0])
 
 
 def _broadcast_shape(shapes: list[torch.Size]) -> torch.Size | None:
@@ -153,22 +169,24 @@ class TwoMassParams:
     mu_F: torch.Tensor
 
     def __post_init__(self) -> None:
-        ts = {n: _as_tensor(n, getattr(self, n)) for n in PARAM_NAMES}
+        ts = {n: _as_tensor(n, getattr(self, n), check_finite=False) for n in PARAM_NAMES}
         shape = _broadcast_shape([t.shape for t in ts.values()])
         if shape is None:
             raise ValueError(f"TwoMassParams: parameter shapes do not broadcast: "
                              f"{ {n: tuple(t.shape) for n, t in ts.items()} }")
         for n, t in ts.items():
             object.__setattr__(self, n, t.expand(shape).contiguous())
-        for n in ("J_sigma", "V_J", "f_e"):
-            if bool((ts[n] <= 0).any()):
-                raise ValueError(f"TwoMassParams.{n}: expected > 0, received min {float(ts[n].min())}")
-        if bool(((ts["d"] < 0) | (ts["d"] >= 1)).any()):
-            raise ValueError(f"TwoMassParams.d: expected 0 <= d < 1, received range "
-                             f"[{float(ts['d'].min())}, {float(ts['d'].max())}]")
-        for n in ("backlash", "M_FC", "mu_F"):
-            if bool((ts[n] < 0).any()):
-                raise ValueError(f"TwoMassParams.{n}: expected >= 0, received min {float(ts[n].min())}")
+        # one pass over all values (a model fit builds many small candidate batches)
+        values = torch.stack([getattr(self, n).reshape(-1) for n in PARAM_NAMES])  # 7 x n
+        finite = torch.isfinite(values).all(1)
+        if not bool(finite.all()):
+            n = PARAM_NAMES[int((~finite).nonzero()[0])]
+            raise ValueError(f"TwoMassParams.{n}: expected finite values, received {ts[n]}")
+        bad = _out_of_range(values)
+        if bad is not None:
+            n, t = PARAM_NAMES[bad], ts[PARAM_NAMES[bad]]
+            raise ValueError(f"TwoMassParams.{n}: expected {_RANGE_TEXT[n]}, received range "
+                             f"[{float(t.min())}, {float(t.max())}]")
 
     # -- shape handling -------------------------------------------------------------------
     @property
@@ -187,7 +205,7 @@ class TwoMassParams:
         return TwoMassParams(**{n: getattr(self, n).reshape(*shape) for n in PARAM_NAMES})
 
     # -- derived values (SPEC 1) ----------------------------------------------------------
-    @property
+    @functools.cached_property
     def derived(self) -> "TwoMassDerived":
         """All derived values of SPEC 1 (:func:`two_mass_derived`), ``*batch`` each."""
         return two_mass_derived(self.J_sigma, self.V_J, self.f_e, self.d)

@@ -25,6 +25,7 @@ import torch
 
 from som_torch import atomic_write
 
+from sim._csv import format_numbers, parse_numbers
 from sim.params import DriveConfig, TwoMassParams, speed_quantum
 from sim._signal import TestSignalConfig
 
@@ -96,13 +97,17 @@ def _err(where: Path | str, msg: str) -> RecordError:
     return RecordError(f"{where}: {msg}")
 
 
-def validate(rec: Record, where: Path | str = "record") -> Record:
-    """Check a record (arrays, time grid, metadata); returns it with ``meta['T_s']`` filled in."""
+def validate(rec: Record, where: Path | str = "record", meta_where: Path | str | None = None) -> Record:
+    """Check a record (arrays, time grid, metadata); returns it with ``meta['T_s']`` filled in.
+    Errors name ``where``, those of the metadata ``meta_where`` (default ``where``)."""
     with np.errstate(all="ignore"):  # independent of a caller's np.seterr
-        return _validate(rec, where)
+        T_s_t = _validate_columns(rec, where)
+        rec.meta = _validated_meta(rec, T_s_t, where if meta_where is None else meta_where)
+        return rec
 
 
-def _validate(rec: Record, where: Path | str) -> Record:
+def _validate_columns(rec: Record, where: Path | str) -> float:
+    """Check the columns and their time grid; returns the sample time of the time column [s]."""
     cols = rec.columns()
     for c in ("t", "speed"):
         if c not in cols:
@@ -134,6 +139,12 @@ def _validate(rec: Record, where: Path | str) -> Record:
         s = rec.section
         if not np.all(np.isin(s, np.arange(0, 7))):
             raise _err(where, f"column 'section': expected integers 0..6, received {sorted(set(np.unique(s).tolist()) - set(range(7)))[:5]}")
+    return T_s_t
+
+
+def _validated_meta(rec: Record, T_s_t: float, where: Path | str) -> dict[str, Any]:
+    """The checked metadata of ``rec`` (``T_s`` filled in from the time column's ``T_s_t``)."""
+    n = len(rec.t)
     meta = dict(rec.meta)
     unknown = sorted(set(meta) - META_KEYS)
     if unknown:
@@ -166,8 +177,7 @@ def _validate(rec: Record, where: Path | str) -> Record:
             raise _err(where, f"unknown unit '{u}' for column '{c}' (expected '{UNITS[c]}')")
     if "truth" in meta and not isinstance(meta["truth"], dict):
         raise _err(where, "metadata 'truth': expected an object")
-    rec.meta = meta
-    return rec
+    return meta
 
 
 def _paths(path: str | os.PathLike[str]) -> tuple[Path, Path, str]:
@@ -207,12 +217,14 @@ def read_record(path: str | os.PathLike[str]) -> Record:
     if not lines or not lines[0].strip():
         raise _err(csv_path, "empty file (expected a header row)")
     names = _parse_header(lines[0].split(","), csv_path)
-    rows = [ln for ln in lines[1:] if ln.strip()]
-    try:
-        data = np.loadtxt(io.StringIO("\n".join(rows)), delimiter=",", dtype=np.float64, ndmin=2) if rows \
-            else np.zeros((0, len(names)))
-    except ValueError as err:
-        raise _err(csv_path, f"unreadable data ({str(err).splitlines()[0]})") from None
+    data = parse_numbers(text[len(lines[0]):].lstrip("\r\n").encode(), len(names))
+    if data is None:  # no parser, or rows that are not plain numbers: numpy reads them and words the error
+        rows = [ln for ln in lines[1:] if ln.strip()]
+        try:
+            data = np.loadtxt(io.StringIO("\n".join(rows)), delimiter=",", dtype=np.float64, ndmin=2) if rows \
+                else np.zeros((0, len(names)))
+        except ValueError as err:
+            raise _err(csv_path, f"unreadable data ({str(err).splitlines()[0]})") from None
     if data.shape[1] != len(names):
         raise _err(csv_path, f"rows have {data.shape[1]} fields, header has {len(names)}")
     cols = {c: data[:, i].copy() for i, c in enumerate(names)}
@@ -231,15 +243,11 @@ def read_record(path: str | os.PathLike[str]) -> Record:
         section = np.nan_to_num(section, nan=-1.0).astype(np.int64) if np.isfinite(section).all() else section
     rec = Record(t=cols.pop("t", None), speed=cols.pop("speed", None), meta=meta, current=cols.pop("current", None),
                  torque=cols.pop("torque", None), torque_ref=cols.pop("torque_ref", None), section=section, name=name)
-    try:
-        return validate(rec, csv_path)
-    except RecordError as err:
-        if "metadata" in str(err) or "unit" in str(err):
-            raise _err(json_path, str(err).split(": ", 1)[1]) from None
-        raise
+    return validate(rec, csv_path, json_path)
 
 
-_FMT = {"t": "%.17g", "speed": "%.12g", "current": "%.7g", "torque": "%.7g", "torque_ref": "%.7g", "section": "%d"}
+#: Significant digits written per column (``%.Ng``; 0: an integer, ``%d``).
+_DIGITS = {"t": 17, "speed": 12, "current": 7, "torque": 7, "torque_ref": 7, "section": 0}
 
 
 def write_record(path: str | os.PathLike[str], record: Record, overwrite: bool = False) -> tuple[Path, Path]:
@@ -253,13 +261,17 @@ def write_record(path: str | os.PathLike[str], record: Record, overwrite: bool =
     cols = record.columns()
     names = list(cols)
     mat = np.column_stack([cols[c].astype(np.float64) for c in names])
-    buf = io.StringIO()
-    np.savetxt(buf, mat, fmt=[_FMT[c] for c in names], delimiter=",", header=",".join(names), comments="")
+    body = format_numbers(mat, [_DIGITS[c] for c in names])
+    if body is None:  # no formatter: numpy writes the same text
+        buf = io.StringIO()
+        np.savetxt(buf, mat, fmt=[f"%.{_DIGITS[c]}g" if _DIGITS[c] else "%d" for c in names], delimiter=",")
+        body = buf.getvalue()
+    text = ",".join(names) + "\n" + body
     meta = dict(record.meta)
     meta.setdefault("format", FORMAT)
     meta.setdefault("units", {c: UNITS[c] for c in names})
-    for p, text in ((csv_path, buf.getvalue()), (json_path, json.dumps(meta, indent=1) + "\n")):
-        atomic_write(p, lambda f, text=text: f.write(text), text=True)
+    for p, content in ((csv_path, text), (json_path, json.dumps(meta, indent=1) + "\n")):
+        atomic_write(p, lambda f, content=content: f.write(content), text=True)
     return csv_path, json_path
 
 

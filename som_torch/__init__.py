@@ -8,6 +8,7 @@ small C kernel with checked tensor arguments (used by the native online rule and
 """
 
 from ._cbuild import CFunction, CKernel, CLibrary
+from ._config import env_threads
 from ._checkpoint import (FORMAT_VERSION, CheckpointError, file_sha256, load_checkpoint, save_checkpoint,
                           verify_manifest, write_manifest)
 from ._files import atomic_write
@@ -31,5 +32,5 @@ __all__ = [
     "save_checkpoint", "load_checkpoint", "CheckpointError", "FORMAT_VERSION",
     "write_manifest", "verify_manifest", "file_sha256", "atomic_write",
     "log_scalars", "log_images", "log_config", "tensorboard_hook",
-    "CKernel", "CFunction", "CLibrary",
+    "CKernel", "CFunction", "CLibrary", "env_threads",
 ]

@@ -7,17 +7,25 @@
 #include <stddef.h>
 
 #define EXP(x) _Generic((x), float: expf, default: exp)(x)
+/* Below this argument exp is under the smallest normal number: the neighbourhood weight is 0 there
+   (the vector exp then stays on its fast path, which underflowing lanes would leave). */
+#define EXP_MIN ((REAL)(sizeof(REAL) == sizeof(float) ? -87 : -708))
 
 /* w: B x C x U (transposed weights); x, valid: N x B x C; act: B x C; d2: U x U; lr, sg: N x B;
-   kind: 0 gaussian, 1 bubble, 2 cut_gaussian, 3 epanechnikov; dist, h: U scratch; bmus: N x B.
-   One pass over the weights per step: the update of step i also accumulates the distances of
-   sample i+1 (known in advance) to the updated weights. */
+   kind: 0 gaussian, 1 bubble, 2 cut_gaussian, 3 epanechnikov; nthreads: OpenMP threads;
+   dist_all, h_all: B x U scratch (one row per map); bmus: N x B.
+   Maps are independent: the threads take one map at a time, each map's arithmetic is the same
+   on any number of threads (bit-identical results). One pass over a map's weights per step: the
+   update of step i also accumulates the distances of sample i+1 (known in advance) to the
+   updated weights. */
 void som_epoch(int B, int U, int C, int N, REAL *restrict w, const REAL *restrict x,
                const REAL *restrict valid, const REAL *restrict act, const REAL *restrict d2,
-               const REAL *restrict lr, const REAL *restrict sg, int kind,
-               REAL *restrict dist, REAL *restrict h, long long *restrict bmus)
+               const REAL *restrict lr, const REAL *restrict sg, int kind, int nthreads,
+               REAL *restrict dist_all, REAL *restrict h_all, long long *restrict bmus)
 {
+#pragma omp parallel for schedule(dynamic, 1) num_threads(nthreads)
     for (int b = 0; b < B; ++b) {          /* maps are independent: one map's weights stay in cache */
+        REAL *restrict dist = dist_all + (size_t)b * U, *restrict h = h_all + (size_t)b * U;
         REAL *restrict wb = w + (size_t)b * C * U;
         const REAL *restrict ab = act + (size_t)b * C;
         for (int u = 0; u < U; ++u) dist[u] = 0;
@@ -45,7 +53,10 @@ void som_epoch(int B, int U, int C, int N, REAL *restrict w, const REAL *restric
             const REAL *restrict row = d2 + (size_t)best * U;
             const REAL q = (REAL)(-0.5) / (s * s), s2 = s * s;
             if (kind == 0) {
-                for (int u = 0; u < U; ++u) h[u] = rate * EXP(row[u] * q);
+                for (int u = 0; u < U; ++u) {
+                    const REAL a = row[u] * q;
+                    h[u] = a < EXP_MIN ? 0 : rate * EXP(a < EXP_MIN ? EXP_MIN : a);
+                }
             } else {
                 for (int u = 0; u < U; ++u) {
                     REAL r = row[u], v;

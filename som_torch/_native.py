@@ -2,12 +2,14 @@
 
 The online rule is sequential (one sample per step), so with torch every step pays ~10 kernel
 launches on small tensors. This kernel (``_native.c``) runs a whole epoch in one call on the
-transposed weights ``B x C x U`` (the unit axis is contiguous and vectorizes). It is compiled when
-the package is built or installed (``setup.py``, portable flags, see :mod:`som_torch._prebuilt`);
-in a checkout without those libraries, on first use with the system C compiler (flags in
-:data:`KERNEL`) into a private per-user cache; loaded with ctypes (see :mod:`som_torch._cbuild`);
-nothing is downloaded. When it cannot be loaded, :func:`kernel` returns ``None`` (after one
-warning) and training falls back to the torch path.
+transposed weights ``B x C x U`` (the unit axis is contiguous and vectorizes), the maps of the
+batch in parallel on :func:`threads` OpenMP threads (one map per thread at a time: the same
+numbers on any number of threads). It is compiled when the package is built or installed
+(``setup.py``, portable flags, see :mod:`som_torch._prebuilt`); in a checkout without those
+libraries, on first use with the system C compiler (flags in :data:`KERNEL`) into a private
+per-user cache; loaded with ctypes (see :mod:`som_torch._cbuild`); nothing is downloaded. When
+it cannot be loaded, :func:`kernel` returns ``None`` (after one warning) and training falls back
+to the torch path.
 ``SOM_TORCH_NATIVE=0`` disables it (see :mod:`som_torch._config`).
 """
 
@@ -19,7 +21,7 @@ from pathlib import Path
 import torch
 
 from . import _config
-from ._cbuild import CFunction, CheckedFunction, CKernel, CLibrary
+from ._cbuild import REALS, CFunction, CheckedFunction, CKernel, CLibrary
 
 KINDS = {"gaussian": 0, "bubble": 1, "cut_gaussian": 2, "epanechnikov": 3}
 
@@ -27,8 +29,8 @@ KINDS = {"gaussian": 0, "bubble": 1, "cut_gaussian": 2, "epanechnikov": 3}
 # arrive zero-filled with a validity mask). The link step goes without it (see CKernel).
 # Build facts as plain literals (``setup.py`` reads them without importing torch).
 NAME, SOURCE = "som_torch_epoch", "_native.c"
-FLAGS = ("-O3", "-march=native", "-ffast-math")
-LINK_FLAGS = ("-lm", "-lmvec")
+FLAGS = ("-O3", "-march=native", "-ffast-math", "-fopenmp")
+LINK_FLAGS = ("-fopenmp", "-lm", "-lmvec")
 
 KERNEL = CKernel(
     name=NAME,
@@ -36,7 +38,8 @@ KERNEL = CKernel(
     functions={"som_epoch": CFunction((
         "B: int", "U: int", "C: int", "N: int",
         "w: REAL[B, C, U]", "x: REAL[N, B, C]", "valid: REAL[N, B, C]?", "act: REAL[B, C]", "d2: REAL[U, U]",
-        "lr: REAL[N, B]", "sg: REAL[N, B]", "kind: int", "dist: REAL[U]", "h: REAL[U]", "bmus: int64[N, B]"))},
+        "lr: REAL[N, B]", "sg: REAL[N, B]", "kind: int", "nthreads: int", "dist: REAL[B, U]", "h: REAL[B, U]",
+        "bmus: int64[N, B]"))},
     flags=FLAGS,
     link_flags=LINK_FLAGS,
 )
@@ -50,6 +53,22 @@ def _library() -> CLibrary | None:
 def available() -> bool:
     """Whether the native kernel could be built and loaded here."""
     return _library() is not None
+
+
+def library() -> str:
+    """Which kernel :func:`kernel` calls: the prebuilt libraries' file names, or the run-time build's
+    cache folder, or why none (for benchmark and bug reports)."""
+    if _library() is None:
+        return "none (torch path)"
+    prebuilt = [KERNEL.prebuilt(real) for real in REALS.values()]
+    if all(prebuilt):
+        return "prebuilt " + ", ".join(p.name for p in prebuilt)
+    return f"compiled at run time into {_config.cache_dir()}"
+
+
+def threads(maps: int) -> int:
+    """Threads for an epoch of ``maps`` maps: :func:`som_torch._config.kernel_threads`, at most one per map."""
+    return max(1, min(_config.kernel_threads(), maps))
 
 
 def kernel(dtype: torch.dtype) -> CheckedFunction | None:

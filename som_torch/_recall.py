@@ -9,6 +9,11 @@ import torch
 from ._som import SOM
 
 
+#: Distances computed at once by :func:`best_matching_units` (float64 elements; 16 MiB): it works
+#: through the samples in chunks of this many ``maps x units`` distances.
+CHUNK_ELEMENTS = 2**21
+
+
 def _features(som: SOM, features: torch.Tensor) -> torch.Tensor:
     """Accept ``... x C`` or, when all maps share one active mask, ``... x n_active``;
     return raw ``*batch x M x C`` (inactive columns NaN when they were not given)."""
@@ -33,10 +38,17 @@ def distances(som: SOM, features: torch.Tensor) -> torch.Tensor:
     x = som.normalize(_features(som, features))  # *batch x M x C
     B, C, U = som.batch_shape.numel(), som.n_components, som.n_units
     x = x.reshape(B, -1, C)  # B x M x C
-    m = (som.active.reshape(B, 1, C) & ~torch.isnan(x)).to(torch.float64)  # B x M x C
-    x = torch.where(torch.isnan(x), 0.0, x) * m
+    active = som.active.reshape(B, 1, C)
     w = som.weights.reshape(B, U, C).to(torch.float64)  # B x U x C
-    d2 = m @ (w * w).transpose(1, 2) - 2.0 * (x @ w.transpose(1, 2)) + (x * x).sum(-1, keepdim=True)  # B x M x U
+    nan = torch.isnan(x)
+    if bool(nan.any()):  # each sample its own components: the weights' squares per sample
+        m = (active & ~nan).to(torch.float64)  # B x M x C
+        x = torch.where(nan, 0.0, x) * m
+        w2 = m @ (w * w).transpose(1, 2)  # B x M x U
+    else:  # one set of components for all samples: one matrix product less
+        x = x * active
+        w2 = ((w * w) @ active.to(torch.float64).transpose(1, 2)).transpose(1, 2)  # B x 1 x U
+    d2 = w2 - 2.0 * (x @ w.transpose(1, 2)) + (x * x).sum(-1, keepdim=True)  # B x M x U
     return d2.clamp_min(0.0).reshape(*som.batch_shape, -1, U)  # *batch x M x U
 
 
@@ -47,12 +59,19 @@ def best_matching_units(som: SOM, features: torch.Tensor, k: int = 1) -> tuple[t
     ``*batch x M x k`` (``k > 1``, nearest first)."""
     if not isinstance(k, int) or not 1 <= k <= som.n_units:
         raise ValueError(f"k: expected an int in 1..{som.n_units}, received {k!r}")
-    d2 = distances(som, features)  # *batch x M x U
-    if k == 1:
-        dist, idx = d2.min(-1)
-        return idx, dist
-    dist, idx = torch.topk(d2, k, dim=-1, largest=False, sorted=True)
-    return idx, dist
+    f = _features(som, features)  # *batch x M x C
+    M = f.shape[-2]
+    shape = (*f.shape[:-1], k)  # *batch x M x k
+    units, dist = torch.empty(shape, dtype=torch.long), torch.empty(shape, dtype=torch.float64)
+    step = max(1, CHUNK_ELEMENTS // max(1, som.batch_shape.numel() * som.n_units))
+    # the samples in chunks: memory flat in M; the results go into buffers allocated up front (small
+    # tensors kept per chunk would pin the heap between the chunks' large temporaries: measured
+    # 2.6 GB instead of 0.5 GB for 60 000 samples on 4 maps of 1600 units)
+    for m0 in range(0, M, step):
+        d2 = distances(som, f[..., m0:m0 + step, :])  # *batch x m x U
+        d, i = (d2.min(-1, keepdim=True) if k == 1 else torch.topk(d2, k, dim=-1, largest=False, sorted=True))
+        units[..., m0:m0 + step, :], dist[..., m0:m0 + step, :] = i, d
+    return (units[..., 0], dist[..., 0]) if k == 1 else (units, dist)
 
 
 @dataclass

@@ -4,6 +4,7 @@ each parameter map) and the configuration, for any ``SummaryWriter``-like writer
 from __future__ import annotations
 
 import json
+from collections.abc import Sequence
 from typing import Any
 
 import torch
@@ -12,9 +13,15 @@ from ._quality import hit_counts, quantization_error, topographic_error, u_matri
 from ._som import SOM
 
 
-def _suffixes(som: SOM) -> list[str]:
+def _suffixes(som: SOM, members: Sequence[int] | None = None) -> list[str]:
+    """Tag suffix of each map of the batch: ``/map_<b>`` (``b`` from ``members`` where given: the
+    maps' numbers in a larger ensemble), none for a single map."""
     B = som.batch_shape.numel()
-    return [""] if not som.batch_shape else [f"/map_{b}" for b in range(B)]
+    if members is not None and len(members) != B:
+        raise ValueError(f"members: expected {B} numbers (one per map), received {len(members)}")
+    if not som.batch_shape:
+        return [""]
+    return [f"/map_{b}" for b in (members if members is not None else range(B))]
 
 
 def _image(x: torch.Tensor) -> torch.Tensor:
@@ -31,9 +38,10 @@ def log_config(writer, config: dict[str, Any], tag: str = "config") -> None:
 
 
 def log_scalars(writer, som: SOM, data: torch.Tensor | None, step: int, *, learning_rate=None, sigma=None,
-                prefix: str = "som") -> None:
+                prefix: str = "som", members: Sequence[int] | None = None) -> None:
     """Tags ``{prefix}[/map_b]/quantization_error``, ``.../topographic_error`` (if ``data``),
-    ``.../learning_rate``, ``.../sigma`` (if given; float or ``*batch``)."""
+    ``.../learning_rate``, ``.../sigma`` (if given; float or ``*batch``); ``members``: the maps'
+    numbers ``b`` (default ``0 .. B-1``)."""
     values: dict[str, torch.Tensor] = {}
     if data is not None:
         values["quantization_error"] = quantization_error(som, data)
@@ -42,22 +50,23 @@ def log_scalars(writer, som: SOM, data: torch.Tensor | None, step: int, *, learn
     for name, v in (("learning_rate", learning_rate), ("sigma", sigma)):
         if v is not None:
             values[name] = torch.as_tensor(v, dtype=torch.float64).expand(som.batch_shape)
-    for b, sfx in enumerate(_suffixes(som)):
+    for b, sfx in enumerate(_suffixes(som, members)):
         for name, v in values.items():
             writer.add_scalar(f"{prefix}{sfx}/{name}", float(v.reshape(-1)[b]), step)
 
 
 def log_images(writer, som: SOM, data: torch.Tensor | None, step: int, *, prefix: str = "som",
-               components: list[str] | None = None) -> None:
+               components: list[str] | None = None, members: Sequence[int] | None = None) -> None:
     """Grey images ``{prefix}[/map_b]/u_matrix``, ``.../hits`` (if ``data``) and
-    ``.../component/<name>`` for ``components`` (default: each inactive component of map 0)."""
+    ``.../component/<name>`` for ``components`` (default: each inactive component of map 0);
+    ``members``: the maps' numbers ``b`` (default ``0 .. B-1``)."""
     B, C = som.batch_shape.numel(), som.n_components
     um = u_matrix(som).reshape(B, som.grid.rows, som.grid.cols)
     hits = hit_counts(som, data).reshape(B, som.grid.rows, som.grid.cols) if data is not None else None
     if components is None:
         components = [n for n, a in zip(som.component_names, som.active.reshape(B, C)[0].tolist()) if not a]
     w = som.raw_weights.reshape(B, som.grid.rows, som.grid.cols, C)
-    for b, sfx in enumerate(_suffixes(som)):
+    for b, sfx in enumerate(_suffixes(som, members)):
         writer.add_image(f"{prefix}{sfx}/u_matrix", _image(um[b]), step)
         if hits is not None:
             writer.add_image(f"{prefix}{sfx}/hits", _image(hits[b]), step)
@@ -65,15 +74,17 @@ def log_images(writer, som: SOM, data: torch.Tensor | None, step: int, *, prefix
             writer.add_image(f"{prefix}{sfx}/component/{name}", _image(w[b, ..., som.index(name)]), step)
 
 
-def tensorboard_hook(writer, data: torch.Tensor | None, *, prefix: str = "som", images_every: int = 1):
+def tensorboard_hook(writer, data: torch.Tensor | None, *, prefix: str = "som", images_every: int = 1,
+                     members: Sequence[int] | None = None):
     """A training hook (``hook(epoch, som, info)``) that logs scalars each epoch and images every
-    ``images_every`` epochs and after the last; the step is the epoch number (1-based)."""
+    ``images_every`` epochs and after the last; the step is the epoch number (1-based);
+    ``members``: the maps' numbers in the tags (default ``0 .. B-1``)."""
 
     def hook(epoch: int, som: SOM, info: dict) -> None:
         log_scalars(writer, som, data, epoch + 1, learning_rate=info.get("learning_rate"),
-                    sigma=info.get("sigma"), prefix=prefix)
+                    sigma=info.get("sigma"), prefix=prefix, members=members)
         if images_every and ((epoch + 1) % images_every == 0 or epoch + 1 == info.get("epochs")):
-            log_images(writer, som, data, epoch + 1, prefix=prefix)
+            log_images(writer, som, data, epoch + 1, prefix=prefix, members=members)
         writer.flush()
 
     return hook

@@ -97,6 +97,8 @@ def train_online(
             ``"reference"``: float64, one map and one sample at a time, plain formulas.
         num_threads: torch intra-op threads during the epochs (restored afterwards); the
             per-step tensors are small, so 1 is fastest on a shared CPU; ``None`` leaves it.
+            The native kernel has its own threads, one map per thread
+            (``SOM_TORCH_THREADS``, see :mod:`som_torch._config`).
         hooks: called after each epoch as ``hook(epoch, som, info)``.
     """
     if not isinstance(epochs, int) or epochs < 1:
@@ -161,9 +163,9 @@ def _online_native(w, d2grid, order, lr, sg, *, x, active, nb, refresh, kind):
     act = active.to(dt).contiguous()  # B x C
     d2 = d2grid.to(dt).contiguous()  # U x U
     lr, sg = lr.to(dt).contiguous(), sg.to(dt).contiguous()  # N x B each
-    dist, h = torch.empty(U, dtype=dt), torch.empty(U, dtype=dt)
+    dist, h = torch.empty(B, U, dtype=dt), torch.empty(B, U, dtype=dt)  # per-map scratch
     bmus = torch.empty(N, B, dtype=torch.long)
-    fn(B, U, C, N, wt, xe, vv, act, d2, lr, sg, kind, dist, h, bmus)
+    fn(B, U, C, N, wt, xe, vv, act, d2, lr, sg, kind, _native.threads(B), dist, h, bmus)
     return wt.transpose(1, 2).contiguous()  # B x U x C
 
 

@@ -76,14 +76,16 @@ def test_checkout_falls_back_to_its_checkpoints_folder(monkeypatch):
 
 
 def test_setup_builds_the_libraries_the_kernels_look_for():
-    """setup.py's extension names are the prebuilt names ``CKernel`` looks up, for both kernels,
+    """setup.py's extension names are the prebuilt names ``CKernel`` looks up, for every kernel,
     both float types and every variant of this machine, from the kernels' own flags."""
+    from sim._csv import KERNEL as CSV_KERNEL
     from sim._kernel import KERNEL as SIM_KERNEL
     from som_torch import _prebuilt
     from som_torch._native import KERNEL as SOM_KERNEL
+    from training.identification._resonance import KERNEL as RESONANCE_KERNEL
 
     built = {e.name.rsplit(".", 1)[1]: e for e in _setup_module().kernel_extensions()}
-    for kernel in (SIM_KERNEL, SOM_KERNEL):
+    for kernel in (SIM_KERNEL, CSV_KERNEL, SOM_KERNEL, RESONANCE_KERNEL):
         for variant in _prebuilt.all_variants():
             for real in ("float", "double"):
                 flags = (*_prebuilt.portable_flags(kernel.flags), *_prebuilt.variant_flags(variant))

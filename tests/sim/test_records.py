@@ -128,3 +128,53 @@ def test_parser_only_raises_record_error_on_garbage(tmp_path, text):
         read_record(tmp_path / "g")
     except RecordError as err:
         assert "\n" not in str(err)
+
+
+_NUMBER = st.one_of(st.floats(allow_nan=False, allow_infinity=False, width=64), st.integers(-10**12, 10**12))
+
+
+@settings(max_examples=80, deadline=None)
+@given(rows=st.lists(st.lists(_NUMBER, min_size=3, max_size=3), max_size=30),
+       fmt=st.sampled_from(["%r", "%.17g", "%.7g", "%.3e", "%d"]), end=st.sampled_from(["\n", "\r\n"]),
+       pad=st.sampled_from(["", " "]), blank=st.booleans())
+def test_fast_number_parser_equals_loadtxt(rows, fmt, end, pad, blank):
+    """The C parser of the record reader gives numpy's numbers, bit for bit, or declines (None)."""
+    import io
+
+    from sim._csv import parse_numbers
+
+    def field(v):
+        return fmt % (int(v) if fmt == "%d" and abs(v) < 1e15 else v) if fmt != "%r" else repr(float(v))
+
+    lines = [",".join(pad + field(v) + pad for v in row) for row in rows]
+    if blank and lines:
+        lines.insert(len(lines) // 2, "")
+    body = end.join(lines) + (end if rows else "")
+    got = parse_numbers(body.encode(), 3)
+    expected = np.loadtxt(io.StringIO(body), delimiter=",", dtype=np.float64, ndmin=2) if rows else np.zeros((0, 3))
+    assert got is not None
+    assert got.shape == expected.reshape(-1, 3).shape
+    assert np.array_equal(got, expected.reshape(-1, 3))
+
+
+@pytest.mark.parametrize("body", ["1,2\n", "1,2,3,4\n", "1,,3\n", "1,2,x\n", "# c\n1,2,3\n", "1;2;3\n", "1,2,3 4\n"])
+def test_fast_number_parser_declines_what_is_not_plain_rows(body):
+    from sim._csv import parse_numbers
+
+    assert parse_numbers(body.encode(), 3) is None
+
+
+@settings(max_examples=80, deadline=None)
+@given(rows=st.lists(st.tuples(st.floats(allow_nan=False, allow_infinity=False), st.floats(-1e6, 1e6),
+                               st.integers(-10, 10)), max_size=25),
+       digits=st.tuples(st.sampled_from([17, 12, 7, 3]), st.sampled_from([17, 7])))
+def test_fast_number_formatter_writes_what_savetxt_writes(rows, digits):
+    """The C formatter of the record writer gives numpy's text, byte for byte, or declines (None)."""
+    import io
+
+    from sim._csv import format_numbers
+
+    data = np.array(rows, dtype=np.float64).reshape(-1, 3)
+    buf = io.StringIO()
+    np.savetxt(buf, data, fmt=[f"%.{digits[0]}g", f"%.{digits[1]}g", "%d"], delimiter=",")
+    assert format_numbers(data, [digits[0], digits[1], 0]) == buf.getvalue()

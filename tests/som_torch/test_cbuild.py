@@ -57,6 +57,24 @@ def test_arguments_checked_before_the_call(kernel, tmp_path):
         kernel.load(tmp_path / "cache", None).function("nope", torch.float64)
 
 
+
+def test_checks_remembered_per_call_signature_only(kernel, tmp_path):
+    """A call that passed lets the same signature skip the checks; any other signature is checked."""
+    fn = kernel.load(tmp_path / "cache", None).function("axpy", torch.float64)
+    x, y = torch.ones(4, dtype=torch.float64), torch.zeros(4, dtype=torch.float64)
+    for _ in range(2):
+        assert fn(4, 2.0, x, y) == 4
+    assert y.tolist() == [4.0] * 4
+    with pytest.raises(ValueError, match=r"argument 'x': expected shape \(n=3\), received \(4,\)"):
+        fn(3, 1.0, x, y[:3])  # another size scalar
+    with pytest.raises(ValueError, match="contiguous"):
+        fn(4, 1.0, torch.ones(8, dtype=torch.float64)[::2], y)  # same shape, not contiguous
+    with pytest.raises(TypeError, match="expected dtype torch.float64"):
+        fn(4, 1.0, x.float(), y)
+    with pytest.raises(TypeError, match="expected a Python REAL scalar, received a tensor"):
+        fn(4, torch.tensor(1.0), x, y)
+    assert y.tolist() == [4.0] * 4  # no failed call reached C
+
 def test_malformed_declaration_fails_where_written():
     with pytest.raises(ValueError, match="C argument"):
         CFunction(("n int64",))

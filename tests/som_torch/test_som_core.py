@@ -60,6 +60,38 @@ def test_bmu_uses_active_components_only():
     assert st.best_matching_units(all_active, x)[0].tolist() == [2]
 
 
+@pytest.mark.parametrize("with_nan", [False, True])
+def test_distances_equal_the_sum_over_active_present_components(with_nan):
+    """Both paths of ``distances`` (every sample complete; samples with NaN) against the plain sum."""
+    g = torch.Generator().manual_seed(1)
+    active = torch.tensor([[True, False, True, True], [True, True, False, True]])
+    som = st.SOM(st.Grid(3, 3), ["a", "b", "c", "p"], active, weights=torch.rand(2, 9, 4, generator=g))
+    x = torch.rand(2, 11, 4, generator=g, dtype=torch.float64)
+    if with_nan:
+        x[0, 3, 0] = x[1, 5, 3] = torch.nan
+    xn = som.normalize(x)
+    use = active[:, None, None, :] & ~torch.isnan(xn)[:, :, None, :]  # 2 x 11 x 1 x 4
+    diff = torch.where(use, xn[:, :, None, :] - som.weights.to(torch.float64)[:, None, :, :], 0.0)
+    torch.testing.assert_close(st.distances(som, x), (diff * diff).sum(-1), rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.parametrize("k", [1, 3])
+def test_best_matches_in_chunks_equal_all_at_once(monkeypatch, k):
+    """Samples worked through in chunks (memory flat in their number) give the unchunked answer."""
+    from som_torch import _recall
+
+    g = torch.Generator().manual_seed(0)
+    som = st.SOM(st.Grid(4, 5), ["a", "b", "p"], [True, True, False],
+                 weights=torch.rand(3, 20, 3, generator=g, dtype=torch.float64))
+    x = torch.rand(3, 50, 3, generator=g, dtype=torch.float64)
+    d2 = st.distances(som, x)  # 3 x 50 x 20, all at once
+    expected = d2.min(-1) if k == 1 else torch.topk(d2, k, dim=-1, largest=False, sorted=True)
+    monkeypatch.setattr(_recall, "CHUNK_ELEMENTS", 7 * 3 * 20)  # chunks of 7 samples: 8 chunks, the last short
+    units, dist = st.best_matching_units(som, x, k=k)
+    assert torch.equal(units, expected.indices)
+    torch.testing.assert_close(dist, expected.values, rtol=1e-12, atol=1e-15)  # BLAS blocks by chunk size
+
+
 @pytest.mark.parametrize("method", ["fast", "torch", "reference"])
 def test_one_update_step_by_hand(method):
     som = tiny_som()

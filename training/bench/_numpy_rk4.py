@@ -14,10 +14,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-#: add/sub/mul per system-substep in ``advance_block`` of ``sim/_kernel.c`` (and here), counted as
-#: written: 7 (shaft torque, friction) + 4 x 15 (the RK4 stages' right-hand sides) + 24 (stage
-#: states) + 7 (motor-angle increment) + 41 (four Kahan updates, the stop test's product).
-#: Compares, min/max, selects and signs are not counted.
+#: add/sub/mul per system-substep here, counted as written: 7 (shaft torque, friction) + 4 x 15
+#: (the RK4 stages' right-hand sides) + 24 (stage states) + 7 (motor-angle increment) + 41 (four
+#: Kahan updates, the stop test's product). Compares, min/max, selects and signs are not counted.
+#: The kernel does the same arithmetic in 129 (``sim._kernel.FLOPS_PER_SUBSTEP``): stage 1 shares
+#: the mode decision's shaft torque, net torque and ``w_M - w_L``, and ``ddphi`` is ``w_M - w_L``.
 FLOPS_PER_SUBSTEP = 139
 
 

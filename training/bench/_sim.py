@@ -1,11 +1,14 @@
 """``twomass bench sim``: the fused C kernel against a vectorized numpy RK4 of the same model and test.
 
-Both run the first ``--samples`` samples of the SPEC 2 switching test for the same ``--batch``
+All run the first ``--samples`` samples of the SPEC 2 switching test for the same ``--batch``
 population systems, in the same dtype, with the same substeps and the same arithmetic (the
-numpy baseline, :mod:`training.bench._numpy_rk4`, is checked against the kernel in the tests).
-numpy runs on one core, so the kernel runs once on one thread and once on all of its threads.
-The kernel's arithmetic rate is compared with a square matmul measured in the same run. The
-per-sample ``solve_ivp`` script is a labelled extra line on a tiny batch (float64, RK45).
+numpy baseline, :mod:`training.bench._numpy_rk4`, and the simulator's torch eager twin, its
+fallback without a C compiler, are checked against the kernel in the tests). numpy runs on one
+core, so the kernel runs once on one thread and once on all of its threads. The runs alternate
+(numpy, torch, kernel, kernel, then again), so a load that comes and goes hits all of them; the
+fastest of ``--repeat`` counts. The arithmetic rate (the kernel's count of add/sub/mul per
+substep, the same work for every line) is compared with a square matmul measured in the same
+run. The per-sample ``solve_ivp`` script is a labelled extra line on a tiny batch (float64, RK45).
 """
 
 from __future__ import annotations
@@ -19,10 +22,11 @@ from unittest import mock
 import numpy as np
 import torch
 
-from training.bench._numpy_rk4 import FLOPS_PER_SUBSTEP, TestOutput, switching_test
+from training.bench._numpy_rk4 import TestOutput, switching_test
 from training.bench._report import Table, machine_line, matmul_gflops, write_figures
 
-HELP = "simulator: fused C kernel (1 thread, all threads) vs vectorized numpy RK4, same test, dtype and batch"
+HELP = ("simulator: fused C kernel (1 thread, all threads) and torch eager fallback vs vectorized numpy RK4, "
+        "same test, dtype and batch")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -43,7 +47,7 @@ def _inputs(batch: int, seed: int, dtype: torch.dtype):
     drive, signal = DriveConfig(), TestSignalConfig()
     params = sample_population(batch, seed)
     fp = FastParams.build(params, drive, default_substeps(params, drive), dtype)
-    return drive, signal, fp
+    return drive, signal, params, fp
 
 
 def kernel_test(fp, drive, signal, nk: int, threads: int | None = None) -> tuple[float, dict[str, torch.Tensor]]:
@@ -63,6 +67,31 @@ def kernel_test(fp, drive, signal, nk: int, threads: int | None = None) -> tuple
         run_test_chunk(lib, x, fp, c, drive, signal.levels(drive), signal.n_timeout(drive), signal.n_tail(drive),
                        0, nk, buf)
         return time.perf_counter() - t0, buf
+
+
+def torch_test(params, fp, drive, signal, nk: int):
+    """Wall time [s] and response of the simulator's torch eager fallback (what runs without a C
+    compiler or with ``TWOMASS_NO_C_KERNEL``): :func:`sim.simulate` with the switching controller,
+    ``nk`` samples, the kernel's substeps and dtype; torch on one thread, as numpy."""
+    from sim import SwitchingController, simulate
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        t0 = time.perf_counter()
+        resp = simulate(params, drive, SwitchingController(signal, drive, fp.dtype), nk, dtype=fp.dtype,
+                        substeps=fp.S, use_kernel=False)
+        return time.perf_counter() - t0, resp
+    finally:
+        torch.set_num_threads(before)
+
+
+def kernel_library(dtype: torch.dtype) -> str:
+    """Which library of the kernel runs for ``dtype``: the prebuilt one (its file name) or the run-time build."""
+    from sim._kernel import KERNEL
+
+    path = KERNEL.prebuilt("float" if dtype == torch.float32 else "double")
+    return f"prebuilt {path.name}" if path is not None else "built at run time (-march=native) in the kernel cache"
 
 
 def numpy_test(fp, drive, signal, nk: int) -> tuple[float, TestOutput]:
@@ -119,29 +148,36 @@ def _solve_ivp_test(p: dict, n_samples: int) -> tuple[float, int]:
 def run(args: argparse.Namespace) -> int:
     from sim import DriveConfig, sample_population
     from sim._integrate_fast import kernel_threads
+    from sim._kernel import FLOPS_PER_SUBSTEP
 
     for name in ("batch", "samples", "repeat"):
         if getattr(args, name) < 1:
             raise ValueError(f"--{name}: expected a positive integer, received {getattr(args, name)}")
     dtype = torch.float64 if args.float64 else torch.float32
-    drive, signal, fp = _inputs(args.batch, args.seed, dtype)
+    drive, signal, params, fp = _inputs(args.batch, args.seed, dtype)
     nk, S, B = args.samples, fp.S, args.batch
     all_threads = kernel_threads(B)  # the threads the kernel really uses: at most one per block of systems
     kernel_test(fp, drive, signal, 2)  # load (or build) the kernel outside the timings
     print(machine_line())
     print(f"test: the switching test (SPEC 2), first {nk} samples of {B} population systems (seed {args.seed}), "
-          f"{S} RK4 substeps per sample, {str(dtype)[6:]}; the fastest of {args.repeat} runs")
+          f"{S} RK4 substeps per sample, {str(dtype)[6:]}; runs alternate, the fastest of {args.repeat} counts")
+    print(f"kernel library: {kernel_library(dtype)}")
     flop = {t: matmul_gflops(dtype, t) for t in sorted({1, all_threads})}
     print("machine FLOP rate: " + ", ".join(f"{v:.1f} GFLOP/s on {t} thread(s)" for t, v in flop.items())
           + f" ({str(dtype)[6:]} matmul 1024 x 1024, the faster of numpy's BLAS and torch, 2 n^3 FLOP; "
           "it uses fused multiply-add, the kernel is compiled without: at most half of it is reachable)")
 
     work = B * nk * S  # system-substeps
-    rows: list[tuple[str, int, float]] = []
-    rows.append(("numpy RK4, vectorized over systems", 1,
-                 min(numpy_test(fp, drive, signal, nk)[0] for _ in range(args.repeat))))
-    for t in sorted({1, all_threads}):
-        rows.append(("fused C kernel", t, min(kernel_test(fp, drive, signal, nk, t)[0] for _ in range(args.repeat))))
+    runs = {("numpy RK4, vectorized over systems", 1): lambda: numpy_test(fp, drive, signal, nk)[0],
+            ("torch eager twin (the fallback without a C compiler)", 1):
+                lambda: torch_test(params, fp, drive, signal, nk)[0],
+            **{("fused C kernel", t): (lambda t=t: kernel_test(fp, drive, signal, nk, t)[0])
+               for t in sorted({1, all_threads})}}
+    walls: dict[tuple[str, int], list[float]] = {key: [] for key in runs}
+    for _ in range(args.repeat):
+        for key, fn in runs.items():
+            walls[key].append(fn())
+    rows = [(label, t, min(walls[label, t])) for label, t in runs]
     t_numpy = rows[0][2]
     table = Table(["implementation", "threads", "wall s", "system-substeps/s", "GFLOP/s", "% of matmul", "vs numpy"])
     figures: dict = {"batch": B, "samples": nk, "substeps": S, "dtype": str(dtype), "flops_per_substep":
@@ -159,8 +195,10 @@ def run(args: argparse.Namespace) -> int:
                   "-", "-", f"{rate / (work / t_numpy):.4f}x")
         figures["naive_s_per_sample"] = wall / done
     print(table.render())
-    print(f"GFLOP/s counts {FLOPS_PER_SUBSTEP} add/sub/mul per system-substep (sim/_kernel.c as written; "
-          "compares and selects not counted); the solve_ivp line counts its samples at the same substeps")
+    print(f"GFLOP/s counts {FLOPS_PER_SUBSTEP} add/sub/mul per system-substep for every line: the model's arithmetic "
+          "as sim/_kernel.c writes and executes it (sim._kernel.FLOPS_PER_SUBSTEP; compares, min/max, selects, the "
+          "encoder and the controller not counted; numpy computes stage 1's shaft torque twice, 139); the solve_ivp "
+          "line counts its samples at the same substeps")
     print(f"reproduce: {args.command_line}")
     if args.json_out:
         write_figures(args.json_out, figures)

@@ -46,8 +46,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--checkpoints", type=Path, metavar="DIR",
                         help="folder with the maps and manifest.json (default: the shipped checkpoints/, "
                              "or $TWOMASS_CHECKPOINTS)")
-    parser.add_argument("--jobs", type=int, metavar="N", help="worker processes for the analysis (default: 1 for "
-                        "fewer than 8 records, else 2 where 2 CPUs are available)")
+    parser.add_argument("--jobs", type=int, metavar="N", help="worker processes, each reading, analysing and "
+                        "refining whole batches of 8 records (default: 1 for fewer than 16 records, else 2 where 2 "
+                        "CPUs are available)")
     parser.add_argument("--no-refine", action="store_true",
                         help="the maps' answer alone, without the model-based refinement (faster, coarser)")
     _progress.add_option(parser)

@@ -1,19 +1,20 @@
-"""Analysing many records: each record's failure isolated to its own outcome, optionally in
-forked worker processes (the analysis is the slow, record-by-record part of the identification)."""
+"""Identifying many records: each record's failure isolated to its own outcome; chunks of records
+read, analysed, recalled and refined in forked worker processes, one per core."""
 
 from __future__ import annotations
 
 import multiprocessing
-from collections.abc import Iterator, Sequence
+import os
+from collections.abc import Callable, Iterator, Sequence
 
 from sim import Record, read_record
 from training._distributed import process_group
 from training.config import blas_threads
 from training.errors import one_line
 from training.identification._analysis import Analysis, analyze
-from training.identification._result import IdentificationFailure
+from training.identification._result import IdentificationFailure, Outcome
 
-#: Records analysed before one batched recall + refinement (overlaps the analysis workers).
+#: Records analysed before one batched recall + refinement (a worker's unit of work).
 CHUNK = 8
 
 
@@ -42,21 +43,56 @@ def file_outcome(path: str) -> Analysis | IdentificationFailure:
 def default_jobs(n_records: int) -> int:
     """Worker processes for ``n_records``: one for a few records, else up to 2 (the CPUs we may use;
     under torchrun this process's share of them)."""
-    return 1 if n_records < 8 else min(2, process_group().cpus())
+    return 1 if n_records < 2 * CHUNK else min(2, process_group().cpus())
 
 
-def file_outcomes(paths: Sequence[str], jobs: int | None) -> Iterator[Analysis | IdentificationFailure]:
-    """:func:`file_outcome` over ``paths`` in order; in ``jobs`` forked workers when ``jobs > 1``
-    (``None``: :func:`default_jobs`)."""
+#: A chunk's read-and-analysed records, ``(name, outcome)`` each, to their final outcomes.
+Answer = Callable[[list[tuple[str, "Analysis | IdentificationFailure"]]], list[Outcome]]
+_answer: Answer | None = None  # in a forked worker: the parent's answerer (see :func:`answered_files`)
+
+
+def _start_worker(answer: Answer) -> None:
+    """Pool initializer: one thread for BLAS, torch and the simulator kernel (one worker per core)."""
+    global _answer
+    import torch
+    from threadpoolctl import threadpool_limits
+
+    _answer = answer
+    os.environ["TWOMASS_SIM_THREADS"] = "1"
+    torch.set_num_threads(1)
+    threadpool_limits(limits=1)
+
+
+def _answer_chunk(paths: list[str]) -> list[Outcome]:
+    return _answer([(p, file_outcome(p)) for p in paths])
+
+
+def answered_files(paths: Sequence[str], jobs: int | None, answer: Answer,
+                   progress: Callable[[int], object] | None = None) -> Iterator[Outcome]:
+    """One outcome per path, in order: the records read and analysed (:func:`file_outcome`) in
+    chunks of :data:`CHUNK`, each chunk then answered by ``answer`` (the maps' recall and the
+    refinement). With ``jobs > 1`` (``None``: :func:`default_jobs`) whole chunks go to ``jobs``
+    forked workers, so every stage runs on every core; the outcomes are the same as with one
+    (each chunk is the same batch). ``progress`` gets the number of records done as they are.
+
+    The workers are forked: they inherit the loaded maps and modules (no start-up cost) and run
+    torch and the simulator kernel on one thread each, which is also what keeps them safe in a
+    parent whose thread pools have already run."""
     if jobs is None:
         jobs = default_jobs(len(paths))
     if isinstance(jobs, bool) or not isinstance(jobs, int) or jobs < 1:
         raise ValueError(f"jobs: expected an integer >= 1 or None, received {jobs!r}")
-    if jobs == 1 or len(paths) < 2 or "fork" not in multiprocessing.get_all_start_methods():
-        yield from map(file_outcome, paths)
+    tick = progress or (lambda _n: None)
+    chunks = [list(paths[i:i + CHUNK]) for i in range(0, len(paths), CHUNK)]
+    if jobs == 1 or len(chunks) < 2 or "fork" not in multiprocessing.get_all_start_methods():
+        for chunk in chunks:
+            items = []
+            for path in chunk:
+                items.append((path, file_outcome(path)))
+                tick(1)
+            yield from answer(items)
         return
-    # fork: the workers inherit the imported modules (no start-up cost); they run numpy/scipy only,
-    # never torch ops (not fork-safe once torch's thread pool has started in the parent); each
-    # sets its BLAS threads again (a forked OpenBLAS starts with its default thread count)
-    with multiprocessing.get_context("fork").Pool(min(jobs, len(paths))) as pool:
-        yield from pool.imap(file_outcome, paths, chunksize=2)
+    with multiprocessing.get_context("fork").Pool(min(jobs, len(chunks)), _start_worker, (answer,)) as pool:
+        for outcomes in pool.imap(_answer_chunk, chunks):
+            tick(len(outcomes))
+            yield from outcomes

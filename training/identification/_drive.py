@@ -24,6 +24,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from sim import DriveConfig, Record, speed_quantum
+from training.identification._plausibility import QUANTIZED_SHARE, on_grid
 from training.identification._result import IdentWarning
 from training.identification._sections import SectionSplit, diff_noise
 
@@ -31,7 +32,6 @@ from training.identification._sections import SectionSplit, diff_noise
 #: (with a warning).
 REFERENCE_DRIVE = DriveConfig()
 
-_ON_GRID = 0.99  # share of the nonzero speeds on the quantum grid to call the speed quantized
 _SETTLE = 5.0  # current-loop time constants skipped after each section start for the noise estimate
 
 
@@ -123,8 +123,7 @@ def estimated_encoder_counts(speed: np.ndarray, T_s: float) -> int | None:
     if not q0 > 0:
         return None
     q = float(np.median(steps[steps < 1.5 * q0]))
-    k = x / q
-    if np.mean(np.abs(k - np.round(k)) <= np.minimum(0.01, 1e-3 + 2e-7 * k)) < _ON_GRID:
+    if on_grid(x, q) < QUANTIZED_SHARE:
         return None
     counts = int(round(2.0 * math.pi / (q * T_s)))
     return counts if counts >= 16 else None

@@ -33,7 +33,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from sim import PopulationRanges
+from sim import EnvelopeRanges, PopulationRanges
 from training.identification._result import IdentWarning
 
 FORMAT = "twomass-envelope/1"
@@ -44,12 +44,15 @@ UNITS: dict[str, str] = {"T_s": "s", "encoder_counts": "counts/rev", "T_Ei": "s"
                          "M_star_over_M_max": "", "time_scale": "s", "current_noise": "of M*", "f_e": "Hz", "V_J": "",
                          "d": "", "s_N": "", "M_FC_over_M_star": ""}
 
-#: SPEC 3.1's envelope.
+_SPEC = EnvelopeRanges()  # SPEC 3.1's numbers, once (the training population draws from them)
+#: SPEC 3.1's envelope: what a record may come from (the test's M* down to 0, any noise below the
+#: envelope's, any normalized backlash up to 10).
 SPEC_ENVELOPE: dict[str, tuple[float, float]] = {
-    "T_s": (62.5e-6, 1e-3), "encoder_counts": (2.0**12, 2.0**24), "T_Ei": (1e-4, 2e-3), "M_N": (0.1, 1000.0),
-    "M_max_over_M_N": (1.5, 4.0), "M_star_over_M_max": (0.0, 1.0), "time_scale": (0.02, 5.0),
-    "current_noise": (0.0, 0.05), "f_e": (5.0, 500.0), "V_J": (0.2, 5.0), "d": (0.005, 0.1), "s_N": (0.0, 10.0),
-    "M_FC_over_M_star": (0.0, 0.05),
+    "T_s": _SPEC.T_s, "encoder_counts": (2.0 ** _SPEC.encoder_bits[0], 2.0 ** _SPEC.encoder_bits[1]),
+    "T_Ei": _SPEC.T_Ei, "M_N": _SPEC.M_N, "M_max_over_M_N": _SPEC.M_max_over_M_N,
+    "M_star_over_M_max": (0.0, _SPEC.M_star_over_M_max[1]), "time_scale": _SPEC.time_scale,
+    "current_noise": (0.0, _SPEC.current_noise[1]), "f_e": _SPEC.f_e, "V_J": _SPEC.V_J, "d": _SPEC.d,
+    "s_N": (0.0, 10.0), "M_FC_over_M_star": _SPEC.M_FC,
 }
 
 #: The record's noise is estimated (:func:`training.identification._drive.torque_noise`, a few %

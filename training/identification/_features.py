@@ -36,14 +36,13 @@ names the whole vector and is stored with a map's checkpoint):
 from __future__ import annotations
 
 import math
-from functools import lru_cache
 from typing import Any
 
 import numpy as np
 from scipy import fft as _fft
 from scipy import signal as _signal
 
-from training.identification._one_mass import section_bounds
+from training.identification._one_mass import butter_sos, section_bounds
 
 __all__ = [
     "EIG_F_LO", "EIG_F_HI", "EIG_N_BINS", "EIG_EDGES", "EIG_NAMES", "STRUCT_SAMPLES_PER_PERIOD", "STRUCT_NAMES",
@@ -168,12 +167,6 @@ def dominant_frequency(seg: Any, T_s: float, f_min: float | None = None, f_max: 
     return float(f[k])
 
 
-@lru_cache(maxsize=1024)
-def _butter_sos(wn: float) -> np.ndarray:
-    """4th-order Butterworth low-pass sections at normalized cutoff ``wn`` (cached)."""
-    return _signal.butter(4, wn, output="sos")
-
-
 def _two_periods(seg: np.ndarray, T_s: float, f_d: float) -> np.ndarray | None:
     """``seg`` resampled to 64 samples per period of ``f_d``: the first two periods (128,)."""
     P = STRUCT_SAMPLES_PER_PERIOD
@@ -183,7 +176,7 @@ def _two_periods(seg: np.ndarray, T_s: float, f_d: float) -> np.ndarray | None:
     # only the first two periods (plus a margin for the filters' edges) are needed
     x, rate = seg[: min(seg.size, int(math.ceil(2.0 / (f_d * T_s))) + 32)], fs
     if fs / f_d > 2 * P and x.size > 27:
-        x = _signal.sosfiltfilt(_butter_sos(round(min(0.9, 2 * 30 * f_d / fs), 3)), x)
+        x = _signal.sosfiltfilt(butter_sos(round(min(0.9, 2 * 30 * f_d / fs), 3)), x)
     elif fs / f_d < P:
         u = int(math.ceil(P * f_d / fs))
         x = _signal.resample_poly(x, u, 1)

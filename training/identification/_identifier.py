@@ -27,7 +27,7 @@ from sim import STRUCTURE_CLASSES, Record, class_index, two_mass_derived
 from training.config import blas_threads, checkpoints_folder
 from training.errors import one_line
 from training.identification._analysis import FEATURE_NAMES, Analysis, analyze
-from training.identification._batch import CHUNK, analysis_outcome, file_outcomes
+from training.identification._batch import analysis_outcome, answered_files
 from training.identification._envelope import Envelope, Finding, envelope_warnings, trained_envelope
 from training.identification._limits import (BACKLASH_NEGLIGIBLE, backlash_resolution, implausible, impossible,
                                              travel)
@@ -131,23 +131,15 @@ class Identifier:
     def iter_files(self, paths: Iterable[str | os.PathLike[str]], *, jobs: int | None = 1,
                    progress: Callable[[int], object] | None = None) -> Iterator[Outcome]:
         """One outcome per path, in the order given (``record`` = the path as given), as they are
-        done: records are read and analysed one by one (in ``jobs`` forked worker processes when
-        ``jobs > 1``; ``None``: 1 for fewer than 8 records, else up to 2), then recalled and refined
-        in batches of :data:`CHUNK`. ``progress`` is called with 1 per record analysed.
+        done: records are read and analysed, then recalled and refined in batches of
+        :data:`CHUNK`; with ``jobs > 1`` whole batches run in ``jobs`` forked worker processes
+        (``None``: 1 for fewer than 16 records, else up to 2), with the same outcomes.
+        ``progress`` is called with the number of records done as they are.
 
         A record that cannot be read, analysed or recalled gets an :class:`IdentificationFailure`
         (an unexpected exception is named as such: ``"unexpected TypeError in the analysis: ..."``);
         the others are still answered."""
-        names = [str(p) for p in paths]
-        chunk: list[tuple[str, Analysis | IdentificationFailure]] = []
-        for name, item in zip(names, file_outcomes(names, jobs)):
-            chunk.append((name, item))
-            if progress is not None:
-                progress(1)
-            if len(chunk) >= CHUNK:
-                yield from self._recall_chunk(chunk)
-                chunk = []
-        yield from self._recall_chunk(chunk)
+        return answered_files([str(p) for p in paths], jobs, self._recall_chunk, progress)
 
     def identify_analyses(self, analyses: Sequence[Analysis]) -> list[IdentificationResult]:
         """Recall all maps for a batch of analysed records (one tensor computation per map), then

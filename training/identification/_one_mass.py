@@ -41,7 +41,8 @@ elastic oscillation and little else.
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
+from functools import lru_cache
 from typing import Any
 
 import numpy as np
@@ -109,8 +110,14 @@ def _lowpass(x: np.ndarray, cutoff: float, T_s: float, order: int = 4) -> np.nda
     wn = 2.0 * cutoff * T_s
     if wn >= 0.99 or x.size < 3 * (2 * order + 1):
         return x.copy()
-    sos = _signal.butter(order, wn, output="sos")
-    return _signal.sosfiltfilt(sos, x)
+    return _signal.sosfiltfilt(butter_sos(wn, order), x)
+
+
+@lru_cache(maxsize=1024)
+def butter_sos(wn: float, order: int = 4) -> np.ndarray:
+    """Butterworth low-pass sections of ``order`` at normalized cutoff ``wn`` (cached: the design
+    costs more than filtering a record)."""
+    return _signal.butter(order, wn, output="sos")
 
 
 def speed_from_position(position: Any, T_s: float, cutoff: float | None = None) -> np.ndarray:
@@ -196,37 +203,93 @@ def _residual_frequency(r: np.ndarray, bounds: list[tuple[int, int]], T_s: float
     return float(np.median(out)) if out else 0.0
 
 
-def _osc_columns(bounds: list[tuple[int, int]], T_s: float, f: float, d: float) -> np.ndarray:
-    """Damped sin/cos at ``f`` [Hz], relative damping ``d``, restarted per section: ``(sum N_k, 2K)``."""
-    n_tot = sum(b - a for a, b in bounds)
-    out = np.zeros((n_tot, 2 * len(bounds)))
+def _osc_pairs(bounds: list[tuple[int, int]], T_s: float, f: float, ds: tuple[float, ...]) -> list[np.ndarray]:
+    """Damped sin/cos at ``f`` [Hz], one pair per relative damping in ``ds``, restarted per section,
+    the sections laid end to end: ``(sum N_k, 2)`` each (each section's pair is its own two regressors)."""
+    tt = np.concatenate([np.arange(b - a) for a, b in bounds]) * T_s
     w_d = 2 * np.pi * f
-    sigma = d * w_d / np.sqrt(1 - d * d)
-    pos = 0
-    for k, (a, b) in enumerate(bounds):
-        tt = np.arange(b - a) * T_s
-        env = np.exp(-sigma * tt)
-        out[pos:pos + b - a, 2 * k] = env * np.sin(w_d * tt)
-        out[pos:pos + b - a, 2 * k + 1] = env * np.cos(w_d * tt)
-        pos += b - a
-    return out
+    sin_cos = np.stack([np.sin(w_d * tt), np.cos(w_d * tt)], axis=1)
+    return [np.exp(-(d * w_d / np.sqrt(1 - d * d)) * tt)[:, None] * sin_cos for d in ds]
+
+
+@dataclass(frozen=True)
+class _SectionDesign:
+    """The trajectory fit's regressors by their structure, the sections' rows laid end to end: dense
+    columns ``D`` ``(n, p)``, one constant per section (``K`` columns) and, with ``O`` ``(n, 2)``, a
+    damped sin/cos pair per section (``2K`` columns, sin and cos of section ``k`` at ``p + K + 2k``).
+    Its Gram matrix and products skip the zeros of the dense ``n x (p + 3K)`` matrix."""
+
+    D: np.ndarray
+    lengths: np.ndarray  # K: rows per section
+    O: np.ndarray | None = None
+
+    @property
+    def starts(self) -> np.ndarray:
+        return np.concatenate([[0], np.cumsum(self.lengths)[:-1]])
+
+    @property
+    def width(self) -> int:
+        return self.D.shape[1] + len(self.lengths) * (1 if self.O is None else 3)
+
+    def _blocks(self, v: np.ndarray) -> np.ndarray:
+        """Per-section sums of ``v`` ``(n, ...)`` -> ``(K, ...)``."""
+        return np.add.reduceat(v, self.starts, axis=0)
+
+    def gram(self) -> np.ndarray:
+        """``X^T X`` ``(m, m)``."""
+        p, K = self.D.shape[1], len(self.lengths)
+        G = np.zeros((self.width, self.width))
+        G[:p, :p] = self.D.T @ self.D
+        G[:p, p:p + K] = self._blocks(self.D).T
+        G[p:p + K, p:p + K] = np.diag(self.lengths.astype(np.float64))
+        if self.O is not None:
+            o = p + K + 2 * np.arange(K)  # the sin column of each section
+            for j in range(2):
+                G[:p, o + j] = self._blocks(self.D * self.O[:, j:j + 1]).T
+                G[p + np.arange(K), o + j] = self._blocks(self.O[:, j])
+                for i in range(2):
+                    G[o + i, o + j] = self._blocks(self.O[:, i] * self.O[:, j])
+        upper = np.triu(G, 1)
+        return np.triu(G) + upper.T
+
+    def rmatvec(self, y: np.ndarray) -> np.ndarray:
+        """``X^T y`` ``(m,)``."""
+        parts = [self.D.T @ y, self._blocks(y)]
+        if self.O is not None:
+            parts.append(self._blocks(self.O * y[:, None]).reshape(-1))  # K x 2 -> sin, cos per section
+        return np.concatenate(parts)
+
+    def matvec(self, theta: np.ndarray) -> np.ndarray:
+        """``X theta`` ``(n,)``."""
+        p, K = self.D.shape[1], len(self.lengths)
+        out = self.D @ theta[:p] + np.repeat(theta[p:p + K], self.lengths)
+        if self.O is not None:
+            sc = theta[p + K:].reshape(K, 2)
+            out += (self.O * np.repeat(sc, self.lengths, axis=0)).sum(1)
+        return out
 
 
 def _lstsq(X: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
-    """Column-scaled least squares; returns parameters, their std, rms residual.
+    """Column-scaled least squares of a dense ``X``: :func:`_lstsq_normal`."""
+    return _lstsq_normal(X.T @ X, X.T @ y, y, lambda theta: X @ theta)
 
-    Normal equations of the unit-norm columns, factored by Cholesky (``R^T R = X^T X``, the R of
-    a QR of ``X``): half the flops of Householder QR on these tall matrices and, with the columns
-    scaled, accurate to ~1e-8 relative in float64 for the condition numbers met here."""
-    scale = np.sqrt(np.sum(X * X, axis=0))
+
+def _lstsq_normal(G: np.ndarray, b: np.ndarray, y: np.ndarray,
+                  predict: Callable[[np.ndarray], np.ndarray]) -> tuple[np.ndarray, np.ndarray, float]:
+    """Column-scaled least squares from the normal equations ``G = X^T X``, ``b = X^T y``
+    (``predict(theta) = X theta``); returns parameters, their std, rms residual.
+
+    The normal equations of the unit-norm columns, factored by Cholesky (``R^T R``, the R of a QR
+    of the scaled ``X``): half the flops of Householder QR on these tall matrices and, with the
+    columns scaled, accurate to ~1e-8 relative in float64 for the condition numbers met here."""
+    scale = np.sqrt(np.diag(G)).copy()
     scale[scale == 0] = 1.0
-    Xs = X / scale
-    p = Xs.shape[1]
-    if Xs.shape[0] < p:
-        raise ValueError(f"one-mass fit: expected at least {p} rows, received {Xs.shape[0]}")
-    G = Xs.T @ Xs  # p x p
+    Gs = G / np.outer(scale, scale)
+    p = Gs.shape[1]
+    if y.size < p:
+        raise ValueError(f"one-mass fit: expected at least {p} rows, received {y.size}")
     try:
-        R = np.linalg.cholesky(G).T  # upper
+        R = np.linalg.cholesky(Gs).T  # upper
         d = np.abs(np.diag(R))
         rank = int(np.sum(d > 1e-7 * max(float(d.max(initial=0.0)), 1e-300)))
     except np.linalg.LinAlgError:
@@ -237,11 +300,9 @@ def _lstsq(X: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]
             f"{'a rank-deficient regressor' if rank < 0 else f'rank {rank}'}; "
             "the speed must change sign or vary enough to separate inertia, friction and offset "
             "(try offset=False)")
-    theta_s = np.linalg.solve(G, Xs.T @ y)
-    theta = theta_s / scale
-    r = y - X @ theta
-    dof = max(1, X.shape[0] - X.shape[1])
-    sigma2 = float(r @ r) / dof
+    theta = np.linalg.solve(Gs, b / scale) / scale
+    r = y - predict(theta)
+    sigma2 = float(r @ r) / max(1, y.size - p)
     Rinv = np.linalg.inv(R)
     std = np.sqrt(sigma2 * np.sum(Rinv * Rinv, axis=1)) / scale
     return theta, std, float(np.sqrt(np.mean(r * r)))
@@ -257,13 +318,14 @@ UNINFORMATIVE_RESIDUAL = 0.5
 _PARAMETERS = ("J_sigma", "mu_F", "M_FC", "M_0")
 
 
-def _trust_warnings(X: np.ndarray, n_par: int, rel: float) -> tuple[IdentWarning, ...]:
-    """Reasons to distrust any formulation's fit with regressors ``X`` (the first ``n_par`` columns
-    carry ``J_sigma, mu_F, M_FC, M_0``): collinear regressors, a residual near the signal's rms."""
-    scale = np.sqrt(np.sum(X * X, axis=0))
-    Xs = X / np.where(scale > 0, scale, 1.0)
+def _trust_warnings(G: np.ndarray, n_par: int, rel: float) -> tuple[IdentWarning, ...]:
+    """Reasons to distrust any formulation's fit with regressors of Gram matrix ``G = X^T X`` (the
+    first ``n_par`` columns carry ``J_sigma, mu_F, M_FC, M_0``): collinear regressors, a residual
+    near the signal's rms."""
+    scale = np.sqrt(np.diag(G))
+    scale = np.where(scale > 0, scale, 1.0)
     try:
-        inflation = np.diag(np.linalg.inv(Xs.T @ Xs))[:n_par]
+        inflation = np.diag(np.linalg.inv(G / np.outer(scale, scale)))[:n_par]
     except np.linalg.LinAlgError:
         inflation = np.full(n_par, np.inf)
     out = []
@@ -360,23 +422,19 @@ def _fit_integral(s: _Signals, opt: _Options) -> _Estimate:
     J_sigma, mu_F, M_FC, M_0, std_t = _inverse_inertia_values(theta, std, s.n_par, -1.0)
     rel = rms / max(float(np.sqrt(np.mean(y * y))), 1e-300)
     return _Estimate(J_sigma, mu_F, M_FC, M_0, std_t, rel, int(X.shape[0]), s.sgn,
-                     warnings=_trust_warnings(X, s.n_par, rel))
+                     warnings=_trust_warnings(X.T @ X, s.n_par, rel))
 
 
-def _trajectory_rows(s: _Signals, sgn: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _trajectory_rows(s: _Signals, sgn: np.ndarray) -> tuple[_SectionDesign, np.ndarray]:
     """Regressors and speeds of the output error per section:
-    ``w(t) = w0_k + (1/J) int_{t_k}^t (M - mu_F w - M_FC sgn - M_0) dt``."""
-    T_s, n, K = s.T_s, s.w.size, len(s.bounds)
+    ``w(t) = w0_k + (1/J) int_{t_k}^t (M - mu_F w - M_FC sgn - M_0) dt`` (``w0_k``: the section's constant)."""
+    T_s, n = s.T_s, s.w.size
     C_M, C_w, C_1, C_s = _cumint(s.M, T_s), _cumint(s.w, T_s), np.arange(n) * T_s, _cumint(sgn, T_s)
-    rows_X, rows_y = [], []
-    for k, (a0, b0) in enumerate(s.bounds):
-        e = np.zeros((b0 - a0, K))
-        e[:, k] = 1.0
-        cols = np.stack([C_M[a0:b0] - C_M[a0], -(C_w[a0:b0] - C_w[a0]), -(C_s[a0:b0] - C_s[a0]),
-                         -(C_1[a0:b0] - C_1[a0])], axis=1)[:, :s.n_par]
-        rows_X.append(np.concatenate([cols, e], axis=1))
-        rows_y.append(s.w[a0:b0])
-    return np.concatenate(rows_X), np.concatenate(rows_y)
+    idx = np.concatenate([np.arange(a0, b0) for a0, b0 in s.bounds])  # the sections' samples, end to end
+    first = np.repeat([a0 for a0, _ in s.bounds], [b0 - a0 for a0, b0 in s.bounds])  # each row's section start
+    D = np.stack([C_M[idx] - C_M[first], -(C_w[idx] - C_w[first]), -(C_s[idx] - C_s[first]),
+                  -(C_1[idx] - C_1[first])], axis=1)[:, :s.n_par]  # n x n_par
+    return _SectionDesign(D, np.array([b0 - a0 for a0, b0 in s.bounds])), s.w[idx]
 
 
 def _fit_trajectory(s: _Signals, opt: _Options) -> _Estimate:
@@ -389,27 +447,28 @@ def _fit_trajectory(s: _Signals, opt: _Options) -> _Estimate:
     sgn, f_osc, d_osc = s.sgn, 0.0, 0.0
     for _pass in range(2):
         X, y = _trajectory_rows(s, sgn)
-        n_lin = X.shape[1]
+        G = X.gram()
         w_model = np.array(s.w_lp)
         if _pass == 1 and f_osc > 0:
             best = None
-            for d_try in (0.0, 0.03, 0.1):
-                Xo = np.concatenate([X, _osc_columns(s.bounds, s.T_s, f_osc, d_try)], axis=1)
-                th_o, sd_o, rms_o = _lstsq(Xo, y)
+            tries = (0.0, 0.03, 0.1)
+            for d_try, O in zip(tries, _osc_pairs(s.bounds, s.T_s, f_osc, tries)):
+                Xo = replace(X, O=O)
+                th_o, sd_o, rms_o = _lstsq_normal(Xo.gram(), Xo.rmatvec(y), y, Xo.matvec)
                 if best is None or rms_o < best[2]:
                     best = (th_o, sd_o, rms_o, d_try)
             theta, std, rms, d_osc = best
-            w_model[idx] = X @ theta[:n_lin]
+            w_model[idx] = X.matvec(theta[:X.width])
         else:
-            theta, std, rms = _lstsq(X, y)
-            w_model[idx] = X @ theta
+            theta, std, rms = _lstsq_normal(G, X.rmatvec(y), y, X.matvec)
+            w_model[idx] = X.matvec(theta)
             if opt.oscillation:
                 f_osc = _residual_frequency(y - w_model[idx], s.bounds, s.T_s)
         sgn = np.where(np.abs(w_model) > s.dead, np.sign(w_model), 0.0)
     J_sigma, mu_F, M_FC, M_0, std_t = _inverse_inertia_values(theta, std, s.n_par, 1.0)
     rel = rms / max(float(np.sqrt(np.mean((y - y.mean()) ** 2))), 1e-300)
-    return _Estimate(J_sigma, mu_F, M_FC, M_0, std_t, rel, int(X.shape[0]), sgn, f_osc, d_osc,
-                     _trajectory_warnings(rel, f_osc, s.bounds, s.T_s) + _trust_warnings(X, s.n_par, rel))
+    return _Estimate(J_sigma, mu_F, M_FC, M_0, std_t, rel, int(y.size), sgn, f_osc, d_osc,
+                     _trajectory_warnings(rel, f_osc, s.bounds, s.T_s) + _trust_warnings(G, s.n_par, rel))
 
 
 def _trajectory_warnings(rel: float, f_osc: float, bounds: list[tuple[int, int]],
@@ -443,7 +502,7 @@ def _fit_derivative(s: _Signals, opt: _Options) -> _Estimate:
     std_t = tuple(float(v) for v in std) + ((0.0,) if s.n_par == 3 else ())
     rel = rms / max(float(np.sqrt(np.mean(y * y))), 1e-300)
     return _Estimate(J_sigma, mu_F, M_FC, M_0, std_t, rel, int(X.shape[0]), s.sgn,
-                     warnings=_trust_warnings(X, s.n_par, rel))
+                     warnings=_trust_warnings(X.T @ X, s.n_par, rel))
 
 
 #: The formulations of :func:`fit_one_mass` (see the module docstring), by ``method`` name.
@@ -499,7 +558,7 @@ def _smooth_response(s: _Signals, est: _Estimate, section_drift: bool) -> tuple[
         cols = [np.ones(b - a)] + ([tt / est.J_sigma] if section_drift and b - a > 2 else [])
         A = np.stack(cols, axis=1)
         # the oscillation's sin/cos take part in the fit (so the drift cannot absorb it) but not in w_bar
-        extra = (_osc_columns([(a, b)], T_s, est.f_osc, est.d_osc) if est.f_osc > 0 and b - a > 8
+        extra = (_osc_pairs([(a, b)], T_s, est.f_osc, (est.d_osc,))[0] if est.f_osc > 0 and b - a > 8
                  else np.zeros((b - a, 0)))
         coef, *_ = np.linalg.lstsq(np.concatenate([A, extra], axis=1), w[a:b] - base, rcond=None)
         coef = coef[:A.shape[1]]

@@ -46,7 +46,7 @@ SPEED_RATIO = (0.3, 3.0)  # peak |speed| over w_max (above: beyond the overshoot
 _ACCEL_WINDOW = 8  # samples over which the acceleration is measured
 J_RANGE = (1e-7, 1e4)  # plausible one-mass inertia [kg m^2]
 _MIN_CORRELATION = 0.5  # |correlation| of torque integral and speed change needed to judge the inertia
-_QUANTIZED_SHARE = 0.99  # share of nonzero speed samples on a quantum grid to call the speed quantized
+QUANTIZED_SHARE = 0.99  # share of nonzero speed samples on a quantum grid to call the speed quantized
 
 
 def check_record(record: Record) -> None:
@@ -149,7 +149,7 @@ def _check_speed_scale(speed: np.ndarray, T_s: float, meta: dict[str, Any]) -> N
                          f"w_max = {float(w_max):.4g} rad/s, expected {lo:g}..{hi:g} x{guess})")
 
 
-def _on_grid(x: np.ndarray, quantum: float) -> float:
+def on_grid(x: np.ndarray, quantum: float) -> float:
     """Share of ``x`` within rounding of an integer multiple of ``quantum`` (float32 speeds included;
     at most 0.01 quanta off, so that huge multiples do not pass by their relative rounding)."""
     u = x / quantum
@@ -164,10 +164,10 @@ def _check_speed_quantum(speed: np.ndarray, T_s: float, meta: dict[str, Any]) ->
     if x.size < 32:
         return
     q_w = speed_quantum(float(counts), T_s)
-    if _on_grid(x, q_w) >= 0.9:
+    if on_grid(x, q_w) >= 0.9:
         return  # quantized in rad/s, or not quantized at all (filtered speed): nothing to say
     for unit, factor in _speed_units(meta, T_s).items():
-        if _on_grid(x, q_w * factor) >= _QUANTIZED_SHARE:
+        if on_grid(x, q_w * factor) >= QUANTIZED_SHARE:
             raise ValueError(f"speed looks like wrong units (its values are multiples of {q_w * factor:.6g}, the "
                              f"encoder's speed quantum 2*pi/(encoder_counts*T_s) = {q_w:.6g} rad/s in {unit}; "
                              f"expected rad/s)")

@@ -17,6 +17,7 @@ reproduces the record worse than the maps' own answer.
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -153,16 +154,15 @@ def torque_reference(bounds: np.ndarray, M_star: float) -> tuple[np.ndarray, np.
 
 def _detrend_basis(segments: np.ndarray) -> list[tuple[int, int, torch.Tensor]]:
     """Per segment ``(a, b, Q)``: orthonormal ``L x 3`` basis of the quadratic trends on it."""
-    out = []
-    for a, b in np.asarray(segments, dtype=np.int64).tolist():
-        L = b - a
-        if L < 1:
-            continue
-        tau = np.linspace(-1.0, 1.0, L)
-        V = np.stack([np.ones(L), tau, tau * tau], axis=1)[:, : min(3, L)]  # L x 3
-        Q, _ = np.linalg.qr(V)
-        out.append((a, b, torch.as_tensor(Q, dtype=torch.float64)))
-    return out
+    return [(a, b, _trend_basis(b - a)) for a, b in np.asarray(segments, dtype=np.int64).tolist() if b > a]
+
+
+@functools.lru_cache(maxsize=4096)
+def _trend_basis(L: int) -> torch.Tensor:
+    """Orthonormal ``L x min(3, L)`` basis of the polynomials of degree < 3 on ``L`` samples."""
+    tau = np.linspace(-1.0, 1.0, L)
+    V = np.stack([np.ones(L), tau, tau * tau], axis=1)[:, : min(3, L)]  # L x 3
+    return torch.as_tensor(np.linalg.qr(V)[0], dtype=torch.float64)
 
 
 def _detrended_energy(E: torch.Tensor, basis: list[tuple[int, int, torch.Tensor]]) -> torch.Tensor:
@@ -227,23 +227,38 @@ def _score(p: RefineProblem, theta: np.ndarray, basis: list, drive: sim.DriveCon
     return _detrended_energy(_simulate(p, theta, drive), basis).numpy()
 
 
-def _score_shape(p: RefineProblem, theta: np.ndarray, windows: np.ndarray, basis: list,
+@dataclass(frozen=True)
+class _ScoreWindows:
+    """What the exploration score needs of a record's ``windows`` ``(J, 2)``, computed once: the
+    measured speed ``y`` over them laid end to end (``sum L_j``), the block-diagonal orthonormal
+    basis ``B`` ``(sum L_j, 3J)`` of each window's quadratic trend, and ``y`` detrended (``y_r``)."""
+
+    windows: np.ndarray
+    y: torch.Tensor
+    B: torch.Tensor
+    y_r: torch.Tensor
+
+    @classmethod
+    def of(cls, p: RefineProblem, windows: np.ndarray) -> "_ScoreWindows":
+        y = torch.cat([torch.as_tensor(p.speed[a:b], dtype=torch.float64) for a, b in windows.tolist()])
+        basis = _window_basis(windows)
+        B = torch.zeros(y.numel(), sum(Q.shape[1] for _, _, Q in basis), dtype=torch.float64)
+        col = 0
+        for a, b, Q in basis:
+            B[a:b, col:col + Q.shape[1]] = Q
+            col += Q.shape[1]
+        return cls(windows, y, B, y - B @ (B.T @ y))
+
+
+def _score_shape(p: RefineProblem, theta: np.ndarray, w: _ScoreWindows,
                  drive: sim.DriveConfig) -> tuple[np.ndarray, np.ndarray]:
-    """The exploration score over the ``windows``: the detrended error after the best gain ``g``
+    """The exploration score over the windows ``w``: the detrended error after the best gain ``g``
     on each candidate's detrended speed, ``||y||^2 - <y, x>^2 / ||x||^2`` (``y`` measured, ``x``
     model), and ``theta`` with ``V_J`` scaled by ``g`` (eq. 1: the oscillation is about
-    proportional to ``V_J``). ``basis``: :func:`_window_basis` of the windows."""
-    y = torch.cat([torch.as_tensor(p.speed[a:b], dtype=torch.float64) for a, b in windows.tolist()])
-    X = _simulate_windows(p, theta, windows, drive) + y  # C x sum(L_j): the model speeds
-    xy = torch.zeros(X.shape[0], dtype=torch.float64)
-    xx = torch.zeros(X.shape[0], dtype=torch.float64)
-    yy = torch.zeros((), dtype=torch.float64)
-    for a, b, Q in basis:
-        xr = X[:, a:b] - (X[:, a:b] @ Q) @ Q.T  # C x L, detrended
-        yr = y[a:b] - Q @ (Q.T @ y[a:b])
-        xy += xr @ yr
-        xx += (xr * xr).sum(-1)
-        yy += yr @ yr
+    proportional to ``V_J``)."""
+    X = _simulate_windows(p, theta, w.windows, drive) + w.y  # C x sum(L_j): the model speeds
+    X_r = X - (X @ w.B) @ w.B.T  # C x sum(L_j), each window detrended
+    xy, xx, yy = X_r @ w.y_r, (X_r * X_r).sum(-1), w.y_r @ w.y_r
     gain = torch.where(xx > 0, xy / xx.clamp(min=1e-300), torch.zeros_like(xx))
     cost = (yy - torch.where(xx > 0, xy * xy / xx.clamp(min=1e-300), torch.zeros_like(xx))).clamp(min=0.0)
     cost = torch.where(gain > 0, cost, yy.expand_as(cost))  # an inverted oscillation is no match
@@ -364,8 +379,8 @@ def _explore(p: RefineProblem, config: RefineConfig, rng: np.random.Generator) -
     theta0 = np.clip(np.asarray(p.theta, dtype=np.float64), _LOW, _HIGH)
     period = 1.0 / (10.0 ** theta0[0] * p.T_s)  # samples per period at the start's f_e
     short = _windows(p.segments, max(8, int(round(min(config.window_periods * period, config.window_max / p.T_s)))))
-    basis = _window_basis(short)
-    explore = lambda th: _score_shape(p, th, short, basis, drive)  # noqa: E731
+    windows = _ScoreWindows.of(p, short)
+    explore = lambda th: _score_shape(p, th, windows, drive)  # noqa: E731
     grid = np.repeat(theta0[None], config.grid_f_e * len(config.grid_s_N), axis=0)  # G x 4
     grid[:, 0] += np.repeat(np.linspace(-config.grid_span, config.grid_span, config.grid_f_e), len(config.grid_s_N))
     grid[:, 3] = np.tile([math.log10(v) if v > 0 else theta0[3] for v in config.grid_s_N], config.grid_f_e)

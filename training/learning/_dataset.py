@@ -26,7 +26,7 @@ import numpy as np
 import torch
 
 from sim import (DERIVED_NAMES, PARAM_NAMES, STRUCTURE_CLASSES, DriveConfig, PopulationRanges, TestSignalConfig,
-                 TwoMassParams, iter_records, sample_population)
+                 TwoMassParams, default_substeps, iter_records, sample_population)
 from som_torch import atomic_write
 from training._distributed import process_group
 from training._pool import worker_pool
@@ -117,23 +117,43 @@ def _bounds(config: GenerateConfig, k: int) -> tuple[int, int]:
     return k * config.shard_size, min(config.n, (k + 1) * config.shard_size)
 
 
+#: Systems per worker task: a worker simulates and analyses them (parameters in, features out; a
+#: record never crosses a process boundary).
+TASK_SYSTEMS = 16
+
+
+def _task(sub: TwoMassParams, config: GenerateConfig, substeps: int, seed: int) -> dict[str, np.ndarray]:
+    """Features, estimates, truth and ok of the systems ``sub`` (flat ``m``), simulated with
+    ``substeps`` and current noise seeded ``seed + i`` for system ``i``."""
+    records = sorted(iter_records(sub, config.drive, config.signal, seed=seed, substeps=substeps),
+                     key=lambda r: int(r.name[3:]))  # iter_records yields duration-sorted groups
+    m = len(records)
+    out = {"features": np.zeros((m, len(FEATURE_NAMES))), "estimate": np.full((m, len(ESTIMATE_NAMES)), np.nan),
+           "truth": np.stack([_truth_row(r.meta["truth"], config.drive) for r in records]),
+           "ok": np.zeros(m, dtype=bool)}
+    for i, record in enumerate(records):
+        res = _analyze_one(record)
+        if res is not None:
+            out["features"][i], out["estimate"][i], out["ok"][i] = res[0], res[1], True
+    return out
+
+
 def _shard(k: int, params: TwoMassParams, config: GenerateConfig, pool: Any,
            progress: Callable[[int], None] | None) -> dict[str, np.ndarray]:
-    """The arrays of shard ``k``: a function of ``config`` and ``k`` alone (noise seeded per system)."""
+    """The arrays of shard ``k``: a function of ``config`` and ``k`` alone (the shard's own substeps,
+    noise seeded per system), whatever the workers and their tasks."""
     lo, hi = _bounds(config, k)
     sub = params[torch.arange(lo, hi)]
-    records = list(iter_records(sub, config.drive, config.signal, seed=config.seed * 1_000_003 + lo))
-    records.sort(key=lambda r: int(r.name[3:]))  # iter_records yields duration-sorted groups
-    F = np.zeros((hi - lo, len(FEATURE_NAMES)))
-    E = np.full((hi - lo, len(ESTIMATE_NAMES)), np.nan)
-    T = np.stack([_truth_row(r.meta["truth"], config.drive) for r in records])
-    ok = np.zeros(hi - lo, dtype=bool)
-    for i, res in enumerate(pool.map(_analyze_one, records, chunksize=8)):
-        if res is not None:
-            F[i], E[i], ok[i] = res[0], res[1], True
+    substeps = default_substeps(sub, config.drive)
+    seed = config.seed * 1_000_003 + lo
+    starts = range(0, hi - lo, TASK_SYSTEMS)
+    parts = []
+    for part in pool.map(_task, [sub[torch.arange(j, min(j + TASK_SYSTEMS, hi - lo))] for j in starts],
+                         [config] * len(starts), [substeps] * len(starts), [seed + j for j in starts]):
+        parts.append(part)
         if progress:
-            progress(1)
-    return {"features": F, "estimate": E, "truth": T, "ok": ok}
+            progress(len(part["ok"]))
+    return {name: np.concatenate([part[name] for part in parts]) for name in parts[0]}
 
 
 def generate(out_dir: str | os.PathLike[str], config: GenerateConfig, *, workers: int | None = None,

@@ -165,6 +165,16 @@ def test_jobs_give_the_same_answers(records, capsys):
     assert capsys.readouterr().out == one
 
 
+def test_worker_processes_give_the_same_outcomes(records):
+    """Whole batches of records in forked workers (3 batches here) answer as one process does."""
+    from training.identification import CHUNK, Identifier
+
+    ident = Identifier.load()
+    paths = [str(records / n) for n in ("good.csv", "constant.csv", "speed_in_rpm")] * CHUNK
+    one = [r.to_dict() for r in ident.identify_files(paths, jobs=1)]
+    assert [r.to_dict() for r in ident.identify_files(paths, jobs=2)] == one
+
+
 def test_out_is_atomic_and_not_overwritten(records, tmp_path, capsys):
     out = tmp_path / "res.jsonl"
     good = str(records / "good.csv")

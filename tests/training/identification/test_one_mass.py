@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from test_sections import simulate_switching
-from training.identification._one_mass import OneMassFit, fit_one_mass, speed_from_position
+from training.identification._one_mass import OneMassFit, _osc_pairs, _SectionDesign, fit_one_mass, speed_from_position
 from training.identification._sections import detect_sections
 
 EMPS_REF = {"J_sigma": 95.1089, "mu_F": 203.5034, "M_FC": 20.3935}
@@ -210,3 +210,23 @@ def test_integration_with_sim_records(tmp_path):
     assert fit.J_sigma == pytest.approx(0.04, rel=0.03)
     assert fit.M_FC == pytest.approx(0.25, abs=0.05)
     assert not fit.warnings
+
+
+def test_section_design_equals_its_dense_matrix() -> None:
+    """The trajectory fit's structured Gram matrix and products equal those of the dense regressor
+    matrix built independently (dense columns, a 0/1 column per section, a sin/cos pair per section)."""
+    rng = np.random.default_rng(0)
+    bounds = [(0, 50), (60, 130), (130, 171)]
+    lengths = np.array([b - a for a, b in bounds])
+    n, K = int(lengths.sum()), len(bounds)
+    D, y, O = rng.standard_normal((n, 4)), rng.standard_normal(n), _osc_pairs(bounds, 1e-3, 37.0, (0.05,))[0]
+    E, Oc = np.zeros((n, K)), np.zeros((n, 2 * K))
+    for k, (a, L) in enumerate(zip(np.cumsum(lengths) - lengths, lengths)):
+        E[a:a + L, k] = 1.0
+        Oc[a:a + L, 2 * k:2 * k + 2] = O[a:a + L]
+    for design, X in ((_SectionDesign(D, lengths), np.hstack([D, E])),
+                      (_SectionDesign(D, lengths, O), np.hstack([D, E, Oc]))):
+        theta = rng.standard_normal(X.shape[1])
+        np.testing.assert_allclose(design.gram(), X.T @ X, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(design.rmatvec(y), X.T @ y, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(design.matvec(theta), X @ theta, rtol=0, atol=1e-12)
