@@ -41,9 +41,9 @@ def file_outcome(path: str) -> Analysis | IdentificationFailure:
 
 
 def default_jobs(n_records: int) -> int:
-    """Worker processes for ``n_records``: one for a few records, else up to 2 (the CPUs we may use;
-    under torchrun this process's share of them)."""
-    return 1 if n_records < 2 * CHUNK else min(2, process_group().cpus())
+    """Worker processes for ``n_records``: one for a few records, else one per CPU this process may
+    use (under torchrun its share of them), at most one per batch of :data:`CHUNK`."""
+    return 1 if n_records < 2 * CHUNK else min(process_group().cpus(), -(-n_records // CHUNK))
 
 
 #: A chunk's read-and-analysed records, ``(name, outcome)`` each, to their final outcomes.

@@ -5,10 +5,11 @@ Paper eq. 1 splits the motor speed into the one-mass response and an oscillating
     w_osc(s) = (V_J / J_sigma) * s / (s^2 + 2 d w_0 s + w_0^2) * M(s)
 
 For given ``(f_0, d)`` the response of the filter to the measured torque is computed exactly
-(zero-order hold of the sampled torque, :mod:`training.identification._resonance`), and the gain ``g = V_J / J_sigma`` is linear: a least
-squares over the section samples, with a constant per section as nuisance (variable
-projection). ``(f_0, d)`` are found by a coarse log-frequency scan around the spectral peak and a
-bounded refinement. For a linear elastic mechanic this recovers ``f_0``, ``d`` and ``V_J``
+(zero-order hold of the sampled torque, :mod:`training.identification._resonance`, many
+``(f_0, d)`` in one call), and the gain ``g = V_J / J_sigma`` is linear: a least squares over the
+section samples, with a constant per section as nuisance (variable projection). ``(f_0, d)`` are
+found by a coarse log-frequency scan around the spectral peak and a bounded refinement. For a
+linear elastic mechanic this recovers ``f_0``, ``d`` and ``V_J``
 (with ``J_sigma`` from STEP 2); with backlash the fit degrades and its ``r2`` says so, which the
 maps learn to use.
 """
