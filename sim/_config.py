@@ -18,9 +18,8 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
-from typing import Any
 
-from som_torch import env_threads
+from som_torch import CKernel, CLibrary, env_threads
 
 
 def c_kernel_enabled() -> bool:
@@ -43,7 +42,7 @@ def kernel_threads() -> int:
     return env_threads("TWOMASS_SIM_THREADS", "OMP_NUM_THREADS")
 
 
-def load_c_kernel(kernel: Any) -> Any:
+def load_c_kernel(kernel: CKernel) -> CLibrary | None:
     """The toolkit's C ``kernel`` (a :class:`som_torch.CKernel`) loaded with these settings (its
     :class:`som_torch.CLibrary`), or None when ``TWOMASS_NO_C_KERNEL`` is set or (after one
     warning) it cannot be built: its caller then runs its reference path."""

@@ -48,7 +48,9 @@ def parse_numbers(body: bytes, ncols: int) -> np.ndarray | None:
     lib = _load()
     if lib is None:
         return None
-    text = torch.frombuffer(bytearray(body + b"\0"), dtype=torch.int8)  # strtod stops at the NUL
+    buf = bytearray(body)
+    buf.append(0)  # strtod stops at the NUL
+    text = torch.frombuffer(buf, dtype=torch.int8)
     rows = body.count(b"\n") + 1
     out = torch.empty(rows, ncols, dtype=torch.float64)
     got = lib.function("parse_rows", torch.float64)(len(body), text, ncols, rows, out)

@@ -42,7 +42,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, replace
-from functools import lru_cache
+from functools import cached_property, lru_cache
 from typing import Any
 
 import numpy as np
@@ -223,8 +223,9 @@ class _SectionDesign:
     lengths: np.ndarray  # K: rows per section
     O: np.ndarray | None = None
 
-    @property
+    @cached_property
     def starts(self) -> np.ndarray:
+        """K: the first row of each section."""
         return np.concatenate([[0], np.cumsum(self.lengths)[:-1]])
 
     @property
@@ -267,11 +268,6 @@ class _SectionDesign:
             sc = theta[p + K:].reshape(K, 2)
             out += (self.O * np.repeat(sc, self.lengths, axis=0)).sum(1)
         return out
-
-
-def _lstsq(X: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
-    """Column-scaled least squares of a dense ``X``: :func:`_lstsq_normal`."""
-    return _lstsq_normal(X.T @ X, X.T @ y, y, lambda theta: X @ theta)
 
 
 def _lstsq_normal(G: np.ndarray, b: np.ndarray, y: np.ndarray,
@@ -418,11 +414,12 @@ def _fit_integral(s: _Signals, opt: _Options) -> _Estimate:
     X = np.stack([C_M[ib] - C_M[ia], C_w[ib] - C_w[ia], C_s[ib] - C_s[ia], C_1[ib] - C_1[ia]], axis=1)[:, :s.n_par]
     y = s.w[ib] - s.w[ia]
     # speed-increment regression: the elastic oscillation enters the dependent variable only
-    theta, std, rms = _lstsq(X, y)
+    G = X.T @ X
+    theta, std, rms = _lstsq_normal(G, X.T @ y, y, lambda th: X @ th)
     J_sigma, mu_F, M_FC, M_0, std_t = _inverse_inertia_values(theta, std, s.n_par, -1.0)
     rel = rms / max(float(np.sqrt(np.mean(y * y))), 1e-300)
     return _Estimate(J_sigma, mu_F, M_FC, M_0, std_t, rel, int(X.shape[0]), s.sgn,
-                     warnings=_trust_warnings(X.T @ X, s.n_par, rel))
+                     warnings=_trust_warnings(G, s.n_par, rel))
 
 
 def _trajectory_rows(s: _Signals, sgn: np.ndarray) -> tuple[_SectionDesign, np.ndarray]:
@@ -496,13 +493,14 @@ def _fit_derivative(s: _Signals, opt: _Options) -> _Estimate:
         raise ValueError(f"one-mass fit: expected >= {s.n_par} samples away from zero speed, received {int(use.sum())}")
     X = np.stack([acc, s.w_lp, s.sgn, np.ones(s.w.size)], axis=1)[use][:, :s.n_par]
     y = Mf[use]
-    theta, std, rms = _lstsq(X, y)
+    G = X.T @ X
+    theta, std, rms = _lstsq_normal(G, X.T @ y, y, lambda th: X @ th)
     J_sigma, mu_F, M_FC = (float(v) for v in theta[:3])
     M_0 = float(theta[3]) if s.n_par == 4 else 0.0
     std_t = tuple(float(v) for v in std) + ((0.0,) if s.n_par == 3 else ())
     rel = rms / max(float(np.sqrt(np.mean(y * y))), 1e-300)
     return _Estimate(J_sigma, mu_F, M_FC, M_0, std_t, rel, int(X.shape[0]), s.sgn,
-                     warnings=_trust_warnings(X.T @ X, s.n_par, rel))
+                     warnings=_trust_warnings(G, s.n_par, rel))
 
 
 #: The formulations of :func:`fit_one_mass` (see the module docstring), by ``method`` name.

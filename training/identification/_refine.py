@@ -241,12 +241,7 @@ class _ScoreWindows:
     @classmethod
     def of(cls, p: RefineProblem, windows: np.ndarray) -> "_ScoreWindows":
         y = torch.cat([torch.as_tensor(p.speed[a:b], dtype=torch.float64) for a, b in windows.tolist()])
-        basis = _window_basis(windows)
-        B = torch.zeros(y.numel(), sum(Q.shape[1] for _, _, Q in basis), dtype=torch.float64)
-        col = 0
-        for a, b, Q in basis:
-            B[a:b, col:col + Q.shape[1]] = Q
-            col += Q.shape[1]
+        B = torch.block_diag(*[_trend_basis(b - a) for a, b in windows.tolist() if b > a])  # sum L_j x 3J
         return cls(windows, y, B, y - B @ (B.T @ y))
 
 
@@ -271,12 +266,6 @@ def _windows(segments: np.ndarray, length: int) -> np.ndarray:
     """The first ``length`` samples of each segment ``(L, 2)``."""
     seg = np.asarray(segments, dtype=np.int64)
     return np.stack([seg[:, 0], np.minimum(seg[:, 1], seg[:, 0] + length)], axis=1)
-
-
-def _window_basis(windows: np.ndarray) -> list[tuple[int, int, torch.Tensor]]:
-    """:func:`_detrend_basis` of the ``windows`` laid end to end (as :func:`_simulate_windows` returns them)."""
-    ends = np.cumsum(windows[:, 1] - windows[:, 0])
-    return _detrend_basis(np.stack([ends - (windows[:, 1] - windows[:, 0]), ends], axis=1))
 
 
 def _level_at(p: RefineProblem, k: int) -> float:
