@@ -17,31 +17,33 @@
 #define BLK 32
 
 typedef struct {
-    REAL iJM[BLK], iJL[BLK], CF[BLK], DF[BLK], s[BLK], MFC[BLK], muF[BLK], Mext[BLK];
+    REAL iJM[BLK], iJL[BLK], CF[BLK], DF[BLK], s[BLK], ns[BLK], MFC[BLK], muF[BLK], Mext[BLK];
     REAL wM[BLK], wL[BLK], dp[BLK], MM[BLK], Mref[BLK];
     REAL cwM[BLK], cwL[BLK], cdp[BLK], cMM[BLK];  /* Kahan compensations */
     double phi[BLK], cntp[BLK];
-    /* within a substep: the mode, the next stage's state, the stage sums, the angle increment */
-    REAL stuck[BLK], sgn[BLK], fric[BLK];
+    /* within a substep: the mode (iJLf: 1/J_L, or 0 while stuck), the next stage's state, the stage
+       sums, the angle increment */
+    REAL stuck[BLK], sgn[BLK], fric[BLK], iJLf[BLK];
     REAL xwM[BLK], xwL[BLK], xdp[BLK], xMM[BLK];
     REAL sa[BLK], sb[BLK], sc[BLK], sd[BLK], sw[BLK], inc[BLK];
 } block_t;
 
-/* Shaft torque M_S = C_F e + [e != 0] D_F dw, e = dp - clamp(dp, -s, s), dw = w_M - w_L. */
+/* Shaft torque M_S = C_F e + [e != 0] D_F dw, e = dp - clamp(dp, -s, s), dw = w_M - w_L (ns = -s). */
 static inline REAL shaft(const block_t *B, int l, REAL dp, REAL dw) {
-    REAL ns = -B->s[l];
+    REAL ns = B->ns[l];
     REAL cl = dp < ns ? ns : dp;
     cl = cl > B->s[l] ? B->s[l] : cl;
     REAL e = dp - cl, Ddw = B->DF[l] * dw;  /* computed, then selected (a conditional load would be masked) */
     return B->CF[l] * e + (e != (REAL)0 ? Ddw : (REAL)0);
 }
 
-/* The right-hand side's dw_M, dw_L, dM_M given the shaft torque MS and net = MS - Mext (ddphi is dw). */
+/* The right-hand side's dw_M, dw_L, dM_M given the shaft torque MS and net = MS - Mext (ddphi is dw).
+   A stuck load's dw_L is a product with 0 (+-0, as in the torch twin; its speed is reset to +0 at the
+   end of the substep, so the states are those of a select, with no compare and select per stage). */
 static inline void rhs(const block_t *B, int l, REAL wL, REAL MM, REAL MS, REAL net, REAL iTE, REAL *a, REAL *b,
                        REAL *d) {
-    REAL bl = (net - B->fric[l] - B->muF[l] * wL) * B->iJL[l];  /* computed, then selected (as Ddw) */
     *a = (MM - MS) * B->iJM[l];
-    *b = B->stuck[l] != (REAL)0 ? (REAL)0 : bl;
+    *b = (net - B->fric[l] - B->muF[l] * wL) * B->iJLf[l];
     *d = (B->Mref[l] - MM) * iTE;
 }
 
@@ -61,6 +63,7 @@ static inline void stage1(block_t *B, int l, REAL h, REAL iTE) {
     REAL sw = (REAL)((wL > 0) - (wL < 0));
     REAL sgn = rest ? sn : sw;
     B->stuck[l] = (REAL)stuck; B->sgn[l] = sgn; B->fric[l] = B->MFC[l] * sgn;
+    B->iJLf[l] = stuck ? (REAL)0 : B->iJL[l];
     REAL a, b, d;
     rhs(B, l, wL, MM, MS, net, iTE, &a, &b, &d);
     B->sa[l] = a; B->sb[l] = b; B->sc[l] = dw; B->sd[l] = d; B->sw[l] = wM;
@@ -127,22 +130,22 @@ static inline int load_block(block_t *B, int64_t i0, int64_t n,
     int m = (int)((n - i0) < BLK ? (n - i0) : BLK);
     for (int l = 0; l < BLK; ++l) {
         int64_t i = i0 + (l < m ? l : 0);  /* pad lanes repeat lane 0 */
-        B->iJM[l] = iJM[i]; B->iJL[l] = iJL[i]; B->CF[l] = CF[i]; B->DF[l] = DF[i]; B->s[l] = s[i];
+        B->iJM[l] = iJM[i]; B->iJL[l] = iJL[i]; B->CF[l] = CF[i]; B->DF[l] = DF[i]; B->s[l] = s[i]; B->ns[l] = -s[i];
         B->MFC[l] = MFC[i]; B->muF[l] = muF[i]; B->Mext[l] = Mext[i];
         B->wM[l] = wM[i]; B->wL[l] = wL[i]; B->dp[l] = dp[i]; B->MM[l] = MM[i]; B->Mref[l] = Mref[i];
         B->phi[l] = phi[i]; B->cntp[l] = cntp[i];
-        B->cwM[l] = comp[4 * i]; B->cwL[l] = comp[4 * i + 1]; B->cdp[l] = comp[4 * i + 2]; B->cMM[l] = comp[4 * i + 3];
+        B->cwM[l] = comp[i]; B->cwL[l] = comp[n + i]; B->cdp[l] = comp[2 * n + i]; B->cMM[l] = comp[3 * n + i];
     }
     return m;
 }
 
-static inline void store_block(const block_t *B, int64_t i0, int m, REAL *wM, REAL *wL, REAL *dp, REAL *MM,
+static inline void store_block(const block_t *B, int64_t i0, int m, int64_t n, REAL *wM, REAL *wL, REAL *dp, REAL *MM,
                                REAL *Mref, double *phi, double *cntp, REAL *comp) {
     for (int l = 0; l < m; ++l) {
         int64_t i = i0 + l;
         wM[i] = B->wM[l]; wL[i] = B->wL[l]; dp[i] = B->dp[l]; MM[i] = B->MM[l]; Mref[i] = B->Mref[l];
         phi[i] = B->phi[l]; cntp[i] = B->cntp[l];
-        comp[4 * i] = B->cwM[l]; comp[4 * i + 1] = B->cwL[l]; comp[4 * i + 2] = B->cdp[l]; comp[4 * i + 3] = B->cMM[l];
+        comp[i] = B->cwM[l]; comp[n + i] = B->cwL[l]; comp[2 * n + i] = B->cdp[l]; comp[3 * n + i] = B->cMM[l];
     }
 }
 
@@ -157,7 +160,7 @@ void advance(int64_t n, int S, REAL dt, REAL h, REAL k6, REAL iTE, int nthreads,
         block_t B;
         int m = load_block(&B, b * BLK, n, iJM, iJL, CF, DF, s, MFC, muF, Mext, wM, wL, dp, MM, Mref, phi, cntp, comp);
         advance_block(&B, S, dt, h, k6, iTE);
-        store_block(&B, b * BLK, m, wM, wL, dp, MM, Mref, phi, cntp, comp);
+        store_block(&B, b * BLK, m, n, wM, wL, dp, MM, Mref, phi, cntp, comp);
     }
 }
 
@@ -240,7 +243,7 @@ int64_t run_test(int64_t n, int S, REAL dt, REAL h, REAL k6, REAL iTE, int nthre
             sec[i] = csec[l]; cnt[i] = ccnt[l]; nI[i] = cnI[l]; nIV[i] = cnIV[l]; len[i] = clen[l]; tmo[i] = ctmo[l];
             left += csec[l] < 8;
         }
-        store_block(&B, i0, m, wM, wL, dp, MM, Mref, phi, cntp, comp);
+        store_block(&B, i0, m, n, wM, wL, dp, MM, Mref, phi, cntp, comp);
     }
     return left;
 }
@@ -283,6 +286,6 @@ void run_replay(int64_t n, int S, REAL dt, REAL h, REAL k6, REAL iTE, int nthrea
             }
             advance_block(&B, S, dt, h, k6, iTE);
         }
-        store_block(&B, i0, m, wM, wL, dp, MM, Mref, phi, cntp, comp);
+        store_block(&B, i0, m, n, wM, wL, dp, MM, Mref, phi, cntp, comp);
     }
 }

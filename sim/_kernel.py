@@ -21,7 +21,7 @@ from sim import _config
 _PLANT = ("n: int64", "S: int", "dt: REAL", "h: REAL", "k6: REAL", "iTE: REAL", "nthreads: int",
           *(f"{c}: REAL[n]" for c in ("iJM", "iJL", "CF", "DF", "s", "MFC", "muF", "Mext", "wM", "wL", "dp", "MM",
                                       "Mref")),
-          "phi: double[n]", "cntp: double[n]", "comp: REAL[n, 4]")
+          "phi: double[n]", "cntp: double[n]", "comp: REAL[4, n]")
 #: The measurement constants: speed quantum and counts per radian.
 _ENCODER = ("qw: double", "scale: double")
 

@@ -76,31 +76,49 @@ class SwitchingController:
 
     Protocol: ``reset(batch_shape)``, ``step(k, w_meas) -> M_ref``; extras ``label()`` (section
     label of the reference now applied), ``finished()`` (bool ``*batch``), ``length``
-    (samples recorded once finished) and ``timed_out`` (bool ``*batch x 6``).
+    (samples recorded once finished) and ``timed_out`` (bool ``*batch x 6``). State (int32
+    ``*batch``): ``sec`` (0 before I, 1..6, 7 the tail, 8 done), ``cnt`` (samples in the section),
+    ``limit`` (the count that ends the section by time: II and V as many as I and IV lasted, the
+    tail ``n_tail``, else never), ``length``, ``tmo`` (a bit per section that timed out).
     """
 
     def __init__(self, signal: TestSignalConfig, drive: DriveConfig, dtype: torch.dtype = torch.float32):
         self.signal, self.drive, self.dtype = signal, drive, dtype
         M_star, _M_low, w_max, w_low = signal.levels(drive)
-        # the reference by section state: none before I (0), I..VI, the tail (7), done (8)
-        self._table = torch.tensor([0.0, *(v * M_star for v in SECTION_LEVELS), 0.0, 0.0], dtype=dtype)
-        self._w = tuple(torch.tensor(v, dtype=dtype) for v in (w_max, w_low))
-        self._n_timeout = signal.n_timeout(drive)
-        self._n_tail = signal.n_tail(drive)
+        n_timeout, n_tail, never = signal.n_timeout(drive), signal.n_tail(drive), torch.iinfo(torch.int32).max
+        # tables by section state: none before I (0), I..VI, the tail (7), done (8)
+        levels = torch.tensor([0.0, *(v * M_star for v in SECTION_LEVELS), 0.0, 0.0], dtype=dtype)
+        self._table = torch.clamp(levels, -drive.M_max, drive.M_max)  # the reference
+        # the speed test as one compare, sgn w >= thr (sgn = +-1: exact): I w >= w_max, II w <= w_low,
+        # III w <= 0, IV w <= -w_max, V w >= -w_low, VI w >= 0; none outside I..VI (NaN: never true)
+        w = tuple(torch.tensor(v, dtype=dtype).item() for v in (w_max, w_low))  # rounded to dtype
+        self._sgn = torch.tensor([1, 1, -1, -1, -1, 1, 1, 1, 1], dtype=dtype)
+        self._thr = torch.tensor([math.nan, w[0], -w[1], -0.0, w[0], -w[1], 0.0, math.nan, math.nan], dtype=dtype)
+        # the sample counts that end a section by time when it starts (II and V: the count at the
+        # end of I and IV, by system) or time it out
+        self._ends = torch.tensor([never] * 7 + [n_tail, never], dtype=torch.int32)
+        self._by_count = torch.tensor([False, False, True, False, False, True, False, False, False])
+        self._n_timeout = torch.tensor([never, *[n_timeout] * 6, never, never], dtype=torch.int32)
+        self._bit = torch.tensor([0, 1, 2, 4, 8, 16, 32, 0, 0], dtype=torch.int32)  # timed-out flag of I..VI
+        self._label = torch.tensor([0, 1, 2, 3, 4, 5, 6, 0, 8], dtype=torch.int8)  # the tail is labelled 0
         self.reset(())
 
     def reset(self, batch_shape: tuple[int, ...] | torch.Size) -> None:
         shape = tuple(batch_shape)
         self.sec = torch.ones(shape, dtype=torch.int32)
         self.cnt = torch.zeros(shape, dtype=torch.int32)
-        self.nI = torch.zeros(shape, dtype=torch.int32)
-        self.nIV = torch.zeros(shape, dtype=torch.int32)
+        self.limit = torch.full(shape, torch.iinfo(torch.int32).max, dtype=torch.int32)
         self.length = torch.zeros(shape, dtype=torch.int32)
         self.tmo = torch.zeros(shape, dtype=torch.int32)
 
     def label(self) -> torch.Tensor:
         """Section label (0 tail, 1..6) of the reference applied now; int8 ``*batch``."""
-        return torch.where(self.sec == 7, 0, self.sec).to(torch.int8)
+        return self._look(self._label, self.sec)
+
+    @staticmethod
+    def _look(table: torch.Tensor, q: torch.Tensor) -> torch.Tensor:
+        """``table[q]`` by ``index_select`` (advanced indexing costs five times more), shape of ``q``."""
+        return table.index_select(0, q.reshape(-1)).view(q.shape)
 
     def finished(self) -> torch.Tensor:
         return self.sec >= 8
@@ -111,28 +129,18 @@ class SwitchingController:
         return ((self.tmo.unsqueeze(-1) >> bits) & 1).bool()
 
     def step(self, k: int, w_meas: torch.Tensor) -> torch.Tensor:
+        """Sample ``k``'s decision from the measured speed ``w_meas`` (``*batch``): the reference
+        from sample ``k+1`` on. Table lookups by section state, so that every rule is one op for all
+        sections."""
         w = w_meas.to(self.dtype)
-        w_max, w_low = self._w
-        active = self.sec < 8
-        q, t = self.sec, self.cnt + 1
-        zero = torch.zeros((), dtype=self.dtype)
-        end = torch.where(q == 1, w >= w_max,
-              torch.where(q == 2, (t >= self.nI) | (w <= w_low),
-              torch.where(q == 3, w <= zero,
-              torch.where(q == 4, w <= -w_max,
-              torch.where(q == 5, (t >= self.nIV) | (w >= -w_low),
-              torch.where(q == 6, w >= zero, t >= self._n_tail))))))
-        tmo = ~end & (q <= 6) & (t >= self._n_timeout)
-        bit = torch.bitwise_left_shift(torch.ones_like(q), (q - 1).clamp(0, 30))
-        self.tmo = torch.where(active & tmo, self.tmo | bit, self.tmo)
-        end = end | tmo
-        upd = active & end
-        self.nI = torch.where(upd & (q == 1), t, self.nI)
-        self.nIV = torch.where(upd & (q == 4), t, self.nIV)
-        q_new = torch.where(upd, q + 1, q)
-        t_new = torch.where(upd, torch.zeros_like(t), t)
-        self.length = torch.where(upd & (q_new == 8), torch.full_like(t, k + 1), self.length)
-        self.sec = torch.where(active, q_new, self.sec)
-        self.cnt = torch.where(active, t_new, self.cnt)
-        M = self._table[self.sec.long()]
-        return torch.clamp(M, -self.drive.M_max, self.drive.M_max)
+        q, t, at = self.sec, self.cnt + 1, self._look
+        active = q < 8
+        end = (w * at(self._sgn, q) >= at(self._thr, q)) | (t >= self.limit)
+        tmo = (t >= at(self._n_timeout, q)) & ~end
+        self.tmo = self.tmo | at(self._bit, q) * tmo
+        end = (end | tmo) & active
+        self.cnt = (self.cnt + active) * ~end
+        self.sec = q = q + end  # the section from the next sample on
+        self.length = torch.where(end & (q == 8), k + 1, self.length)
+        self.limit = torch.where(end, torch.where(at(self._by_count, q), t, at(self._ends, q)), self.limit)
+        return at(self._table, q)

@@ -213,13 +213,15 @@ def read_record(path: str | os.PathLike[str]) -> Record:
         raise _err(csv_path, "file not found") from None
     except (OSError, UnicodeDecodeError) as err:
         raise _err(csv_path, f"cannot read ({err.__class__.__name__})") from None
-    lines = text.splitlines()
-    if not lines or not lines[0].strip():
+    # the header row: the first of text.splitlines(), without splitting the whole file
+    header = text[: text.find("\n")] if "\n" in text else text
+    header = header.splitlines()[0] if header else header
+    if not header.strip():
         raise _err(csv_path, "empty file (expected a header row)")
-    names = _parse_header(lines[0].split(","), csv_path)
-    data = parse_numbers(text[len(lines[0]):].lstrip("\r\n").encode(), len(names))
+    names = _parse_header(header.split(","), csv_path)
+    data = parse_numbers(text[len(header):].lstrip("\r\n").encode(), len(names))
     if data is None:  # no parser, or rows that are not plain numbers: numpy reads them and words the error
-        rows = [ln for ln in lines[1:] if ln.strip()]
+        rows = [ln for ln in text.splitlines()[1:] if ln.strip()]
         try:
             data = np.loadtxt(io.StringIO("\n".join(rows)), delimiter=",", dtype=np.float64, ndmin=2) if rows \
                 else np.zeros((0, len(names)))

@@ -35,7 +35,7 @@ def replay_speed(params: TwoMassParams, drive: DriveConfig, start: torch.Tensor,
     tensors ``w_M``, ``w_L``, ``dphi`` [rad/s, rad/s, rad] and ``M_M`` [Nm] (the motor angle
     starts at 0; with ``quantize=False`` sample 0 reads ``w_M``). Levels are clamped to
     ``+-drive.M_max``. ``substeps`` defaults to :func:`default_substeps`."""
-    flat = params.reshape(-1)
+    flat = params if params.J_sigma.dim() == 1 else params.reshape(-1)
     n = flat.J_sigma.numel()
     if start.ndim != 2 or level.shape != start.shape or start.shape[0] != n:
         raise ValueError(f"start, level: expected {n} x K each, received {tuple(start.shape)}, {tuple(level.shape)}")

@@ -5,11 +5,74 @@
 #endif
 #include <math.h>
 #include <stddef.h>
+#include <stdlib.h>
 
 #define EXP(x) _Generic((x), float: expf, default: exp)(x)
 /* Below this argument exp is under the smallest normal number: the neighbourhood weight is 0 there
    (the vector exp then stays on its fast path, which underflowing lanes would leave). */
 #define EXP_MIN ((REAL)(sizeof(REAL) == sizeof(float) ? -87 : -708))
+/* The first best match is searched in chunks of SCAN units (a chunk's test vectorizes). */
+#define SCAN 32
+
+enum { MOVE = 1, NEXT = 2 };  /* a component in a step: its weights move; it counts in the next distance */
+
+/* MOVE | NEXT of component c in a step: x_c present (vv: its validity, NULL: all); active and present
+   in the next sample (xn: NULL at the epoch's last step; vn its validity). */
+static inline int plan_of(int c, const REAL *vv, const REAL *xn, const REAL *vn, const REAL *ab)
+{
+    return !(vv && vv[c] == 0) * MOVE + (xn && ab[c] != 0 && !(vn && vn[c] == 0)) * NEXT;
+}
+
+#if defined(__GNUC__)  /* GCC and clang: vector extensions (else every unit takes the loops over units) */
+#if defined(__AVX__)
+#define VBYTES 32
+#else
+#define VBYTES 16
+#endif
+typedef REAL vec __attribute__((vector_size(VBYTES)));
+typedef REAL vec_u __attribute__((vector_size(VBYTES), aligned(sizeof(REAL)), may_alias));  /* any alignment */
+#define NV 4  /* vectors per block: 4 independent sums over the components hide the FMA latency */
+#define BLK (NV * (int)(VBYTES / sizeof(REAL)))
+
+/* One step on the BLK units of a block (w: its first unit's weight of component 0, rows U apart):
+   the neighbourhood weights h and the next sample's distances stay in registers while the loop runs
+   over the components, so each weight is loaded and stored once (the loops over units in som_epoch
+   load h and the distances and store the distances again for every component). Per unit the same
+   operations in the same order as those loops: the same numbers. */
+static inline __attribute__((always_inline)) void pass_block(REAL *restrict w, int U, int C,
+        const unsigned char *restrict plan, const REAL *restrict xv, const REAL *restrict xn,
+        const REAL *restrict h, REAL *restrict dist)
+{
+    vec hb[NV], db[NV];
+    for (int k = 0; k < NV; ++k) {
+        hb[k] = ((const vec_u *)h)[k];
+        db[k] = (vec){0};
+    }
+    for (int c = 0; c < C; ++c) {
+        vec_u *restrict wc = (vec_u *)(w + (size_t)c * U);
+        if (plan[c] == (MOVE | NEXT)) {
+            const REAL xc = xv[c], xnc = xn[c];
+            for (int k = 0; k < NV; ++k) {
+                vec a = wc[k];
+                a = a + hb[k] * (xc - a);
+                wc[k] = a;
+                a = xnc - a;
+                db[k] += a * a;
+            }
+        } else if (plan[c] == MOVE) {
+            const REAL xc = xv[c];
+            for (int k = 0; k < NV; ++k) wc[k] = wc[k] + hb[k] * (xc - wc[k]);
+        } else if (plan[c] == NEXT) {
+            const REAL xnc = xn[c];
+            for (int k = 0; k < NV; ++k) {
+                vec a = xnc - wc[k];
+                db[k] += a * a;
+            }
+        }
+    }
+    for (int k = 0; k < NV; ++k) ((vec_u *)dist)[k] = db[k];
+}
+#endif
 
 /* w: B x C x U (transposed weights); x, valid: N x B x C; act: B x C; d2: U x U; lr, sg: N x B;
    kind: 0 gaussian, 1 bubble, 2 cut_gaussian, 3 epanechnikov; nthreads: OpenMP threads;
@@ -17,7 +80,8 @@
    Maps are independent: the threads take one map at a time, each map's arithmetic is the same
    on any number of threads (bit-identical results). One pass over a map's weights per step: the
    update of step i also accumulates the distances of sample i+1 (known in advance) to the
-   updated weights. */
+   updated weights; blocks of BLK units (pass_block), the remaining units (and all of them where
+   the plan cannot be allocated) in loops over units, with the same numbers. */
 void som_epoch(int B, int U, int C, int N, REAL *restrict w, const REAL *restrict x,
                const REAL *restrict valid, const REAL *restrict act, const REAL *restrict d2,
                const REAL *restrict lr, const REAL *restrict sg, int kind, int nthreads,
@@ -28,6 +92,7 @@ void som_epoch(int B, int U, int C, int N, REAL *restrict w, const REAL *restric
         REAL *restrict dist = dist_all + (size_t)b * U, *restrict h = h_all + (size_t)b * U;
         REAL *restrict wb = w + (size_t)b * C * U;
         const REAL *restrict ab = act + (size_t)b * C;
+        unsigned char *plan = malloc((size_t)C);  /* per component: MOVE | NEXT (NULL: loops over units) */
         for (int u = 0; u < U; ++u) dist[u] = 0;
         {
             const REAL *restrict xv = x + (size_t)b * C;
@@ -47,6 +112,10 @@ void som_epoch(int B, int U, int C, int N, REAL *restrict w, const REAL *restric
             REAL bd = dist[0];                 /* min (vectorizes), then its first index */
             for (int u = 1; u < U; ++u) bd = dist[u] < bd ? dist[u] : bd;
             int best = 0;
+            for (int hit = 0; best + SCAN <= U; best += SCAN) {
+                for (int j = 0; j < SCAN; ++j) hit |= dist[best + j] == bd;
+                if (hit) break;
+            }
             while (dist[best] != bd) ++best;
             bmus[(size_t)i * B + b] = best;
             const REAL rate = lr[(size_t)i * B + b], s = sg[(size_t)i * B + b];
@@ -66,25 +135,32 @@ void som_epoch(int B, int U, int C, int N, REAL *restrict w, const REAL *restric
                     h[u] = rate * v;
                 }
             }
-            for (int u = 0; u < U; ++u) dist[u] = 0;
-            for (int c = 0; c < C; ++c) {
+            int u0 = 0;                        /* units [0, u0) in blocks */
+#ifdef BLK
+            if (plan) {
+                for (int c = 0; c < C; ++c) plan[c] = (unsigned char)plan_of(c, vv, xn, vn, ab);
+                for (; u0 + BLK <= U; u0 += BLK) pass_block(wb + u0, U, C, plan, xv, xn, h + u0, dist + u0);
+            }
+#endif
+            for (int u = u0; u < U; ++u) dist[u] = 0;
+            for (int c = 0; c < C && u0 < U; ++c) {
                 REAL *restrict wc = wb + (size_t)c * U;
-                const int move = !(vv && vv[c] == 0);
-                const int next = xn && ab[c] != 0 && !(vn && vn[c] == 0);
+                const int how = plan_of(c, vv, xn, vn, ab), move = how & MOVE, next = how & NEXT;
                 const REAL xc = xv[c], xnc = xn ? xn[c] : 0;
                 if (move && next) {
-                    for (int u = 0; u < U; ++u) {
+                    for (int u = u0; u < U; ++u) {
                         REAL nw = wc[u] + h[u] * (xc - wc[u]);
                         wc[u] = nw;
                         REAL d = xnc - nw;
                         dist[u] += d * d;
                     }
                 } else if (move) {
-                    for (int u = 0; u < U; ++u) wc[u] += h[u] * (xc - wc[u]);
+                    for (int u = u0; u < U; ++u) wc[u] += h[u] * (xc - wc[u]);
                 } else if (next) {
-                    for (int u = 0; u < U; ++u) { REAL d = xnc - wc[u]; dist[u] += d * d; }
+                    for (int u = u0; u < U; ++u) { REAL d = xnc - wc[u]; dist[u] += d * d; }
                 }
             }
         }
+        free(plan);
     }
 }

@@ -6,10 +6,12 @@ import pytest
 import torch
 
 from _helpers import Profile
-from sim import DriveConfig, TestSignalConfig, TwoMassParams, sample_population, simulate, simulate_test
+from sim import (DriveConfig, SwitchingController, TestSignalConfig, TwoMassParams, sample_population, simulate,
+                 simulate_test)
 from sim._kernel import load_kernel
 
 DRIVE = DriveConfig()
+NEVER = torch.iinfo(torch.int32).max
 
 
 def _light(n: int, seed: int) -> TwoMassParams:
@@ -119,6 +121,73 @@ def test_bad_arguments():
         simulate(p, DRIVE, Profile([1.0], 1), 0)
 
 
+
+
+@pytest.mark.skipif(load_kernel() is None, reason="no C compiler: only the eager path exists")
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_eager_twin_and_kernel_share_the_state_layout(dtype: torch.dtype) -> None:
+    # the two paths hand the state (compensations included) to each other: any mix of eager and
+    # kernel samples gives the numbers of the kernel alone, and the eager results are plain tensors
+    from sim._integrate_fast import FastParams, FastState, advance, default_substeps
+
+    p = TwoMassParams(J_sigma=torch.tensor([0.02, 0.05, 0.03]), V_J=2.0, f_e=torch.tensor([40.0, 20.0, 60.0]),
+                      d=0.05, backlash=torch.tensor([0.003, 0.0, 0.01]), M_FC=torch.tensor([0.2, 0.5, 0.0]),
+                      mu_F=0.001)
+    fp = FastParams.build(p, DRIVE, default_substeps(p, DRIVE), dtype, torch.tensor([0.1, -0.2, 0.0]))
+    g = torch.Generator().manual_seed(3)
+    refs = (torch.randn(60, 3, generator=g) * 2).to(dtype)
+    states = []
+    for kernel_on in (lambda k: True, lambda k: k % 3 != 1, lambda k: False):
+        x = FastState.zeros(3, dtype)
+        for k in range(60):
+            x.M_ref = refs[k].contiguous()
+            advance(x, fp, use_kernel=kernel_on(k))
+        states.append(x)
+    for x in states[1:]:
+        for name in ("w_M", "w_L", "dphi", "M_M", "phi", "comp"):
+            assert torch.equal(getattr(x, name), getattr(states[0], name)), name
+    last = states[2]
+    assert last.comp.shape == (4, 3) and bool(last.comp.ne(0).any())
+    assert not any(getattr(last, name).is_inference() for name in ("w_M", "w_L", "dphi", "M_M", "phi", "comp"))
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_controller_decides_at_each_threshold_inclusively(dtype: torch.dtype) -> None:
+    # one system per section, its speed exactly at the section's threshold (ends) and one quantum
+    # short of it (goes on): I w >= w_max, II w <= 0.2 w_max, III w <= 0, IV w <= -w_max,
+    # V w >= -0.2 w_max, VI w >= 0 (SPEC 2)
+    sig = TestSignalConfig(M_star=10.0, w_max=100.0)
+    thr = torch.tensor([100.0, 20.0, 0.0, -100.0, -20.0, 0.0], dtype=dtype)
+    inward = torch.tensor([-1.0, 1.0, 1.0, 1.0, -1.0, -1.0], dtype=dtype) * 0.25  # short of the threshold
+    for w, ends in ((thr, True), (thr + inward, False)):
+        ctl = SwitchingController(sig, DRIVE, dtype)
+        ctl.reset((6,))
+        ctl.sec = torch.arange(1, 7, dtype=torch.int32)
+        ctl.cnt = torch.full((6,), 3, dtype=torch.int32)
+        ctl.limit = torch.full((6,), 1000, dtype=torch.int32)  # II and V not over by time
+        M = ctl.step(10, w)
+        expect_sec = torch.arange(1, 7, dtype=torch.int32) + int(ends)
+        assert torch.equal(ctl.sec, expect_sec)
+        assert torch.equal(ctl.cnt, torch.full((6,), 0 if ends else 4, dtype=torch.int32))
+        levels = torch.tensor([0.0, 10.0, 0.0, -7.0, -10.0, 0.0, 7.0, 0.0], dtype=dtype)
+        assert torch.equal(M, levels[expect_sec.long()])
+        assert torch.equal(ctl.length, torch.zeros(6, dtype=torch.int32))
+        assert not bool(ctl.timed_out.any())
+    # by time: II after as many samples as I lasted, V as IV, the tail after n_tail; a timeout sets
+    # the section's bit; the limits start with the section
+    ctl = SwitchingController(sig, DRIVE, dtype)
+    ctl.reset((6,))
+    ctl.sec = torch.tensor([1, 2, 4, 5, 6, 3], dtype=torch.int32)
+    ctl.cnt = torch.tensor([6, 6, 8, 8, 4, sig.n_timeout(DRIVE) - 1], dtype=torch.int32)
+    ctl.limit[1], ctl.limit[3] = 7, 9
+    w = torch.tensor([100.0, 50.0, -100.0, -50.0, 0.0, 50.0], dtype=dtype)  # I, IV, VI end by speed
+    ctl.step(41, w)
+    assert ctl.sec.tolist() == [2, 3, 5, 6, 7, 4]
+    assert ctl.limit.tolist() == [7, NEVER, 9, NEVER, sig.n_tail(DRIVE), NEVER]
+    assert ctl.timed_out.tolist() == [[False] * 6] * 5 + [[False, False, True, False, False, False]]
+    ctl.cnt[4] = sig.n_tail(DRIVE) - 1
+    ctl.step(42, w)
+    assert ctl.sec[4] == 8 and ctl.length.tolist() == [0, 0, 0, 0, 43, 0]
 
 
 def test_simulated_plant_interface_matches_simulate():

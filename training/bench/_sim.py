@@ -195,6 +195,10 @@ def run(args: argparse.Namespace) -> int:
                   "-", "-", f"{rate / (work / t_numpy):.4f}x")
         figures["naive_s_per_sample"] = wall / done
     print(table.render())
+    load = os.getloadavg()
+    figures["load_average_after"] = load
+    print(f"load average after the runs (1, 5, 15 min): {load[0]:.2f} {load[1]:.2f} {load[2]:.2f} on "
+          f"{os.cpu_count()} CPUs (ratios are from one run; above ~0.5 other work shares the cores)")
     print(f"GFLOP/s counts {FLOPS_PER_SUBSTEP} add/sub/mul per system-substep for every line: the model's arithmetic "
           "as sim/_kernel.c writes and executes it (sim._kernel.FLOPS_PER_SUBSTEP; compares, min/max, selects, the "
           "encoder and the controller not counted; numpy computes stage 1's shaft torque twice, 139); the solve_ivp "

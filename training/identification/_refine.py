@@ -19,8 +19,9 @@ from __future__ import annotations
 
 import functools
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Generator
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import torch
@@ -152,69 +153,85 @@ def torque_reference(bounds: np.ndarray, M_star: float) -> tuple[np.ndarray, np.
     return start, level
 
 
-def _detrend_basis(segments: np.ndarray) -> list[tuple[int, int, torch.Tensor]]:
+def _detrend_basis(segments: np.ndarray) -> list[tuple[int, int, np.ndarray]]:
     """Per segment ``(a, b, Q)``: orthonormal ``L x 3`` basis of the quadratic trends on it."""
     return [(a, b, _trend_basis(b - a)) for a, b in np.asarray(segments, dtype=np.int64).tolist() if b > a]
 
 
 @functools.lru_cache(maxsize=4096)
-def _trend_basis(L: int) -> torch.Tensor:
-    """Orthonormal ``L x min(3, L)`` basis of the polynomials of degree < 3 on ``L`` samples."""
+def _trend_basis(L: int) -> np.ndarray:
+    """Orthonormal ``L x min(3, L)`` basis of the polynomials of degree < 3 on ``L`` samples (read-only)."""
     tau = np.linspace(-1.0, 1.0, L)
     V = np.stack([np.ones(L), tau, tau * tau], axis=1)[:, : min(3, L)]  # L x 3
-    return torch.as_tensor(np.linalg.qr(V)[0], dtype=torch.float64)
+    Q = np.linalg.qr(V)[0]
+    Q.flags.writeable = False  # shared by every caller through the cache
+    return Q
 
 
-def _detrended_energy(E: torch.Tensor, basis: list[tuple[int, int, torch.Tensor]]) -> torch.Tensor:
-    """``sum ||e - Q Q^T e||^2`` over the segments for each row of ``E`` (``C x N``) -> ``C``."""
-    total = torch.zeros(E.shape[0], dtype=torch.float64)
+def _detrended_energy(E: np.ndarray, basis: list[tuple[int, int, np.ndarray]]) -> np.ndarray:
+    """``sum ||e - Q Q^T e||^2`` over the segments for each column of ``E`` (``N x C``) -> ``C``,
+    summed over the detrended errors themselves (``||e||^2 - ||Q^T e||^2`` loses the digits of a
+    small residual under a large trend: the measured speed's own, 6e-7 of its root measured)."""
+    total = np.zeros(E.shape[1])
     for a, b, Q in basis:
-        e = E[:, a:b]  # C x L
-        total += (e * e).sum(-1) - ((e @ Q) ** 2).sum(-1)
-    return total.clamp(min=0.0)
+        e = E[a:b]  # L x C
+        r = e - Q @ (Q.T @ e)
+        total += (r * r).sum(0)
+    return total
 
 
-def _models(p: RefineProblem, theta: np.ndarray) -> sim.TwoMassParams:
-    """Candidate models ``C`` from ``theta`` ``C x 4`` or ``C x 6`` (backlash ``2s = 2 s_N M_N / C_F``)."""
-    f_e, V_J, d = 10.0 ** theta[:, 0], 10.0 ** theta[:, 1], theta[:, 2]
-    backlash = 2.0 * 10.0 ** theta[:, 3] * p.M_N / p.C_F(theta)
+def _finite(E: np.ndarray) -> np.ndarray:
+    """``E`` with a diverged model's errors (NaN, +-inf) read as +-1e6 rad/s (a finite sum: none)."""
+    return E if np.isfinite(E.sum()) else np.nan_to_num(E, nan=1e6, posinf=1e6, neginf=-1e6)
+
+
+def _model_values(p: RefineProblem, theta: np.ndarray) -> dict[str, np.ndarray]:
+    """The :data:`sim.PARAM_NAMES` values ``C`` of the candidates ``theta`` ``C x 4`` or ``C x 6``
+    (backlash ``2s = 2 s_N M_N / C_F``)."""
     C = theta.shape[0]
-    M_FC = theta[:, 5] if theta.shape[1] == 6 else np.full(C, max(p.M_FC, 0.0))
-    t = lambda v: torch.as_tensor(v, dtype=torch.float64)  # noqa: E731
-    return sim.TwoMassParams(J_sigma=t(p.J_sigma_of(theta)), V_J=t(V_J), f_e=t(f_e), d=t(d), backlash=t(backlash),
-                             M_FC=t(M_FC), mu_F=torch.full((C,), max(p.mu_F, 0.0), dtype=torch.float64))
+    return {"J_sigma": p.J_sigma_of(theta), "V_J": 10.0 ** theta[:, 1], "f_e": 10.0 ** theta[:, 0], "d": theta[:, 2],
+            "backlash": 2.0 * 10.0 ** theta[:, 3] * p.M_N / p.C_F(theta),
+            "M_FC": theta[:, 5] if theta.shape[1] == 6 else np.full(C, max(p.M_FC, 0.0)),
+            "mu_F": np.full(C, max(p.mu_F, 0.0))}
 
 
-def _simulate(p: RefineProblem, theta: np.ndarray, drive: sim.DriveConfig) -> torch.Tensor:
-    """Speed error ``C x N`` [rad/s] (model minus measurement) of each candidate ``theta`` ``C x 4``."""
+def _params(values: dict[str, np.ndarray]) -> sim.TwoMassParams:
+    """:func:`_model_values` (or several concatenated) as the simulator's parameters."""
+    return sim.TwoMassParams(**{n: torch.from_numpy(np.ascontiguousarray(values[n], dtype=np.float64))
+                                for n in sim.PARAM_NAMES})
+
+
+def _simulate(p: RefineProblem, theta: np.ndarray, drive: sim.DriveConfig) -> np.ndarray:
+    """Speed error ``N x C`` [rad/s] (model minus measurement; time-major, as the kernel writes it)
+    of each candidate ``theta`` ``C x 4``."""
     return _simulate_packed([(p, theta)], drive)[0]
 
 
-def _simulate_packed(items: list[tuple[RefineProblem, np.ndarray]], drive: sim.DriveConfig) -> list[torch.Tensor]:
+def _simulate_packed(items: list[tuple[RefineProblem, np.ndarray]], drive: sim.DriveConfig) -> list[np.ndarray]:
     """:func:`_simulate` for several records on one drive in one replay call (the kernel's blocks
-    of 32 models fill up and run on all cores): one ``C_i x N_i`` error per item."""
-    models = [_models(p, th) for p, th in items]
-    flat = sim.TwoMassParams(**{k: torch.cat([getattr(m, k) for m in models])
-                                for k in sim.PARAM_NAMES})
+    of 32 models fill up and run on all cores): one ``N_i x C_i`` error per item."""
+    values = [_model_values(p, th) for p, th in items]
+    flat = {n: np.concatenate([v[n] for v in values]) for n in sim.PARAM_NAMES}
     N = max(len(p.speed) for p, _ in items)
     K = max(len(p.start) for p, _ in items)
     start = np.concatenate([np.broadcast_to(np.pad(p.start, (0, K - len(p.start)), constant_values=2**30),
                                             (len(th), K)) for p, th in items])  # n x K
     level = np.concatenate([np.broadcast_to(np.pad(p.level, (0, K - len(p.level)), mode="edge"),
                                             (len(th), K)) for p, th in items])
-    S = _substeps(flat, drive.T_s)
-    w = replay_speed(flat, drive, torch.as_tensor(start), torch.as_tensor(level), N, quantize=False, substeps=S)
+    w = replay_speed(_params(flat), drive, torch.from_numpy(start), torch.from_numpy(level), N, quantize=False,
+                     substeps=_substeps(flat, drive.T_s)).numpy().T  # N x n
     out, i = [], 0
     for p, th in items:
-        E = w[i:i + len(th), : len(p.speed)].to(torch.float64) - torch.as_tensor(p.speed, dtype=torch.float64)
-        out.append(torch.nan_to_num(E, nan=1e6, posinf=1e6, neginf=-1e6))
+        out.append(_finite(w[: len(p.speed), i:i + len(th)] - p.speed[:, None]))
         i += len(th)
     return out
 
 
-def _substeps(models: sim.TwoMassParams, T_s: float) -> int:
-    """RK4 substeps per sample: ``w_0 dt <= 0.5`` for the stiffest model (frequency error < 0.1 %)."""
-    return max(1, math.ceil(float(models.w_0.max()) * T_s / 0.5))
+def _substeps(values: dict[str, np.ndarray], T_s: float) -> int:
+    """RK4 substeps per sample: ``w_0 dt <= 0.5`` for the stiffest model of :func:`_model_values`
+    (frequency error < 0.1 %)."""
+    w_0 = sim.two_mass_derived(values["J_sigma"], values["V_J"], values["f_e"], values["d"]).w_0
+    return max(1, math.ceil(float(w_0.max()) * T_s / 0.5))
 
 
 def _drive(p: RefineProblem) -> sim.DriveConfig:
@@ -224,42 +241,59 @@ def _drive(p: RefineProblem) -> sim.DriveConfig:
 
 def _score(p: RefineProblem, theta: np.ndarray, basis: list, drive: sim.DriveConfig) -> np.ndarray:
     """Detrended squared speed error of each candidate ``theta`` ``C x 4`` -> ``C``."""
-    return _detrended_energy(_simulate(p, theta, drive), basis).numpy()
+    return _detrended_energy(_simulate(p, theta, drive), basis)
 
 
 @dataclass(frozen=True)
 class _ScoreWindows:
-    """What the exploration score needs of a record's ``windows`` ``(J, 2)``, computed once: the
-    measured speed ``y`` over them laid end to end (``sum L_j``), the block-diagonal orthonormal
-    basis ``B`` ``(sum L_j, 3J)`` of each window's quadratic trend, and ``y`` detrended (``y_r``)."""
+    """What the exploration score needs of a record's ``J`` windows (the first samples after each
+    torque step), computed once, each window padded with zeros to the longest (``L``): the
+    measured speed ``y`` ``J x L``, the orthonormal bases ``Q`` ``J x L x 3`` of each window's
+    quadratic trend, ``y`` detrended (``y_r``, with ``yy = ||y_r||^2``), ``inside`` (1 over each
+    window's own samples, else 0), and what the quasi-static start of each window needs: the
+    measured speed ``w`` at its first sample, the torque reference before (``M_prev``) and over
+    it (``M_new``), ``J`` each."""
 
-    windows: np.ndarray
-    y: torch.Tensor
-    B: torch.Tensor
-    y_r: torch.Tensor
+    y: np.ndarray
+    Q: np.ndarray
+    y_r: np.ndarray
+    yy: float
+    inside: np.ndarray
+    w: np.ndarray
+    M_prev: np.ndarray
+    M_new: np.ndarray
 
     @classmethod
     def of(cls, p: RefineProblem, windows: np.ndarray) -> "_ScoreWindows":
-        y = torch.cat([torch.as_tensor(p.speed[a:b], dtype=torch.float64) for a, b in windows.tolist()])
-        B = torch.block_diag(*[_trend_basis(b - a) for a, b in windows.tolist() if b > a])  # sum L_j x 3J
-        return cls(windows, y, B, y - B @ (B.T @ y))
+        first, lengths = windows[:, 0].tolist(), (windows[:, 1] - windows[:, 0]).tolist()
+        J, L = len(first), max(lengths)
+        y, Q = np.zeros((J, L)), np.zeros((J, L, 3))
+        for j, (a, n) in enumerate(zip(first, lengths)):
+            y[j, :n] = p.speed[a:a + n]
+            if n > 0:
+                Q[j, :n, : min(3, n)] = _trend_basis(n)
+        y_r = y - (Q @ (y[:, None, :] @ Q).transpose(0, 2, 1))[:, :, 0]  # J x L
+        return cls(y, Q, y_r, float((y_r * y_r).sum()), (np.arange(L) < np.array(lengths)[:, None]).astype(np.float64),
+                   p.speed[windows[:, 0]], np.array([_level_at(p, a - 1) if a > 0 else 0.0 for a in first]),
+                   np.array([_level_at(p, a) for a in first]))
 
 
-def _score_shape(p: RefineProblem, theta: np.ndarray, w: _ScoreWindows,
-                 drive: sim.DriveConfig) -> tuple[np.ndarray, np.ndarray]:
-    """The exploration score over the windows ``w``: the detrended error after the best gain ``g``
-    on each candidate's detrended speed, ``||y||^2 - <y, x>^2 / ||x||^2`` (``y`` measured, ``x``
-    model), and ``theta`` with ``V_J`` scaled by ``g`` (eq. 1: the oscillation is about
-    proportional to ``V_J``)."""
-    X = _simulate_windows(p, theta, w.windows, drive) + w.y  # C x sum(L_j): the model speeds
-    X_r = X - (X @ w.B) @ w.B.T  # C x sum(L_j), each window detrended
-    xy, xx, yy = X_r @ w.y_r, (X_r * X_r).sum(-1), w.y_r @ w.y_r
-    gain = torch.where(xx > 0, xy / xx.clamp(min=1e-300), torch.zeros_like(xx))
-    cost = (yy - torch.where(xx > 0, xy * xy / xx.clamp(min=1e-300), torch.zeros_like(xx))).clamp(min=0.0)
-    cost = torch.where(gain > 0, cost, yy.expand_as(cost))  # an inverted oscillation is no match
+def _score_shape(theta: np.ndarray, X: np.ndarray, w: _ScoreWindows) -> tuple[np.ndarray, np.ndarray]:
+    """The exploration score of the candidates ``theta`` ``C x 4`` whose model speeds over the
+    windows ``w`` are ``X`` ``C x J x L`` (:func:`_window_speeds`): the detrended error after the
+    best gain ``g`` on each candidate's detrended speed, ``||y||^2 - <y, x>^2 / ||x||^2`` (``y``
+    measured, ``x`` model), and ``theta`` with ``V_J`` scaled by ``g`` (eq. 1: the oscillation is
+    about proportional to ``V_J``)."""
+    X = X.transpose(1, 0, 2)  # J x C x L
+    X_r = X - (X @ w.Q) @ w.Q.transpose(0, 2, 1)  # each window detrended (0 past its end)
+    xy, xx, yy = np.einsum("jcl,jl->c", X_r, w.y_r), np.einsum("jcl,jcl->c", X_r, X_r), w.yy
+    some = xx > 0
+    gain = np.where(some, xy / np.maximum(xx, 1e-300), 0.0)
+    cost = np.maximum(yy - np.where(some, xy * xy / np.maximum(xx, 1e-300), 0.0), 0.0)
+    cost = np.where(gain > 0, cost, yy)  # an inverted oscillation is no match
     scaled = theta.copy()
-    scaled[:, 1] += np.log10(np.clip(gain.numpy(), 0.25, 4.0))
-    return cost.numpy(), np.clip(scaled, _LOW, _HIGH)
+    scaled[:, 1] += np.log10(np.clip(gain, 0.25, 4.0))
+    return cost, np.clip(scaled, _LOW, _HIGH)
 
 
 def _windows(segments: np.ndarray, length: int) -> np.ndarray:
@@ -273,51 +307,72 @@ def _level_at(p: RefineProblem, k: int) -> float:
     return float(p.level[np.searchsorted(p.start, k, side="right") - 1])
 
 
-def _simulate_windows(p: RefineProblem, theta: np.ndarray, windows: np.ndarray,
-                      drive: sim.DriveConfig) -> torch.Tensor:
-    """Speed error ``C x sum(L_j)`` of each candidate over the ``windows`` ``(J, 2)`` (concatenated),
-    each simulated on its own from a quasi-static state: the torque before the window settled,
-    both masses at the measured speed, the shaft twisted by the torque that accelerates the load
-    (``J_L a`` plus the load friction, ``a`` the rigid acceleration) over ``C_F``, plus ``s`` on the
-    loaded side. An oscillation still ringing from before the window is not in that state (the
-    exploring score tolerates it; the polish simulates the whole record)."""
-    C, J = theta.shape[0], len(windows)
-    models = _models(p, theta)
-    lengths = (windows[:, 1] - windows[:, 0]).tolist()
-    L = max(lengths)
-    w = torch.as_tensor(p.speed[windows[:, 0]], dtype=torch.float64)  # J: speed at each window start
-    M_prev = torch.tensor([_level_at(p, a - 1) if a > 0 else 0.0 for a in windows[:, 0].tolist()], dtype=torch.float64)
-    M_new = torch.tensor([_level_at(p, a) for a in windows[:, 0].tolist()], dtype=torch.float64)
-    friction = models.M_FC[:, None] * torch.sign(w) + max(p.mu_F, 0.0) * w  # C x J
-    M_S = models.J_L[:, None] * (M_prev - friction) / models.J_sigma[:, None] + friction  # C x J: rigid motion
-    s = (models.backlash / 2.0)[:, None]
-    dphi = M_S / models.C_F[:, None] + s * torch.sign(M_S)
-    rep = lambda v: v.repeat_interleave(J)  # noqa: E731  C -> C*J, window index fastest
-    flat = sim.TwoMassParams(**{n: rep(getattr(models, n)) for n in sim.PARAM_NAMES})
-    state = {"w_M": w.repeat(C), "w_L": w.repeat(C), "dphi": dphi.reshape(-1), "M_M": M_prev.repeat(C)}
-    start = torch.zeros(C * J, 1, dtype=torch.int32)
-    level = M_new.repeat(C)[:, None]
-    out = replay_speed(flat, drive, start, level, L, quantize=False, state=state,
-                       substeps=_substeps(models, p.T_s)).reshape(C, J, L)
-    E = torch.cat([out[:, j, :n].to(torch.float64) - torch.as_tensor(p.speed[a:a + n], dtype=torch.float64)
-                   for j, (a, n) in enumerate(zip(windows[:, 0].tolist(), lengths))], dim=1)  # C x sum(L_j)
-    return torch.nan_to_num(E, nan=1e6, posinf=1e6, neginf=-1e6)
+def _window_speeds(items: list[tuple[RefineProblem, np.ndarray, _ScoreWindows]], drive: sim.DriveConfig,
+                   substeps: int) -> list[np.ndarray]:
+    """Motor speed ``C x J x L`` [rad/s] of each candidate ``theta`` ``C x 4`` of each item
+    ``(problem, theta, windows)`` over its windows (0 past each window's end; a diverged model's
+    reads 1e6 rad/s off the measured), all items on one drive in one replay call (the items'
+    results do not depend on each other), each window simulated on its own from a quasi-static
+    state: the torque before the window settled, both masses at the measured speed, the shaft
+    twisted by the torque that accelerates the load (``J_L a`` plus the load friction, ``a`` the
+    rigid acceleration) over ``C_F``, plus ``s`` on the loaded side. An oscillation still ringing
+    from before the window is not in that state (the exploring score tolerates it; the polish
+    simulates the whole record)."""
+    flat: dict[str, list[np.ndarray]] = {n: [] for n in sim.PARAM_NAMES + ("w_M", "dphi", "M_M", "M_new")}
+    for p, theta, w in items:
+        C, J = theta.shape[0], w.y.shape[0]
+        m = _model_values(p, theta)
+        dv = sim.two_mass_derived(m["J_sigma"], m["V_J"], m["f_e"], m["d"])
+        friction = m["M_FC"][:, None] * np.sign(w.w) + max(p.mu_F, 0.0) * w.w  # C x J
+        M_S = dv.J_L[:, None] * (w.M_prev - friction) / m["J_sigma"][:, None] + friction  # C x J: rigid motion
+        dphi = M_S / dv.C_F[:, None] + (m["backlash"] / 2.0)[:, None] * np.sign(M_S)
+        for n, v in m.items():
+            flat[n].append(np.repeat(v, J))  # C*J, window index fastest
+        for n, v in (("w_M", np.tile(w.w, C)), ("dphi", dphi.reshape(-1)), ("M_M", np.tile(w.M_prev, C)),
+                     ("M_new", np.tile(w.M_new, C))):
+            flat[n].append(v)
+    lanes = {n: np.concatenate(v) for n, v in flat.items()}
+    state = {"w_M": lanes["w_M"], "w_L": lanes["w_M"], "dphi": lanes["dphi"], "M_M": lanes["M_M"]}
+    start = torch.zeros(len(lanes["w_M"]), 1, dtype=torch.int32)
+    L = max(w.y.shape[1] for _, _, w in items)
+    out = replay_speed(_params(lanes), drive, start, torch.from_numpy(lanes["M_new"][:, None]), L, quantize=False,
+                       state=state, substeps=substeps).numpy()  # lanes x L (a time-major view)
+    speeds, i = [], 0
+    for _, theta, w in items:
+        C, (J, L_w) = theta.shape[0], w.y.shape
+        X = out[i:i + C * J, :L_w].reshape(C, J, L_w).astype(np.float64, order="C")
+        speeds.append((X if np.isfinite(X.sum()) else w.y + _finite(X - w.y)) * w.inside)
+        i += C * J
+    return speeds
 
 
-def _cem(theta: np.ndarray, cost: np.ndarray, score: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]],
-         rounds: int, spread: np.ndarray, config: RefineConfig, rng: np.random.Generator,
-         low: np.ndarray = _LOW, high: np.ndarray = _HIGH) -> tuple[np.ndarray, np.ndarray]:
-    """``rounds`` of the cross-entropy search from the best of ``theta``/``cost`` (all kept);
-    ``score(candidates) -> (cost, candidates as scored)``."""
+#: A search: yields candidates ``C x D``, is sent ``(cost C, candidates as scored)`` for each, returns its result.
+Search = Generator[np.ndarray, tuple[np.ndarray, np.ndarray], Any]
+
+
+def _cem(theta: np.ndarray, cost: np.ndarray, rounds: int, spread: np.ndarray, config: RefineConfig,
+         rng: np.random.Generator, low: np.ndarray = _LOW, high: np.ndarray = _HIGH) -> Search:
+    """``rounds`` of the cross-entropy search from the best of ``theta``/``cost`` (all kept), as a
+    :data:`Search` that returns ``(theta, cost)``, the scored candidates appended."""
     mean, std = theta[int(np.argmin(cost))], spread
     for _ in range(rounds):
         cand = np.clip(mean + std * rng.standard_normal((config.candidates, theta.shape[1])), low, high)
-        c, cand = score(cand)
+        c, cand = yield cand
         theta, cost = np.concatenate([theta, cand]), np.concatenate([cost, c])
         elite = theta[np.argsort(cost)[: config.elites]]
         mean = elite[0]  # the best so far; the elites' spread sets the next step
         std = np.maximum(0.7 * elite.std(axis=0) + 0.15 * std, 0.02 * spread)
     return theta, cost
+
+
+def _run(search: Search, score: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]) -> Any:
+    """The result of ``search`` with each of its candidates scored by ``score``."""
+    try:
+        candidates = next(search)
+        while True:
+            candidates = search.send(score(candidates))
+    except StopIteration as done:
+        return done.value
 
 
 def refine(problems: list[RefineProblem], config: RefineConfig | None = None) -> list[Refined]:
@@ -330,29 +385,31 @@ def refine(problems: list[RefineProblem], config: RefineConfig | None = None) ->
         raise ValueError(f"RefineConfig: expected rounds >= 0, window_periods > 0 and candidates >= elites >= 2, "
                          f"received {config}")
     rngs = [np.random.default_rng(config.seed) for _ in problems]
-    finalists = [_explore(p, config, rng) for p, rng in zip(problems, rngs)]
+    finalists = _explore_all(problems, config, rngs)
     costs: list[np.ndarray] = [np.empty(0)] * len(problems)
-    substeps = [_substeps(_models(p, f), p.T_s) for p, f in zip(problems, finalists)]
+    substeps = [_substeps(_model_values(p, f), p.T_s) for p, f in zip(problems, finalists)]
     bases = [_detrend_basis(p.segments) for p in problems]  # the whole record's sections and tail
     for pack in _packs(problems, [len(f) for f in finalists], substeps):
         errors = _simulate_packed([(problems[i], finalists[i]) for i in pack], _drive(problems[pack[0]]))
         for i, E in zip(pack, errors):
-            costs[i] = _detrended_energy(E, bases[i]).numpy()
+            costs[i] = _detrended_energy(E, bases[i])
     return [_finish(p, th, c, b, config, rng) for p, th, c, b, rng in zip(problems, finalists, costs, bases, rngs)]
 
 
-def _packs(problems: list[RefineProblem], sizes: list[int], substeps: list[int], max_models: int = 256,
-           min_length_ratio: float = 0.6) -> list[list[int]]:
+def _packs(problems: list[RefineProblem], sizes: list[int], substeps: list[int], lengths: list[int] | None = None,
+           max_models: int = 256, min_length_ratio: float = 0.6) -> list[list[int]]:
     """Indices of ``problems`` in packs of one drive and one substep count (so that a result does
-    not depend on its pack), lengths within ``min_length_ratio`` of the pack's longest (the
-    shorter ones idle while it runs) and at most ``max_models`` models."""
+    not depend on its pack), simulated lengths (default: the records') within
+    ``min_length_ratio`` of the pack's longest (the shorter ones idle while it runs) and at most
+    ``max_models`` simulated models (``sizes``)."""
+    lengths = [len(p.speed) for p in problems] if lengths is None else lengths
     key = lambda i: (problems[i].T_s, problems[i].T_Ei, problems[i].encoder_counts, substeps[i])  # noqa: E731
-    order = sorted(range(len(problems)), key=lambda i: (key(i), -len(problems[i].speed)))
+    order = sorted(range(len(problems)), key=lambda i: (key(i), -lengths[i]))
     packs: list[list[int]] = []
     for i in order:
         last = packs[-1] if packs else None
         fits = (last and key(last[0]) == key(i)
-                and len(problems[i].speed) >= min_length_ratio * len(problems[last[0]].speed)
+                and lengths[i] >= min_length_ratio * lengths[last[0]]
                 and sum(sizes[j] for j in last) + sizes[i] <= max_models)
         if fits:
             last.append(i)
@@ -361,21 +418,54 @@ def _packs(problems: list[RefineProblem], sizes: list[int], substeps: list[int],
     return packs
 
 
-def _explore(p: RefineProblem, config: RefineConfig, rng: np.random.Generator) -> np.ndarray:
-    """The exploring stage; returns the finalists ``F x 4``: the maps' answer, then the elites."""
-    drive = _drive(p)
+def _explore_windows(p: RefineProblem, config: RefineConfig) -> _ScoreWindows:
+    """The exploring stage's windows of ``p``: ``window_periods`` at the start's ``f_e`` (at
+    least 8 samples, at most ``window_max``) after each torque step."""
+    period = 1.0 / (10.0 ** np.clip(p.theta[0], _LOW[0], _HIGH[0]) * p.T_s)  # samples per period at the start's f_e
+    return _ScoreWindows.of(p, _windows(p.segments, max(8, int(round(min(config.window_periods * period,
+                                                                             config.window_max / p.T_s))))))
+
+
+def _explore(p: RefineProblem, config: RefineConfig, rng: np.random.Generator) -> Search:
+    """The exploring stage of ``p`` as a :data:`Search` scored by :func:`_score_shape`; returns the
+    finalists ``F x 4``: the maps' answer, then the elites."""
     spread = np.asarray(config.spread, dtype=np.float64)
     theta0 = np.clip(np.asarray(p.theta, dtype=np.float64), _LOW, _HIGH)
-    period = 1.0 / (10.0 ** theta0[0] * p.T_s)  # samples per period at the start's f_e
-    short = _windows(p.segments, max(8, int(round(min(config.window_periods * period, config.window_max / p.T_s)))))
-    windows = _ScoreWindows.of(p, short)
-    explore = lambda th: _score_shape(p, th, windows, drive)  # noqa: E731
     grid = np.repeat(theta0[None], config.grid_f_e * len(config.grid_s_N), axis=0)  # G x 4
     grid[:, 0] += np.repeat(np.linspace(-config.grid_span, config.grid_span, config.grid_f_e), len(config.grid_s_N))
     grid[:, 3] = np.tile([math.log10(v) if v > 0 else theta0[3] for v in config.grid_s_N], config.grid_f_e)
-    cost, theta = explore(np.clip(grid, _LOW, _HIGH))
-    theta, cost = _cem(theta, cost, explore, config.rounds, spread, config, rng)
+    cost, theta = yield np.clip(grid, _LOW, _HIGH)
+    theta, cost = yield from _cem(theta, cost, config.rounds, spread, config, rng)
     return np.concatenate([theta0[None], theta[np.argsort(cost)[: config.elites]]])
+
+
+def _explore_all(problems: list[RefineProblem], config: RefineConfig,
+                 rngs: list[np.random.Generator]) -> list[np.ndarray]:
+    """The finalists of each problem (:func:`_explore`), the searches run side by side: each
+    step's candidates of every problem on one drive, substep count and similar window length
+    go to the simulator in one call (:func:`_packs`), so that the per-call costs are paid once
+    per batch, not once per record."""
+    windows = [_explore_windows(p, config) for p in problems]
+    searches = [_explore(p, config, rng) for p, rng in zip(problems, rngs)]
+    asked = {i: next(s) for i, s in enumerate(searches)}
+    finalists: list[np.ndarray] = [np.empty(0)] * len(problems)
+    while asked:
+        todo = sorted(asked)
+        substeps = [_substeps(_model_values(problems[i], asked[i]), problems[i].T_s) for i in todo]
+        sizes = [len(asked[i]) * windows[i].y.shape[0] for i in todo]
+        packs = _packs([problems[i] for i in todo], sizes, substeps, [windows[i].y.shape[1] for i in todo],
+                       max_models=4096)
+        for pack in packs:
+            ids = [todo[k] for k in pack]
+            X = _window_speeds([(problems[i], asked[i], windows[i]) for i in ids], _drive(problems[ids[0]]),
+                               substeps[pack[0]])
+            for i, x in zip(ids, X):
+                try:
+                    asked[i] = searches[i].send(_score_shape(asked[i], x, windows[i]))
+                except StopIteration as done:
+                    finalists[i] = done.value
+                    del asked[i]
+    return finalists
 
 
 def _finish(p: RefineProblem, theta: np.ndarray, cost: np.ndarray, full: list, config: RefineConfig,
@@ -388,7 +478,7 @@ def _finish(p: RefineProblem, theta: np.ndarray, cost: np.ndarray, full: list, c
         best, n_free = _free_one_mass(p, best, config, rng, _drive(p))
         n_sims += n_free
         best_cost = float(_score(p, best[None], full, _drive(p))[0])
-    measured = _detrended_energy(torch.as_tensor(p.speed, dtype=torch.float64)[None], full)[0].item()
+    measured = float(_detrended_energy(p.speed[:, None], full)[0])
     norm = math.sqrt(measured) if measured > 0 else 1.0
     s_N = float(10.0 ** best[3])
     free = len(best) == 6
@@ -403,7 +493,7 @@ def _free_one_mass(p: RefineProblem, best: np.ndarray, config: RefineConfig, rng
                    drive: sim.DriveConfig) -> tuple[np.ndarray, int]:
     """The free stage (see :class:`RefineConfig`): ``best`` (4) or the winner over
     :data:`FREE_COORDINATES` (6), and the number of simulated models."""
-    plain = lambda th: ((_simulate(p, th, drive) ** 2).sum(-1).numpy(), th)  # noqa: E731
+    plain = lambda th: ((_simulate(p, th, drive) ** 2).sum(0), th)  # noqa: E731
     one_mass = [math.log10(p.J_sigma), min(max(p.M_FC, 0.0), 1.0)]
     start = np.concatenate([best, one_mass])
     J_f, f_f, V_f, M_v = np.meshgrid(np.log10([1 / 4, 1 / 2, 1.0, 2.0, 4.0]),
@@ -420,7 +510,7 @@ def _free_one_mass(p: RefineProblem, best: np.ndarray, config: RefineConfig, rng
     theta = np.clip(np.concatenate([start[None], *grids]), _LOW_FREE, _HIGH_FREE)
     cost, theta = plain(theta)
     spread = np.concatenate([config.spread, config.free_spread])
-    theta, cost = _cem(theta, cost, plain, config.free_rounds, spread, config, rng, _LOW_FREE, _HIGH_FREE)
+    theta, cost = _run(_cem(theta, cost, config.free_rounds, spread, config, rng, _LOW_FREE, _HIGH_FREE), plain)
     k = int(np.argmin(cost))
     # a clear win only (measured: 10-60 x lower on soft mechanics; a narrow one was a wrong mode)
     return (theta[k] if cost[k] < config.free_win * cost[0] else best), len(cost)

@@ -25,3 +25,4 @@ def test_bench_sim_figures_name_the_count_and_every_line(tmp_path: Path, capsys:
     assert lines[:3] == [("numpy RK4, vectorized over systems", 1),
                          ("torch eager twin (the fallback without a C compiler)", 1), ("fused C kernel", 1)]
     assert all(r["wall_s"] > 0 for r in figures["runs"])
+    assert "load average after the runs" in text and len(figures["load_average_after"]) == 3

@@ -1,0 +1,57 @@
+"""The native kernel's blocks of units (weights, neighbourhood weights and distances in registers) and the
+loops over the remaining units: both against the torch reference, at unit counts around a block's size."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+import som_torch as st
+from som_torch import _native
+
+native = pytest.mark.skipif(not _native.available(), reason="no C compiler")
+
+# Units per block: 8, 16 or 32 (float64 / float32, SSE or AVX): counts below, at and above each.
+GRIDS = [(1, 7), (3, 3), (4, 4), (1, 17), (3, 11), (7, 9)]
+
+
+def _data(n: int, seed: int) -> torch.Tensor:
+    """``n x 5``: four smooth features of one parameter (last column), NaN in some features."""
+    p = torch.rand(n, 1, generator=torch.Generator().manual_seed(seed), dtype=torch.float64)
+    x = torch.cat([torch.cos(math.pi * p), torch.sin(math.pi * p), p * p, torch.cos(3 * p), p], -1)
+    x[::5, 1] = float("nan")  # a step without component 1: its weights stay, its distance is left out
+    x[2::7, 3] = float("nan")
+    return x
+
+
+def _som(grid: tuple[int, int], dtype: torch.dtype) -> st.SOM:
+    return st.SOM(st.Grid(*grid), ["c", "s", "q", "k", "p"], [True, True, True, True, False], dtype=dtype)
+
+
+@native
+@pytest.mark.parametrize("grid", GRIDS)
+@pytest.mark.parametrize("neighbourhood", sorted(st.NEIGHBOURHOODS))
+def test_blocks_and_remaining_units_equal_the_reference(grid, neighbourhood):
+    data = _data(30, sum(grid))
+    som = _som(grid, torch.float64)
+    st.init_random(som, data, 1)
+    fast, ref = som.clone(), som.clone()
+    opts = dict(epochs=2, learning_rate=(0.5, 0.05), sigma=(2.0, 0.5), neighbourhood=neighbourhood, seed=4)
+    st.train_online(fast, data, method="native", **opts)
+    st.train_online(ref, data, method="reference", **opts)
+    torch.testing.assert_close(fast.weights, ref.weights, rtol=0, atol=1e-9)
+
+
+@native
+@pytest.mark.parametrize("grid", GRIDS)
+def test_float32_blocks_close_to_the_reference(grid):
+    data = _data(30, sum(grid))
+    som = _som(grid, torch.float32)
+    st.init_random(som, data, 1)
+    ref = _som(grid, torch.float64)
+    ref.weights = som.weights.to(torch.float64)
+    st.train_online(som, data, epochs=2, sigma=2.0, seed=4, method="native")
+    st.train_online(ref, data, epochs=2, sigma=2.0, seed=4, method="reference")
+    torch.testing.assert_close(som.weights.double(), ref.weights, rtol=0, atol=1e-4)
