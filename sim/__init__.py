@@ -1,7 +1,7 @@
 """Batched two-mass plant, drive, measurement, test signal and records (SI units)."""
 
 from sim.measurement import encoder_count, speed_from_angle
-from sim.params import (DERIVED_NAMES, PARAM_NAMES, R_OSC_VISIBLE, S_N_ELASTIC, S_N_STIFF_BACKLASH, STRUCTURE_CLASSES,
+from sim.params import (CLASS_THRESHOLDS, DERIVED_NAMES, PARAM_NAMES, R_OSC_VISIBLE, S_N_ELASTIC, S_N_STIFF_BACKLASH, STRUCTURE_CLASSES,
                         W_E_T_EI_STIFF, DriveConfig, TwoMassDerived, TwoMassParams, class_index, one_mass_stand_in, speed_quantum, structure_class,
                         two_mass_derived)
 from sim._config import load_c_kernel
@@ -14,7 +14,7 @@ from sim._drive import Drive, DriveLimits, Scenario, SimulatedDrive, SpeedLaw, l
 from sim._signal import SECTION_LEVELS, SECTION_NAMES, SPEED_RETURN, SwitchingController, TestSignalConfig
 
 __all__ = [
-    "STRUCTURE_CLASSES", "SECTION_NAMES", "SECTION_LEVELS", "SPEED_RETURN", "PARAM_NAMES", "DERIVED_NAMES",
+    "CLASS_THRESHOLDS", "STRUCTURE_CLASSES", "SECTION_NAMES", "SECTION_LEVELS", "SPEED_RETURN", "PARAM_NAMES", "DERIVED_NAMES",
     "TwoMassDerived", "two_mass_derived", "class_index", "one_mass_stand_in", "speed_quantum", "S_N_ELASTIC", "S_N_STIFF_BACKLASH", "W_E_T_EI_STIFF",
     "R_OSC_VISIBLE", "Controller", "DriveConfig", "Plant", "PopulationRanges", "Record",
     "RecordError", "Response", "SimulatedPlant", "SwitchingController", "TestSignalConfig", "TwoMassParams",

@@ -39,6 +39,9 @@ S_N_STIFF_BACKLASH = 1.0
 W_E_T_EI_STIFF = 1.0
 #: Oscillation-to-resolution ratio ``r_osc`` from which the oscillation is visible in the encoder speed.
 R_OSC_VISIBLE = 1.0
+#: The thresholds of each quantity of the class rule (the arguments of :func:`class_index`).
+CLASS_THRESHOLDS: dict[str, tuple[float, ...]] = {
+    "s_N": (S_N_ELASTIC, S_N_STIFF_BACKLASH), "w_e_T_Ei": (W_E_T_EI_STIFF,), "r_osc": (R_OSC_VISIBLE,)}
 
 
 @dataclass(frozen=True)

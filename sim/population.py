@@ -14,11 +14,11 @@ from sim.params import DriveConfig, TwoMassParams
 
 def _check_ranges(ranges: object, log_uniform: tuple[str, ...]) -> None:
     """Every ``(low, high)`` field of the dataclass ``ranges`` with ``0 <= low <= high`` (``low > 0``
-    where log-uniform), ``backlash_zero_share`` in 0..1, ``cell`` an int >= 1; else ``ValueError``."""
+    where log-uniform), each ``*_share`` in 0..1, ``cell`` an int >= 1; else ``ValueError``."""
     cls = type(ranges).__name__
     for f in fields(ranges):  # type: ignore[arg-type]
         v, where = getattr(ranges, f.name), f"{cls}.{f.name}"
-        if f.name == "backlash_zero_share":
+        if f.name.endswith("_share"):
             if not 0.0 <= v <= 1.0:
                 raise ValueError(f"{where}: expected 0..1, received {v}")
         elif f.name == "cell":
@@ -86,6 +86,11 @@ class EnvelopeRanges:
     follows from the test's time scale ``J_sigma w_max / M*``, friction from ``M*`` and ``w_max``
     (``M_FC`` and ``mu_F w_max`` as shares of ``M*``), the measured current's noise std as a share
     of ``M*/K_M``. Backlash is a physical angle (a gearbox's play does not scale with its motor).
+
+    A share :attr:`reference_share` of the cells runs SPEC 1's reference drive and test instead
+    (``DriveConfig()``, ``TestSignalConfig()``: the paper's world, which the maps keep serving as
+    well as maps made for it alone), with the time scales :attr:`reference_time_scale` (SPEC 1's
+    ``J_sigma`` range at that test).
     """
 
     T_s: tuple[float, float] = (62.5e-6, 1e-3)  # [s]
@@ -105,10 +110,13 @@ class EnvelopeRanges:
     M_FC: tuple[float, float] = (0.0, 0.05)  # over M*
     mu_F: tuple[float, float] = (0.0, 0.05)  # mu_F w_max over M*
     cell: int = 8  # systems per drive and test run
+    reference_share: float = 0.25  # share of cells on SPEC 1's reference drive and test
+    reference_time_scale: tuple[float, float] = (0.1, 2.0)  # [s] their J_sigma w_max / M*
 
     def __post_init__(self) -> None:
         _check_ranges(self, log_uniform=tuple(f.name for f in fields(self) if f.name not in
-                                              ("d", "M_FC", "mu_F", "encoder_bits", "backlash_zero_share", "cell")))
+                                              ("d", "M_FC", "mu_F", "encoder_bits", "backlash_zero_share", "cell",
+                                               "reference_share")))
 
 
 @dataclass(frozen=True)
@@ -136,7 +144,11 @@ def sample_envelope(n: int, seed: int, ranges: EnvelopeRanges | None = None) -> 
     u = torch.rand(9, n, generator=g, dtype=torch.float64)
     lin = lambda x, rng: rng[0] + x * (rng[1] - rng[0])  # noqa: E731
     cases = []
+    reference = (c[8] < r.reference_share).tolist()
     for k in range(n_cells):
+        if reference[k]:
+            cases.append((DriveConfig(), TestSignalConfig()))
+            continue
         M_N = float(_log_uniform(c[0, k], *r.M_N))
         M_max = M_N * float(lin(c[1, k], r.M_max_over_M_N))
         M_star = M_max * float(_log_uniform(c[2, k], *r.M_star_over_M_max))
@@ -150,8 +162,10 @@ def sample_envelope(n: int, seed: int, ranges: EnvelopeRanges | None = None) -> 
     w_max = torch.tensor([s.w_max for _, s in cases], dtype=torch.float64)[cell]
     backlash = torch.deg2rad(_log_uniform(u[4], *r.backlash_deg))
     backlash = torch.where(u[5] < r.backlash_zero_share, torch.zeros_like(backlash), backlash)
+    on_reference = torch.tensor(reference, dtype=torch.bool)[cell]
+    time_scale = torch.where(on_reference, _log_uniform(u[0], *r.reference_time_scale), _log_uniform(u[0], *r.time_scale))
     params = TwoMassParams(
-        J_sigma=_log_uniform(u[0], *r.time_scale) * M_star / w_max,
+        J_sigma=time_scale * M_star / w_max,
         V_J=_log_uniform(u[1], *r.V_J),
         f_e=_log_uniform(u[2], *r.f_e),
         d=lin(u[3], r.d),

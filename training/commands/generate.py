@@ -25,6 +25,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--shard-size", type=int, default=None,
                         help=f"systems per shard file, the unit of resuming (default: N/{MIN_SHARDS} rounded up, "
                              f"at most {MAX_SHARD_SIZE}: an interrupt loses at most one shard's work)")
+    parser.add_argument("--envelope", action="store_true",
+                        help="draw drives, test runs and mechanics over SPEC 3.1's drive envelope (the shipped maps' "
+                             "data) instead of the SPEC 1 population on the reference drive")
     parser.add_argument("--workers", type=int, default=None,
                         help="analysis processes (default: CPU count; under torchrun: each process's share)")
     _progress.add_option(parser)
@@ -32,12 +35,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from training._distributed import process_group
+    from sim import EnvelopeRanges
     from training.learning import GenerateConfig, generate, load_dataset
 
     shard_size = default_shard_size(args.n) if args.shard_size is None else args.shard_size
     if args.n < 1 or shard_size < 1:
         raise ValueError(f"--n and --shard-size: expected >= 1, received {args.n}, {shard_size}")
-    config = GenerateConfig(n=args.n, seed=args.seed, shard_size=shard_size)
+    config = GenerateConfig(n=args.n, seed=args.seed, shard_size=shard_size,
+                            envelope=EnvelopeRanges() if args.envelope else None)
     group = process_group()  # under torchrun: the ranks share the shards, rank 0 writes and prints
     with _progress.bar(args, show=_progress.wanted(args) and group.main, total=args.n, unit="sys",
                        desc="generate") as bar:

@@ -6,7 +6,9 @@ Figures per drive: structure accuracy over systems at least 20 % from every clas
 ``E_30`` and ``E_10`` over ``elastic`` + ``elastic_backlash``, ``J_sigma`` within 5 %, backlash
 width within 30 % for ``s_N >= 0.3``, and the **silent-wrong rate**: the share of systems whose
 answer is wrong (class wrong, or an elastic answer outside ``E_30``, or ``J_sigma`` off by 30 %)
-with no warning at all.
+with no warning at all. Beside the backlash figure, the same over the gaps the record can show:
+those whose motor lead (:func:`training.identification.motor_lead`, the backlash resolution's
+angle path) reaches :data:`~training.identification.BACKLASH_VISIBLE_COUNTS` encoder counts.
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ import numpy as np
 
 from sim import DriveConfig, PopulationRanges, TestSignalConfig, iter_records, sample_population
 from training.evaluation._metrics import recognized, relative_error, threshold_margin
+from training.identification import BACKLASH_VISIBLE_COUNTS, motor_lead
 
 _ELASTIC = ("elastic", "elastic_backlash")
 
@@ -77,6 +80,7 @@ def drive_rows(case: DriveCase, n: int, seed: int, identifier: Any,
     for rec, out in zip(records, identifier.identify_records(records)):
         truth = dict(rec.meta["truth"])
         truth["w_e_T_Ei"] = truth["w_e"] * case.drive.T_Ei
+        truth["gap_counts"] = motor_lead(truth["backlash"], truth["V_J"]) / case.drive.q_phi
         som: dict[str, Any] = {"structure": None, "n_warnings": 0, "error": None}
         if out.ok:
             som.update(out.parameters.to_dict(), structure=out.structure, n_warnings=len(out.warnings))
@@ -102,6 +106,7 @@ def drive_figures(rows: Sequence[dict[str, Any]]) -> dict[str, Any]:
     e30, e10 = recognized(err, 30), recognized(err, 10)
     j_err = np.nan_to_num(err["J_sigma"], nan=np.inf)
     wide = truth["s_N"] >= 0.3
+    visible = wide & (_values(rows, "truth", "gap_counts") >= BACKLASH_VISIBLE_COUNTS)
     bl = np.zeros(len(rows), dtype=bool)
     bl[wide] = np.nan_to_num(relative_error(_values(rows, "som", "backlash")[wide], truth["backlash"][wide]),
                              nan=np.inf) <= 0.3
@@ -114,6 +119,7 @@ def drive_figures(rows: Sequence[dict[str, Any]]) -> dict[str, Any]:
             "structure": pct(correct, far), "n_structure": int(far.sum()),
             "E_30": pct(e30, elastic), "E_10": pct(e10, elastic), "n_elastic": int(elastic.sum()),
             "J_sigma_5": pct(j_err <= 0.05, every), "backlash_30": pct(bl, wide), "n_backlash": int(wide.sum()),
+            "backlash_30_visible": pct(bl, visible), "n_backlash_visible": int(visible.sum()),
             "silent_wrong": pct(silent, every), "warned": pct(np.array([r["som"]["n_warnings"] > 0 for r in rows]), every)}
 
 
@@ -122,13 +128,16 @@ def drives_markdown(figures: dict[str, dict[str, Any]], command: str) -> str:
     fmt = lambda v: "n/a" if v is None else f"{v:.1f}"  # noqa: E731
     lines = ["# Identification on a matrix of drives (issue 11)", "", f"Made by `{command}`.", "",
              "| drive | n | failed | structure (n) | E_30 | E_10 (n elastic) | J_sigma 5 % | backlash 30 % (n) "
-             "| silent wrong | warned |", "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+             "| of them visible (n) | silent wrong | warned |",
+             "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
     for name, f in figures.items():
         lines.append(f"| {name}: {DRIVES[name].description if name in DRIVES else ''} | {f['n']} | {f['failed']} | "
                      f"{fmt(f['structure'])} ({f['n_structure']}) | {fmt(f['E_30'])} | {fmt(f['E_10'])} "
                      f"({f['n_elastic']}) | {fmt(f['J_sigma_5'])} | {fmt(f['backlash_30'])} ({f['n_backlash']}) | "
+                     f"{fmt(f['backlash_30_visible'])} ({f['n_backlash_visible']}) | "
                      f"{fmt(f['silent_wrong'])} | {fmt(f['warned'])} |")
     lines += ["", "Figures in %. Structure over systems >= 20 % from every class threshold; E_x over elastic + "
-              "elastic_backlash; silent wrong: class wrong, or an elastic answer outside E_30, or J_sigma off by "
-              "30 %, with no warning.", ""]
+              "elastic_backlash; backlash over s_N >= 0.3, visible: of those the gaps whose motor lead "
+              f"2s V_J / (1 + V_J) reaches {BACKLASH_VISIBLE_COUNTS:g} encoder counts; silent wrong: class wrong, or an "
+              "elastic answer outside E_30, or J_sigma off by 30 %, with no warning.", ""]
     return "\n".join(lines)

@@ -12,15 +12,10 @@ from typing import Any
 
 import numpy as np
 
-from sim import R_OSC_VISIBLE, S_N_ELASTIC, S_N_STIFF_BACKLASH, W_E_T_EI_STIFF
+from sim import CLASS_THRESHOLDS
 
 #: The parameters whose relative errors define the recognition rate ``E_x`` (paper section 4).
 RECOGNITION_PARAMS: tuple[str, ...] = ("f_e", "V_J", "J_sigma")
-
-#: Class thresholds of SPEC section 1: quantity -> thresholds on it, those of the class rule
-#: :func:`sim.class_index`.
-CLASS_THRESHOLDS: dict[str, tuple[float, ...]] = {
-    "w_e_T_Ei": (W_E_T_EI_STIFF,), "s_N": (S_N_ELASTIC, S_N_STIFF_BACKLASH), "r_osc": (R_OSC_VISIBLE,)}
 
 
 def finite_or_none(x: Any) -> float | None:

@@ -32,7 +32,7 @@ COMPONENT_LABELS: dict[str, str] = {
     "dlog10_f_e": with_unit("correction log10 f_e - log10 f_fit", "decades"),
     "dlog10_V_J": with_unit("correction log10 V_J - log10 V_J,fit", "decades"),
     "d": with_unit("damping d", "-"),
-    "log10_s_N": with_unit("log10 s_N (normalized backlash C_F s / M_N)", "-"),
+    "log10_s_star": with_unit("log10 s* (backlash torque C_F s over the test's M*)", "-"),
     "log10_w_e_T_Ei": with_unit("log10 w_e T_Ei", "-"),
     "log10_r_osc": with_unit("log10 r_osc (oscillation over speed quantum)", "-"),
     "log10_backlash": with_unit("log10 backlash width 2s", "log10 rad"),
@@ -60,7 +60,8 @@ class ParameterPlane:
 #: normalized as ``s_N``; Fig. 8: ``f_e``). The ``f_e`` and ``V_J`` maps store corrections to the
 #: eq.-1 fit (``training.identification.TARGETS``): a unit's value is its fit feature plus its correction.
 PARAMETER_PLANES: dict[str, ParameterPlane] = {p.map: p for p in (
-    ParameterPlane("structure", "s_N", "normalized backlash s_N = C_F s / M_N", "-", lambda w: w["log10_s_N"]),
+    ParameterPlane("structure", "s_N", "normalized backlash s* = C_F s / M* (s_N where M_N = M*)", "-",
+                   lambda w: w["log10_s_star"]),
     ParameterPlane("f_e", "f_e", "eigenfrequency f_e", "Hz", lambda w: np.log10(from_correction("f_e", w.__getitem__))),
     ParameterPlane("V_J", "V_J", "inertia ratio V_J = J_L / J_M", "-", lambda w: np.log10(from_correction("V_J", w.__getitem__))),
     ParameterPlane("backlash", "backlash", "backlash width 2s", "rad", lambda w: w["log10_backlash"]),

@@ -7,6 +7,7 @@ from ._envelope import SPEC_ENVELOPE, Envelope, trained_envelope
 from ._batch import CHUNK
 from ._features import eigenfrequency_features, extra_features, structure_features
 from ._identifier import Identifier
+from ._limits import BACKLASH_VISIBLE_COUNTS, backlash_resolution, motor_lead
 from ._maps import CORRECTIONS, MAP_SPECS, SUBSETS, TARGETS, from_correction, MapSpec, TrainedMap, load_map, recall_targets
 from ._one_mass import FORMULATIONS, OneMassFit, fit_one_mass, speed_from_position
 from ._oscillation import OscillationFit, fit_oscillation
@@ -25,4 +26,5 @@ __all__ = [
     "eigenfrequency_features", "structure_features", "extra_features", "fit_oscillation", "OscillationFit",
     "check_record", "MAP_SPECS", "MapSpec", "TrainedMap", "TARGETS", "CORRECTIONS", "from_correction", "SUBSETS", "load_map", "recall_targets",
     "refine", "RefineConfig", "RefineProblem", "Refined", "torque_reference",
+    "BACKLASH_VISIBLE_COUNTS", "backlash_resolution", "motor_lead",
 ]

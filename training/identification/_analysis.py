@@ -11,8 +11,9 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+from scipy.signal import lfilter
 
-from sim import Record
+from sim import SECTION_LEVELS, Record
 from training.errors import IdentificationError, one_line
 from training.identification._drive import REFERENCE_DRIVE, DriveValues, drive_values
 from training.identification._features import (EIG_NAMES, EXTRA_NAMES, STRUCT_NAMES, eigenfrequency_features,
@@ -24,11 +25,32 @@ from training.identification._result import IdentWarning
 from training.identification._sections import SectionSplit, detect_sections
 
 #: Version of the whole feature vector below; stored in checkpoints and checked at recall.
-FEATURE_VERSION = "twomass-features-v2"
+FEATURE_VERSION = "twomass-features-v3"
+
+#: The record's drive and test in the units of the oscillation and of the test itself (all
+#: dimensionless, so that one map serves every drive of SPEC 3.1's envelope): the fitted
+#: oscillation's frequency ``f_fit`` times the sample time ``T_s`` (Nyquist at 0.5), times
+#: ``2 pi T_Ei`` (the current loop's lag) and times the test's time scale ``tau = J_sigma w_max /
+#: M*`` (periods per time scale); ``w_max`` in speed quanta ``q_w``; the measured torque's noise
+#: over ``M*``. Without a fitted oscillation (``f_fit = 0``) the three ``f_fit`` ratios read
+#: :data:`NO_FREQUENCY`.
+CONTEXT_NAMES: tuple[str, ...] = ("log10_f_T_s", "log10_w_T_Ei", "log10_f_tau", "log10_w_max_quanta", "log10_noise")
+NO_FREQUENCY = -6.0
+
+#: The gap crossing, seen in the motor's angle (which a coarse encoder resolves far better than
+#: its speed): while the motor crosses a backlash alone after the torque reverses (sections III and
+#: VI), it runs ahead of the one-mass motion by ``2s J_L / J_sigma`` of angle, then the load takes
+#: it along at the one-mass speed (momentum). ``log10_gap_lead``: that lead (the extreme of the
+#: integrated ``w_osc`` in the torque's direction over the first half of III and VI, mean of the
+#: two) over the test's angle scale ``w_max tau``; ``log10_q_phi_rel``: one encoder count over
+#: the same scale (how much of the lead the record can resolve).
+GAP_NAMES: tuple[str, ...] = ("log10_gap_lead", "log10_q_phi_rel")
+_GAP_FLOOR = 1e-9  # lead over the angle scale below which the log reads the floor
 
 #: Names of the feature vector's components, in order.
 FEATURE_NAMES: tuple[str, ...] = (
     EIG_NAMES + STRUCT_NAMES + EXTRA_NAMES + ("log10_osc_quanta", "log10_f_fit", "log10_V_J_fit", "d_fit", "r2_fit")
+    + CONTEXT_NAMES + GAP_NAMES
 )
 
 __all__ = ["FEATURE_VERSION", "FEATURE_NAMES", "REFERENCE_DRIVE", "Analysis", "analyze"]
@@ -86,19 +108,67 @@ def analyze(record: Record) -> Analysis:
         raise IdentificationError(one_line(err)) from err
 
 
+def _context(f_fit: float, J_sigma: float, drive: DriveValues) -> list[float]:
+    """The :data:`CONTEXT_NAMES` features of a record whose oscillation fit found ``f_fit`` [Hz]."""
+    tau = abs(J_sigma) * drive.w_max / drive.M_star
+    per = ([math.log10(f_fit * drive.T_s), math.log10(2.0 * math.pi * f_fit * drive.T_Ei),
+            math.log10(max(f_fit * tau, 1e-6))] if f_fit > 0 else [NO_FREQUENCY] * 3)
+    return per + [math.log10(max(drive.w_max / drive.q_w, 1e-3)),
+                  math.log10(max(drive.current_noise / drive.M_star, 1e-6))]
+
+
+def _gap(w_osc: np.ndarray, split: SectionSplit, T_s: float, J_sigma: float, drive: DriveValues) -> list[float]:
+    """The :data:`GAP_NAMES` features of a record."""
+    angle_scale = abs(J_sigma) * drive.w_max * drive.w_max / drive.M_star  # w_max tau [rad]
+    leads = []
+    for k in (2, 5):  # III and VI: the torque reverses against the motion
+        a, b = (int(v) for v in split.bounds[k])
+        half = w_osc[a:a + max(1, (b - a) // 2)]
+        leads.append(max(0.0, float(np.max(np.sign(split.levels[k]) * np.cumsum(half))) * T_s))
+    return [math.log10(max(float(np.mean(leads)) / angle_scale, _GAP_FLOOR)),
+            math.log10(max(drive.q_phi / angle_scale, _GAP_FLOOR))]
+
+
+#: The measured torque's noise, integrated over the longest section by the one-mass fit, may shift
+#: the speed by this many speed quanta before the fit runs on the applied torque instead
+#: (:func:`applied_torque`): above it the noise would read as an oscillation in ``w_osc``.
+NOISE_QUANTA = 0.5
+
+
+def applied_torque(record: Record, split: SectionSplit, T_Ei: float) -> np.ndarray:
+    """The torque the motor applies, without the measurement's noise: the test's reference through
+    SPEC 1's current loop, a first-order lag ``T_Ei`` with the reference held over each sample:
+    ``M[k] = a M[k-1] + (1 - a) M_ref[k-1]``, ``a = exp(-T_s / T_Ei)``. The reference is the
+    record's ``torque_ref``, else SPEC 2's levels ``x M*`` over the sections (0 at the first
+    sample: the test starts from rest). ``(N,)`` [Nm]."""
+    n = record.speed.size
+    if record.torque_ref is not None:
+        ref = np.asarray(record.torque_ref, dtype=np.float64)
+    else:
+        ref = np.zeros(n)
+        for (lo, hi), level in zip(split.bounds.tolist(), SECTION_LEVELS):
+            ref[max(lo, 1):hi] = level * split.M_star
+    a = math.exp(-record.T_s / T_Ei)
+    return lfilter([0.0, 1.0 - a], [1.0, -a], ref)
+
+
 def _analyze(record: Record) -> Analysis:
     check_record(record)  # units and metadata against the signals
     T_s = record.T_s
     torque = record.motor_torque
     split = detect_sections(record)
+    drive, drive_warnings = drive_values(record, split, torque)
     fit = fit_one_mass(torque, record.speed, T_s, sections=split.bounds)
+    longest = int(np.max(split.bounds[:, 1] - split.bounds[:, 0]))
+    if drive.current_noise * T_s * math.sqrt(longest) > NOISE_QUANTA * drive.q_w * abs(fit.J_sigma):
+        torque = applied_torque(record, split, drive.T_Ei)
+        fit = fit_one_mass(torque, record.speed, T_s, sections=split.bounds)
     w_osc = fit.w_osc
     eig = eigenfrequency_features(w_osc, T_s, split.bounds)
     struct = structure_features(w_osc, T_s, split.bounds)
     steps = np.diff(np.r_[0.0, split.levels])  # torque step at each section start [Nm]
     extra = extra_features(w_osc, T_s, split.bounds, J_sigma=fit.J_sigma, torque_steps=steps,
                            speed_span=float(np.ptp(record.speed)), structure=struct)
-    drive, drive_warnings = drive_values(record, split, torque)
     q_w = drive.q_w
     sel = np.concatenate([w_osc[a:b] for a, b in split.bounds.tolist()])
     osc_quanta = float(np.sqrt(np.mean(sel * sel))) / q_w if sel.size else 0.0
@@ -109,6 +179,6 @@ def _analyze(record: Record) -> Analysis:
         math.log10(max(osc_quanta, 1e-3)),
         math.log10(osc.f_0) if osc.f_0 > 0 else 0.0,
         math.log10(V_J_fit) if V_J_fit > 1e-3 else -3.0,
-        osc.d, osc.r2]])
+        osc.d, osc.r2], _context(osc.f_0, fit.J_sigma, drive), _gap(w_osc, split, T_s, fit.J_sigma, drive)])
     return Analysis(sections=split, fit=fit, features=features, drive=drive, osc_quanta=osc_quanta,
                     warnings=fit.warnings + tuple(drive_warnings), section_flags=split.flags)

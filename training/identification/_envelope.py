@@ -34,6 +34,8 @@ from pathlib import Path
 from typing import Any
 
 from sim import EnvelopeRanges, PopulationRanges
+from som_torch import atomic_write
+from training._json import dumps
 from training.identification._result import IdentWarning
 
 FORMAT = "twomass-envelope/1"
@@ -108,6 +110,16 @@ class Envelope:
                 out.append(Finding(name, float(value), tr, env, outside))
         return out
 
+    def to_dict(self) -> dict[str, Any]:
+        """The ``envelope.json`` form (:meth:`from_dict` reads it back)."""
+        return {"format": FORMAT, **{part: {k: list(v) for k, v in getattr(self, part).items()}
+                                     for part in ("envelope", "trained")}}
+
+    def write(self, path: str | os.PathLike[str]) -> None:
+        """Write :meth:`to_dict` to ``path`` (atomically)."""
+        text = dumps(self.to_dict(), indent=1)
+        atomic_write(Path(path), lambda f: f.write(text), text=True)
+
     @classmethod
     def from_dict(cls, data: Mapping[str, Any], where: str = FILE_NAME) -> "Envelope":
         if not isinstance(data, Mapping) or data.get("format") != FORMAT:
@@ -140,9 +152,12 @@ class Envelope:
 
 def trained_envelope(metadata: Mapping[str, Any]) -> Envelope:
     """The ranges one map's ``metadata`` (its ``dataset``: drive, test signal, population) covers:
-    one drive and one test (single values), the population's ``J_sigma`` range as the time scale,
-    noise from none up to the training drive's."""
+    for a dataset drawn over the envelope (``dataset.envelope``, :class:`sim.EnvelopeRanges`) its
+    drive and test ranges; for one drive and one test single values, the population's ``J_sigma``
+    range as the time scale, noise from none up to the training drive's."""
     ds = metadata["dataset"]
+    if ds.get("envelope"):
+        return Envelope(trained=_sampled(ds["envelope"]))
     drive, signal = ds["drive"], ds["signal"]
     ranges = ds.get("ranges") or {}
     J = tuple(ranges.get("J_sigma", PopulationRanges().J_sigma))
@@ -154,6 +169,17 @@ def trained_envelope(metadata: Mapping[str, Any]) -> Envelope:
                # up to the training drive's noise, with room for the estimate's own spread
                "current_noise": (0.0, NOISE_SPREAD * drive["current_noise_std"] * drive["K_M"] / M_star)}
     return Envelope(trained=trained)
+
+
+def _sampled(env: Mapping[str, Any]) -> dict[str, tuple[float, float]]:
+    """The drive and test ranges of :class:`sim.EnvelopeRanges` ``env`` (as stored in a dataset)."""
+    pair = lambda k: (float(env[k][0]), float(env[k][1]))  # noqa: E731
+    lo_bits, hi_bits = env["encoder_bits"]
+    out = {k: pair(k) for k in ("T_s", "T_Ei", "M_N", "M_max_over_M_N", "time_scale")}
+    out["encoder_counts"] = (2.0 ** lo_bits, 2.0 ** hi_bits)
+    out["M_star_over_M_max"] = (0.0, float(env["M_star_over_M_max"][1]))  # a weaker test only lowers the noise's share
+    out["current_noise"] = (0.0, NOISE_SPREAD * float(env["current_noise"][1]))
+    return out
 
 
 def envelope_warnings(findings: list[Finding]) -> list[IdentWarning]:

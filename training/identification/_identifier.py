@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 import som_torch as st
-from sim import STRUCTURE_CLASSES, Record, class_index, two_mass_derived
+from sim import CLASS_THRESHOLDS, STRUCTURE_CLASSES, Record, class_index, two_mass_derived
 from training.config import blas_threads, checkpoints_folder
 from training.errors import one_line
 from training.identification._analysis import FEATURE_NAMES, Analysis, analyze
@@ -37,13 +37,17 @@ from training.identification._result import (IdentificationFailure, Identificati
                                               Parameters, Quality)
 
 _BACKLASH_CLASSES = ("elastic_backlash", "stiff_backlash")
+#: Relative distance to a class threshold within which an answer gets ``class_near_threshold``.
+CLASS_MARGIN = 0.25
+#: The structure map's probability of ``stiff`` below which a stiff answer is refined too.
+STIFF_SURE = 0.6
 
 
 @dataclass(frozen=True)
 class _MapsAnswer:
     """What the maps say about one record, before the refinement: the structure and its
     probabilities, ``f_e`` [Hz], ``V_J``, ``d``, the structure map's and the backlash map's
-    ``s_N`` (on the record's own ``M_N``: :meth:`Identifier._s_N`), and each map's recall
+    ``s_N`` (on the record's own ``M_N``: :func:`_s_N`), and each map's recall
     distance over its training 99 % quantile."""
 
     structure: str
@@ -76,8 +80,9 @@ class Identifier:
     calls it.
 
     Every drive value comes from the record (:mod:`training.identification._drive`), never from
-    the maps: the maps' normalized backlash is a torque over their training test's ``M*``, turned
-    into the record's ``s_N = s C_F / M_N`` by the record's own ``M*`` and ``M_N``."""
+    the maps: the maps' features and targets are dimensionless (the maps' normalized backlash
+    ``s* = s C_F / M*`` is turned into the record's ``s_N = s C_F / M_N`` by the record's own ``M*``
+    and ``M_N``)."""
 
     def __init__(self, maps: dict[str, TrainedMap], refine: RefineConfig | None = RefineConfig(),
                  envelope: Envelope | None = None) -> None:
@@ -89,8 +94,6 @@ class Identifier:
         self.maps = maps
         self.refine = refine
         self.envelope = envelope if envelope is not None else trained_envelope(maps["structure"].metadata)
-        # s C_F over the training test's M*, per unit of a map's s_N target (s C_F / its M_N)
-        self._M_N_over_M_star = {n: _M_N_over_M_star(m.metadata) for n, m in maps.items()}
 
     @classmethod
     def load(cls, folder: str | os.PathLike[str] | None = None, *,
@@ -182,10 +185,13 @@ class Identifier:
         refined: list[Refined | None] = [None] * len(analyses)
         if self.refine is not None:
             # stiff answers are refined too where the oscillation shows above the quantization
-            # (near the w_e T_Ei = 1 threshold the maps' f_e decides the class), and where the
-            # drive lies outside the maps' training (their stiff verdict is then unproven)
+            # (near the w_e T_Ei = 1 threshold the maps' f_e decides the class), where the drive
+            # lies outside the maps' training (their stiff verdict is then unproven), where the
+            # drive's resolution could hide a backlash from the features (the replay still sees
+            # the gap crossings), and where the structure map itself is unsure of stiff
             todo = [i for i, (a, m, f) in enumerate(zip(analyses, answers, drive_findings))
-                    if m.structure != "stiff" or a.osc_quanta >= 1.0 or f]
+                    if m.structure != "stiff" or a.osc_quanta >= 1.0 or f or _hides_backlash(a)
+                    or m.probabilities["stiff"] < STIFF_SURE]
             problems = [self._problem(analyses[i], answers[i]) for i in todo]
             for i, r in zip(todo, refine(problems, self.refine)):
                 refined[i] = r
@@ -206,7 +212,7 @@ class Identifier:
         # the maps store corrections to the eq.-1 fit (training.identification._maps.TARGETS)
         f_e, V_J = (from_correction(p, lambda k, p=p: r[p][k] if k in r[p] else a.feature(k)) for p in ("f_e", "V_J"))
         d = min(max(r["f_e"]["d"], 0.0), 0.9)
-        s_N = self._s_N(a, "structure", r["structure"]["log10_s_N"])
+        s_N = _s_N(a, r["structure"]["log10_s_star"])
         probs = {c: r["structure"][f"p_{c}"] for c in STRUCTURE_CLASSES}
         # SPEC's stiff rule on the identified values; otherwise the structure map's most likely other class
         if _spec_class(a, a.fit.J_sigma, V_J, f_e, d, s_N) == "stiff":
@@ -217,14 +223,7 @@ class Identifier:
         for name, m in self.maps.items():  # recall distance over the training 99 % quantile
             q99 = m.metadata["distance_quantiles"]["0.99"]
             ratio[name] = r[name]["distance"] / q99 if q99 > 0 else float("inf")
-        return _MapsAnswer(structure, probs, f_e, V_J, d, s_N, self._s_N(a, "backlash", r["backlash"]["log10_s_N"]),
-                           ratio)
-
-    def _s_N(self, a: Analysis, name: str, log10_s_N: float) -> float:
-        """The record's ``s_N = s C_F / M_N`` from map ``name``'s ``log10_s_N``: the map learned
-        ``s C_F`` over its training test's ``M*`` (what the speed shows), so ``s C_F`` is that
-        times the record's ``M*``."""
-        return 10.0 ** log10_s_N * self._M_N_over_M_star[name] * a.M_star / a.M_N
+        return _MapsAnswer(structure, probs, f_e, V_J, d, s_N, _s_N(a, r["backlash"]["log10_s_star"]), ratio)
 
     def _problem(self, a: Analysis, m: _MapsAnswer) -> RefineProblem:
         """The refinement of one maps' answer: the record's replayed test signal, STEP 2's
@@ -256,7 +255,7 @@ class Identifier:
         warnings += impossible_warnings + implausible(parameters, T_s=a.T_s, T_Ei=a.T_Ei, travel=travel(a.fit.speed, a.T_s),
                                                       J_sigma_one_mass=a.fit.J_sigma)
         parameters, bound, bound_warnings = _backlash_bound(a, parameters)
-        warnings += bound_warnings
+        warnings += bound_warnings + _near_threshold(a, m, parameters)
         quality = Quality(
             structure_probabilities=m.probabilities, map_distance_ratio=m.distance_ratio, osc_quanta=a.osc_quanta,
             oscillation_fit_r2=a.feature("r2_fit"), one_mass_rel_residual=a.fit.rel_residual,
@@ -309,10 +308,15 @@ def _below_quantum(a: Analysis) -> IdentWarning:
                                                      "rms: elastic parameters uncertain")
 
 
-def _M_N_over_M_star(metadata: dict) -> float:
-    """A map's training drive's ``M_N`` over its training test's ``M*`` (1 for the shipped maps)."""
-    ds = metadata["dataset"]
-    return float(ds["drive"]["M_N"]) / float(ds["signal"]["M_star"])
+def _s_N(a: Analysis, log10_s_star: float) -> float:
+    """The record's ``s_N = s C_F / M_N`` from a map's ``log10_s_star``, ``s* = s C_F / M*`` (the
+    gap's torque over the test's torque: what the speed shows), by the record's ``M*`` and ``M_N``."""
+    return 10.0 ** log10_s_star * a.M_star / a.M_N
+
+
+def _hides_backlash(a: Analysis) -> bool:
+    """Whether the record's resolution could hide a backlash that matters (:func:`._limits.backlash_resolution`)."""
+    return backlash_resolution(a.q_w, a.drive.q_phi, abs(a.fit.J_sigma), a.M_star) > BACKLASH_NEGLIGIBLE
 
 
 def _drive_quantities(a: Analysis) -> dict[str, float | None]:
@@ -337,7 +341,7 @@ def _backlash_bound(a: Analysis, p: Parameters) -> tuple[Parameters, float | Non
     without a width (``None`` instead of 0 or an unresolved value), the upper bound and a warning."""
     if p.J_sigma is None:
         return p, None, []
-    bound = backlash_resolution(a.q_w, a.drive.q_phi, p.J_sigma, a.M_star)
+    bound = backlash_resolution(a.q_w, a.drive.q_phi, p.J_sigma, a.M_star, p.V_J)
     if bound <= BACKLASH_NEGLIGIBLE or (p.backlash is not None and p.backlash >= bound):
         return p, None, []
     return replace(p, backlash=None), bound, [IdentWarning(
@@ -357,9 +361,31 @@ def _refine_warnings(r: Refined, structure: str) -> list[IdentWarning]:
     return out
 
 
-def _spec_class(a: Analysis, J_sigma: float, V_J: float, f_e: float, d: float, s_N: float) -> str:
-    """SPEC's class (:func:`sim.class_index`) of a two-mass model on the record's drive: ``s_N``,
-    ``w_e T_Ei`` and ``r_osc = V_J M* / (J_sigma w_0 q_w)``."""
+def _class_quantities(a: Analysis, J_sigma: float, V_J: float, f_e: float, d: float, s_N: float) -> dict[str, float]:
+    """The quantities of SPEC's class rule (:data:`sim.CLASS_THRESHOLDS`) of a two-mass model on the
+    record's drive: ``s_N``, ``w_e T_Ei`` and ``r_osc = V_J M* / (J_sigma w_0 q_w)``."""
     dv = two_mass_derived(J_sigma, V_J, f_e, d)
-    r_osc = V_J * a.M_star / (J_sigma * dv.w_0 * a.q_w)
-    return STRUCTURE_CLASSES[int(class_index(s_N, dv.w_e * a.T_Ei, r_osc))]
+    return {"s_N": s_N, "w_e_T_Ei": dv.w_e * a.T_Ei, "r_osc": V_J * a.M_star / (J_sigma * dv.w_0 * a.q_w)}
+
+
+def _spec_class(a: Analysis, J_sigma: float, V_J: float, f_e: float, d: float, s_N: float) -> str:
+    """SPEC's class (:func:`sim.class_index`) of a two-mass model on the record's drive."""
+    return STRUCTURE_CLASSES[int(class_index(**_class_quantities(a, J_sigma, V_J, f_e, d, s_N)))]
+
+
+def _near_threshold(a: Analysis, m: _MapsAnswer, p: Parameters) -> list[IdentWarning]:
+    """``class_near_threshold`` where the answer's class quantities (the final parameters', else the
+    maps' estimate) lie within :data:`CLASS_MARGIN` of a threshold of the class rule: there the
+    neighbouring class is about as likely (the evaluation scores the class beyond 20 % only)."""
+    if p.f_e is not None and p.V_J is not None and p.d is not None and p.J_sigma is not None:
+        bounded = p.backlash is None or p.C_F is None  # a backlash bounded, not measured: its s_N unknown
+        q = _class_quantities(a, p.J_sigma, p.V_J, p.f_e, p.d, 0.0 if bounded else 0.5 * p.backlash * p.C_F / a.M_N)
+        if bounded:
+            del q["s_N"]
+    else:
+        q = _class_quantities(a, a.fit.J_sigma, m.V_J, m.f_e, m.d, m.s_N)
+    near = [(name, v, thr) for name, v in q.items() if math.isfinite(v)
+            for thr in CLASS_THRESHOLDS[name] if abs(v - thr) < CLASS_MARGIN * thr]
+    return [IdentWarning("class_near_threshold", f"{name} = {v:.3g} lies within {CLASS_MARGIN:.0%} of the class "
+                                                 f"threshold {thr:g}: the neighbouring class is about as likely")
+            for name, v, thr in near]

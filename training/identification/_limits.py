@@ -1,11 +1,14 @@
 """What a record can show, and what an answer may claim.
 
-- **Backlash resolution**: a gap of width ``2s`` shows in the motor speed when the motor crosses
-  it alone: under the smallest torque step that closes it (``0.7 M*``, sections III and VI) it
-  reaches the relative speed ``sqrt(2 * 2s * 0.7 M* / J_M)`` at the contact. Below
-  :data:`BACKLASH_VISIBLE_QUANTA` speed quanta (with ``J_M <= J_sigma``), or below one encoder
-  count of angle, the record cannot show it:
-  ``2s_res = max(q_phi, k^2 q_w^2 J_sigma / (1.4 M*))``. A stiff answer (or a backlash below that
+- **Backlash resolution**: a gap of width ``2s`` shows where the motor crosses it alone, in its
+  speed or in its angle. Speed: under the smallest torque step that closes it (``0.7 M*``,
+  sections III and VI) the motor reaches the relative speed ``sqrt(2 * 2s * 0.7 M* / J_M)`` at the
+  contact, seen from :data:`BACKLASH_VISIBLE_QUANTA` speed quanta on (with ``J_M <= J_sigma``):
+  ``2s_speed = k^2 q_w^2 J_sigma / (1.4 M*)``. Angle: the motor runs ahead of the one-mass motion
+  by ``2s J_L / J_sigma = 2s V_J / (1 + V_J)`` (the ``log10_gap_lead`` feature), seen from
+  :data:`BACKLASH_VISIBLE_COUNTS` encoder counts on: ``2s_angle = k_phi q_phi (1 + V_J) / V_J``
+  (``V_J`` the answer's, else SPEC 3.1's smallest). The record cannot show a gap below
+  ``2s_res = max(q_phi, min(2s_speed, 2s_angle))``. A stiff answer (or a backlash below that
   width) then reports no width but this upper bound, with a warning, where the bound exceeds
   :data:`BACKLASH_NEGLIGIBLE` (precision gearboxes: about 1 arcmin).
 - **Implausible outputs** (kept, warned): ``f_e`` above Nyquist ``0.5/T_s`` or above the current
@@ -25,9 +28,12 @@ import numpy as np
 
 from sim import SECTION_LEVELS
 
+from training.identification._envelope import SPEC_ENVELOPE
 from training.identification._result import IdentWarning, Parameters
 
 BACKLASH_VISIBLE_QUANTA = 2.0  # speed quanta the motor's gap crossing must reach to be seen
+BACKLASH_VISIBLE_COUNTS = 2.0  # encoder counts the motor's lead over the one-mass motion must reach
+V_J_SMALLEST = SPEC_ENVELOPE["V_J"][0]  # the inertia ratio assumed where the answer has none
 BACKLASH_NEGLIGIBLE = math.radians(0.01)  # [rad] a bound below this is not worth a warning
 J_SIGMA_RATIO = 2.0  # two-mass J_sigma over STEP 2's beyond this (either way): warned
 _LOW_LEVEL = SECTION_LEVELS[5]  # the torque of sections III and VI over M*
@@ -35,10 +41,19 @@ _LOW_LEVEL = SECTION_LEVELS[5]  # the torque of sections III and VI over M*
 _POSITIVE = ("J_sigma", "V_J", "J_M", "J_L", "f_e", "C_F")
 
 
-def backlash_resolution(q_w: float, q_phi: float, J_sigma: float, M_star: float) -> float:
+def motor_lead(backlash: float, V_J: float) -> float:
+    """The angle [rad] by which the motor runs ahead of the one-mass motion after crossing a gap of
+    width ``backlash`` alone: ``2s J_L / J_sigma = 2s V_J / (1 + V_J)`` (floats or arrays)."""
+    return backlash * V_J / (1.0 + V_J)
+
+
+def backlash_resolution(q_w: float, q_phi: float, J_sigma: float, M_star: float, V_J: float | None = None) -> float:
     """The widest backlash ``2s`` [rad] the record cannot show (see the module docstring)."""
     k = BACKLASH_VISIBLE_QUANTA
-    return max(q_phi, k * k * q_w * q_w * J_sigma / (2.0 * _LOW_LEVEL * M_star))
+    by_speed = k * k * q_w * q_w * J_sigma / (2.0 * _LOW_LEVEL * M_star)
+    v = V_J if V_J is not None and V_J > 0 else V_J_SMALLEST
+    by_angle = BACKLASH_VISIBLE_COUNTS * q_phi / motor_lead(1.0, v)
+    return max(q_phi, min(by_speed, by_angle))
 
 
 def travel(speed: np.ndarray, T_s: float) -> float:

@@ -19,7 +19,7 @@ import torch
 
 import som_torch as st
 from sim import STRUCTURE_CLASSES
-from training.identification._analysis import FEATURE_NAMES, FEATURE_VERSION
+from training.identification._analysis import FEATURE_NAMES, FEATURE_VERSION, GAP_NAMES
 
 _HARM = tuple(n for n in FEATURE_NAMES if n.startswith("harm_"))
 
@@ -45,15 +45,19 @@ def from_correction(param: str, value: Callable[[str], Any]) -> Any:
     return 10.0 ** (value(fit) + value(correction))
 
 
-#: Inactive components: name -> transform of (truth columns, feature matrix ``N x F``).
-#: ``dlog10_*`` are corrections to the eq.-1 oscillation fit: ~0 for a linear elastic mechanic,
-#: so the fit's precision survives recall, while the map learns how backlash shifts the fit.
+#: Inactive components: name -> transform of (truth columns, feature matrix ``N x F``). Every
+#: target the identification reads is dimensionless, so that the record's own scales turn it
+#: back into SI units on any drive: ``dlog10_*`` are corrections to the eq.-1 oscillation fit (~0
+#: for a linear elastic mechanic, so the fit's precision survives recall, while the map learns
+#: how backlash shifts the fit); ``log10_s_star`` is the gap's torque over the test's torque,
+#: ``s* = s C_F / M*`` (the record's ``M*`` and ``M_N`` give ``s_N = s* M* / M_N``).
+#: ``log10_backlash`` (the width in rad) is stored for the maps' figures only.
 TARGETS: dict[str, Callable[[dict[str, np.ndarray], np.ndarray], np.ndarray]] = {
     "log10_f_e": lambda t, f: _log10(t["f_e"]),
     "log10_V_J": lambda t, f: _log10(t["V_J"]),
     **{corr: (lambda t, f, p=p, fit=fit: _log10(t[p]) - _feature(f, fit)) for p, (fit, corr) in CORRECTIONS.items()},
     "d": lambda t, f: t["d"],
-    "log10_s_N": lambda t, f: _log10(t["s_N"], 1e-4),
+    "log10_s_star": lambda t, f: _log10(t["s_N"] * t["M_N"] / t["M_star"], 1e-4),
     "log10_w_e_T_Ei": lambda t, f: _log10(t["w_e_T_Ei"]),
     "log10_r_osc": lambda t, f: _log10(t["r_osc"], 1e-3),
     "log10_backlash": lambda t, f: _log10(t["backlash"], 1e-7),
@@ -94,15 +98,16 @@ class MapSpec:
 
 _FIT = ("log10_f_fit", "log10_V_J_fit", "d_fit", "r2_fit")
 _SHAPE = _HARM + ("thd", "log2_f_ratio_zero", "log2_f_ratio_07")
+_DRIVE = ("log10_f_T_s", "log10_w_T_Ei", "log10_f_tau", "log10_noise")  # the drive, seen from the oscillation
 MAP_SPECS: dict[str, MapSpec] = {
     s.name: s for s in (
-        MapSpec("structure", _SHAPE + _FIT + ("log10_osc_quanta",),
-                ("log10_s_N", "log10_w_e_T_Ei", "log10_r_osc") + tuple(f"p_{c}" for c in STRUCTURE_CLASSES)),
-        MapSpec("f_e", _FIT + ("log10_f_peak", "log10_f_zc", "thd", "log2_f_ratio_zero", "log2_f_ratio_07"),
+        MapSpec("structure", _SHAPE + _FIT + ("log10_osc_quanta",) + _DRIVE + GAP_NAMES,
+                ("log10_s_star", "log10_w_e_T_Ei", "log10_r_osc") + tuple(f"p_{c}" for c in STRUCTURE_CLASSES)),
+        MapSpec("f_e", _FIT + ("log10_f_peak", "log10_f_zc", "thd", "log2_f_ratio_zero", "log2_f_ratio_07") + _DRIVE,
                 ("dlog10_f_e", "d"), "visible"),
-        MapSpec("V_J", _FIT + ("log10_V_J_amp", "thd", "log10_osc_quanta"), ("dlog10_V_J",), "visible"),
-        MapSpec("backlash", _SHAPE + _FIT + ("log10_V_J_amp", "log10_osc_quanta"),
-                ("log10_backlash", "log10_s_N"), "backlash"),
+        MapSpec("V_J", _FIT + ("log10_V_J_amp", "thd", "log10_osc_quanta") + _DRIVE, ("dlog10_V_J",), "visible"),
+        MapSpec("backlash", _SHAPE + _FIT + ("log10_V_J_amp", "log10_osc_quanta") + _DRIVE + GAP_NAMES,
+                ("log10_backlash", "log10_s_star"), "backlash"),
     )
 }
 

@@ -25,8 +25,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from sim import (DERIVED_NAMES, PARAM_NAMES, STRUCTURE_CLASSES, DriveConfig, PopulationRanges, TestSignalConfig,
-                 TwoMassParams, default_substeps, iter_records, sample_population)
+from sim import (DERIVED_NAMES, PARAM_NAMES, STRUCTURE_CLASSES, DriveConfig, EnvelopeRanges, PopulationRanges,
+                 TestSignalConfig, TwoMassParams, default_substeps, iter_records, sample_envelope, sample_population)
 from som_torch import atomic_write
 from training._distributed import process_group
 from training._pool import worker_pool
@@ -34,15 +34,25 @@ from training._json import dumps
 from training.errors import UserError
 from training.identification import FEATURE_NAMES, FEATURE_VERSION, analyze
 
+#: The drive and test run of each system (its record's metadata): the test's ``M_star`` [Nm] and
+#: ``w_max`` [rad/s], the drive's ``M_N`` [Nm], ``T_s``, ``T_Ei`` [s], ``encoder_counts`` and the
+#: measured current's noise std over ``M*/K_M``.
+DRIVE_TRUTH_NAMES: tuple[str, ...] = ("M_star", "w_max", "M_N", "T_s", "T_Ei", "encoder_counts", "current_noise")
 #: Truth columns stored per system (SI units; ``structure`` as index into STRUCTURE_CLASSES).
-TRUTH_NAMES: tuple[str, ...] = PARAM_NAMES + DERIVED_NAMES + ("s_N", "r_osc", "w_e_T_Ei", "structure")
+TRUTH_NAMES: tuple[str, ...] = (PARAM_NAMES + DERIVED_NAMES + ("s_N", "r_osc", "w_e_T_Ei", "structure")
+                                + DRIVE_TRUTH_NAMES)
 #: STEP-2 estimates and context figures stored per system.
 ESTIMATE_NAMES: tuple[str, ...] = ("J_sigma", "M_FC", "mu_F", "M_0", "M_star", "osc_quanta", "rel_residual")
 
 
 @dataclass(frozen=True)
 class GenerateConfig:
-    """What a dataset is made of. Equal configs make equal datasets."""
+    """What a dataset is made of. Equal configs make equal datasets.
+
+    Without ``envelope``: the population of ``ranges`` on one ``drive`` with one test ``signal``.
+    With ``envelope``: drives, test runs and mechanics drawn over SPEC 3.1's envelope
+    (:func:`sim.sample_envelope`; ``ranges`` and ``drive`` are then unused, and of ``signal`` only
+    its ``timeout`` and ``tail``)."""
 
     n: int
     seed: int
@@ -50,6 +60,7 @@ class GenerateConfig:
     ranges: PopulationRanges = field(default_factory=PopulationRanges)
     drive: DriveConfig = field(default_factory=DriveConfig)
     signal: TestSignalConfig = field(default_factory=TestSignalConfig)
+    envelope: EnvelopeRanges | None = None
 
     def __post_init__(self) -> None:
         if self.n < 1 or self.shard_size < 1:
@@ -57,7 +68,8 @@ class GenerateConfig:
 
     def to_dict(self) -> dict[str, Any]:
         return {"n": self.n, "seed": self.seed, "shard_size": self.shard_size, "ranges": asdict(self.ranges),
-                "drive": asdict(self.drive), "signal": asdict(self.signal), "feature_version": FEATURE_VERSION,
+                "drive": asdict(self.drive), "signal": asdict(self.signal),
+                "envelope": None if self.envelope is None else asdict(self.envelope), "feature_version": FEATURE_VERSION,
                 "feature_names": list(FEATURE_NAMES)}
 
     @property
@@ -90,8 +102,9 @@ def _analyze_one(record: Any) -> tuple[np.ndarray, np.ndarray] | None:
     return a.features, est
 
 
-def _truth_row(truth: dict[str, Any], drive: DriveConfig) -> np.ndarray:
-    row = dict(truth)
+def _truth_row(truth: dict[str, Any], drive: DriveConfig, signal: TestSignalConfig) -> np.ndarray:
+    row = dict(truth, M_star=signal.M_star, w_max=signal.w_max, M_N=drive.M_N, T_s=drive.T_s, T_Ei=drive.T_Ei,
+               encoder_counts=drive.encoder_counts, current_noise=drive.current_noise_std * drive.K_M / signal.M_star)
     row["w_e_T_Ei"] = truth["w_e"] * drive.T_Ei
     row["structure"] = STRUCTURE_CLASSES.index(truth["structure"])
     return np.array([float(row[k]) for k in TRUTH_NAMES])
@@ -122,14 +135,15 @@ def _bounds(config: GenerateConfig, k: int) -> tuple[int, int]:
 TASK_SYSTEMS = 16
 
 
-def _task(sub: TwoMassParams, config: GenerateConfig, substeps: int, seed: int) -> dict[str, np.ndarray]:
-    """Features, estimates, truth and ok of the systems ``sub`` (flat ``m``), simulated with
-    ``substeps`` and current noise seeded ``seed + i`` for system ``i``."""
-    records = sorted(iter_records(sub, config.drive, config.signal, seed=seed, substeps=substeps),
+def _task(sub: TwoMassParams, drive: DriveConfig, signal: TestSignalConfig, substeps: int,
+          seed: int) -> dict[str, np.ndarray]:
+    """Features, estimates, truth and ok of the systems ``sub`` (flat ``m``) tested with ``signal``
+    on ``drive``, simulated with ``substeps`` and current noise seeded ``seed + i`` for system ``i``."""
+    records = sorted(iter_records(sub, drive, signal, seed=seed, substeps=substeps),
                      key=lambda r: int(r.name[3:]))  # iter_records yields duration-sorted groups
     m = len(records)
     out = {"features": np.zeros((m, len(FEATURE_NAMES))), "estimate": np.full((m, len(ESTIMATE_NAMES)), np.nan),
-           "truth": np.stack([_truth_row(r.meta["truth"], config.drive) for r in records]),
+           "truth": np.stack([_truth_row(r.meta["truth"], drive, signal) for r in records]),
            "ok": np.zeros(m, dtype=bool)}
     for i, record in enumerate(records):
         res = _analyze_one(record)
@@ -138,18 +152,35 @@ def _task(sub: TwoMassParams, config: GenerateConfig, substeps: int, seed: int) 
     return out
 
 
-def _shard(k: int, params: TwoMassParams, config: GenerateConfig, pool: Any,
-           progress: Callable[[int], None] | None) -> dict[str, np.ndarray]:
-    """The arrays of shard ``k``: a function of ``config`` and ``k`` alone (the shard's own substeps,
-    noise seeded per system), whatever the workers and their tasks."""
+def _population(config: GenerateConfig) -> tuple[TwoMassParams, np.ndarray, list[tuple[DriveConfig, TestSignalConfig]]]:
+    """The systems (batch ``(n,)``), each system's case index ``(n,)`` and the cases: drive and
+    test run (one case without an envelope)."""
+    if config.envelope is None:
+        return (sample_population(config.n, config.seed, config.ranges), np.zeros(config.n, dtype=np.int64),
+                [(config.drive, config.signal)])
+    s = sample_envelope(config.n, config.seed, config.envelope)
+    t = config.signal  # the envelope draws M* and w_max; timeout and tail are the config's
+    cases = [(drive, TestSignalConfig(sig.M_star, sig.w_max, t.timeout, t.tail)) for drive, sig in s.cases]
+    return s.params, s.cell.numpy(), cases
+
+
+def _shard(k: int, population: tuple[TwoMassParams, np.ndarray, list[tuple[DriveConfig, TestSignalConfig]]],
+           config: GenerateConfig, pool: Any, progress: Callable[[int], None] | None) -> dict[str, np.ndarray]:
+    """The arrays of shard ``k``: a function of ``config`` and ``k`` alone (substeps per case within
+    the shard, noise seeded per system), whatever the workers and their tasks."""
+    params, case, cases = population
     lo, hi = _bounds(config, k)
-    sub = params[torch.arange(lo, hi)]
-    substeps = default_substeps(sub, config.drive)
     seed = config.seed * 1_000_003 + lo
-    starts = range(0, hi - lo, TASK_SYSTEMS)
+    tasks: list[tuple[TwoMassParams, DriveConfig, TestSignalConfig, int, int]] = []
+    cuts = [lo] + [i for i in range(lo + 1, hi) if case[i] != case[i - 1]] + [hi]
+    for a, b in zip(cuts[:-1], cuts[1:]):  # runs of systems on one drive and test
+        drive, signal = cases[case[a]]
+        run = params[torch.arange(a, b)]
+        substeps = default_substeps(run, drive)
+        for j in range(0, b - a, TASK_SYSTEMS):
+            tasks.append((run[torch.arange(j, min(j + TASK_SYSTEMS, b - a))], drive, signal, substeps, seed + a - lo + j))
     parts = []
-    for part in pool.map(_task, [sub[torch.arange(j, min(j + TASK_SYSTEMS, hi - lo))] for j in starts],
-                         [config] * len(starts), [substeps] * len(starts), [seed + j for j in starts]):
+    for part in pool.map(_task, *zip(*tasks)):
         parts.append(part)
         if progress:
             progress(len(part["ok"]))
@@ -173,11 +204,11 @@ def generate(out_dir: str | os.PathLike[str], config: GenerateConfig, *, workers
     own = progress if group.main else None
     if own:
         own(config.n - sum(hi - lo for lo, hi in (_bounds(config, k) for k in missing)))
-    params = sample_population(config.n, config.seed, config.ranges)
+    population = _population(config)
     with worker_pool(workers or group.cpus()) as pool:
         for r in range(0, len(missing), group.world):
             deal = missing[r:r + group.world]  # shard deal[i] goes to rank i
-            mine = _shard(deal[group.rank], params, config, pool, own) if group.rank < len(deal) else None
+            mine = _shard(deal[group.rank], population, config, pool, own) if group.rank < len(deal) else None
             for i, (k, arrays) in enumerate(zip(deal, group.gather(mine) or [])):
                 atomic_write(out / f"shard_{k:05d}.npz", lambda f: np.savez(f, **arrays))
                 if own and i != group.rank:

@@ -17,7 +17,7 @@ from training._distributed import CallRecorder, Group, process_group
 from training.errors import OutputExistsError
 from training.figures import log_map_figures
 from training.identification import (FEATURE_NAMES, FEATURE_VERSION, MAP_SPECS, SUBSETS, TARGETS, MapSpec, TrainedMap,
-                                     load_map, recall_targets)
+                                     load_map, recall_targets, trained_envelope)
 from training.learning._dataset import Dataset
 
 
@@ -182,7 +182,8 @@ def train_map(spec: MapSpec, dataset: Dataset, config: TrainConfig, *, progress:
         "feature_version": FEATURE_VERSION, "train_config": config.to_dict(),
         "dataset": {"sha256": dataset.sha256, "n": int(dataset.config["n"]), "seed": int(dataset.config["seed"]),
                     "n_used": int(rows.shape[0]), "n_calibration": int(calibration.shape[0]),
-                    "drive": dataset.config["drive"], "signal": dataset.config["signal"]},
+                    "drive": dataset.config["drive"], "signal": dataset.config["signal"],
+                    "ranges": dataset.config["ranges"], "envelope": dataset.config.get("envelope")},
         "quality": st.quality_report(som, data), "train_seconds": seconds,
         "distance_quantiles": {q: float(np.quantile(distance, float(q))) for q in ("0.5", "0.95", "0.99")},
     }
@@ -229,7 +230,8 @@ def train_maps(dataset: Dataset, folder: Path, config: TrainConfig, *, logdir: P
                overwrite: bool = False, progress: Callable[[int], None] | None = None,
                device: str | torch.device = "cpu", epoch_progress: bool = False) -> dict[str, TrainedMap]:
     """Train every map of :data:`training.identification.MAP_SPECS` on ``dataset``, write each to
-    ``folder/<name>.pt`` and then ``folder/manifest.json``; returns the trained maps by name.
+    ``folder/<name>.pt``, then ``folder/envelope.json`` (SPEC 3.1's envelope and the drive and test
+    ranges the dataset covered) and ``folder/manifest.json``; returns the trained maps by name.
 
     ``logdir``: TensorBoard folder (config and per-map figures); ``progress(1)`` after each map;
     ``epoch_progress``: a progress bar per map over its epochs (on stderr, rank 0).
@@ -264,6 +266,7 @@ def train_maps(dataset: Dataset, folder: Path, config: TrainConfig, *, logdir: P
     finally:
         if writer is not None:
             writer.close()
-    if group.main:
+    if group.main:  # what the maps were trained on, beside them (checked against every record)
+        trained_envelope(trained["structure"].metadata).write(folder / "envelope.json")
         st.write_manifest(folder)
     return trained

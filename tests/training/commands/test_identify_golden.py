@@ -1,7 +1,7 @@
 """Behaviour pinned across refactorings: ``twomass identify`` on a fixed set of simulated records
-gives the JSON Lines stored in ``tests/data/identify_golden.jsonl`` (written by the code before
+gives the JSON Lines stored in ``tests/training/commands/data/identify_golden.jsonl`` (written by the code before
 the layout change of issue 10; regenerate only for an intended change of the identification:
-``python tests/test_identify_golden.py``)."""
+``python tests/training/commands/test_identify_golden.py``)."""
 
 from __future__ import annotations
 

@@ -47,7 +47,7 @@ def test_train_then_identify(dataset_dir, tmp_path, capsys):
     args = ["train", "--data", str(dataset_dir), "--out", str(ck), "--logdir", str(tmp_path / "runs"),
             "--size", "5", "5", "--ensemble", "2", "--epochs", "2", "--no-progress"]
     assert main(args) == 0
-    assert sorted(p.name for p in ck.iterdir()) == sorted([f"{n}.pt" for n in MAP_SPECS] + ["manifest.json"])
+    assert sorted(p.name for p in ck.iterdir()) == sorted([f"{n}.pt" for n in MAP_SPECS] + ["envelope.json", "manifest.json"])
     assert main(args) == 2  # refuses to overwrite without --overwrite
     assert "--overwrite" in capsys.readouterr().err
 

@@ -22,10 +22,10 @@ def test_train_resumes_and_writes_identical_files(dataset, tmp_path):
     ck = tmp_path / "ck"
     train_maps(dataset, ck, CONFIG)
     first = {p.name: p.read_bytes() for p in ck.iterdir()}
-    assert sorted(first) == sorted([f"{n}.pt" for n in MAP_SPECS] + ["manifest.json"])
+    assert sorted(first) == sorted([f"{n}.pt" for n in MAP_SPECS] + ["envelope.json", "manifest.json"])
     # an interrupt after two maps: two maps, no manifest
     names = list(MAP_SPECS)
-    for p in [ck / f"{n}.pt" for n in names[2:]] + [ck / "manifest.json"]:
+    for p in [ck / f"{n}.pt" for n in names[2:]] + [ck / "envelope.json", ck / "manifest.json"]:
         p.unlink()
     kept = {n: (ck / f"{n}.pt").stat().st_mtime_ns for n in names[:2]}
     trained = train_maps(dataset, ck, CONFIG)  # resumes: no overwrite needed
