@@ -88,9 +88,8 @@ class EnvelopeRanges:
     of ``M*/K_M``. Backlash is a physical angle (a gearbox's play does not scale with its motor).
 
     A share :attr:`reference_share` of the cells runs SPEC 1's reference drive and test instead
-    (``DriveConfig()``, ``TestSignalConfig()``: the paper's world, which the maps keep serving as
-    well as maps made for it alone), with the time scales :attr:`reference_time_scale` (SPEC 1's
-    ``J_sigma`` range at that test).
+    (``DriveConfig()``, ``TestSignalConfig()``: the paper's world stays densely covered), with the
+    time scales :attr:`reference_time_scale` (SPEC 1's ``J_sigma`` range at that test).
     """
 
     T_s: tuple[float, float] = (62.5e-6, 1e-3)  # [s]

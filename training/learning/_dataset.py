@@ -18,15 +18,16 @@ import hashlib
 import json
 import os
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
 
-from sim import (DERIVED_NAMES, PARAM_NAMES, STRUCTURE_CLASSES, DriveConfig, EnvelopeRanges, PopulationRanges,
-                 TestSignalConfig, TwoMassParams, default_substeps, iter_records, sample_envelope, sample_population)
+from sim import (DERIVED_NAMES, PARAM_NAMES, STRUCTURE_CLASSES, DriveConfig, EnvelopeRanges, EnvelopeSample,
+                 PopulationRanges, TestSignalConfig, TwoMassParams, default_substeps, iter_records, sample_envelope,
+                 sample_population)
 from som_torch import atomic_write
 from training._distributed import process_group
 from training._pool import worker_pool
@@ -152,23 +153,22 @@ def _task(sub: TwoMassParams, drive: DriveConfig, signal: TestSignalConfig, subs
     return out
 
 
-def _population(config: GenerateConfig) -> tuple[TwoMassParams, np.ndarray, list[tuple[DriveConfig, TestSignalConfig]]]:
-    """The systems (batch ``(n,)``), each system's case index ``(n,)`` and the cases: drive and
-    test run (one case without an envelope)."""
+def _population(config: GenerateConfig) -> EnvelopeSample:
+    """The systems, each on one of the drives and test runs ``cases`` (one case without an envelope)."""
     if config.envelope is None:
-        return (sample_population(config.n, config.seed, config.ranges), np.zeros(config.n, dtype=np.int64),
-                [(config.drive, config.signal)])
+        return EnvelopeSample(sample_population(config.n, config.seed, config.ranges),
+                              torch.zeros(config.n, dtype=torch.int64), ((config.drive, config.signal),))
     s = sample_envelope(config.n, config.seed, config.envelope)
     t = config.signal  # the envelope draws M* and w_max; timeout and tail are the config's
-    cases = [(drive, TestSignalConfig(sig.M_star, sig.w_max, t.timeout, t.tail)) for drive, sig in s.cases]
-    return s.params, s.cell.numpy(), cases
+    return replace(s, cases=tuple((drive, TestSignalConfig(sig.M_star, sig.w_max, t.timeout, t.tail))
+                                  for drive, sig in s.cases))
 
 
-def _shard(k: int, population: tuple[TwoMassParams, np.ndarray, list[tuple[DriveConfig, TestSignalConfig]]],
-           config: GenerateConfig, pool: Any, progress: Callable[[int], None] | None) -> dict[str, np.ndarray]:
+def _shard(k: int, population: EnvelopeSample, config: GenerateConfig, pool: Any,
+           progress: Callable[[int], None] | None) -> dict[str, np.ndarray]:
     """The arrays of shard ``k``: a function of ``config`` and ``k`` alone (substeps per case within
     the shard, noise seeded per system), whatever the workers and their tasks."""
-    params, case, cases = population
+    params, case, cases = population.params, population.cell.tolist(), population.cases
     lo, hi = _bounds(config, k)
     seed = config.seed * 1_000_003 + lo
     tasks: list[tuple[TwoMassParams, DriveConfig, TestSignalConfig, int, int]] = []
