@@ -110,7 +110,7 @@ def analyze(record: Record) -> Analysis:
 
 def _context(f_fit: float, J_sigma: float, drive: DriveValues) -> list[float]:
     """The :data:`CONTEXT_NAMES` features of a record whose oscillation fit found ``f_fit`` [Hz]."""
-    tau = abs(J_sigma) * drive.w_max / drive.M_star
+    tau = drive.time_scale(abs(J_sigma))
     per = ([math.log10(f_fit * drive.T_s), math.log10(2.0 * math.pi * f_fit * drive.T_Ei),
             math.log10(max(f_fit * tau, 1e-6))] if f_fit > 0 else [NO_FREQUENCY] * 3)
     return per + [math.log10(max(drive.w_max / drive.q_w, 1e-3)),
@@ -119,7 +119,7 @@ def _context(f_fit: float, J_sigma: float, drive: DriveValues) -> list[float]:
 
 def _gap(w_osc: np.ndarray, split: SectionSplit, T_s: float, J_sigma: float, drive: DriveValues) -> list[float]:
     """The :data:`GAP_NAMES` features of a record."""
-    angle_scale = abs(J_sigma) * drive.w_max * drive.w_max / drive.M_star  # w_max tau [rad]
+    angle_scale = drive.w_max * drive.time_scale(abs(J_sigma))  # [rad]
     leads = []
     for k in (2, 5):  # III and VI: the torque reverses against the motion
         a, b = (int(v) for v in split.bounds[k])

@@ -62,6 +62,11 @@ class DriveValues:
         """Angle quantum ``2 pi / encoder_counts`` [rad]."""
         return 2.0 * math.pi / self.encoder_counts
 
+    def time_scale(self, J_sigma: float) -> float:
+        """The test's time scale ``tau = J_sigma w_max / M*`` [s] for the inertia ``J_sigma``: how long
+        its torque takes to reach ``w_max`` (SPEC 3.1)."""
+        return J_sigma * self.w_max / self.M_star
+
 
 def drive_values(record: Record, split: SectionSplit, torque: np.ndarray) -> tuple[DriveValues, list[IdentWarning]]:
     """The drive values of ``record`` (sections ``split``, measured ``torque`` [Nm]) and the

@@ -29,7 +29,7 @@ import json
 import math
 import os
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -46,20 +46,30 @@ UNITS: dict[str, str] = {"T_s": "s", "encoder_counts": "counts/rev", "T_Ei": "s"
                          "M_star_over_M_max": "", "time_scale": "s", "current_noise": "of M*", "f_e": "Hz", "V_J": "",
                          "d": "", "s_N": "", "M_FC_over_M_star": ""}
 
-_SPEC = EnvelopeRanges()  # SPEC 3.1's numbers, once (the training population draws from them)
-#: SPEC 3.1's envelope: what a record may come from (the test's M* down to 0, any noise below the
-#: envelope's, any normalized backlash up to 10).
-SPEC_ENVELOPE: dict[str, tuple[float, float]] = {
-    "T_s": _SPEC.T_s, "encoder_counts": (2.0 ** _SPEC.encoder_bits[0], 2.0 ** _SPEC.encoder_bits[1]),
-    "T_Ei": _SPEC.T_Ei, "M_N": _SPEC.M_N, "M_max_over_M_N": _SPEC.M_max_over_M_N,
-    "M_star_over_M_max": (0.0, _SPEC.M_star_over_M_max[1]), "time_scale": _SPEC.time_scale,
-    "current_noise": (0.0, _SPEC.current_noise[1]), "f_e": _SPEC.f_e, "V_J": _SPEC.V_J, "d": _SPEC.d,
-    "s_N": (0.0, 10.0), "M_FC_over_M_star": _SPEC.M_FC,
-}
-
 #: The record's noise is estimated (:func:`training.identification._drive.torque_noise`, a few %
 #: spread): the trained range reaches this much above the training drive's noise.
 NOISE_SPREAD = 1.25
+
+
+def _sampled(env: Mapping[str, Any], noise_spread: float = NOISE_SPREAD) -> dict[str, tuple[float, float]]:
+    """The drive and test ranges of :class:`sim.EnvelopeRanges` ``env`` (its fields, as stored in a
+    dataset): the test's ``M*`` down to 0 (a weaker test only lowers the noise's share), any noise
+    up to ``noise_spread`` x the range's."""
+    pair = lambda k: (float(env[k][0]), float(env[k][1]))  # noqa: E731
+    lo_bits, hi_bits = env["encoder_bits"]
+    out = {k: pair(k) for k in ("T_s", "T_Ei", "M_N", "M_max_over_M_N", "time_scale")}
+    out["encoder_counts"] = (2.0 ** lo_bits, 2.0 ** hi_bits)
+    out["M_star_over_M_max"] = (0.0, float(env["M_star_over_M_max"][1]))
+    out["current_noise"] = (0.0, noise_spread * float(env["current_noise"][1]))
+    return out
+
+
+_SPEC = EnvelopeRanges()  # SPEC 3.1's numbers, once (the training population draws from them)
+_SPEC_RANGES = {**_sampled(asdict(_SPEC), noise_spread=1.0), "f_e": _SPEC.f_e, "V_J": _SPEC.V_J, "d": _SPEC.d,
+                "s_N": (0.0, 10.0), "M_FC_over_M_star": _SPEC.M_FC}
+#: SPEC 3.1's envelope: what a record may come from (the test's M* down to 0, any noise below the
+#: envelope's, any normalized backlash up to 10), in the order of :data:`UNITS`.
+SPEC_ENVELOPE: dict[str, tuple[float, float]] = {k: _SPEC_RANGES[k] for k in UNITS}
 
 #: Relative tolerance of every range (a drive's T_s read from its time column, rounding of metadata).
 REL_TOL = 0.01
@@ -169,17 +179,6 @@ def trained_envelope(metadata: Mapping[str, Any]) -> Envelope:
                # up to the training drive's noise, with room for the estimate's own spread
                "current_noise": (0.0, NOISE_SPREAD * drive["current_noise_std"] * drive["K_M"] / M_star)}
     return Envelope(trained=trained)
-
-
-def _sampled(env: Mapping[str, Any]) -> dict[str, tuple[float, float]]:
-    """The drive and test ranges of :class:`sim.EnvelopeRanges` ``env`` (as stored in a dataset)."""
-    pair = lambda k: (float(env[k][0]), float(env[k][1]))  # noqa: E731
-    lo_bits, hi_bits = env["encoder_bits"]
-    out = {k: pair(k) for k in ("T_s", "T_Ei", "M_N", "M_max_over_M_N", "time_scale")}
-    out["encoder_counts"] = (2.0 ** lo_bits, 2.0 ** hi_bits)
-    out["M_star_over_M_max"] = (0.0, float(env["M_star_over_M_max"][1]))  # a weaker test only lowers the noise's share
-    out["current_noise"] = (0.0, NOISE_SPREAD * float(env["current_noise"][1]))
-    return out
 
 
 def envelope_warnings(findings: list[Finding]) -> list[IdentWarning]:

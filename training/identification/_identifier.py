@@ -326,7 +326,7 @@ def _drive_quantities(a: Analysis) -> dict[str, float | None]:
             "M_N": d.M_N if d.sources["M_N"] == "record" else None,
             "M_max_over_M_N": d.M_max / d.M_N if d.M_max is not None and d.sources["M_N"] == "record" else None,
             "M_star_over_M_max": d.M_star / d.M_max if d.M_max is not None else None,
-            "time_scale": a.fit.J_sigma * d.w_max / d.M_star, "current_noise": d.current_noise / d.M_star}
+            "time_scale": d.time_scale(a.fit.J_sigma), "current_noise": d.current_noise / d.M_star}
 
 
 def _mechanics_quantities(a: Analysis, p: Parameters) -> dict[str, float | None]:
