@@ -125,7 +125,7 @@ class _Work:
         new = lambda rows: torch.empty(rows, n, dtype=p.dtype)  # noqa: E731
         self.P, self.P2, self.M, self.N, self.Sum, self.kS, self.fK, self.Y = (new(r) for r in (8, 8, 8, 4, 5, 5, 4, 4))
         one = torch.ones(n, dtype=p.dtype)
-        self.coef = torch.stack((p.iJM, p.iJL, one, torch.full((n,), p.consts()[3], dtype=p.dtype)))
+        self.coef = torch.stack((p.iJM, p.iJL, one, torch.full((n,), p.iTE, dtype=p.dtype)))
         self.e, self.t1, self.t2, self.MS, self.net, self.inc, self.sgn, self.fric = (
             torch.empty(n, dtype=p.dtype) for _ in range(8))
         self.rest, self.stuck, self.stop = (torch.empty(n, dtype=torch.bool) for _ in range(3))

@@ -238,6 +238,14 @@ class CKernel:
                 return path
         return None
 
+    def origin(self, cache_dir: Path) -> str:
+        """Where :meth:`load` takes the libraries from: the prebuilt ones' file names when both float
+        types are prebuilt, else the run-time build's ``cache_dir`` (for benchmark and bug reports)."""
+        prebuilt = [self.prebuilt(real) for real in REALS.values()]
+        if all(prebuilt):
+            return "prebuilt " + ", ".join(p.name for p in prebuilt)  # type: ignore[union-attr]
+        return f"compiled at run time into {cache_dir}"
+
     def load(self, cache_dir: Path, cc: str | None) -> CLibrary | None:
         """The prebuilt libraries beside the source when both float types are there (no compiler
         needed, no warning); else those built into ``cache_dir`` with the compiler ``cc``

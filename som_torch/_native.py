@@ -21,7 +21,7 @@ from pathlib import Path
 import torch
 
 from . import _config
-from ._cbuild import REALS, CFunction, CheckedFunction, CKernel, CLibrary
+from ._cbuild import CFunction, CheckedFunction, CKernel, CLibrary
 
 KINDS = {"gaussian": 0, "bubble": 1, "cut_gaussian": 2, "epanechnikov": 3}
 
@@ -58,12 +58,7 @@ def available() -> bool:
 def library() -> str:
     """Which kernel :func:`kernel` calls: the prebuilt libraries' file names, or the run-time build's
     cache folder, or why none (for benchmark and bug reports)."""
-    if _library() is None:
-        return "none (torch path)"
-    prebuilt = [KERNEL.prebuilt(real) for real in REALS.values()]
-    if all(prebuilt):
-        return "prebuilt " + ", ".join(p.name for p in prebuilt)
-    return f"compiled at run time into {_config.cache_dir()}"
+    return "none (torch path)" if _library() is None else KERNEL.origin(_config.cache_dir())
 
 
 def threads(maps: int) -> int:

@@ -22,7 +22,7 @@ from unittest import mock
 import numpy as np
 import torch
 
-from training.bench._numpy_rk4 import TestOutput, switching_test
+from training.bench._numpy_rk4 import FLOPS_PER_SUBSTEP as NUMPY_FLOPS_PER_SUBSTEP, TestOutput, switching_test
 from training.bench._report import Table, machine_line, matmul_gflops, write_figures
 
 HELP = ("simulator: fused C kernel (1 thread, all threads) and torch eager fallback vs vectorized numpy RK4, "
@@ -86,14 +86,6 @@ def torch_test(params, fp, drive, signal, nk: int):
         torch.set_num_threads(before)
 
 
-def kernel_library(dtype: torch.dtype) -> str:
-    """Which library of the kernel runs for ``dtype``: the prebuilt one (its file name) or the run-time build."""
-    from sim._kernel import KERNEL
-
-    path = KERNEL.prebuilt("float" if dtype == torch.float32 else "double")
-    return f"prebuilt {path.name}" if path is not None else "built at run time (-march=native) in the kernel cache"
-
-
 def numpy_test(fp, drive, signal, nk: int) -> tuple[float, TestOutput]:
     """Wall time [s] and output of the numpy baseline on the kernel's inputs ``fp``."""
     coef = {k: getattr(fp, a).numpy() for k, a in (("iJM", "iJM"), ("iJL", "iJL"), ("CF", "C_F"), ("DF", "D_F"),
@@ -148,7 +140,8 @@ def _solve_ivp_test(p: dict, n_samples: int) -> tuple[float, int]:
 def run(args: argparse.Namespace) -> int:
     from sim import DriveConfig, sample_population
     from sim._integrate_fast import kernel_threads
-    from sim._kernel import FLOPS_PER_SUBSTEP
+    from sim._config import cache_dir
+    from sim._kernel import FLOPS_PER_SUBSTEP, KERNEL
 
     for name in ("batch", "samples", "repeat"):
         if getattr(args, name) < 1:
@@ -161,7 +154,7 @@ def run(args: argparse.Namespace) -> int:
     print(machine_line())
     print(f"test: the switching test (SPEC 2), first {nk} samples of {B} population systems (seed {args.seed}), "
           f"{S} RK4 substeps per sample, {str(dtype)[6:]}; runs alternate, the fastest of {args.repeat} counts")
-    print(f"kernel library: {kernel_library(dtype)}")
+    print(f"kernel library: {KERNEL.origin(cache_dir())}")
     flop = {t: matmul_gflops(dtype, t) for t in sorted({1, all_threads})}
     print("machine FLOP rate: " + ", ".join(f"{v:.1f} GFLOP/s on {t} thread(s)" for t, v in flop.items())
           + f" ({str(dtype)[6:]} matmul 1024 x 1024, the faster of numpy's BLAS and torch, 2 n^3 FLOP; "
@@ -201,8 +194,8 @@ def run(args: argparse.Namespace) -> int:
           f"{os.cpu_count()} CPUs (ratios are from one run; above ~0.5 other work shares the cores)")
     print(f"GFLOP/s counts {FLOPS_PER_SUBSTEP} add/sub/mul per system-substep for every line: the model's arithmetic "
           "as sim/_kernel.c writes and executes it (sim._kernel.FLOPS_PER_SUBSTEP; compares, min/max, selects, the "
-          "encoder and the controller not counted; numpy computes stage 1's shaft torque twice, 139); the solve_ivp "
-          "line counts its samples at the same substeps")
+          f"encoder and the controller not counted; numpy computes stage 1's shaft torque twice, "
+          f"{NUMPY_FLOPS_PER_SUBSTEP}); the solve_ivp line counts its samples at the same substeps")
     print(f"reproduce: {args.command_line}")
     if args.json_out:
         write_figures(args.json_out, figures)
