@@ -1,9 +1,53 @@
-/* Rows of comma-separated numbers, parsed with the C library's strtod (the record reader's fast path,
-   see sim/_csv.py, which declares the signature). REAL is unused: the kernel convention compiles
+/* Rows of comma-separated numbers, parsed by Clinger's fast path or else the C library's strtod (the
+   record reader's fast path, see sim/_csv.py, which declares the signature). REAL is unused: the kernel convention compiles
    every kernel once per float type. */
 #include <stdint.h>
 #include <stdio.h>
 #include <stdlib.h>
+
+/* Clinger's fast path: a plain decimal [sign] digits [. digits] [e [sign] digits] whose digits form an
+   integer m <= 2^53 and whose decimal exponent e has |e| <= 22 is m * 10^e or m / 10^-e, both exact
+   operands, so one IEEE operation rounds it correctly: the same double as strtod. Sets *end past the
+   number and returns 1, or returns 0 (anything else: strtod decides). */
+static int fast_decimal(const char *p, const char **end, double *value) {
+    static const double pow10[23] = {1e0, 1e1, 1e2, 1e3, 1e4, 1e5, 1e6, 1e7, 1e8, 1e9, 1e10, 1e11,
+                                     1e12, 1e13, 1e14, 1e15, 1e16, 1e17, 1e18, 1e19, 1e20, 1e21, 1e22};
+    const int negative = *p == '-';
+    if (*p == '-' || *p == '+') ++p;
+    uint64_t m = 0;
+    int digits = 0, seen = 0, e = 0;
+    for (; *p >= '0' && *p <= '9'; ++p, ++seen) {
+        if (m || *p != '0') ++digits;
+        if (digits > 19) return 0;
+        m = 10 * m + (uint64_t)(*p - '0');
+    }
+    if (*p == '.') {
+        for (++p; *p >= '0' && *p <= '9'; ++p, ++seen, --e) {
+            if (m || *p != '0') ++digits;
+            if (digits > 19) return 0;
+            m = 10 * m + (uint64_t)(*p - '0');
+        }
+    }
+    if (!seen) return 0;
+    if (*p == 'e' || *p == 'E') {
+        const char *q = p + 1;
+        const int negative_e = *q == '-';
+        if (*q == '-' || *q == '+') ++q;
+        if (!(*q >= '0' && *q <= '9')) return 0;
+        int x = 0;
+        for (; *q >= '0' && *q <= '9'; ++q) {
+            if (x > 1000) return 0;
+            x = 10 * x + (*q - '0');
+        }
+        e += negative_e ? -x : x;
+        p = q;
+    }
+    if (m > (UINT64_C(1) << 53) || e < -22 || e > 22) return 0;
+    const double v = e >= 0 ? (double)m * pow10[e] : (double)m / pow10[-e];
+    *value = negative ? -v : v;
+    *end = p;
+    return 1;
+}
 
 /* Parse up to `rows` rows of `ncols` numbers from text[0..n) into out (row-major). A row ends with
    '\n' (a '\r' before it and blanks around fields are allowed; empty lines are skipped). Returns the
@@ -19,9 +63,14 @@ int64_t parse_rows(int64_t n, const int8_t *text, int32_t ncols, int64_t rows, d
         for (int32_t c = 0; c < ncols; ++c) {
             while (p < end && (*p == ' ' || *p == '\t')) ++p;
             if (p >= end || *p == '\n' || *p == ',') return -1 - r;
-            char *q;
-            double v = strtod(p, &q);  /* stops at the terminating NUL the caller appends at text[n] */
-            if (q == p) return -1 - r;
+            const char *q;
+            double v;
+            if (!fast_decimal(p, &q, &v)) {  /* both stop at the terminating NUL the caller appends */
+                char *s;
+                v = strtod(p, &s);
+                if (s == p) return -1 - r;
+                q = s;
+            }
             out[r * ncols + c] = v;
             p = q;
             while (p < end && (*p == ' ' || *p == '\t')) ++p;

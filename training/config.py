@@ -17,10 +17,12 @@ alone here for that reason; the pool workers (:mod:`training._pool`) set it to 1
 from __future__ import annotations
 
 import contextlib
+import functools
 import importlib.resources
 import os
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 #: Where the maps live in a checkout (the repository's top-level ``checkpoints/``).
 _CHECKOUT_CHECKPOINTS = Path(__file__).resolve().parents[1] / "checkpoints"
@@ -62,11 +64,19 @@ def apply_process_defaults() -> None:
         os.environ.setdefault(var, value)
 
 
+@functools.lru_cache(maxsize=1)
+def _thread_pools() -> Any:
+    """The process's thread pools, found once: finding them walks every loaded library (1-2 ms,
+    paid per record before). The BLAS libraries are numpy's, scipy's and torch's, all loaded by
+    the toolkit's own imports before the first call."""
+    from threadpoolctl import ThreadpoolController
+
+    return ThreadpoolController()
+
+
 @contextlib.contextmanager
 def blas_threads(n: int = BLAS_THREADS) -> Iterator[None]:
     """Limit the BLAS thread pools to ``n`` threads inside the block, also in a process whose numpy
     was imported before the toolkit (an app calling :class:`training.Identifier`)."""
-    from threadpoolctl import threadpool_limits
-
-    with threadpool_limits(limits=n, user_api="blas"):
+    with _thread_pools().limit(limits=n, user_api="blas"):
         yield

@@ -157,7 +157,28 @@ def test_fast_number_parser_equals_loadtxt(rows, fmt, end, pad, blank):
     assert np.array_equal(got, expected.reshape(-1, 3))
 
 
-@pytest.mark.parametrize("body", ["1,2\n", "1,2,3,4\n", "1,,3\n", "1,2,x\n", "# c\n1,2,3\n", "1;2;3\n", "1,2,3 4\n"])
+_DECIMAL = st.builds(lambda sign, whole, frac, exp: f"{sign}{whole}{frac}{exp}",
+                     st.sampled_from(["", "-", "+"]), st.text("0123456789", max_size=21),
+                     st.one_of(st.just(""), st.text("0123456789", max_size=21).map(lambda d: "." + d)),
+                     st.one_of(st.just(""), st.builds(lambda e, x: f"{e}{x}", st.sampled_from(["e", "E", "e-", "e+"]),
+                                                      st.integers(0, 330))))
+
+
+@settings(max_examples=300, deadline=None)
+@given(numbers=st.lists(_DECIMAL.filter(lambda t: any(c.isdigit() for c in t.split("e")[0].split("E")[0])),
+                        min_size=3, max_size=3))
+def test_fast_number_parser_rounds_decimals_as_python(numbers):
+    """Plain decimals of up to 21 + 21 digits and exponents to 330, inside and outside the parser's
+    exact fast path (|exponent| <= 22, mantissa <= 2^53): Python's float, bit for bit."""
+    from sim._csv import parse_numbers
+
+    got = parse_numbers((",".join(numbers) + "\n").encode(), 3)
+    assert got is not None
+    assert [v.hex() for v in got[0]] == [float(t).hex() for t in numbers]
+
+
+@pytest.mark.parametrize("body", ["1,2\n", "1,2,3,4\n", "1,,3\n", "1,2,x\n", "# c\n1,2,3\n", "1;2;3\n", "1,2,3 4\n",
+                                  "0x1p3,2,3\n", "1.5e,2,3\n"])
 def test_fast_number_parser_declines_what_is_not_plain_rows(body):
     from sim._csv import parse_numbers
 

@@ -47,7 +47,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="folder with the maps and manifest.json (default: the shipped checkpoints/, "
                              "or $TWOMASS_CHECKPOINTS)")
     parser.add_argument("--jobs", type=int, metavar="N", help="worker processes, each reading, analysing and "
-                        "refining whole batches of 8 records (default: 1 for fewer than 16 records, else one per "
+                        "refining whole batches of 32 records (default: 1 for fewer than 64 records, else one per "
                         "CPU)")
     parser.add_argument("--no-refine", action="store_true",
                         help="the maps' answer alone, without the model-based refinement (faster, coarser)")

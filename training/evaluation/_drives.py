@@ -6,9 +6,11 @@ Figures per drive: structure accuracy over systems at least 20 % from every clas
 ``E_30`` and ``E_10`` over ``elastic`` + ``elastic_backlash``, ``J_sigma`` within 5 %, backlash
 width within 30 % for ``s_N >= 0.3``, and the **silent-wrong rate**: the share of systems whose
 answer is wrong (class wrong, or an elastic answer outside ``E_30``, or ``J_sigma`` off by 30 %)
-with no warning at all. Beside the backlash figure, the same over the gaps the record can show:
-those whose motor lead (:func:`training.identification.motor_lead`, the backlash resolution's
-angle path) reaches :data:`~training.identification.BACKLASH_VISIBLE_COUNTS` encoder counts.
+with no warning at all. Beside the structure and the backlash figures, the same over the gaps
+the record can show: those whose motor lead (:func:`training.identification.motor_lead`, the
+backlash resolution's angle path) reaches :data:`~training.identification.BACKLASH_VISIBLE_COUNTS`
+encoder counts (for the structure: every system but those whose backlash counts in the class rule,
+``s_N >= 0.1``, and stays below that lead).
 """
 
 from __future__ import annotations
@@ -19,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from sim import DriveConfig, PopulationRanges, TestSignalConfig, iter_records, sample_population
+from sim import S_N_ELASTIC, DriveConfig, PopulationRanges, TestSignalConfig, iter_records, sample_population
 from training.evaluation._metrics import recognized, relative_error, threshold_margin
 from training.identification import BACKLASH_VISIBLE_COUNTS, motor_lead
 
@@ -106,7 +108,9 @@ def drive_figures(rows: Sequence[dict[str, Any]]) -> dict[str, Any]:
     e30, e10 = recognized(err, 30), recognized(err, 10)
     j_err = np.nan_to_num(err["J_sigma"], nan=np.inf)
     wide = truth["s_N"] >= 0.3
-    visible = wide & (_values(rows, "truth", "gap_counts") >= BACKLASH_VISIBLE_COUNTS)
+    shows = _values(rows, "truth", "gap_counts") >= BACKLASH_VISIBLE_COUNTS
+    visible = wide & shows
+    far_visible = far & (shows | (truth["s_N"] < S_N_ELASTIC))
     bl = np.zeros(len(rows), dtype=bool)
     bl[wide] = np.nan_to_num(relative_error(_values(rows, "som", "backlash")[wide], truth["backlash"][wide]),
                              nan=np.inf) <= 0.3
@@ -117,6 +121,7 @@ def drive_figures(rows: Sequence[dict[str, Any]]) -> dict[str, Any]:
     every = np.ones(len(rows), dtype=bool)
     return {"n": len(rows), "failed": int(sum(r["som"]["error"] is not None for r in rows)),
             "structure": pct(correct, far), "n_structure": int(far.sum()),
+            "structure_visible": pct(correct, far_visible), "n_structure_visible": int(far_visible.sum()),
             "E_30": pct(e30, elastic), "E_10": pct(e10, elastic), "n_elastic": int(elastic.sum()),
             "J_sigma_5": pct(j_err <= 0.05, every), "backlash_30": pct(bl, wide), "n_backlash": int(wide.sum()),
             "backlash_30_visible": pct(bl, visible), "n_backlash_visible": int(visible.sum()),
@@ -127,17 +132,19 @@ def drives_markdown(figures: dict[str, dict[str, Any]], command: str) -> str:
     """The per-drive table (``figures``: drive name -> :func:`drive_figures`)."""
     fmt = lambda v: "n/a" if v is None else f"{v:.1f}"  # noqa: E731
     lines = ["# Identification on a matrix of drives (issue 11)", "", f"Made by `{command}`.", "",
-             "| drive | n | failed | structure (n) | E_30 | E_10 (n elastic) | J_sigma 5 % | backlash 30 % (n) "
-             "| of them visible (n) | silent wrong | warned |",
-             "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+             "| drive | n | failed | structure (n) | of them visible (n) | E_30 | E_10 (n elastic) | J_sigma 5 % "
+             "| backlash 30 % (n) | of them visible (n) | silent wrong | warned |",
+             "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
     for name, f in figures.items():
         lines.append(f"| {name}: {DRIVES[name].description if name in DRIVES else ''} | {f['n']} | {f['failed']} | "
-                     f"{fmt(f['structure'])} ({f['n_structure']}) | {fmt(f['E_30'])} | {fmt(f['E_10'])} "
+                     f"{fmt(f['structure'])} ({f['n_structure']}) | "
+                     f"{fmt(f['structure_visible'])} ({f['n_structure_visible']}) | {fmt(f['E_30'])} | {fmt(f['E_10'])} "
                      f"({f['n_elastic']}) | {fmt(f['J_sigma_5'])} | {fmt(f['backlash_30'])} ({f['n_backlash']}) | "
                      f"{fmt(f['backlash_30_visible'])} ({f['n_backlash_visible']}) | "
                      f"{fmt(f['silent_wrong'])} | {fmt(f['warned'])} |")
     lines += ["", "Figures in %. Structure over systems >= 20 % from every class threshold; E_x over elastic + "
-              "elastic_backlash; backlash over s_N >= 0.3, visible: of those the gaps whose motor lead "
-              f"2s V_J / (1 + V_J) reaches {BACKLASH_VISIBLE_COUNTS:g} encoder counts; silent wrong: class wrong, or an "
+              "elastic_backlash; backlash over s_N >= 0.3; visible: of those the gaps whose motor lead "
+              f"2s V_J / (1 + V_J) reaches {BACKLASH_VISIBLE_COUNTS:g} encoder counts (for the structure: all but the "
+              f"systems with s_N >= {S_N_ELASTIC:g} whose lead stays below that); silent wrong: class wrong, or an "
               "elastic answer outside E_30, or J_sigma off by 30 %, with no warning.", ""]
     return "\n".join(lines)

@@ -12,7 +12,8 @@ oscillation after each torque step and the motor's excursions while it crosses t
 
 The search is a cross-entropy method (sample around the best models so far, keep the elites,
 shrink), started from the maps' answer, which stays a candidate: the refined model never
-reproduces the record worse than the maps' own answer.
+reproduces the record worse than the maps' own answer. A Levenberg-Marquardt polish on the whole
+record finishes it (:class:`RefineConfig`).
 """
 
 from __future__ import annotations
@@ -20,7 +21,7 @@ from __future__ import annotations
 import functools
 import math
 from collections.abc import Callable, Generator
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -40,6 +41,7 @@ _HIGH = np.array([math.log10(3000.0), math.log10(20.0), 0.5, 2.0])
 FREE_COORDINATES: tuple[str, ...] = COORDINATES + ("log10_J_sigma", "M_FC")
 _LOW_FREE = np.concatenate([_LOW, [-4.0, 0.0]])
 _HIGH_FREE = np.concatenate([_HIGH, [1.0, 5.0]])
+_NO_GAP = math.log10(2e-3)  # log10 s_N at or below which a model has no gap (the search's floor is 1e-3)
 
 
 @dataclass(frozen=True)
@@ -63,6 +65,32 @@ class RefineConfig:
     not to help). The C kernel runs blocks of 32 models on the CPU's cores: 64 candidates take
     the wall time of 32 on two.
 
+    Climb (stiff shafts with a gap): a softer shaft with a narrower gap reproduces a gap crossing
+    nearly as well as the true model, and the maps read the ``f_e`` of a shaft the current loop
+    hardly excites low; the exploring error then falls along a narrow ridge of ``f_e`` and width up
+    to the truth, often 2-6 x the maps' ``f_e`` (measured on the large axis: the widths came out
+    0.5-0.7 x), farther than one exploration reaches. Where the start's ``f_e`` reaches
+    ``climb_above`` x the current loop's bandwidth ``1/(2 pi T_Ei)``, the exploration's best model
+    has a gap (``s_N >=`` :data:`sim.S_N_ELASTIC`) and lies ``climb_after`` decades or more above
+    the start, a second exploration starts ``climb`` decades above that model at the same backlash
+    width; its ``climb_finalists`` best join the finalists where its exploring error is below
+    ``climb_win`` x the first's (a clear win only: a narrow one added false gaps on stiff shafts
+    of a coarse drive).
+
+    Polish (whole record, local): around the chosen model the whole-record error is nearly linear
+    in :data:`COORDINATES`, and a model a few % off in ``f_e``, ``V_J`` or ``d`` still scores 10-1000
+    x worse than the truth over a record of many periods (measured on every elastic reference
+    system outside ``E_10``). Up to ``polish_iterations`` Levenberg-Marquardt steps: a forward-
+    difference Jacobian (``polish_steps`` per coordinate), the damped steps ``(J^T J + lambda
+    diag(J^T J)) delta = -J^T r`` for each ``lambda`` of ``polish_damping``, the best kept where it
+    lowers the error; a problem stops when an iteration gains less than ``polish_tolerance``. The
+    polished model replaces the chosen one only where its error is below ``polish_win`` times the
+    chosen one's (measured on the reference drive: the polish's wins were 2-80 x lower, its losses,
+    models that were wrong in another way, 1.0-1.7 x). The error is scored on every ``k``-th sample
+    only, ``polish_samples_per_period`` per period at the chosen ``f_e`` (a slow mechanic's record
+    holds hundreds per period; the replay still runs over every sample). ``s_N`` moves only where
+    the chosen model has a gap; the free stage's models are left alone.
+
     Free one-mass part (problems with ``free_one_mass``: STEP 2 flagged its fit, as for very soft
     mechanics whose test sections are shorter than an oscillation period): ``J_sigma`` and
     ``M_FC`` join the search (:data:`FREE_COORDINATES`), scored by the plain error over the
@@ -82,6 +110,17 @@ class RefineConfig:
     candidates: int = 64  # models per round
     elites: int = 12  # best models that set the next spread (and the finalists)
     spread: tuple[float, float, float, float] = (0.05, 0.12, 0.03, 0.3)  # first spread over COORDINATES
+    climb: float = 0.5  # climb: the second exploration's start above the first's best [decades of f_e]
+    climb_after: float = 0.15  # climb: only where the first's best lies this far above the start [decades]
+    climb_above: float = 0.4  # climb: only where the start's f_e reaches this x the current loop's bandwidth
+    climb_finalists: int = 3  # climb: its best models that join the finalists
+    climb_win: float = 0.9  # climb: the first exploration's error ratio it must beat
+    polish_iterations: int = 3  # polish: Gauss-Newton iterations at most (0: no polish)
+    polish_tolerance: float = 0.01  # polish: a problem stops once an iteration gains less than this share
+    polish_steps: tuple[float, float, float, float] = (1e-3, 5e-3, 2e-3, 2e-2)  # polish: difference steps
+    polish_damping: tuple[float, ...] = (1e-2, 1e-1)  # polish: the lambdas tried per iteration
+    polish_win: float = 0.5  # polish: replaces the chosen model only below this error ratio
+    polish_samples_per_period: float = 16.0  # polish: the error scored on this many samples per period
     free_rounds: int = 5  # free one-mass part: cross-entropy rounds
     free_spread: tuple[float, float] = (0.1, 0.1)  # free one-mass part: first spread of log10 J_sigma, M_FC
     free_win: float = 0.25  # free one-mass part: error ratio it must beat
@@ -174,10 +213,14 @@ def _detrended_energy(E: np.ndarray, basis: list[tuple[int, int, np.ndarray]]) -
     small residual under a large trend: the measured speed's own, 6e-7 of its root measured)."""
     total = np.zeros(E.shape[1])
     for a, b, Q in basis:
-        e = E[a:b]  # L x C
-        r = e - Q @ (Q.T @ e)
+        r = _detrend(E[a:b], Q)  # L x C
         total += (r * r).sum(0)
     return total
+
+
+def _detrend(e: np.ndarray, Q: np.ndarray) -> np.ndarray:
+    """``e`` (``L x C``) less its projection on the orthonormal trend basis ``Q`` (``L x 3``)."""
+    return e - Q @ (Q.T @ e)
 
 
 def _finite(E: np.ndarray) -> np.ndarray:
@@ -207,9 +250,11 @@ def _simulate(p: RefineProblem, theta: np.ndarray, drive: sim.DriveConfig) -> np
     return _simulate_packed([(p, theta)], drive)[0]
 
 
-def _simulate_packed(items: list[tuple[RefineProblem, np.ndarray]], drive: sim.DriveConfig) -> list[np.ndarray]:
+def _simulate_packed(items: list[tuple[RefineProblem, np.ndarray]], drive: sim.DriveConfig,
+                     rows: list[np.ndarray] | None = None) -> list[np.ndarray]:
     """:func:`_simulate` for several records on one drive in one replay call (the kernel's blocks
-    of 32 models fill up and run on all cores): one ``N_i x C_i`` error per item."""
+    of 32 models fill up and run on all cores): one ``N_i x C_i`` error per item (``rows``: only
+    these samples of each item's record, ``R_i x C_i``)."""
     values = [_model_values(p, th) for p, th in items]
     flat = {n: np.concatenate([v[n] for v in values]) for n in sim.PARAM_NAMES}
     N = max(len(p.speed) for p, _ in items)
@@ -221,8 +266,9 @@ def _simulate_packed(items: list[tuple[RefineProblem, np.ndarray]], drive: sim.D
     w = replay_speed(_params(flat), drive, torch.from_numpy(start), torch.from_numpy(level), N, quantize=False,
                      substeps=_substeps(flat, drive.T_s)).numpy().T  # N x n
     out, i = [], 0
-    for p, th in items:
-        out.append(_finite(w[: len(p.speed), i:i + len(th)] - p.speed[:, None]))
+    for k, (p, th) in enumerate(items):
+        at = slice(0, len(p.speed)) if rows is None else rows[k]
+        out.append(_finite(w[at, i:i + len(th)] - p.speed[at, None]))
         i += len(th)
     return out
 
@@ -381,11 +427,13 @@ def refine(problems: list[RefineProblem], config: RefineConfig | None = None) ->
     whole-record choice of records on the same drive and of similar length runs packed in one
     replay)."""
     config = config or RefineConfig()
-    if config.elites < 2 or config.candidates < config.elites or config.rounds < 0 or config.window_periods <= 0:
-        raise ValueError(f"RefineConfig: expected rounds >= 0, window_periods > 0 and candidates >= elites >= 2, "
-                         f"received {config}")
+    if (config.elites < 2 or config.candidates < config.elites or config.rounds < 0 or config.window_periods <= 0
+            or config.polish_iterations < 0):
+        raise ValueError(f"RefineConfig: expected rounds >= 0, polish_iterations >= 0, window_periods > 0 and "
+                         f"candidates >= elites >= 2, received {config}")
     rngs = [np.random.default_rng(config.seed) for _ in problems]
-    finalists = _explore_all(problems, config, rngs)
+    explored = _explore_all(problems, config, rngs)
+    finalists = [f for f, _ in explored]
     costs: list[np.ndarray] = [np.empty(0)] * len(problems)
     substeps = [_substeps(_model_values(p, f), p.T_s) for p, f in zip(problems, finalists)]
     bases = [_detrend_basis(p.segments) for p in problems]  # the whole record's sections and tail
@@ -393,7 +441,9 @@ def refine(problems: list[RefineProblem], config: RefineConfig | None = None) ->
         errors = _simulate_packed([(problems[i], finalists[i]) for i in pack], _drive(problems[pack[0]]))
         for i, E in zip(pack, errors):
             costs[i] = _detrended_energy(E, bases[i])
-    return [_finish(p, th, c, b, config, rng) for p, th, c, b, rng in zip(problems, finalists, costs, bases, rngs)]
+    chosen = [_finish(p, th, c, b, n, config, rng)
+              for p, th, c, b, (_, n), rng in zip(problems, finalists, costs, bases, explored, rngs)]
+    return _polish(problems, chosen, bases, config)
 
 
 def _packs(problems: list[RefineProblem], sizes: list[int], substeps: list[int], lengths: list[int] | None = None,
@@ -428,27 +478,52 @@ def _explore_windows(p: RefineProblem, config: RefineConfig) -> _ScoreWindows:
 
 def _explore(p: RefineProblem, config: RefineConfig, rng: np.random.Generator) -> Search:
     """The exploring stage of ``p`` as a :data:`Search` scored by :func:`_score_shape`; returns the
-    finalists ``F x 4``: the maps' answer, then the elites."""
-    spread = np.asarray(config.spread, dtype=np.float64)
+    finalists ``F x 4`` (the maps' answer, the elites, the climb's best where it won: see
+    :class:`RefineConfig`) and the number of models explored."""
     theta0 = np.clip(np.asarray(p.theta, dtype=np.float64), _LOW, _HIGH)
+    theta, cost = yield from _search(theta0, config, rng)
+    finalists = [theta0[None], theta[np.argsort(cost)[: config.elites]]]
+    explored = len(cost)
+    best = theta[int(np.argmin(cost))]
+    if _climbs(p, theta0, best, config):
+        up = best.copy()
+        up[0] += config.climb
+        up[3] += math.log10(float(p.C_F(up) / p.C_F(best)))  # the same width 2s = 2 s_N M_N / C_F
+        theta_up, cost_up = yield from _search(np.clip(up, _LOW, _HIGH), config, rng)
+        explored += len(cost_up)
+        if cost_up.min() < config.climb_win * cost.min():
+            finalists.append(theta_up[np.argsort(cost_up)[: config.climb_finalists]])
+    return np.concatenate(finalists), explored
+
+
+def _search(theta0: np.ndarray, config: RefineConfig, rng: np.random.Generator) -> Search:
+    """One exploration from ``theta0`` (4): the grid around it, then the cross-entropy rounds;
+    returns every scored model and its cost."""
     grid = np.repeat(theta0[None], config.grid_f_e * len(config.grid_s_N), axis=0)  # G x 4
     grid[:, 0] += np.repeat(np.linspace(-config.grid_span, config.grid_span, config.grid_f_e), len(config.grid_s_N))
     grid[:, 3] = np.tile([math.log10(v) if v > 0 else theta0[3] for v in config.grid_s_N], config.grid_f_e)
     cost, theta = yield np.clip(grid, _LOW, _HIGH)
-    theta, cost = yield from _cem(theta, cost, config.rounds, spread, config, rng)
-    return np.concatenate([theta0[None], theta[np.argsort(cost)[: config.elites]]])
+    return (yield from _cem(theta, cost, config.rounds, np.asarray(config.spread, dtype=np.float64), config, rng))
+
+
+def _climbs(p: RefineProblem, theta0: np.ndarray, best: np.ndarray, config: RefineConfig) -> bool:
+    """Whether the exploration of ``p`` from ``theta0`` climbs on from its ``best`` model (see
+    :class:`RefineConfig`)."""
+    bandwidth = 1.0 / (2.0 * math.pi * p.T_Ei)
+    return bool(10.0 ** best[3] >= sim.S_N_ELASTIC and best[0] - theta0[0] >= config.climb_after
+                and 10.0 ** theta0[0] >= config.climb_above * bandwidth)
 
 
 def _explore_all(problems: list[RefineProblem], config: RefineConfig,
-                 rngs: list[np.random.Generator]) -> list[np.ndarray]:
-    """The finalists of each problem (:func:`_explore`), the searches run side by side: each
-    step's candidates of every problem on one drive, substep count and similar window length
-    go to the simulator in one call (:func:`_packs`), so that the per-call costs are paid once
-    per batch, not once per record."""
+                 rngs: list[np.random.Generator]) -> list[tuple[np.ndarray, int]]:
+    """The finalists of each problem and the number of models explored (:func:`_explore`), the
+    searches run side by side: each step's candidates of every problem on one drive, substep count
+    and similar window length go to the simulator in one call (:func:`_packs`), so that the
+    per-call costs are paid once per batch, not once per record."""
     windows = [_explore_windows(p, config) for p in problems]
     searches = [_explore(p, config, rng) for p, rng in zip(problems, rngs)]
     asked = {i: next(s) for i, s in enumerate(searches)}
-    finalists: list[np.ndarray] = [np.empty(0)] * len(problems)
+    explored: list[tuple[np.ndarray, int]] = [(np.empty(0), 0)] * len(problems)
     while asked:
         todo = sorted(asked)
         substeps = [_substeps(_model_values(problems[i], asked[i]), problems[i].T_s) for i in todo]
@@ -463,16 +538,17 @@ def _explore_all(problems: list[RefineProblem], config: RefineConfig,
                 try:
                     asked[i] = searches[i].send(_score_shape(asked[i], x, windows[i]))
                 except StopIteration as done:
-                    finalists[i] = done.value
+                    explored[i] = done.value
                     del asked[i]
-    return finalists
+    return explored
 
 
-def _finish(p: RefineProblem, theta: np.ndarray, cost: np.ndarray, full: list, config: RefineConfig,
+def _finish(p: RefineProblem, theta: np.ndarray, cost: np.ndarray, full: list, explored: int, config: RefineConfig,
             rng: np.random.Generator) -> Refined:
     """The best finalist (``theta`` with its whole-record ``cost`` over the detrending basis
-    ``full``; row 0 the maps' answer), after the free stage where the problem asks for it."""
-    n_sims = config.grid_f_e * len(config.grid_s_N) + config.rounds * config.candidates + len(cost)
+    ``full``; row 0 the maps' answer; ``explored`` models before), after the free stage where the
+    problem asks for it."""
+    n_sims = explored + len(cost)
     best, best_cost = theta[int(np.argmin(cost))], float(cost.min())
     if p.free_one_mass:
         best, n_free = _free_one_mass(p, best, config, rng, _drive(p))
@@ -514,3 +590,94 @@ def _free_one_mass(p: RefineProblem, best: np.ndarray, config: RefineConfig, rng
     k = int(np.argmin(cost))
     # a clear win only (measured: 10-60 x lower on soft mechanics; a narrow one was a wrong mode)
     return (theta[k] if cost[k] < config.free_win * cost[0] else best), len(cost)
+
+
+def _detrended(E: np.ndarray, basis: list[tuple[int, int, np.ndarray]]) -> np.ndarray:
+    """The errors ``E`` (``N x C``) with each segment's quadratic trend removed, segments end to
+    end: ``M x C`` (their squared sum is the refinement's detrended energy)."""
+    return np.concatenate([_detrend(E[a:b], Q) for a, b, Q in basis], axis=0)
+
+
+def _scored(p: RefineProblem, f_e: float, config: RefineConfig) -> tuple[np.ndarray, list[tuple[int, int, np.ndarray]]]:
+    """The samples the polish scores (every ``k``-th of each segment: see :class:`RefineConfig`)
+    and their detrending basis, segments end to end."""
+    k = max(1, int(1.0 / (f_e * p.T_s * config.polish_samples_per_period)))
+    rows = [np.arange(a, b, k) for a, b in np.asarray(p.segments, dtype=np.int64).tolist() if b > a]
+    ends = np.cumsum([0] + [len(r) for r in rows])
+    return np.concatenate(rows), _detrend_basis(np.stack([ends[:-1], ends[1:]], axis=1))
+
+
+def _errors(problems: list[RefineProblem], asked: dict[int, np.ndarray],
+            scored: dict[int, tuple[np.ndarray, list[tuple[int, int, np.ndarray]]]]) -> dict[int, np.ndarray]:
+    """The detrended errors ``M_i x C_i`` over the samples ``scored[i]`` of the candidates
+    ``asked[i]`` ``C_i x 4`` of each problem ``i``, packed by drive and substep count."""
+    todo = sorted(asked)
+    substeps = [_substeps(_model_values(problems[i], asked[i]), problems[i].T_s) for i in todo]
+    out = {}
+    for pack in _packs([problems[i] for i in todo], [len(asked[i]) for i in todo], substeps):
+        ids = [todo[k] for k in pack]
+        errors = _simulate_packed([(problems[i], asked[i]) for i in ids], _drive(problems[ids[0]]),
+                                  [scored[i][0] for i in ids])
+        for i, E in zip(ids, errors):
+            out[i] = _detrended(E, scored[i][1])
+    return out
+
+
+def _polish(problems: list[RefineProblem], chosen: list[Refined], bases: list[list[tuple[int, int, np.ndarray]]],
+            config: RefineConfig) -> list[Refined]:
+    """Each ``chosen[i]`` polished on the whole record (see :class:`RefineConfig`; ``bases[i]``
+    the detrending basis of its chosen error), the searches side by side: one replay per
+    iteration and step kind for the problems on one drive and substep count; ``residual`` and
+    ``n_sims`` updated."""
+    h = np.asarray(config.polish_steps, dtype=np.float64)
+    theta = {i: np.array([math.log10(r.f_e), math.log10(r.V_J), r.d, math.log10(max(r.s_N, 1e-3))])
+             for i, r in enumerate(chosen) if r.J_sigma is None}
+    free = {i: [k for k in range(4) if k < 3 or t[3] > _NO_GAP] for i, t in theta.items()}
+    scored = {i: _scored(problems[i], chosen[i].f_e, config) for i in theta}
+    n_sims = dict.fromkeys(theta, 0)
+    cost: dict[int, float] = {}
+    start: dict[int, float] = {}
+    active, moved = set(theta), set()
+    for _ in range(config.polish_iterations):
+        if not active:
+            break
+        # the error r and its forward-difference Jacobian J (M x F) at each model, one replay for all
+        asked = {i: np.clip(np.vstack([theta[i]] + [theta[i] + h[k] * np.eye(4)[k] for k in free[i]]), _LOW, _HIGH)
+                 for i in active}
+        trials = {}
+        for i, R in _errors(problems, asked, scored).items():
+            n_sims[i] += R.shape[1]
+            r = R[:, 0]
+            cost[i] = float(r @ r)
+            start.setdefault(i, cost[i])
+            step = asked[i][1:, free[i]].diagonal() - theta[i][free[i]]  # the steps as clipped
+            J = (R[:, 1:] - r[:, None]) / np.where(step != 0, step, 1.0)  # M x F
+            A, g = J.T @ J, J.T @ r
+            D = np.diag(np.maximum(np.diag(A), 1e-12 * max(float(np.diag(A).max()), 1e-300)))
+            moves = np.repeat(theta[i][None], len(config.polish_damping), axis=0)  # L x 4
+            for row, lam in zip(moves, config.polish_damping):
+                row[free[i]] += np.linalg.solve(A + lam * D, -g)
+            trials[i] = np.clip(moves, _LOW, _HIGH)
+        for i, R in _errors(problems, trials, scored).items():
+            n_sims[i] += R.shape[1]
+            c = (R * R).sum(0)
+            k = int(np.argmin(c))
+            ratio = float(c[k]) / cost[i] if cost[i] > 0 else 1.0
+            if ratio < 1.0:
+                theta[i], cost[i] = trials[i][k], float(c[k])
+                moved.add(i)
+            if ratio > 1.0 - config.polish_tolerance:  # no better, or hardly: done
+                active.discard(i)
+    won = sorted(i for i in moved if cost[i] < config.polish_win * start[i])
+    every = {i: (np.arange(len(problems[i].speed)), bases[i]) for i in won}
+    final = _errors(problems, {i: theta[i][None] for i in won}, every)  # the winners' whole-record error
+    out = [replace(r, n_sims=r.n_sims + n_sims.get(i, 0) + (i in final)) for i, r in enumerate(chosen)]
+    for i, R in final.items():
+        p, t = problems[i], theta[i]
+        measured = float(_detrended_energy(p.speed[:, None], bases[i])[0])
+        total = float((R * R).sum())
+        s_N = float(10.0 ** t[3]) if t[3] > _NO_GAP else chosen[i].s_N
+        out[i] = replace(out[i], f_e=float(10.0 ** t[0]), V_J=float(10.0 ** t[1]), d=float(t[2]), s_N=s_N,
+                         backlash=2.0 * s_N * p.M_N / float(p.C_F(t)),
+                         residual=math.sqrt(total / measured) if measured > 0 else math.sqrt(total))
+    return out

@@ -48,3 +48,19 @@ def test_figures_and_the_silent_wrong_rate():
     assert f["structure"] == pytest.approx(80.0) and f["J_sigma_5"] == pytest.approx(80.0)
     assert f["silent_wrong"] == pytest.approx(40.0) and f["warned"] == pytest.approx(20.0)
     assert "| reference" not in drives_markdown({"x": f}, "cmd") and "`cmd`" in drives_markdown({"x": f}, "cmd")
+
+
+def test_visible_figures_leave_out_only_the_gaps_the_record_cannot_show():
+    def row(cls, s_N, gap_counts, answer):
+        r = _row(cls, 300.0, 1.0, 0.1, s_N=s_N, backlash=0.001, som=dict(structure=answer))
+        r["truth"]["gap_counts"] = gap_counts
+        return r
+
+    rows = [row("stiff_backlash", 2.0, 1.5, "stiff"),  # hidden gap, missed: out of the visible figure
+            row("stiff_backlash", 2.0, 2.5, "stiff"),  # visible gap, missed: counts
+            row("stiff_backlash", 2.0, 3.0, "stiff_backlash"),
+            row("stiff", 0.05, 0.5, "stiff_backlash")]  # no backlash in the class rule: counts, wrong
+    f = drive_figures(rows)
+    assert f["structure"] == pytest.approx(25.0) and f["n_structure"] == 4
+    assert f["structure_visible"] == pytest.approx(100.0 / 3) and f["n_structure_visible"] == 3
+    assert f["n_backlash"] == 3 and f["n_backlash_visible"] == 2

@@ -5,11 +5,10 @@ import math
 import numpy as np
 import pytest
 
-from sim import DriveConfig, TestSignalConfig, TwoMassParams, responses_to_records, simulate_test
-from training.identification._analysis import analyze
-from training.identification._refine import RefineConfig, RefineProblem, refine, torque_reference
+from _refine_problems import DRIVE, refine_problem
 
-DRIVE = DriveConfig()
+from sim import TwoMassParams
+from training.identification._refine import RefineConfig, refine, torque_reference
 
 
 def test_torque_reference_of_the_six_sections():
@@ -21,23 +20,12 @@ def test_torque_reference_of_the_six_sections():
         torque_reference(bounds[:5], 8.0)
 
 
-def _problem(true: TwoMassParams, theta: np.ndarray) -> RefineProblem:
-    signal = TestSignalConfig(w_max=40.0)
-    rec = responses_to_records(simulate_test(true, DRIVE, signal, seed=1), true.reshape(1), DRIVE, signal)[0]
-    a = analyze(rec)
-    b = a.sections.bounds
-    start, level = torque_reference(b, a.M_star)
-    return RefineProblem(speed=a.fit.speed, start=start, level=level, segments=np.concatenate([b, [[b[5, 1], len(rec.speed)]]]),
-                         J_sigma=a.fit.J_sigma, M_FC=a.fit.M_FC, mu_F=a.fit.mu_F, T_s=DRIVE.T_s, T_Ei=DRIVE.T_Ei,
-                         encoder_counts=DRIVE.encoder_counts, M_N=DRIVE.M_N, theta=theta)
-
-
 def test_recovers_an_elastic_plant_with_backlash_from_a_perturbed_start():
     true = TwoMassParams(J_sigma=0.03, V_J=2.0, f_e=40.0, d=0.03, backlash=math.radians(0.6), M_FC=0.2, mu_F=0.001)
     s_N = float(true.s_N(DRIVE))
     assert 0.1 < s_N < 1.0  # elastic_backlash
     start = np.array([math.log10(40.0 * 1.2), math.log10(2.0 * 0.8), 0.05, math.log10(2 * s_N)])
-    p = _problem(true, start)
+    p = refine_problem(true, start)
     out = refine([p], RefineConfig(seed=0))[0]
     assert out.residual < 0.6 * out.start_residual  # the start reproduces none of the oscillation (~1)
     assert abs(out.f_e / 40.0 - 1) < 0.05
@@ -49,7 +37,7 @@ def test_recovers_an_elastic_plant_with_backlash_from_a_perturbed_start():
 
 def test_a_start_at_the_truth_stays_there():
     true = TwoMassParams(J_sigma=0.03, V_J=1.0, f_e=60.0, d=0.02, backlash=0.0, M_FC=0.1, mu_F=0.0)
-    p = _problem(true, np.array([math.log10(60.0), 0.0, 0.02, -3.0]))
+    p = refine_problem(true, np.array([math.log10(60.0), 0.0, 0.02, -3.0]))
     out = refine([p], RefineConfig(rounds=1, candidates=8, elites=4))[0]
     assert out.residual <= out.start_residual
     assert abs(out.f_e / 60.0 - 1) < 0.01 and abs(out.V_J - 1.0) < 0.05 and out.s_N < 0.05

@@ -1,0 +1,58 @@
+"""The refinement's Levenberg-Marquardt polish (training.identification._refine._polish): from a
+model a few % off, back to the plant that made the record."""
+
+import math
+from dataclasses import replace
+
+import numpy as np
+
+from _refine_problems import refine_problem
+
+from sim import TwoMassParams
+from training.identification._refine import RefineConfig, Refined, _detrend_basis, _polish
+
+
+def polish(problems, chosen, config=RefineConfig()):
+    return _polish(problems, chosen, [_detrend_basis(p.segments) for p in problems], config)
+
+def _refined(f_e: float, V_J: float, d: float, s_N: float = 1e-3, J_sigma: float | None = None) -> Refined:
+    return Refined(f_e=f_e, V_J=V_J, d=d, s_N=s_N, backlash=0.0, residual=1.0, start_residual=1.0, n_sims=100,
+                   J_sigma=J_sigma)
+
+
+ELASTIC = TwoMassParams(J_sigma=0.03, V_J=1.5, f_e=25.0, d=0.02, backlash=0.0, M_FC=0.1, mu_F=0.001)
+
+
+def test_polish_returns_from_a_model_a_few_percent_off_to_the_plant():
+    p = refine_problem(ELASTIC, np.zeros(4))
+    off = _refined(25.0 * 1.02, 1.5 * 1.12, 0.035)
+    out = polish([p], [off])[0]
+    assert abs(out.f_e / 25.0 - 1) < 0.003 and abs(out.V_J / 1.5 - 1) < 0.03 and abs(out.d - 0.02) < 0.004
+    assert out.residual < 0.5 and out.start_residual == 1.0  # the maps' answer's residual is kept
+    assert out.s_N == off.s_N and out.n_sims > off.n_sims
+
+
+def test_without_iterations_or_from_the_free_stage_nothing_moves():
+    p = refine_problem(ELASTIC, np.zeros(4))
+    off = _refined(26.0, 1.7, 0.035)
+    assert polish([p], [off], RefineConfig(polish_iterations=0))[0] == off
+    free = _refined(26.0, 1.7, 0.035, J_sigma=0.03)
+    assert polish([p], [free])[0] == free
+
+
+def test_each_answer_is_the_same_whatever_the_others():
+    p1 = refine_problem(ELASTIC, np.zeros(4))
+    p2 = refine_problem(replace(ELASTIC, f_e=40.0, V_J=0.8), np.zeros(4))
+    r1, r2 = _refined(25.5, 1.6, 0.03), _refined(39.0, 0.9, 0.03)
+    together = polish([p1, p2], [r1, r2])
+    assert together == [polish([p1], [r1])[0], polish([p2], [r2])[0]]
+    assert math.isfinite(together[1].residual)
+
+
+def test_a_negative_iteration_count_is_refused():
+    import pytest
+
+    from training.identification._refine import refine
+
+    with pytest.raises(ValueError, match="polish_iterations >= 0"):
+        refine([], RefineConfig(polish_iterations=-1))
