@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import functools
 import math
-from collections.abc import Callable, Generator
+from collections.abc import Callable, Generator, Iterator
 from dataclasses import dataclass, replace
 from typing import Any
 
@@ -435,15 +435,37 @@ def refine(problems: list[RefineProblem], config: RefineConfig | None = None) ->
     explored = _explore_all(problems, config, rngs)
     finalists = [f for f, _ in explored]
     costs: list[np.ndarray] = [np.empty(0)] * len(problems)
-    substeps = [_substeps(_model_values(p, f), p.T_s) for p, f in zip(problems, finalists)]
     bases = [_detrend_basis(p.segments) for p in problems]  # the whole record's sections and tail
-    for pack in _packs(problems, [len(f) for f in finalists], substeps):
-        errors = _simulate_packed([(problems[i], finalists[i]) for i in pack], _drive(problems[pack[0]]))
-        for i, E in zip(pack, errors):
-            costs[i] = _detrended_energy(E, bases[i])
-    chosen = [_finish(p, th, c, b, n, config, rng)
-              for p, th, c, b, (_, n), rng in zip(problems, finalists, costs, bases, explored, rngs)]
-    return _polish(problems, chosen, bases, config)
+    for i, E in _packed_errors(problems, dict(enumerate(finalists))):
+        costs[i] = _detrended_energy(E, bases[i])
+    measured = [float(_detrended_energy(p.speed[:, None], b)[0]) for p, b in zip(problems, bases)]
+    chosen = [_finish(p, th, c, b, m, n, config, rng)
+              for p, th, c, b, m, (_, n), rng in zip(problems, finalists, costs, bases, measured, explored, rngs)]
+    return _polish(problems, chosen, measured, config) if config.polish_iterations else chosen
+
+
+def _packed_errors(problems: list[RefineProblem], asked: dict[int, np.ndarray],
+                   rows: dict[int, np.ndarray] | None = None) -> Iterator[tuple[int, np.ndarray]]:
+    """``(i, E)``: the speed error ``N_i x C_i`` (or over the samples ``rows[i]`` only) of the
+    candidates ``asked[i]`` ``C_i x 4`` of each problem ``i``, a pack at a time (:func:`_packs`: one
+    drive and substep count per replay call; a result does not depend on its pack)."""
+    todo = sorted(asked)
+    substeps = [_substeps(_model_values(problems[i], asked[i]), problems[i].T_s) for i in todo]
+    for pack in _packs([problems[i] for i in todo], [len(asked[i]) for i in todo], substeps):
+        ids = [todo[k] for k in pack]
+        yield from zip(ids, _simulate_packed([(problems[i], asked[i]) for i in ids], _drive(problems[ids[0]]),
+                                             None if rows is None else [rows[i] for i in ids]))
+
+
+def _relative(cost: float, measured: float) -> float:
+    """A detrended error's rms over that of the detrended measured speed (``measured``: its energy)."""
+    return math.sqrt(cost / measured) if measured > 0 else math.sqrt(cost)
+
+
+def _answer(p: RefineProblem, theta: np.ndarray, s_N: float) -> dict[str, float]:
+    """The :class:`Refined` model values of ``theta`` (4 or 6) with the normalized backlash ``s_N``."""
+    return {"f_e": float(10.0 ** theta[0]), "V_J": float(10.0 ** theta[1]), "d": float(theta[2]), "s_N": s_N,
+            "backlash": 2.0 * s_N * p.M_N / float(p.C_F(theta))}
 
 
 def _packs(problems: list[RefineProblem], sizes: list[int], substeps: list[int], lengths: list[int] | None = None,
@@ -543,26 +565,21 @@ def _explore_all(problems: list[RefineProblem], config: RefineConfig,
     return explored
 
 
-def _finish(p: RefineProblem, theta: np.ndarray, cost: np.ndarray, full: list, explored: int, config: RefineConfig,
-            rng: np.random.Generator) -> Refined:
+def _finish(p: RefineProblem, theta: np.ndarray, cost: np.ndarray, full: list, measured: float, explored: int,
+            config: RefineConfig, rng: np.random.Generator) -> Refined:
     """The best finalist (``theta`` with its whole-record ``cost`` over the detrending basis
-    ``full``; row 0 the maps' answer; ``explored`` models before), after the free stage where the
-    problem asks for it."""
+    ``full``; row 0 the maps' answer; ``measured`` the measured speed's own detrended energy;
+    ``explored`` models before), after the free stage where the problem asks for it."""
     n_sims = explored + len(cost)
     best, best_cost = theta[int(np.argmin(cost))], float(cost.min())
     if p.free_one_mass:
         best, n_free = _free_one_mass(p, best, config, rng, _drive(p))
         n_sims += n_free
         best_cost = float(_score(p, best[None], full, _drive(p))[0])
-    measured = float(_detrended_energy(p.speed[:, None], full)[0])
-    norm = math.sqrt(measured) if measured > 0 else 1.0
-    s_N = float(10.0 ** best[3])
     free = len(best) == 6
-    return Refined(f_e=float(10.0 ** best[0]), V_J=float(10.0 ** best[1]), d=float(best[2]),
-                   s_N=s_N, backlash=2.0 * s_N * p.M_N / float(p.C_F(best)),
-                   residual=math.sqrt(best_cost) / norm, start_residual=math.sqrt(float(cost[0])) / norm,
-                   n_sims=n_sims, J_sigma=float(10.0 ** best[4]) if free else None,
-                   M_FC=float(best[5]) if free else None)
+    return Refined(**_answer(p, best, float(10.0 ** best[3])), residual=_relative(best_cost, measured),
+                   start_residual=_relative(float(cost[0]), measured), n_sims=n_sims,
+                   J_sigma=float(10.0 ** best[4]) if free else None, M_FC=float(best[5]) if free else None)
 
 
 def _free_one_mass(p: RefineProblem, best: np.ndarray, config: RefineConfig, rng: np.random.Generator,
@@ -610,23 +627,15 @@ def _scored(p: RefineProblem, f_e: float, config: RefineConfig) -> tuple[np.ndar
 def _errors(problems: list[RefineProblem], asked: dict[int, np.ndarray],
             scored: dict[int, tuple[np.ndarray, list[tuple[int, int, np.ndarray]]]]) -> dict[int, np.ndarray]:
     """The detrended errors ``M_i x C_i`` over the samples ``scored[i]`` of the candidates
-    ``asked[i]`` ``C_i x 4`` of each problem ``i``, packed by drive and substep count."""
-    todo = sorted(asked)
-    substeps = [_substeps(_model_values(problems[i], asked[i]), problems[i].T_s) for i in todo]
-    out = {}
-    for pack in _packs([problems[i] for i in todo], [len(asked[i]) for i in todo], substeps):
-        ids = [todo[k] for k in pack]
-        errors = _simulate_packed([(problems[i], asked[i]) for i in ids], _drive(problems[ids[0]]),
-                                  [scored[i][0] for i in ids])
-        for i, E in zip(ids, errors):
-            out[i] = _detrended(E, scored[i][1])
-    return out
+    ``asked[i]`` ``C_i x 4`` of each problem ``i``."""
+    return {i: _detrended(E, scored[i][1])
+            for i, E in _packed_errors(problems, asked, {i: rows for i, (rows, _) in scored.items()})}
 
 
-def _polish(problems: list[RefineProblem], chosen: list[Refined], bases: list[list[tuple[int, int, np.ndarray]]],
+def _polish(problems: list[RefineProblem], chosen: list[Refined], measured: list[float],
             config: RefineConfig) -> list[Refined]:
-    """Each ``chosen[i]`` polished on the whole record (see :class:`RefineConfig`; ``bases[i]``
-    the detrending basis of its chosen error), the searches side by side: one replay per
+    """Each ``chosen[i]`` polished on the whole record (see :class:`RefineConfig`; ``measured[i]``
+    the measured speed's own detrended energy), the searches side by side: one replay per
     iteration and step kind for the problems on one drive and substep count; ``residual`` and
     ``n_sims`` updated."""
     h = np.asarray(config.polish_steps, dtype=np.float64)
@@ -669,15 +678,10 @@ def _polish(problems: list[RefineProblem], chosen: list[Refined], bases: list[li
             if ratio > 1.0 - config.polish_tolerance:  # no better, or hardly: done
                 active.discard(i)
     won = sorted(i for i in moved if cost[i] < config.polish_win * start[i])
-    every = {i: (np.arange(len(problems[i].speed)), bases[i]) for i in won}
-    final = _errors(problems, {i: theta[i][None] for i in won}, every)  # the winners' whole-record error
-    out = [replace(r, n_sims=r.n_sims + n_sims.get(i, 0) + (i in final)) for i, r in enumerate(chosen)]
-    for i, R in final.items():
-        p, t = problems[i], theta[i]
-        measured = float(_detrended_energy(p.speed[:, None], bases[i])[0])
-        total = float((R * R).sum())
+    out = [replace(r, n_sims=r.n_sims + n_sims.get(i, 0)) for i, r in enumerate(chosen)]
+    for i, E in _packed_errors(problems, {i: theta[i][None] for i in won}):  # the winners' whole-record error
+        t, total = theta[i], float(_detrended_energy(E, _detrend_basis(problems[i].segments))[0])
         s_N = float(10.0 ** t[3]) if t[3] > _NO_GAP else chosen[i].s_N
-        out[i] = replace(out[i], f_e=float(10.0 ** t[0]), V_J=float(10.0 ** t[1]), d=float(t[2]), s_N=s_N,
-                         backlash=2.0 * s_N * p.M_N / float(p.C_F(t)),
-                         residual=math.sqrt(total / measured) if measured > 0 else math.sqrt(total))
+        out[i] = replace(out[i], **_answer(problems[i], t, s_N), residual=_relative(total, measured[i]),
+                         n_sims=out[i].n_sims + 1)
     return out

@@ -10,12 +10,13 @@ import pytest
 from _refine_problems import refine_problem
 
 from sim import TwoMassParams
-from training.identification._refine import RefineConfig, Refined, _detrend_basis, _polish, refine
+from training.identification._refine import RefineConfig, Refined, _detrend_basis, _detrended_energy, _polish, refine
 
 
 def polish(problems, chosen, config=RefineConfig()):
-    """The polish of ``chosen`` on ``problems`` with their whole-record detrending."""
-    return _polish(problems, chosen, [_detrend_basis(p.segments) for p in problems], config)
+    """The polish of ``chosen`` on ``problems`` (the measured speeds' detrended energies as refine has them)."""
+    measured = [float(_detrended_energy(p.speed[:, None], _detrend_basis(p.segments))[0]) for p in problems]
+    return _polish(problems, chosen, measured, config)
 
 
 def _refined(f_e: float, V_J: float, d: float, s_N: float = 1e-3, J_sigma: float | None = None) -> Refined:
