@@ -5,7 +5,7 @@ from sim.params import (CLASS_THRESHOLDS, DERIVED_NAMES, PARAM_NAMES, R_OSC_VISI
                         W_E_T_EI_STIFF, DriveConfig, TwoMassDerived, TwoMassParams, class_index, one_mass_stand_in, speed_quantum, structure_class,
                         two_mass_derived)
 from sim._config import load_c_kernel
-from sim._integrate_fast import default_substeps
+from sim._integrate_fast import default_substeps, rk4_substeps
 from sim.plant import Controller, Plant, Response, SimulatedPlant, simulate, simulate_test
 from sim.population import EnvelopeRanges, EnvelopeSample, PopulationRanges, sample_envelope, sample_population
 from sim.records import Record, RecordError, iter_records, read_record, responses_to_records, write_record
@@ -18,7 +18,7 @@ __all__ = [
     "TwoMassDerived", "two_mass_derived", "class_index", "one_mass_stand_in", "speed_quantum", "S_N_ELASTIC", "S_N_STIFF_BACKLASH", "W_E_T_EI_STIFF",
     "R_OSC_VISIBLE", "Controller", "DriveConfig", "Plant", "PopulationRanges", "Record",
     "RecordError", "Response", "SimulatedPlant", "SwitchingController", "TestSignalConfig", "TwoMassParams",
-    "default_substeps", "load_c_kernel", "encoder_count", "iter_records", "read_record", "replay_speed",
+    "default_substeps", "rk4_substeps", "load_c_kernel", "encoder_count", "iter_records", "read_record", "replay_speed",
     "responses_to_records", "sample_population", "simulate",
     "simulate_test", "speed_from_angle", "structure_class", "write_record",
     "Drive", "DriveLimits", "Scenario", "SimulatedDrive", "SpeedLaw", "limit_violation",

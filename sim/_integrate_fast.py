@@ -32,11 +32,17 @@ from sim.params import DriveConfig, TwoMassParams
 _DTYPES = (torch.float32, torch.float64)
 
 
+def rk4_substeps(w_0: float, T_s: float, T_Ei: float, *, w_0_dt: float = 0.25, minimum: int = 4) -> int:
+    """RK4 substeps per sample of ``T_s`` for a stiffest mode ``w_0`` [rad/s]: ``w_0 dt <= w_0_dt``, and
+    ``dt <= T_Ei/2`` for the current loop (RK4 turns unstable on it above ``dt = 2.79 T_Ei``); at
+    least ``minimum``."""
+    return int(max(minimum, math.ceil(w_0 * T_s / w_0_dt), math.ceil(2.0 * T_s / T_Ei)))
+
+
 def default_substeps(params: TwoMassParams, drive: DriveConfig) -> int:
-    """Substeps per sample: ``w_0 dt <= 0.25`` and ``dt <= T_Ei/2`` for the stiffest system, >= 4."""
-    w0 = float(params.w_0.max()) if params.w_0.numel() else 0.0
-    n = max(4, math.ceil(w0 * drive.T_s / 0.25), math.ceil(2.0 * drive.T_s / drive.T_Ei))
-    return int(n)
+    """Substeps per sample (:func:`rk4_substeps`) for the stiffest system of ``params``: ``w_0 dt <= 0.25``,
+    ``dt <= T_Ei/2``, at least 4."""
+    return rk4_substeps(float(params.w_0.max()) if params.w_0.numel() else 0.0, drive.T_s, drive.T_Ei)
 
 
 @dataclass

@@ -52,8 +52,9 @@ class Grid:
     @cached_property
     def distances2(self) -> torch.Tensor:
         """Squared grid distances between units, float64 ``U x U``."""
-        diff = self.coords[:, None, :] - self.coords[None, :, :]  # U x U x 2
-        return (diff * diff).sum(-1)
+        r, c = self.coords.unbind(-1)  # U each
+        dr, dc = r[:, None] - r[None, :], c[:, None] - c[None, :]  # U x U each
+        return dr.mul_(dr).add_(dc.mul_(dc))
 
     @cached_property
     def adjacency(self) -> torch.Tensor:

@@ -51,6 +51,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--drives", type=int, default=None, metavar="N",
                         help="instead: the study on the matrix of six drives across SPEC 3.1's envelope (issue 11), "
                              "N systems per drive (seed --seed), written to OUT/drives.md and OUT/drives.json")
+    parser.add_argument("--envelope-drives", type=int, default=None, metavar="K",
+                        help="with --drives N: instead of the matrix, K drives and tests drawn at random over SPEC "
+                             "3.1's envelope (seed --seed; drives no matrix chose), N systems each, and all together; "
+                             "written to OUT/drives_envelope.md and OUT/drives_envelope.json")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
 
 
@@ -69,27 +73,46 @@ def command_line(args: argparse.Namespace) -> str:
 
 
 def _run_drives(args: argparse.Namespace) -> int:
-    """``--drives N``: per drive of :data:`training.evaluation.DRIVES`, N systems identified and scored."""
+    """``--drives N``: per drive of :data:`training.evaluation.DRIVES` (with ``--envelope-drives K``: of K
+    drives drawn over the envelope, and of all of them together), N systems identified and scored."""
     import json
 
     from som_torch import atomic_write
     from training._json import dumps
-    from training.evaluation import DRIVES, drive_figures, drive_rows, drives_markdown
+    from training.evaluation import DRIVES, drive_figures, drive_rows, drives_markdown, envelope_rows
     from training.identification import Identifier
 
     if args.drives < 1:
         raise ValueError(f"--drives: expected N >= 1 systems per drive, received {args.drives}")
-    md, js = args.out / "drives.md", args.out / "drives.json"
+    envelope = args.envelope_drives is not None
+    if envelope and args.envelope_drives < 1:
+        raise ValueError(f"--envelope-drives: expected K >= 1 drives, received {args.envelope_drives}")
+    stem = "drives_envelope" if envelope else "drives"
+    md, js = args.out / f"{stem}.md", args.out / f"{stem}.json"
     identifier = Identifier.load(args.checkpoints)
-    command = f"twomass evaluate --drives {args.drives} --seed {args.seed} --out {args.out}" + (
-        f" --checkpoints {args.checkpoints}" if args.checkpoints is not None else "")
+    command = (f"twomass evaluate --drives {args.drives}"
+               + (f" --envelope-drives {args.envelope_drives}" if envelope else "")
+               + f" --seed {args.seed} --out {args.out}"
+               + (f" --checkpoints {args.checkpoints}" if args.checkpoints is not None else ""))
+    if envelope:
+        drawn = envelope_rows(args.envelope_drives, args.drives, args.seed, identifier)
+        rows = {name: r for name, (_, r) in drawn.items()}
+        descriptions = {name: words for name, (words, _) in drawn.items()}
+        rows["all"] = [row for r in rows.values() for row in r]
+        descriptions["all"] = f"the {args.envelope_drives} drives together"
+        title = f"Identification on {args.envelope_drives} drives drawn at random over SPEC 3.1's envelope (issue 11)"
+    else:
+        rows = {name: drive_rows(case, args.drives, args.seed, identifier) for name, case in DRIVES.items()}
+        descriptions = {name: case.description for name, case in DRIVES.items()}
+        title = "Identification on a matrix of drives (issue 11)"
     figures = {}
-    for name, case in DRIVES.items():
-        figures[name] = drive_figures(drive_rows(case, args.drives, args.seed, identifier))
+    for name, r in rows.items():
+        figures[name] = drive_figures(r)
         print(f"{name}: {json.dumps(figures[name])}", file=sys.stderr)
     args.out.mkdir(parents=True, exist_ok=True)
-    atomic_write(md, lambda f: f.write(drives_markdown(figures, command)), text=True)
-    atomic_write(js, lambda f: f.write(dumps({"command": command, "drives": figures}) + "\n"), text=True)
+    atomic_write(md, lambda f: f.write(drives_markdown(figures, command, descriptions, title)), text=True)
+    atomic_write(js, lambda f: f.write(dumps({"command": command, "drives": figures, "descriptions": descriptions})
+                                        + "\n"), text=True)
     print(f"wrote {md} and {js}")
     return 0
 
@@ -97,6 +120,8 @@ def _run_drives(args: argparse.Namespace) -> int:
 def run(args: argparse.Namespace) -> int:
     if args.drives is not None:
         return _run_drives(args)
+    if args.envelope_drives is not None:
+        raise ValueError("--envelope-drives K: give the systems per drive with --drives N")
     from tqdm import tqdm
 
     from training._distributed import process_group

@@ -1,7 +1,7 @@
 """The paper's study (SPEC 7): evaluation sets, the SOM and IV4 methods side by side, metrics,
 report, and the cache of per-system results."""
 
-from ._drives import DRIVES, DriveCase, drive_figures, drive_rows, drives_markdown
+from ._drives import DRIVES, DriveCase, drive_figures, drive_rows, drives_markdown, envelope_rows
 from ._cache import load_cached, method_config, save_cached, source_digest
 from ._iv4 import ARXResult, IV4Result, arx, identify_iv4, iv4, mean_torque, two_mass_from_discrete
 from ._metrics import (CLASS_THRESHOLDS, confusion_matrix, recognition_rate, recognized, relative_error,
@@ -12,7 +12,7 @@ from ._study import iv4_result, run_set, run_study, som_result
 from ._summary import summarize
 
 __all__ = [
-    "DRIVES", "DriveCase", "drive_rows", "drive_figures", "drives_markdown",
+    "DRIVES", "DriveCase", "drive_rows", "drive_figures", "drives_markdown", "envelope_rows",
     "EvalSet", "grid_set", "population_set", "GRID_F_E", "GRID_BACKLASH_DEG", "METHODS",
     "run_set", "run_study", "som_result", "iv4_result", "summarize", "render_markdown", "write_report",
     "method_config", "load_cached", "save_cached", "source_digest",

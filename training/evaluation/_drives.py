@@ -1,6 +1,8 @@
 """The study of SPEC 7 on a matrix of drives across SPEC 3.1's envelope (issue 11,
 ``twomass evaluate --drives``): per drive, a population whose test time scale, friction and
-torque fit that drive, simulated on it, identified with the maps, scored.
+torque fit that drive, simulated on it, identified with the maps, scored. The same on drives
+drawn at random over the envelope (``--envelope-drives``, :func:`envelope_rows`): drives no
+matrix chose.
 
 Figures per drive: structure accuracy over systems at least 20 % from every class threshold,
 ``E_30`` and ``E_10`` over ``elastic`` + ``elastic_backlash``, ``J_sigma`` within 5 %, backlash
@@ -15,13 +17,16 @@ encoder counts (for the structure: every system but those whose backlash counts 
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+import torch
 
-from sim import S_N_ELASTIC, DriveConfig, PopulationRanges, TestSignalConfig, iter_records, sample_population
+from sim import (S_N_ELASTIC, DriveConfig, EnvelopeRanges, PopulationRanges, TestSignalConfig, TwoMassParams,
+                 iter_records, sample_envelope, sample_population)
 from training.evaluation._metrics import recognized, relative_error, threshold_margin
 from training.identification import BACKLASH_VISIBLE_COUNTS, motor_lead
 
@@ -76,13 +81,41 @@ def drive_rows(case: DriveCase, n: int, seed: int, identifier: Any,
     """Simulate ``n`` systems of ``case`` and identify them; one row per system: ``truth``
     (true parameters, ``s_N``, ``r_osc``, ``w_e_T_Ei``, class) and ``som`` (``structure``, the
     parameters, ``n_warnings``, ``error``)."""
-    params = sample_population(n, seed, case.ranges())
-    records = list(iter_records(params, case.drive, case.signal, seed=seed, progress=progress))
+    return _rows(sample_population(n, seed, case.ranges()), case.drive, case.signal, seed, identifier, progress)
+
+
+def envelope_rows(drives: int, per_drive: int, seed: int, identifier: Any,
+                  progress: Callable[[int], object] | None = None) -> dict[str, tuple[str, list[dict[str, Any]]]]:
+    """``drives`` drives and test runs drawn at random over SPEC 3.1's envelope, ``per_drive`` systems
+    each (:func:`sim.sample_envelope`: the maps' training distribution, with no cell on the reference
+    drive), simulated and identified: name -> (the drive in words, its rows as :func:`drive_rows`)."""
+    sample = sample_envelope(drives * per_drive, seed, EnvelopeRanges(cell=per_drive, reference_share=0.0))
+    out = {}
+    for k, (drive, signal) in enumerate(sample.cases):
+        params = sample.params[torch.nonzero(sample.cell == k).flatten()]  # per_drive systems
+        out[f"envelope_{k}"] = (_describe(drive, signal, params),
+                                _rows(params, drive, signal, seed * 1000 + k, identifier, progress))
+    return out
+
+
+def _describe(drive: DriveConfig, signal: TestSignalConfig, params: TwoMassParams) -> str:
+    """A drive and its test in words: sample time, encoder, current loop, torques, speed, noise,
+    and the test time scales ``J_sigma w_max / M*`` of ``params``."""
+    ts = params.J_sigma * signal.w_max / signal.M_star
+    return (f"T_s {drive.T_s * 1e6:.4g} us, 2^{math.log2(drive.encoder_counts):.0f} counts, T_Ei "
+            f"{drive.T_Ei * 1e3:.3g} ms, M_N {drive.M_N:.3g} Nm, M* {signal.M_star:.3g} Nm, w_max {signal.w_max:.3g} "
+            f"rad/s, noise {100 * drive.current_noise_std * drive.K_M / signal.M_star:.2g} % of M*, time scale "
+            f"{float(ts.min()):.3g}..{float(ts.max()):.3g} s")
+
+
+def _rows(params: TwoMassParams, drive: DriveConfig, signal: TestSignalConfig, seed: int, identifier: Any,
+          progress: Callable[[int], object] | None) -> list[dict[str, Any]]:
+    records = list(iter_records(params, drive, signal, seed=seed, progress=progress))
     rows = []
     for rec, out in zip(records, identifier.identify_records(records)):
         truth = dict(rec.meta["truth"])
-        truth["w_e_T_Ei"] = truth["w_e"] * case.drive.T_Ei
-        truth["gap_counts"] = motor_lead(truth["backlash"], truth["V_J"]) / case.drive.q_phi
+        truth["w_e_T_Ei"] = truth["w_e"] * drive.T_Ei
+        truth["gap_counts"] = motor_lead(truth["backlash"], truth["V_J"]) / drive.q_phi
         som: dict[str, Any] = {"structure": None, "n_warnings": 0, "error": None}
         if out.ok:
             som.update(out.parameters.to_dict(), structure=out.structure, n_warnings=len(out.warnings))
@@ -128,15 +161,18 @@ def drive_figures(rows: Sequence[dict[str, Any]]) -> dict[str, Any]:
             "silent_wrong": pct(silent, every), "warned": pct(np.array([r["som"]["n_warnings"] > 0 for r in rows]), every)}
 
 
-def drives_markdown(figures: dict[str, dict[str, Any]], command: str) -> str:
-    """The per-drive table (``figures``: drive name -> :func:`drive_figures`)."""
+def drives_markdown(figures: dict[str, dict[str, Any]], command: str, descriptions: dict[str, str] | None = None,
+                    title: str = "Identification on a matrix of drives (issue 11)") -> str:
+    """The per-drive table (``figures``: drive name -> :func:`drive_figures`; ``descriptions``: drive
+    name -> the drive in words, default those of :data:`DRIVES`)."""
     fmt = lambda v: "n/a" if v is None else f"{v:.1f}"  # noqa: E731
-    lines = ["# Identification on a matrix of drives (issue 11)", "", f"Made by `{command}`.", "",
+    descriptions = {name: case.description for name, case in DRIVES.items()} if descriptions is None else descriptions
+    lines = [f"# {title}", "", f"Made by `{command}`.", "",
              "| drive | n | failed | structure (n) | of them visible (n) | E_30 | E_10 (n elastic) | J_sigma 5 % "
              "| backlash 30 % (n) | of them visible (n) | silent wrong | warned |",
              "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
     for name, f in figures.items():
-        lines.append(f"| {name}: {DRIVES[name].description if name in DRIVES else ''} | {f['n']} | {f['failed']} | "
+        lines.append(f"| {name}: {descriptions.get(name, '')} | {f['n']} | {f['failed']} | "
                      f"{fmt(f['structure'])} ({f['n_structure']}) | "
                      f"{fmt(f['structure_visible'])} ({f['n_structure_visible']}) | {fmt(f['E_30'])} | {fmt(f['E_10'])} "
                      f"({f['n_elastic']}) | {fmt(f['J_sigma_5'])} | {fmt(f['backlash_30'])} ({f['n_backlash']}) | "

@@ -264,7 +264,7 @@ def _simulate_packed(items: list[tuple[RefineProblem, np.ndarray]], drive: sim.D
     level = np.concatenate([np.broadcast_to(np.pad(p.level, (0, K - len(p.level)), mode="edge"),
                                             (len(th), K)) for p, th in items])
     w = replay_speed(_params(flat), drive, torch.from_numpy(start), torch.from_numpy(level), N, quantize=False,
-                     substeps=_substeps(flat, drive.T_s)).numpy().T  # N x n
+                     substeps=_substeps(flat, drive.T_s, drive.T_Ei)).numpy().T  # N x n
     out, i = [], 0
     for k, (p, th) in enumerate(items):
         at = slice(0, len(p.speed)) if rows is None else rows[k]
@@ -273,11 +273,11 @@ def _simulate_packed(items: list[tuple[RefineProblem, np.ndarray]], drive: sim.D
     return out
 
 
-def _substeps(values: dict[str, np.ndarray], T_s: float) -> int:
-    """RK4 substeps per sample: ``w_0 dt <= 0.5`` for the stiffest model of :func:`_model_values`
-    (frequency error < 0.1 %)."""
+def _substeps(values: dict[str, np.ndarray], T_s: float, T_Ei: float) -> int:
+    """RK4 substeps per sample: ``w_0 dt <= 0.5`` for the stiffest model of
+    :func:`_model_values` (frequency error < 0.1 %), ``dt <= T_Ei/2`` (:func:`sim.rk4_substeps`)."""
     w_0 = sim.two_mass_derived(values["J_sigma"], values["V_J"], values["f_e"], values["d"]).w_0
-    return max(1, math.ceil(float(w_0.max()) * T_s / 0.5))
+    return sim.rk4_substeps(float(w_0.max()), T_s, T_Ei, w_0_dt=0.5, minimum=1)
 
 
 def _drive(p: RefineProblem) -> sim.DriveConfig:
@@ -450,7 +450,7 @@ def _packed_errors(problems: list[RefineProblem], asked: dict[int, np.ndarray],
     candidates ``asked[i]`` ``C_i x 4`` of each problem ``i``, a pack at a time (:func:`_packs`: one
     drive and substep count per replay call; a result does not depend on its pack)."""
     todo = sorted(asked)
-    substeps = [_substeps(_model_values(problems[i], asked[i]), problems[i].T_s) for i in todo]
+    substeps = [_substeps(_model_values(problems[i], asked[i]), problems[i].T_s, problems[i].T_Ei) for i in todo]
     for pack in _packs([problems[i] for i in todo], [len(asked[i]) for i in todo], substeps):
         ids = [todo[k] for k in pack]
         yield from zip(ids, _simulate_packed([(problems[i], asked[i]) for i in ids], _drive(problems[ids[0]]),
@@ -548,7 +548,7 @@ def _explore_all(problems: list[RefineProblem], config: RefineConfig,
     explored: list[tuple[np.ndarray, int]] = [(np.empty(0), 0)] * len(problems)
     while asked:
         todo = sorted(asked)
-        substeps = [_substeps(_model_values(problems[i], asked[i]), problems[i].T_s) for i in todo]
+        substeps = [_substeps(_model_values(problems[i], asked[i]), problems[i].T_s, problems[i].T_Ei) for i in todo]
         sizes = [len(asked[i]) * windows[i].y.shape[0] for i in todo]
         packs = _packs([problems[i] for i in todo], sizes, substeps, [windows[i].y.shape[1] for i in todo],
                        max_models=4096)

@@ -64,3 +64,34 @@ def test_visible_figures_leave_out_only_the_gaps_the_record_cannot_show():
     assert f["structure"] == pytest.approx(25.0) and f["n_structure"] == 4
     assert f["structure_visible"] == pytest.approx(100.0 / 3) and f["n_structure_visible"] == 3
     assert f["n_backlash"] == 3 and f["n_backlash_visible"] == 2
+
+
+def test_drives_drawn_over_the_envelope(tmp_path, capsys):
+    """``--envelope-drives``: drives of the maps' own training distribution, none of them the reference
+    drive, each inside the envelope, identified and scored; the table has a row per drive and one for all."""
+    from sim import EnvelopeRanges, sample_envelope
+    from training.cli import main
+
+    sample = sample_envelope(6, 3, EnvelopeRanges(cell=3, reference_share=0.0))
+    env = SPEC_ENVELOPE
+    for drive, signal in sample.cases:
+        assert env["T_s"][0] <= drive.T_s <= env["T_s"][1] and drive.T_s != 250e-6
+        assert env["encoder_counts"][0] <= drive.encoder_counts <= env["encoder_counts"][1]
+        assert signal.M_star <= drive.M_max
+    assert main(["evaluate", "--drives", "3", "--envelope-drives", "2", "--seed", "3", "--out", str(tmp_path)]) == 0
+    md = (tmp_path / "drives_envelope.md").read_text()
+    assert "--envelope-drives 2 --seed 3" in md and "| all: the 2 drives together | 6 |" in md
+    for drive, _ in sample.cases:  # the drives of the same seed and cells, in words
+        assert f"T_s {drive.T_s * 1e6:.4g} us, 2^{math.log2(drive.encoder_counts):.0f} counts" in md
+    assert md.count("| envelope_") == 2 and not (tmp_path / "drives.md").exists()
+
+
+@pytest.mark.parametrize(("argv", "message"), [
+    (["--envelope-drives", "2"], "--envelope-drives K: give the systems per drive with --drives N"),
+    (["--drives", "2", "--envelope-drives", "0"], "--envelope-drives: expected K >= 1 drives, received 0")])
+def test_envelope_drives_bad_input(tmp_path, capsys, argv, message):
+    from training.cli import main
+
+    assert main(["evaluate", *argv, "--out", str(tmp_path)]) == 2
+    assert capsys.readouterr().err.strip() == f"twomass evaluate: error: {message}"
+    assert not any(tmp_path.iterdir())

@@ -258,3 +258,24 @@ def test_a_stiff_shaft_with_backlash_on_a_large_axis_is_not_called_stiff_unwarne
                                  f_e=203.15304, d=0.07233, backlash=width, M_FC=6.61608, mu_F=0.00047))
     assert res.quality.structure_probabilities["stiff"] < 0.6
     assert res.structure == "stiff_backlash" and res.parameters.backlash == pytest.approx(width, rel=0.3)
+
+
+def test_a_current_loop_faster_than_the_sample_time_keeps_the_refinement_stable(ident):
+    """T_s = 3 T_Ei (inside SPEC 3.1: 0.6 ms, 0.2 ms): a replay at one RK4 step per sample diverged
+    on the current loop (stable only to dt = 2.79 T_Ei), every elastic candidate scored ~1e30, and a
+    plainly oscillating record left as ``stiff`` without a warning."""
+    drive = DriveConfig(T_s=6e-4, T_Ei=2e-4, M_N=20.0, M_max=30.0, current_noise_std=0.015, encoder_counts=2**22)
+    rec = _record(drive, TestSignalConfig(M_star=5.4, w_max=35.0), J_sigma=0.027, V_J=0.53, f_e=21.3, d=0.02,
+                  backlash=0.0, M_FC=0.2, mu_F=0.007)
+    out = ident.identify(rec)
+    assert out.structure == "elastic"
+    assert out.parameters.f_e == pytest.approx(21.3, rel=0.05) and out.parameters.V_J == pytest.approx(0.53, rel=0.1)
+    assert out.quality.refine_start_residual < 10 and out.quality.refine_residual < 0.5
+
+
+def test_rk4_substeps_resolve_the_current_loop_and_the_fastest_mode():
+    from sim import rk4_substeps
+
+    assert rk4_substeps(0.0, 6e-4, 2e-4, minimum=1) == 6  # dt <= T_Ei / 2
+    assert rk4_substeps(1000.0, 1e-3, 1.0, w_0_dt=0.5, minimum=1) == 2  # w_0 dt <= 0.5
+    assert rk4_substeps(0.0, 2.5e-4, 1e-3) == 4  # at least the minimum
