@@ -66,7 +66,7 @@ def test_visible_figures_leave_out_only_the_gaps_the_record_cannot_show():
     assert f["n_backlash"] == 3 and f["n_backlash_visible"] == 2
 
 
-def test_drives_drawn_over_the_envelope(tmp_path, capsys):
+def test_drives_drawn_over_the_envelope(tmp_path):
     """``--envelope-drives``: drives of the maps' own training distribution, none of them the reference
     drive, each inside the envelope, identified and scored; the table has a row per drive and one for all."""
     from sim import EnvelopeRanges, sample_envelope
