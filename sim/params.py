@@ -69,6 +69,10 @@ class DriveConfig:
         if int(self.encoder_counts) != self.encoder_counts:
             raise ValueError(f"DriveConfig.encoder_counts: expected an integer, received {self.encoder_counts}")
 
+    def current_noise(self, M_star: float) -> float:
+        """The measured current's noise std as torque over a test's ``M_star`` [Nm] (SPEC 3.1's share)."""
+        return self.current_noise_std * self.K_M / M_star
+
     @property
     def q_phi(self) -> float:
         """Angle quantum [rad]: one encoder count."""

@@ -73,3 +73,8 @@ def test_bad_inputs_raise_clear_errors():
         TwoMassParams.from_dicts({"J_sigma": 1.0, "V_J": 1.0, "f_e": 10.0, "foo": 1})
     with pytest.raises(ValueError, match="n >= 1"):
         sample_population(0, 1)
+
+
+def test_current_noise_as_a_share_of_M_star():
+    # 0.05 A on a 2 Nm/A motor is 0.1 Nm: 1 % of a test's M* of 10 Nm
+    assert DriveConfig(K_M=2.0, current_noise_std=0.05).current_noise(10.0) == pytest.approx(0.01)

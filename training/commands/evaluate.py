@@ -95,20 +95,19 @@ def _run_drives(args: argparse.Namespace) -> int:
                + f" --seed {args.seed} --out {args.out}"
                + (f" --checkpoints {args.checkpoints}" if args.checkpoints is not None else ""))
     if envelope:
-        drawn = envelope_rows(args.envelope_drives, args.drives, args.seed, identifier)
-        rows = {name: r for name, (_, r) in drawn.items()}
-        descriptions = {name: words for name, (words, _) in drawn.items()}
-        rows["all"] = [row for r in rows.values() for row in r]
-        descriptions["all"] = f"the {args.envelope_drives} drives together"
+        runs = envelope_rows(args.envelope_drives, args.drives, args.seed, identifier)
         title = f"Identification on {args.envelope_drives} drives drawn at random over SPEC 3.1's envelope (issue 11)"
     else:
-        rows = {name: drive_rows(case, args.drives, args.seed, identifier) for name, case in DRIVES.items()}
-        descriptions = {name: case.description for name, case in DRIVES.items()}
+        runs = ((name, case.description, drive_rows(case, args.drives, args.seed, identifier))
+                for name, case in DRIVES.items())
         title = "Identification on a matrix of drives (issue 11)"
-    figures = {}
-    for name, r in rows.items():
-        figures[name] = drive_figures(r)
+    figures, descriptions, every = {}, {}, []
+    for name, words, rows in runs:  # a drive at a time: its figures as soon as they are known
+        figures[name], descriptions[name] = drive_figures(rows), words
+        every += rows
         print(f"{name}: {json.dumps(figures[name])}", file=sys.stderr)
+    if envelope:
+        figures["all"], descriptions["all"] = drive_figures(every), f"the {args.envelope_drives} drives together"
     args.out.mkdir(parents=True, exist_ok=True)
     atomic_write(md, lambda f: f.write(drives_markdown(figures, command, descriptions, title)), text=True)
     atomic_write(js, lambda f: f.write(dumps({"command": command, "drives": figures, "descriptions": descriptions})

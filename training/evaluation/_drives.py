@@ -18,7 +18,7 @@ encoder counts (for the structure: every system but those whose backlash counts 
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -85,17 +85,16 @@ def drive_rows(case: DriveCase, n: int, seed: int, identifier: Any,
 
 
 def envelope_rows(drives: int, per_drive: int, seed: int, identifier: Any,
-                  progress: Callable[[int], object] | None = None) -> dict[str, tuple[str, list[dict[str, Any]]]]:
+                  progress: Callable[[int], object] | None = None) -> Iterator[tuple[str, str, list[dict[str, Any]]]]:
     """``drives`` drives and test runs drawn at random over SPEC 3.1's envelope, ``per_drive`` systems
     each (:func:`sim.sample_envelope`: the maps' training distribution, with no cell on the reference
-    drive), simulated and identified: name -> (the drive in words, its rows as :func:`drive_rows`)."""
+    drive), simulated and identified a drive at a time: (name, the drive in words, its rows as
+    :func:`drive_rows`)."""
     sample = sample_envelope(drives * per_drive, seed, EnvelopeRanges(cell=per_drive, reference_share=0.0))
-    out = {}
     for k, (drive, signal) in enumerate(sample.cases):
         params = sample.params[torch.nonzero(sample.cell == k).flatten()]  # per_drive systems
-        out[f"envelope_{k}"] = (_describe(drive, signal, params),
-                                _rows(params, drive, signal, seed * 1000 + k, identifier, progress))
-    return out
+        yield (f"envelope_{k}", _describe(drive, signal, params),
+               _rows(params, drive, signal, seed * 1000 + k, identifier, progress))
 
 
 def _describe(drive: DriveConfig, signal: TestSignalConfig, params: TwoMassParams) -> str:
@@ -104,7 +103,7 @@ def _describe(drive: DriveConfig, signal: TestSignalConfig, params: TwoMassParam
     ts = params.J_sigma * signal.w_max / signal.M_star
     return (f"T_s {drive.T_s * 1e6:.4g} us, 2^{math.log2(drive.encoder_counts):.0f} counts, T_Ei "
             f"{drive.T_Ei * 1e3:.3g} ms, M_N {drive.M_N:.3g} Nm, M* {signal.M_star:.3g} Nm, w_max {signal.w_max:.3g} "
-            f"rad/s, noise {100 * drive.current_noise_std * drive.K_M / signal.M_star:.2g} % of M*, time scale "
+            f"rad/s, noise {100 * drive.current_noise(signal.M_star):.2g} % of M*, time scale "
             f"{float(ts.min()):.3g}..{float(ts.max()):.3g} s")
 
 

@@ -273,6 +273,11 @@ def _simulate_packed(items: list[tuple[RefineProblem, np.ndarray]], drive: sim.D
     return out
 
 
+def _problem_substeps(p: RefineProblem, theta: np.ndarray) -> int:
+    """:func:`_substeps` of the candidates ``theta`` of ``p`` on its drive."""
+    return _substeps(_model_values(p, theta), p.T_s, p.T_Ei)
+
+
 def _substeps(values: dict[str, np.ndarray], T_s: float, T_Ei: float) -> int:
     """RK4 substeps per sample: ``w_0 dt <= 0.5`` for the stiffest model of
     :func:`_model_values` (frequency error < 0.1 %), ``dt <= T_Ei/2`` (:func:`sim.rk4_substeps`)."""
@@ -450,7 +455,7 @@ def _packed_errors(problems: list[RefineProblem], asked: dict[int, np.ndarray],
     candidates ``asked[i]`` ``C_i x 4`` of each problem ``i``, a pack at a time (:func:`_packs`: one
     drive and substep count per replay call; a result does not depend on its pack)."""
     todo = sorted(asked)
-    substeps = [_substeps(_model_values(problems[i], asked[i]), problems[i].T_s, problems[i].T_Ei) for i in todo]
+    substeps = [_problem_substeps(problems[i], asked[i]) for i in todo]
     for pack in _packs([problems[i] for i in todo], [len(asked[i]) for i in todo], substeps):
         ids = [todo[k] for k in pack]
         yield from zip(ids, _simulate_packed([(problems[i], asked[i]) for i in ids], _drive(problems[ids[0]]),
@@ -548,7 +553,7 @@ def _explore_all(problems: list[RefineProblem], config: RefineConfig,
     explored: list[tuple[np.ndarray, int]] = [(np.empty(0), 0)] * len(problems)
     while asked:
         todo = sorted(asked)
-        substeps = [_substeps(_model_values(problems[i], asked[i]), problems[i].T_s, problems[i].T_Ei) for i in todo]
+        substeps = [_problem_substeps(problems[i], asked[i]) for i in todo]
         sizes = [len(asked[i]) * windows[i].y.shape[0] for i in todo]
         packs = _packs([problems[i] for i in todo], sizes, substeps, [windows[i].y.shape[1] for i in todo],
                        max_models=4096)
@@ -639,7 +644,7 @@ def _polish(problems: list[RefineProblem], chosen: list[Refined], measured: list
     iteration and step kind for the problems on one drive and substep count; ``residual`` and
     ``n_sims`` updated."""
     h = np.asarray(config.polish_steps, dtype=np.float64)
-    theta = {i: np.array([math.log10(r.f_e), math.log10(r.V_J), r.d, math.log10(max(r.s_N, 1e-3))])
+    theta = {i: np.array([math.log10(r.f_e), math.log10(r.V_J), r.d, math.log10(max(r.s_N, 10.0 ** _LOW[3]))])
              for i, r in enumerate(chosen) if r.J_sigma is None}
     free = {i: [k for k in range(4) if k < 3 or t[3] > _NO_GAP] for i, t in theta.items()}
     scored = {i: _scored(problems[i], chosen[i].f_e, config) for i in theta}

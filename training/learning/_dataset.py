@@ -105,7 +105,7 @@ def _analyze_one(record: Any) -> tuple[np.ndarray, np.ndarray] | None:
 
 def _truth_row(truth: dict[str, Any], drive: DriveConfig, signal: TestSignalConfig) -> np.ndarray:
     row = dict(truth, M_star=signal.M_star, w_max=signal.w_max, M_N=drive.M_N, T_s=drive.T_s, T_Ei=drive.T_Ei,
-               encoder_counts=drive.encoder_counts, current_noise=drive.current_noise_std * drive.K_M / signal.M_star)
+               encoder_counts=drive.encoder_counts, current_noise=drive.current_noise(signal.M_star))
     row["w_e_T_Ei"] = truth["w_e"] * drive.T_Ei
     row["structure"] = STRUCTURE_CLASSES.index(truth["structure"])
     return np.array([float(row[k]) for k in TRUTH_NAMES])
