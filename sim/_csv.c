@@ -15,18 +15,18 @@ static int fast_decimal(const char *p, const char **end, double *value) {
     const int negative = *p == '-';
     if (*p == '-' || *p == '+') ++p;
     uint64_t m = 0;
-    int digits = 0, seen = 0, e = 0;
-    for (; *p >= '0' && *p <= '9'; ++p, ++seen) {
+    int digits = 0, seen = 0, e = 0, dot = 0;
+    for (;; ++p) {  /* the digits before and after one '.': the ones after lower the exponent */
+        if (*p == '.' && !dot) {
+            dot = 1;
+            continue;
+        }
+        if (!(*p >= '0' && *p <= '9')) break;
+        ++seen;
+        e -= dot;
         if (m || *p != '0') ++digits;
         if (digits > 19) return 0;
         m = 10 * m + (uint64_t)(*p - '0');
-    }
-    if (*p == '.') {
-        for (++p; *p >= '0' && *p <= '9'; ++p, ++seen, --e) {
-            if (m || *p != '0') ++digits;
-            if (digits > 19) return 0;
-            m = 10 * m + (uint64_t)(*p - '0');
-        }
     }
     if (!seen) return 0;
     if (*p == 'e' || *p == 'E') {
