@@ -13,6 +13,7 @@
 #endif
 #include <math.h>
 #include <stdint.h>
+#include <string.h>
 
 #define BLK 32
 
@@ -251,7 +252,8 @@ int64_t run_test(int64_t n, int S, REAL dt, REAL h, REAL k6, REAL iTE, int nthre
 /* Open-loop replay of a piecewise-constant torque reference for n systems, fused: measure,
    record the speed, set M_ref, advance. System i applies lev[i*K + j] over samples
    start[i*K + j] <= k < start[i*K + j + 1] (start ascending; the last segment runs to the end).
-   Writes the speed of samples k0 .. k0+nk-1 time-major to o_speed[(k - k0)*n + i]: the encoder's
+   Writes the speed of samples k0 .. k0+nk-1 time-major to o_speed[(k - k0)*ostride + i] (ostride >= n;
+   a multiple of BLK lets each block write whole cache lines): the encoder's
    (quantized) when quantize is set, else the mean motor speed over the past sample interval
    (the expected value of the encoder's, for fits). */
 void run_replay(int64_t n, int S, REAL dt, REAL h, REAL k6, REAL iTE, int nthreads,
@@ -259,13 +261,15 @@ void run_replay(int64_t n, int S, REAL dt, REAL h, REAL k6, REAL iTE, int nthrea
                 const REAL *MFC, const REAL *muF, const REAL *Mext,
                 REAL *wM, REAL *wL, REAL *dp, REAL *MM, REAL *Mref, double *phi, double *cntp, REAL *comp,
                 double qw, double scale, int32_t quantize, int32_t K, const int32_t *start, const REAL *lev,
-                int64_t k0, int64_t nk, REAL *o_speed) {
+                int64_t k0, int64_t nk, int64_t ostride, REAL *o_speed) {
     int64_t nb = (n + BLK - 1) / BLK;
 #pragma omp parallel for schedule(dynamic, 1) num_threads(nthreads)
     for (int64_t b = 0; b < nb; ++b) {
         block_t B;
         int64_t i0 = b * BLK;
         int m = load_block(&B, i0, n, iJM, iJL, CF, DF, s, MFC, muF, Mext, wM, wL, dp, MM, Mref, phi, cntp, comp);
+        /* a row with room for the whole block takes its pad lanes too: whole, aligned cache lines */
+        size_t row = (size_t)(i0 + BLK <= ostride ? BLK : m) * sizeof(REAL);
         int32_t seg[BLK];
         for (int l = 0; l < BLK; ++l) {
             int64_t i = i0 + (l < m ? l : 0);
@@ -273,16 +277,32 @@ void run_replay(int64_t n, int S, REAL dt, REAL h, REAL k6, REAL iTE, int nthrea
             while (j + 1 < K && start[i * K + j + 1] <= k0) ++j;
             seg[l] = j;
         }
+        int64_t next = k0;  /* the first sample at which a lane's segment may change */
+        REAL wv[BLK];
         for (int64_t kk = 0; kk < nk; ++kk) {
             int64_t k = k0 + kk;
-            for (int l = 0; l < BLK; ++l) {
-                int64_t i = i0 + (l < m ? l : 0);
-                double c = quantize ? floor(B.phi[l] * scale) : B.phi[l] * scale;
-                REAL w = (REAL)((c - B.cntp[l]) * qw);
-                B.cntp[l] = c;
-                if (l < m) o_speed[kk * n + i0 + l] = w;
-                while (seg[l] + 1 < K && start[i * K + seg[l] + 1] <= k) ++seg[l];
-                B.Mref[l] = lev[i * K + seg[l]];
+            if (quantize) {
+                for (int l = 0; l < BLK; ++l) {
+                    double c = floor(B.phi[l] * scale);
+                    wv[l] = (REAL)((c - B.cntp[l]) * qw);
+                    B.cntp[l] = c;
+                }
+            } else {
+                for (int l = 0; l < BLK; ++l) {
+                    double c = B.phi[l] * scale;
+                    wv[l] = (REAL)((c - B.cntp[l]) * qw);
+                    B.cntp[l] = c;
+                }
+            }
+            memcpy(o_speed + kk * ostride + i0, wv, row);
+            if (k >= next) {  /* segments are long: most samples skip this */
+                next = INT64_MAX;
+                for (int l = 0; l < BLK; ++l) {
+                    int64_t i = i0 + (l < m ? l : 0);
+                    while (seg[l] + 1 < K && start[i * K + seg[l] + 1] <= k) ++seg[l];
+                    B.Mref[l] = lev[i * K + seg[l]];
+                    if (seg[l] + 1 < K && start[i * K + seg[l] + 1] < next) next = start[i * K + seg[l] + 1];
+                }
             }
             advance_block(&B, S, dt, h, k6, iTE);
         }

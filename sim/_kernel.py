@@ -52,7 +52,7 @@ KERNEL = CKernel(
             "o_sec: int8[n, ostride]"), returns="int64"),
         "run_replay": CFunction((
             *_PLANT, *_ENCODER, "quantize: int32", "K: int32", "start: int32[n, K]", "lev: REAL[n, K]",
-            "k0: int64", "nk: int64", "o_speed: REAL[nk, n]")),
+            "k0: int64", "nk: int64", "ostride: int64", "o_speed: REAL[nk, ostride]")),
     },
     flags=FLAGS,
     link_flags=LINK_FLAGS,

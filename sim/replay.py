@@ -13,7 +13,8 @@ import math
 
 import torch
 
-from sim._integrate_fast import FastParams, FastState, advance, default_substeps, encoder_args, plant_args
+from sim._integrate_fast import (KERNEL_BLOCK, FastParams, FastState, advance, default_substeps, encoder_args,
+                                 plant_args)
 from sim._kernel import load_kernel
 from sim.params import DriveConfig, TwoMassParams
 from sim.measurement import measure_speed
@@ -57,8 +58,8 @@ def replay_speed(params: TwoMassParams, drive: DriveConfig, start: torch.Tensor,
             setattr(x, k, v.to(dtype).contiguous())
         # the mean speed over the interval before sample 0 reads w_M (unquantized output)
         x.cnt_prev = (-x.w_M.to(torch.float64) * drive.T_s * drive.encoder_counts / (2.0 * math.pi)).contiguous()
-    out = torch.empty(n_samples, n, dtype=dtype)  # time-major: a block's lanes write side by side
     if lib is None:  # the torch eager twin, sample by sample
+        out = torch.empty(n_samples, n, dtype=dtype)
         starts = start.to(torch.int64)
         scale = drive.counts_per_rad
         for k in range(n_samples):
@@ -72,7 +73,11 @@ def replay_speed(params: TwoMassParams, drive: DriveConfig, start: torch.Tensor,
             x.M_ref = level.gather(-1, seg.unsqueeze(-1)).reshape(n).contiguous()
             advance(x, fp, use_kernel=False)
         return out.T  # n x N (a view)
+    # time-major; rows of more than one block padded to whole blocks, so that each block writes
+    # whole cache lines (docs/simulator.md, "Open-loop replay")
+    stride = n if n <= KERNEL_BLOCK else -(-n // KERNEL_BLOCK) * KERNEL_BLOCK
+    out = torch.empty(n_samples, stride, dtype=dtype)
     lib.function("run_replay", dtype)(*plant_args(x, fp), *encoder_args(drive), int(quantize), start.shape[1],
-                                      start, level, 0, n_samples, out)
-    return out.T  # n x N (a view)
+                                      start, level, 0, n_samples, stride, out)
+    return out[:, :n].T  # n x N (a view)
 

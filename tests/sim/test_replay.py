@@ -52,6 +52,23 @@ def test_kernel_equals_eager_twin(runs, quantize):
         assert torch.equal(a, b)
 
 
+@pytest.mark.skipif(load_kernel() is None, reason="no C compiler: only the eager path exists")
+def test_kernel_equals_eager_twin_when_each_system_switches_at_its_own_samples():
+    # 40 systems (a full block of 32 and a partial one), each with its own switching samples:
+    # segments of 0, 1 and many samples, a last segment that starts past the end
+    p = sample_population(40, seed=9)
+    g = torch.Generator().manual_seed(3)
+    gaps = torch.randint(0, 40, (40, 6), generator=g)
+    gaps[::7, 2] = 0
+    gaps[::5, 3] = 1
+    start = torch.cat([torch.zeros(40, 1, dtype=torch.int64), gaps.cumsum(-1)], dim=1)  # 40 x 7, ascending
+    start[::9, -1] = 2**30
+    level = 10.0 * (2.0 * torch.rand(40, 7, generator=g) - 1.0)
+    a = replay_speed(p, DRIVE, start, level, 300, substeps=2)
+    b = replay_speed(p, DRIVE, start, level, 300, substeps=2, use_kernel=False)
+    assert torch.equal(a, b)
+
+
 def test_unquantized_speed_is_the_mean_of_the_encoder_speed(runs):
     p, resp = runs
     start, level = _segments(resp.torque_ref, resp.length, 10)

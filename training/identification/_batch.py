@@ -3,6 +3,7 @@ read, analysed, recalled and refined in forked worker processes, one per core.""
 
 from __future__ import annotations
 
+import gc
 import multiprocessing
 import os
 from collections.abc import Callable, Iterator, Sequence
@@ -94,7 +95,17 @@ def answered_files(paths: Sequence[str], jobs: int | None, answer: Answer,
                 tick(1)
             yield from answer(items)
         return
-    with multiprocessing.get_context("fork").Pool(min(jobs, len(chunks)), _start_worker, (answer,)) as pool:
-        for outcomes in pool.imap(_answer_chunk, chunks):
-            tick(len(outcomes))
-            yield from outcomes
+    # the parent's objects (modules, maps) out of the collector's sight before the fork: the workers'
+    # collections then neither walk them nor copy the memory pages they share with the parent
+    # (a caller that froze objects itself keeps its own policy)
+    freeze = gc.get_freeze_count() == 0
+    if freeze:
+        gc.freeze()
+    try:
+        with multiprocessing.get_context("fork").Pool(min(jobs, len(chunks)), _start_worker, (answer,)) as pool:
+            for outcomes in pool.imap(_answer_chunk, chunks):
+                tick(len(outcomes))
+                yield from outcomes
+    finally:
+        if freeze:
+            gc.unfreeze()

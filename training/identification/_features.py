@@ -42,7 +42,7 @@ import numpy as np
 from scipy import fft as _fft
 from scipy import signal as _signal
 
-from training.identification._one_mass import butter_sos, section_bounds
+from training.identification._one_mass import butter_sos, hann, section_bounds
 
 __all__ = [
     "EIG_F_LO", "EIG_F_HI", "EIG_N_BINS", "EIG_EDGES", "EIG_NAMES", "STRUCT_SAMPLES_PER_PERIOD", "STRUCT_NAMES",
@@ -147,7 +147,7 @@ def dominant_frequency(seg: Any, T_s: float, f_min: float | None = None, f_max: 
     x = _centered(x) if n else x
     if n < 4 or not _scale_ok(x):
         return 0.0
-    x = x * np.hanning(n)
+    x = x * hann(n)
     nfft = _fft.next_fast_len(4 * n, real=True)
     A = np.abs(_fft.rfft(x, nfft))
     f = np.fft.rfftfreq(nfft, T_s)

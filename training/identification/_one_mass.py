@@ -120,6 +120,14 @@ def butter_sos(wn: float, order: int = 4) -> np.ndarray:
     return _signal.butter(order, wn, output="sos")
 
 
+@lru_cache(maxsize=256)
+def hann(n: int) -> np.ndarray:
+    """``np.hanning(n)``, cached and read-only (the spectral peaks window every section with it)."""
+    w = np.hanning(n)
+    w.flags.writeable = False
+    return w
+
+
 def speed_from_position(position: Any, T_s: float, cutoff: float | None = None) -> np.ndarray:
     """Speed ``(N,)`` [rad/s or m/s] from a position ``(N,)`` [rad or m] sampled at ``T_s`` [s].
 
@@ -193,7 +201,7 @@ def _residual_frequency(r: np.ndarray, bounds: list[tuple[int, int]], T_s: float
         pos += b - a
         if seg.size < 16:
             continue
-        seg = (seg - seg.mean()) * np.hanning(seg.size)
+        seg = (seg - seg.mean()) * hann(seg.size)
         nfft = 1 << int(np.ceil(np.log2(4 * seg.size)))
         A = np.abs(np.fft.rfft(seg, nfft))
         f = np.fft.rfftfreq(nfft, T_s)
