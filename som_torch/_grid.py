@@ -37,17 +37,24 @@ class Grid:
         return self.rows * self.cols
 
     @cached_property
+    def axes(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """The unit positions as a product, float64: the row coordinate of each row (``rows``) and
+        the column coordinate of each column on even and on odd rows (``2 x cols``; hexagonal grids
+        shift odd rows by half a unit). Unit ``(r, c)`` lies at ``(y[r], x[r % 2, c])``."""
+        y = torch.arange(self.rows, dtype=torch.float64)
+        x = torch.arange(self.cols, dtype=torch.float64).repeat(2, 1)  # 2 x cols
+        if self.topology == "hexagonal":
+            x[1] += 0.5
+            y = y * (math.sqrt(3.0) / 2.0)
+        return y, x
+
+    @cached_property
     def coords(self) -> torch.Tensor:
         """Unit positions, float64 ``U x 2`` (row axis, column axis)."""
-        r, c = torch.meshgrid(
-            torch.arange(self.rows, dtype=torch.float64),
-            torch.arange(self.cols, dtype=torch.float64),
-            indexing="ij",
-        )
-        if self.topology == "hexagonal":
-            c = c + 0.5 * (r % 2)
-            r = r * (math.sqrt(3.0) / 2.0)
-        return torch.stack([r.reshape(-1), c.reshape(-1)], dim=-1)  # U x 2
+        y, x = self.axes
+        r = torch.arange(self.rows).repeat_interleave(self.cols)  # U: each unit's row
+        c = torch.arange(self.cols).repeat(self.rows)  # U: each unit's column
+        return torch.stack([y[r], x[r % 2, c]], dim=-1)  # U x 2
 
     @cached_property
     def distances2(self) -> torch.Tensor:

@@ -74,7 +74,48 @@ static inline __attribute__((always_inline)) void pass_block(REAL *restrict w, i
 }
 #endif
 
-/* w: B x C x U (transposed weights); x, valid: N x B x C; act: B x C; d2: U x U; lr, sg: N x B;
+/* The gaussian weights h[u] = rate exp(-d_u^2 / (2 s^2)) of the units of a rows x cols grid around
+   unit best, separably (MiniSom's form): exp(q dy^2) exp(q dx^2) with q = -1 / (2 s^2), dy the
+   difference of the row coordinates yr, dx that of the column coordinates xc[r & 1] (hexagonal
+   grids shift odd rows): rows + 2 cols exponentials per step instead of one per unit, and no U x U
+   distance table. A unit whose q d^2 = q dy^2 + q dx^2 is below EXP_MIN gets 0. scratch: 2 rows +
+   4 cols values (ar, er: rows; ac, ec: 2 cols), or NULL (it could not be allocated): the same formula
+   unit by unit. */
+static void gaussian_weights(int rows, int cols, const REAL *restrict yr, const REAL *restrict xc, int best,
+                             REAL rate, REAL q, REAL *restrict scratch, REAL *restrict h)
+{
+    const int br = best / cols;
+    const REAL yb = yr[br], xb = xc[(br & 1) * cols + best % cols];
+    if (!scratch) {
+        for (int u = 0; u < rows * cols; ++u) {
+            const int r = u / cols;
+            const REAL dy = yr[r] - yb, dx = xc[(r & 1) * cols + u % cols] - xb, ay = dy * dy * q, ax = dx * dx * q;
+            h[u] = ay + ax < EXP_MIN ? 0 : (rate * EXP(ay < EXP_MIN ? EXP_MIN : ay)) * EXP(ax < EXP_MIN ? EXP_MIN : ax);
+        }
+        return;
+    }
+    REAL *restrict ar = scratch, *restrict er = ar + rows, *restrict ac = er + rows, *restrict ec = ac + 2 * cols;
+    for (int r = 0; r < rows; ++r) {
+        const REAL d = yr[r] - yb, a = d * d * q;
+        ar[r] = a;
+        er[r] = rate * EXP(a < EXP_MIN ? EXP_MIN : a);
+    }
+    for (int c = 0; c < 2 * cols; ++c) {
+        const REAL d = xc[c] - xb, a = d * d * q;
+        ac[c] = a;
+        ec[c] = EXP(a < EXP_MIN ? EXP_MIN : a);
+    }
+    for (int r = 0; r < rows; ++r) {
+        const REAL a = ar[r], e = er[r];
+        const REAL *restrict acr = ac + (r & 1) * cols, *restrict ecr = ec + (r & 1) * cols;
+        REAL *restrict hr = h + (size_t)r * cols;
+        for (int c = 0; c < cols; ++c) hr[c] = a + acr[c] < EXP_MIN ? 0 : e * ecr[c];
+    }
+}
+
+/* w: B x C x U (transposed weights); x, valid: N x B x C; act: B x C; the grid: rows x cols = U units,
+   row coordinates yr (rows), column coordinates xc (2 x cols: even, odd rows); d2: U x U squared grid
+   distances (NULL for the gaussian, which needs only yr and xc); lr, sg: N x B;
    kind: 0 gaussian, 1 bubble, 2 cut_gaussian, 3 epanechnikov; nthreads: OpenMP threads;
    dist_all, h_all: B x U scratch (one row per map); bmus: N x B.
    Maps are independent: the threads take one map at a time, each map's arithmetic is the same
@@ -83,7 +124,8 @@ static inline __attribute__((always_inline)) void pass_block(REAL *restrict w, i
    updated weights; blocks of BLK units (pass_block), the remaining units (and all of them where
    the plan cannot be allocated) in loops over units, with the same numbers. */
 void som_epoch(int B, int U, int C, int N, REAL *restrict w, const REAL *restrict x,
-               const REAL *restrict valid, const REAL *restrict act, const REAL *restrict d2,
+               const REAL *restrict valid, const REAL *restrict act, int rows, int cols,
+               const REAL *restrict yr, const REAL *restrict xc, const REAL *restrict d2,
                const REAL *restrict lr, const REAL *restrict sg, int kind, int nthreads,
                REAL *restrict dist_all, REAL *restrict h_all, long long *restrict bmus)
 {
@@ -93,6 +135,7 @@ void som_epoch(int B, int U, int C, int N, REAL *restrict w, const REAL *restric
         REAL *restrict wb = w + (size_t)b * C * U;
         const REAL *restrict ab = act + (size_t)b * C;
         unsigned char *plan = malloc((size_t)C);  /* per component: MOVE | NEXT (NULL: loops over units) */
+        REAL *axes = kind == 0 ? malloc(sizeof(REAL) * (size_t)(2 * rows + 4 * cols)) : NULL;  /* gaussian scratch */
         for (int u = 0; u < U; ++u) dist[u] = 0;
         {
             const REAL *restrict xv = x + (size_t)b * C;
@@ -119,14 +162,11 @@ void som_epoch(int B, int U, int C, int N, REAL *restrict w, const REAL *restric
             while (dist[best] != bd) ++best;
             bmus[(size_t)i * B + b] = best;
             const REAL rate = lr[(size_t)i * B + b], s = sg[(size_t)i * B + b];
-            const REAL *restrict row = d2 + (size_t)best * U;
             const REAL q = (REAL)(-0.5) / (s * s), s2 = s * s;
             if (kind == 0) {
-                for (int u = 0; u < U; ++u) {
-                    const REAL a = row[u] * q;
-                    h[u] = a < EXP_MIN ? 0 : rate * EXP(a < EXP_MIN ? EXP_MIN : a);
-                }
+                gaussian_weights(rows, cols, yr, xc, best, rate, q, axes, h);
             } else {
+                const REAL *restrict row = d2 + (size_t)best * U;
                 for (int u = 0; u < U; ++u) {
                     REAL r = row[u], v;
                     if (kind == 1) v = r <= s2 ? 1 : 0;
@@ -162,5 +202,6 @@ void som_epoch(int B, int U, int C, int N, REAL *restrict w, const REAL *restric
             }
         }
         free(plan);
+        free(axes);
     }
 }

@@ -37,7 +37,8 @@ KERNEL = CKernel(
     source=Path(__file__).with_name(SOURCE),
     functions={"som_epoch": CFunction((
         "B: int", "U: int", "C: int", "N: int",
-        "w: REAL[B, C, U]", "x: REAL[N, B, C]", "valid: REAL[N, B, C]?", "act: REAL[B, C]", "d2: REAL[U, U]",
+        "w: REAL[B, C, U]", "x: REAL[N, B, C]", "valid: REAL[N, B, C]?", "act: REAL[B, C]", "rows: int", "cols: int",
+        "yr: REAL[rows]", "xc: REAL[2, cols]", "d2: REAL[U, U]?",
         "lr: REAL[N, B]", "sg: REAL[N, B]", "kind: int", "nthreads: int", "dist: REAL[B, U]", "h: REAL[B, U]",
         "bmus: int64[N, B]"))},
     flags=FLAGS,

@@ -134,7 +134,7 @@ def train_online(
         try:
             if num_threads is not None:
                 torch.set_num_threads(int(num_threads))
-            weights = step_fn(weights, som.grid.distances2, order, lr, sg, **ctx)
+            weights = step_fn(weights, som.grid, order, lr, sg, **ctx)
         finally:
             torch.set_num_threads(threads)
         som.weights = weights.reshape(*som.batch_shape, U, C)  # *batch x U x C
@@ -149,8 +149,9 @@ def train_online(
     return som
 
 
-def _online_native(w, d2grid, order, lr, sg, *, x, active, nb, refresh, kind):
-    """One epoch in the native C kernel (see ``_native``). w: B x U x C; returns B x U x C."""
+def _online_native(w, grid, order, lr, sg, *, x, active, nb, refresh, kind):
+    """One epoch in the native C kernel (see ``_native``; the gaussian from the grid's axes, the other
+    neighbourhoods from its distance table). w: B x U x C; returns B x U x C."""
     B, U, C = w.shape
     dt = w.dtype
     fn = _native.kernel(dt)
@@ -161,15 +162,16 @@ def _online_native(w, d2grid, order, lr, sg, *, x, active, nb, refresh, kind):
     vv = valid.to(dt).contiguous() if bool((~valid).any()) else None  # N x B x C or none
     xe = torch.where(valid, xe, 0.0).contiguous()
     act = active.to(dt).contiguous()  # B x C
-    d2 = d2grid.to(dt).contiguous()  # U x U
+    y, xc = (a.to(dt).contiguous() for a in grid.axes)  # rows, 2 x cols
+    d2 = None if kind == _native.KINDS["gaussian"] else grid.distances2.to(dt).contiguous()  # U x U
     lr, sg = lr.to(dt).contiguous(), sg.to(dt).contiguous()  # N x B each
     dist, h = torch.empty(B, U, dtype=dt), torch.empty(B, U, dtype=dt)  # per-map scratch
     bmus = torch.empty(N, B, dtype=torch.long)
-    fn(B, U, C, N, wt, xe, vv, act, d2, lr, sg, kind, _native.threads(B), dist, h, bmus)
+    fn(B, U, C, N, wt, xe, vv, act, grid.rows, grid.cols, y, xc, d2, lr, sg, kind, _native.threads(B), dist, h, bmus)
     return wt.transpose(1, 2).contiguous()  # B x U x C
 
 
-def _online_fast(w, d2grid, order, lr, sg, *, x, active, nb, refresh, kind=-1):
+def _online_fast(w, grid, order, lr, sg, *, x, active, nb, refresh, kind=-1):
     """One epoch, all maps per tensor step. w: B x U x C; returns the trained B x U x C.
 
     Works on the transposed weights ``B x C x U`` (unit axis contiguous: the per-step matmul
@@ -178,7 +180,7 @@ def _online_fast(w, d2grid, order, lr, sg, *, x, active, nb, refresh, kind=-1):
     B, U, C = w.shape
     dt, dev = w.dtype, w.device
     wt = w.transpose(1, 2).contiguous()  # B x C x U
-    d2grid = d2grid.to(dev, dt)  # U x U
+    d2grid = grid.distances2.to(dev, dt)  # U x U
     xe = x[torch.arange(B)[None, :], order].to(dt)  # N x B x C
     valid = ~torch.isnan(xe)
     has_nan = bool((~valid).any())
@@ -217,11 +219,11 @@ def _online_fast(w, d2grid, order, lr, sg, *, x, active, nb, refresh, kind=-1):
     return wt.transpose(1, 2).contiguous()  # B x U x C
 
 
-def _online_reference(w, d2grid, order, lr, sg, *, x, active, nb, refresh, kind=-1):
+def _online_reference(w, grid, order, lr, sg, *, x, active, nb, refresh, kind=-1):
     """One epoch, plain formulas in float64, one map and one sample at a time."""
     dtype = w.dtype
     w = w.to(torch.float64).clone()  # B x U x C
-    B = w.shape[0]
+    B, d2grid = w.shape[0], grid.distances2
     for i in range(order.shape[0]):
         for b in range(B):
             v = x[b, order[i, b]]  # C

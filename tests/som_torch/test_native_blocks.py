@@ -14,7 +14,7 @@ from som_torch import _native
 native = pytest.mark.skipif(not _native.available(), reason="no C compiler")
 
 # Units per block: 8, 16 or 32 (float64 / float32, SSE or AVX): counts below, at and above each.
-GRIDS = [(1, 7), (3, 3), (4, 4), (1, 17), (3, 11), (7, 9)]
+GRIDS = [(1, 7), (3, 3), (4, 4), (1, 17), (3, 11), (7, 9), (3, 11, "hexagonal"), (7, 9, "hexagonal")]
 
 
 def _data(n: int, seed: int) -> torch.Tensor:
@@ -27,14 +27,14 @@ def _data(n: int, seed: int) -> torch.Tensor:
 
 
 def _som(grid: tuple[int, int], dtype: torch.dtype) -> st.SOM:
-    return st.SOM(st.Grid(*grid), ["c", "s", "q", "k", "p"], [True, True, True, True, False], dtype=dtype)
+    return st.SOM(st.Grid(*grid), ["c", "s", "q", "k", "p"], [True, True, True, True, False], dtype=dtype)  # grid: rows, cols[, topology]
 
 
 @native
 @pytest.mark.parametrize("grid", GRIDS)
 @pytest.mark.parametrize("neighbourhood", sorted(st.NEIGHBOURHOODS))
 def test_blocks_and_remaining_units_equal_the_reference(grid, neighbourhood):
-    data = _data(30, sum(grid))
+    data = _data(30, sum(grid[:2]))
     som = _som(grid, torch.float64)
     st.init_random(som, data, 1)
     fast, ref = som.clone(), som.clone()
@@ -47,7 +47,7 @@ def test_blocks_and_remaining_units_equal_the_reference(grid, neighbourhood):
 @native
 @pytest.mark.parametrize("grid", GRIDS)
 def test_float32_blocks_close_to_the_reference(grid):
-    data = _data(30, sum(grid))
+    data = _data(30, sum(grid[:2]))
     som = _som(grid, torch.float32)
     st.init_random(som, data, 1)
     ref = _som(grid, torch.float64)
@@ -55,3 +55,25 @@ def test_float32_blocks_close_to_the_reference(grid):
     st.train_online(som, data, epochs=2, sigma=2.0, seed=4, method="native")
     st.train_online(ref, data, epochs=2, sigma=2.0, seed=4, method="reference")
     torch.testing.assert_close(som.weights.double(), ref.weights, rtol=0, atol=1e-4)
+
+
+@native
+@pytest.mark.parametrize("topology", ["rectangular", "hexagonal"])
+def test_one_gaussian_step_by_hand(topology):
+    # 2 x 3 units, one sample next to unit 4: each unit moves by lr exp(-d^2 / (2 sigma^2)) of its
+    # distance to the sample, d the grid distance to unit 4 from positions written out here
+    h = math.sqrt(3.0) / 2.0 if topology == "hexagonal" else 1.0
+    shift = 0.5 if topology == "hexagonal" else 0.0
+    pos = [(0, 0), (0, 1), (0, 2), (h, shift), (h, 1 + shift), (h, 2 + shift)]
+    som = st.SOM(st.Grid(2, 3, topology), ["a", "b"], [True, True], dtype=torch.float64)
+    w0 = torch.tensor([[0.0, 0.0], [1.0, 0.0], [2.0, 0.0], [0.0, 1.0], [1.0, 1.0], [2.0, 1.0]], dtype=torch.float64)
+    som.weights = w0.clone()
+    x = torch.tensor([[1.1, 0.9]], dtype=torch.float64)
+    lr, sigma = 0.5, 0.8
+    st.train_online(som, x, epochs=1, learning_rate=(lr, lr), sigma=(sigma, sigma), schedule="constant",
+                    method="native")
+    b = pos[4]
+    g = torch.tensor([lr * math.exp(-((p[0] - b[0]) ** 2 + (p[1] - b[1]) ** 2) / (2 * sigma ** 2)) for p in pos],
+                     dtype=torch.float64)
+    torch.testing.assert_close(som.weights, w0 + g[:, None] * (x - w0), rtol=0, atol=1e-15)
+

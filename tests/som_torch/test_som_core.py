@@ -49,6 +49,16 @@ def test_grid_coords_and_adjacency():
         st.Grid(2, 2, "triangular")
 
 
+def test_hexagonal_positions_by_hand():
+    # odd rows shifted by half a unit, rows sqrt(3)/2 apart; the axes are the positions' product form
+    g = st.Grid(2, 3, "hexagonal")
+    h = math.sqrt(3.0) / 2.0
+    expected = [[0, 0], [0, 1], [0, 2], [h, 0.5], [h, 1.5], [h, 2.5]]
+    torch.testing.assert_close(g.coords, torch.tensor(expected, dtype=torch.float64), rtol=0, atol=0)
+    y, x = g.axes
+    assert y.tolist() == [0.0, h] and x.tolist() == [[0.0, 1.0, 2.0], [0.5, 1.5, 2.5]]
+
+
 # --- hand-computed BMU, neighbourhood, one update ------------------------------------------
 def test_bmu_uses_active_components_only():
     som = tiny_som()
