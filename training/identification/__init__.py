@@ -5,7 +5,7 @@ from ._analysis import FEATURE_NAMES, FEATURE_VERSION, REFERENCE_DRIVE, Analysis
 from ._drive import DriveValues
 from ._envelope import SPEC_ENVELOPE, Envelope, trained_envelope
 from ._batch import CHUNK
-from ._features import eigenfrequency_features, extra_features, structure_features
+from ._features import eigenfrequency_features, extra_features, structure_and_peaks, structure_features
 from ._identifier import Identifier
 from ._limits import BACKLASH_VISIBLE_COUNTS, backlash_resolution, motor_lead
 from ._maps import CORRECTIONS, MAP_SPECS, SUBSETS, TARGETS, from_correction, MapSpec, TrainedMap, load_map, recall_targets
@@ -23,7 +23,8 @@ __all__ = [
     "analyze", "Analysis", "FEATURE_NAMES", "FEATURE_VERSION", "REFERENCE_DRIVE", "DriveValues",
     "Envelope", "SPEC_ENVELOPE", "trained_envelope",
     "detect_sections", "SectionSplit", "fit_one_mass", "FORMULATIONS", "OneMassFit", "speed_from_position",
-    "eigenfrequency_features", "structure_features", "extra_features", "fit_oscillation", "OscillationFit",
+    "eigenfrequency_features", "structure_features", "structure_and_peaks", "extra_features", "fit_oscillation",
+    "OscillationFit",
     "check_record", "MAP_SPECS", "MapSpec", "TrainedMap", "TARGETS", "CORRECTIONS", "from_correction", "SUBSETS", "load_map", "recall_targets",
     "refine", "RefineConfig", "RefineProblem", "Refined", "torque_reference",
     "BACKLASH_VISIBLE_COUNTS", "backlash_resolution", "motor_lead",

@@ -17,7 +17,7 @@ from sim import SECTION_LEVELS, Record
 from training.errors import IdentificationError, one_line
 from training.identification._drive import REFERENCE_DRIVE, DriveValues, drive_values
 from training.identification._features import (EIG_NAMES, EXTRA_NAMES, STRUCT_NAMES, eigenfrequency_features,
-                                               extra_features, structure_features)
+                                               extra_features, structure_and_peaks)
 from training.identification._one_mass import OneMassFit, fit_one_mass
 from training.identification._oscillation import fit_oscillation
 from training.identification._plausibility import check_record
@@ -165,10 +165,10 @@ def _analyze(record: Record) -> Analysis:
         fit = fit_one_mass(torque, record.speed, T_s, sections=split.bounds)
     w_osc = fit.w_osc
     eig = eigenfrequency_features(w_osc, T_s, split.bounds)
-    struct = structure_features(w_osc, T_s, split.bounds)
+    struct, peaks = structure_and_peaks(w_osc, T_s, split.bounds)
     steps = np.diff(np.r_[0.0, split.levels])  # torque step at each section start [Nm]
     extra = extra_features(w_osc, T_s, split.bounds, J_sigma=fit.J_sigma, torque_steps=steps,
-                           speed_span=float(np.ptp(record.speed)), structure=struct)
+                           speed_span=float(np.ptp(record.speed)), structure=struct, peaks=peaks)
     q_w = drive.q_w
     sel = np.concatenate([w_osc[a:b] for a, b in split.bounds.tolist()])
     osc_quanta = float(np.sqrt(np.mean(sel * sel))) / q_w if sel.size else 0.0

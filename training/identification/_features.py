@@ -46,7 +46,8 @@ from training.identification._one_mass import butter_sos, hann, section_bounds
 
 __all__ = [
     "EIG_F_LO", "EIG_F_HI", "EIG_N_BINS", "EIG_EDGES", "EIG_NAMES", "STRUCT_SAMPLES_PER_PERIOD", "STRUCT_NAMES",
-    "EXTRA_NAMES", "eigenfrequency_features", "structure_features", "extra_features", "dominant_frequency",
+    "EXTRA_NAMES", "eigenfrequency_features", "structure_features", "structure_and_peaks", "extra_features",
+    "dominant_frequency",
     "zero_crossing_frequency",
 ]
 
@@ -208,19 +209,29 @@ def structure_features(w_osc: Any, T_s: float, sections: Any = None) -> np.ndarr
         ``(8,)`` float64 in 0..1: energy-normalized amplitudes at ``f_d .. 8 f_d``, mean over the
         sections (zeros when no section holds two periods of an oscillation).
     """
+    return structure_and_peaks(w_osc, T_s, sections)[0]
+
+
+def structure_and_peaks(w_osc: Any, T_s: float, sections: Any = None) -> tuple[np.ndarray, dict[int, float]]:
+    """:func:`structure_features` and the dominant frequency [Hz] of each section it looked at, by
+    index into the section bounds: :func:`extra_features` finds the same ones (the same segment,
+    normalized the same way), so a caller of both passes them on (``peaks``)."""
     x, _ = _normalized(_check(w_osc, T_s))
-    out = []
-    for seg in _segments(x, sections):
+    out, peaks = [], {}
+    for i, (a, b) in enumerate(section_bounds(sections, x.size) if x.size else []):
+        if b - a < _MIN_SECTION:
+            continue
+        seg = _centered(x[a:b])
         if not _scale_ok(seg):
             continue
         seg = seg / np.max(np.abs(seg))
-        f_d = dominant_frequency(seg, float(T_s))
+        f_d = peaks[i] = dominant_frequency(seg, float(T_s))
         if f_d <= 0:
             continue
         h = _harmonics(seg, float(T_s), f_d)
         if h is not None:
             out.append(h)
-    return np.mean(out, axis=0) if out else np.zeros(STRUCT_N_HARMONICS)
+    return (np.mean(out, axis=0) if out else np.zeros(STRUCT_N_HARMONICS)), peaks
 
 
 def zero_crossing_frequency(seg: Any, T_s: float, hysteresis: float = 0.3) -> float:
@@ -282,6 +293,7 @@ def extra_features(
     torque_steps: Any = None,
     speed_span: float | None = None,
     structure: Any = None,
+    peaks: dict[int, float] | None = None,
 ) -> np.ndarray:
     """Improved features (``"extra-v1"``, 8 components; names in ``EXTRA_NAMES``).
 
@@ -293,6 +305,7 @@ def extra_features(
             -0.3 M*, M*, 0.7 M*`` for I..VI; the level minus the previous level).
         speed_span: the record's speed range [rad/s] for the relative oscillation amplitude.
         structure: the record's :func:`structure_features` when already computed (saves time).
+        peaks: the sections' dominant frequencies from :func:`structure_and_peaks` (saves time).
 
     Returns:
         ``(8,)`` float64:
@@ -320,7 +333,7 @@ def extra_features(
         if not _scale_ok(seg):
             continue
         fz = zero_crossing_frequency(seg, T_s)
-        fp = dominant_frequency(seg, T_s)
+        fp = peaks[i] if peaks is not None and i in peaks else dominant_frequency(seg, T_s)
         fz_sec[i] = fz
         if fz > 0:
             f_zc.append(fz)

@@ -12,7 +12,7 @@ from scipy.signal import sawtooth
 from test_sections import simulate_switching
 from training.identification._features import (
     EIG_EDGES, EIG_NAMES, EXTRA_NAMES, STRUCT_NAMES, dominant_frequency, eigenfrequency_features,
-    extra_features, structure_features, zero_crossing_frequency,
+    extra_features, structure_and_peaks, structure_features, zero_crossing_frequency,
 )
 from training.identification._one_mass import fit_one_mass
 from training.identification._sections import detect_sections
@@ -108,6 +108,24 @@ def test_properties_finite_shape_scaling(x, k, scale):
         s2 = structure_features(scale * x, T_S, bounds)
         assert np.allclose(e2[:25], e[:25], rtol=1e-6, atol=1e-6)
         assert np.allclose(s2, s, rtol=1e-6, atol=1e-6)
+
+
+@settings(max_examples=60, deadline=None)
+@given(x=arrays(np.float64, st.integers(0, 600), elements=finite), k=st.integers(1, 7),
+       f=st.floats(min_value=5.0, max_value=1500.0))
+def test_shared_peaks_give_the_same_features_bit_for_bit(x, k, f):
+    # structure_and_peaks' section peaks, handed to extra_features, are exactly what it would find
+    # itself: sections of any length (also below 8 samples), noise plus a sinusoid, constant runs
+    x = x + 1e3 * np.sin(2 * np.pi * f * np.arange(x.size) * T_S)
+    x[: x.size // 5] = 7.0
+    edges = np.linspace(0, x.size, k + 1).astype(int)
+    bounds = [(a, b) for a, b in zip(edges[:-1], edges[1:]) if b > a] or None
+    if x.size == 0:
+        bounds = None
+    struct, peaks = structure_and_peaks(x, T_S, bounds)
+    assert np.array_equal(struct, structure_features(x, T_S, bounds))
+    opts = dict(J_sigma=0.1, torque_steps=np.ones(k), speed_span=10.0, structure=struct)
+    assert np.array_equal(extra_features(x, T_S, bounds, peaks=peaks, **opts), extra_features(x, T_S, bounds, **opts))
 
 
 @given(c=finite, n=st.integers(0, 300))
