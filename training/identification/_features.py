@@ -47,8 +47,7 @@ from training.identification._one_mass import butter_sos, hann, section_bounds
 __all__ = [
     "EIG_F_LO", "EIG_F_HI", "EIG_N_BINS", "EIG_EDGES", "EIG_NAMES", "STRUCT_SAMPLES_PER_PERIOD", "STRUCT_NAMES",
     "EXTRA_NAMES", "eigenfrequency_features", "structure_features", "structure_and_peaks", "extra_features",
-    "dominant_frequency",
-    "zero_crossing_frequency",
+    "dominant_frequency", "zero_crossing_frequency",
 ]
 
 EIG_F_LO = 2.5
