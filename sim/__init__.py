@@ -11,7 +11,8 @@ from sim.population import EnvelopeRanges, EnvelopeSample, PopulationRanges, sam
 from sim.records import Record, RecordError, iter_records, read_record, responses_to_records, write_record
 from sim.replay import replay_speed
 from sim._drive import Drive, DriveLimits, Scenario, SimulatedDrive, SpeedLaw, limit_violation
-from sim._signal import SECTION_LEVELS, SECTION_NAMES, SPEED_RETURN, SwitchingController, TestSignalConfig
+from sim._signal import (SECTION_LEVELS, SECTION_NAMES, SPEED_RETURN, SwitchingController, TestSignalConfig, inertia_of_time_scale,
+                         time_scale)
 
 __all__ = [
     "CLASS_THRESHOLDS", "STRUCTURE_CLASSES", "SECTION_NAMES", "SECTION_LEVELS", "SPEED_RETURN", "PARAM_NAMES", "DERIVED_NAMES",
@@ -22,5 +23,5 @@ __all__ = [
     "responses_to_records", "sample_population", "simulate",
     "simulate_test", "speed_from_angle", "structure_class", "write_record",
     "Drive", "DriveLimits", "Scenario", "SimulatedDrive", "SpeedLaw", "limit_violation",
-    "EnvelopeRanges", "EnvelopeSample", "sample_envelope",
+    "EnvelopeRanges", "EnvelopeSample", "sample_envelope", "time_scale", "inertia_of_time_scale",
 ]

@@ -14,10 +14,13 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, fields
+from typing import TypeVar
 
 import torch
 
 from sim.params import DriveConfig
+
+_T = TypeVar("_T", float, torch.Tensor)
 
 SECTION_NAMES: tuple[str, ...] = ("I", "II", "III", "IV", "V", "VI")
 #: The torque reference of sections I..VI in units of ``M*`` (SPEC 2); the tail and the time before I are 0.
@@ -25,6 +28,19 @@ SECTION_LEVELS: tuple[float, ...] = (1.0, 0.0, -0.7, -1.0, 0.0, 0.7)
 #: The speed, in units of ``w_max``, below which II (and above whose negative V) ends.
 SPEED_RETURN = 0.2
 _LOW = SECTION_LEVELS[5]  # the lower torque level (VI; III is its negative), in units of M*
+
+
+def time_scale(J_sigma: _T, M_star: _T | float, w_max: _T | float) -> _T:
+    """The test's time scale ``tau = J_sigma w_max / M*`` [s] (SPEC 3.1): how long the torque ``M*``
+    takes to bring the inertia ``J_sigma`` [kg m^2] to ``w_max`` [rad/s]. Floats or tensors
+    (broadcast); :func:`inertia_of_time_scale` is its inverse."""
+    return J_sigma * w_max / M_star
+
+
+def inertia_of_time_scale(tau: _T, M_star: _T | float, w_max: _T | float) -> _T:
+    """The inertia ``J_sigma = tau M* / w_max`` [kg m^2] whose test time scale is ``tau`` [s]
+    (the inverse of :func:`time_scale`)."""
+    return tau * M_star / w_max
 
 
 @dataclass(frozen=True)

@@ -8,7 +8,7 @@ from dataclasses import dataclass, fields
 
 import torch
 
-from sim._signal import TestSignalConfig
+from sim._signal import TestSignalConfig, inertia_of_time_scale
 from sim.params import DriveConfig, TwoMassParams
 
 
@@ -162,9 +162,9 @@ def sample_envelope(n: int, seed: int, ranges: EnvelopeRanges | None = None) -> 
     backlash = torch.deg2rad(_log_uniform(u[4], *r.backlash_deg))
     backlash = torch.where(u[5] < r.backlash_zero_share, torch.zeros_like(backlash), backlash)
     on_reference = torch.tensor(reference, dtype=torch.bool)[cell]
-    time_scale = torch.where(on_reference, _log_uniform(u[0], *r.reference_time_scale), _log_uniform(u[0], *r.time_scale))
+    tau = torch.where(on_reference, _log_uniform(u[0], *r.reference_time_scale), _log_uniform(u[0], *r.time_scale))
     params = TwoMassParams(
-        J_sigma=time_scale * M_star / w_max,
+        J_sigma=inertia_of_time_scale(tau, M_star, w_max),
         V_J=_log_uniform(u[1], *r.V_J),
         f_e=_log_uniform(u[2], *r.f_e),
         d=lin(u[3], r.d),

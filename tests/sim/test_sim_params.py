@@ -3,7 +3,8 @@ import math
 import pytest
 import torch
 
-from sim import STRUCTURE_CLASSES, DriveConfig, PopulationRanges, TwoMassParams, sample_population, structure_class
+from sim import (STRUCTURE_CLASSES, DriveConfig, EnvelopeRanges, PopulationRanges, TwoMassParams, inertia_of_time_scale,
+                 sample_envelope, sample_population, structure_class, time_scale)
 
 
 def test_derived_values_round_trip():
@@ -78,3 +79,16 @@ def test_bad_inputs_raise_clear_errors():
 def test_current_noise_as_a_share_of_M_star():
     # 0.05 A on a 2 Nm/A motor is 0.1 Nm: 1 % of a test's M* of 10 Nm
     assert DriveConfig(K_M=2.0, current_noise_std=0.05).current_noise(10.0) == pytest.approx(0.01)
+
+
+def test_time_scale_by_hand_and_its_inverse():
+    # SPEC 1's reference test: J_sigma 0.02 kg m^2, w_max 100 rad/s, M* 10 Nm -> 0.2 s to reach w_max
+    assert time_scale(0.02, 10.0, 100.0) == pytest.approx(0.2, rel=1e-15)
+    assert inertia_of_time_scale(0.2, 10.0, 100.0) == pytest.approx(0.02, rel=1e-15)
+    # an envelope draw's inertias come from its time scales: every one inside the drawn range
+    sample = sample_envelope(60, 3, EnvelopeRanges(cell=20))
+    M_star = torch.tensor([s.M_star for _, s in sample.cases], dtype=torch.float64)[sample.cell]
+    w_max = torch.tensor([s.w_max for _, s in sample.cases], dtype=torch.float64)[sample.cell]
+    tau = time_scale(sample.params.J_sigma, M_star, w_max)
+    lo, hi = EnvelopeRanges().time_scale
+    assert bool(((tau >= lo * (1 - 1e-12)) & (tau <= hi * (1 + 1e-12))).all())

@@ -26,8 +26,9 @@ import numpy as np
 import torch
 
 from sim import (S_N_ELASTIC, DriveConfig, EnvelopeRanges, PopulationRanges, TestSignalConfig, TwoMassParams,
-                 iter_records, sample_envelope, sample_population)
+                 inertia_of_time_scale, iter_records, sample_envelope, sample_population, time_scale)
 from training.evaluation._metrics import recognized, relative_error, threshold_margin
+from training.evaluation._report import markdown_table
 from training.identification import BACKLASH_VISIBLE_COUNTS, motor_lead
 
 _ELASTIC = ("elastic", "elastic_backlash")
@@ -48,7 +49,8 @@ class DriveCase:
         """The default population's mechanics with inertias for :attr:`time_scale` and friction
         scaled to the test's torque (``M_FC`` up to 5 % of ``M*``, ``mu_F w_max`` up to 5 %)."""
         M, w = self.signal.M_star, self.signal.w_max
-        return PopulationRanges(J_sigma=(self.time_scale[0] * M / w, self.time_scale[1] * M / w),
+        return PopulationRanges(J_sigma=(inertia_of_time_scale(self.time_scale[0], M, w),
+                                         inertia_of_time_scale(self.time_scale[1], M, w)),
                                 M_FC=(0.0, 0.05 * M), mu_F=(0.0, 0.05 * M / w))
 
 
@@ -100,7 +102,7 @@ def envelope_rows(drives: int, per_drive: int, seed: int, identifier: Any,
 def _describe(drive: DriveConfig, signal: TestSignalConfig, params: TwoMassParams) -> str:
     """A drive and its test in words: sample time, encoder, current loop, torques, speed, noise,
     and the test time scales ``J_sigma w_max / M*`` of ``params``."""
-    ts = params.J_sigma * signal.w_max / signal.M_star
+    ts = time_scale(params.J_sigma, signal.M_star, signal.w_max)
     return (f"T_s {drive.T_s * 1e6:.4g} us, 2^{math.log2(drive.encoder_counts):.0f} counts, T_Ei "
             f"{drive.T_Ei * 1e3:.3g} ms, M_N {drive.M_N:.3g} Nm, M* {signal.M_star:.3g} Nm, w_max {signal.w_max:.3g} "
             f"rad/s, noise {100 * drive.current_noise(signal.M_star):.2g} % of M*, time scale "
@@ -166,17 +168,14 @@ def drives_markdown(figures: dict[str, dict[str, Any]], command: str, descriptio
     name -> the drive in words, default those of :data:`DRIVES`)."""
     fmt = lambda v: "n/a" if v is None else f"{v:.1f}"  # noqa: E731
     descriptions = {name: case.description for name, case in DRIVES.items()} if descriptions is None else descriptions
-    lines = [f"# {title}", "", f"Made by `{command}`.", "",
-             "| drive | n | failed | structure (n) | of them visible (n) | E_30 | E_10 (n elastic) | J_sigma 5 % "
-             "| backlash 30 % (n) | of them visible (n) | silent wrong | warned |",
-             "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
-    for name, f in figures.items():
-        lines.append(f"| {name}: {descriptions.get(name, '')} | {f['n']} | {f['failed']} | "
-                     f"{fmt(f['structure'])} ({f['n_structure']}) | "
-                     f"{fmt(f['structure_visible'])} ({f['n_structure_visible']}) | {fmt(f['E_30'])} | {fmt(f['E_10'])} "
-                     f"({f['n_elastic']}) | {fmt(f['J_sigma_5'])} | {fmt(f['backlash_30'])} ({f['n_backlash']}) | "
-                     f"{fmt(f['backlash_30_visible'])} ({f['n_backlash_visible']}) | "
-                     f"{fmt(f['silent_wrong'])} | {fmt(f['warned'])} |")
+    header = ["drive", "n", "failed", "structure (n)", "of them visible (n)", "E_30", "E_10 (n elastic)", "J_sigma 5 %",
+              "backlash 30 % (n)", "of them visible (n)", "silent wrong", "warned"]
+    rows = [[f"{name}: {descriptions.get(name, '')}", str(f["n"]), str(f["failed"]),
+             f"{fmt(f['structure'])} ({f['n_structure']})", f"{fmt(f['structure_visible'])} ({f['n_structure_visible']})",
+             fmt(f["E_30"]), f"{fmt(f['E_10'])} ({f['n_elastic']})", fmt(f["J_sigma_5"]),
+             f"{fmt(f['backlash_30'])} ({f['n_backlash']})", f"{fmt(f['backlash_30_visible'])} ({f['n_backlash_visible']})",
+             fmt(f["silent_wrong"]), fmt(f["warned"])] for name, f in figures.items()]
+    lines = [f"# {title}", "", f"Made by `{command}`.", "", *markdown_table(header, rows)]
     lines += ["", "Figures in %. Structure over systems >= 20 % from every class threshold; E_x over elastic + "
               "elastic_backlash; backlash over s_N >= 0.3; visible: of those the gaps whose motor lead "
               f"2s V_J / (1 + V_J) reaches {BACKLASH_VISIBLE_COUNTS:g} encoder counts (for the structure: all but the "

@@ -44,7 +44,8 @@ def _sig(x: float | None, digits: int = 3) -> str:
     return "–" if x is None else f"{x:.{digits}g}"
 
 
-def _table(header: Sequence[str], rows: Sequence[Sequence[str]]) -> list[str]:
+def markdown_table(header: Sequence[str], rows: Sequence[Sequence[str]]) -> list[str]:
+    """The lines of a markdown table: ``header``, its rule, one line per row of cells."""
     out = ["| " + " | ".join(header) + " |", "| " + " | ".join("---" for _ in header) + " |"]
     out += ["| " + " | ".join(r) + " |" for r in rows]
     return out
@@ -68,7 +69,7 @@ def grid_tables(grid: Mapping[str, Any], methods: Sequence[str]) -> list[str]:
         lines += [f"**E_{x} [%] ({label})**, {cells[0]['n']} systems per cell", ""]
         body = [[f"{f:g}"] + [_side_by_side(by[(f, b)], key, methods) for b in bls] for f in f_es]
         body.append(["**mean**"] + [_side_by_side(means[b], key, methods) for b in bls])
-        lines += _table(["f_e [Hz]"] + [f"backlash {b:g}°" for b in bls], body) + [""]
+        lines += markdown_table(["f_e [Hz]"] + [f"backlash {b:g}°" for b in bls], body) + [""]
     lines += ["**Cell context**: median `s_N`, share of systems with `s_N > 1`, systems with `r_osc < 1` "
               "(oscillation below one speed quantum), true classes (stiff/elastic/elastic_backlash/stiff_backlash)", ""]
     body = []
@@ -79,7 +80,7 @@ def grid_tables(grid: Mapping[str, Any], methods: Sequence[str]) -> list[str]:
             cl = "/".join(str(v) for v in c["classes"].values())
             row.append(f"{_sig(c['s_N_median'], 2)}; {_pct(100 * c['s_N_above_1'])} %; {c['r_osc_below_1']}; {cl}")
         body.append(row)
-    lines += _table(["f_e [Hz]"] + [f"backlash {b:g}°" for b in bls], body) + [""]
+    lines += markdown_table(["f_e [Hz]"] + [f"backlash {b:g}°" for b in bls], body) + [""]
     return lines
 
 
@@ -91,7 +92,7 @@ def set_tables(name: str, s: Mapping[str, Any], methods: Sequence[str]) -> list[
     body = [["all", str(s["n"])] + [_pct(s["overall"][m][f"E_{x}"]) for x in TOLERANCES for m in methods]]
     for c in s["per_class"]:
         body.append([f"true {c['class']}", str(c["n"])] + [_pct(c[m][f"E_{x}"]) for x in TOLERANCES for m in methods])
-    lines += _table(header, body) + [""]
+    lines += markdown_table(header, body) + [""]
     lines += ["Parameter errors: signed relative error (absolute for `M_FC` [Nm], `mu_F` [Nm s/rad]) over the "
               "systems with an estimate; missing = not identified (stiff class, failed or invalid); "
               "within x %: share of all systems in scope (missing = outside)", ""]
@@ -106,13 +107,13 @@ def set_tables(name: str, s: Mapping[str, Any], methods: Sequence[str]) -> list[
             within = [_pct(st.get(f"within_{x}")) for x in TOLERANCES]
             body.append([METHOD_TITLES[m], f"`{p}`", str(st["n"]), str(st["n_missing"]), fmt(st["mean"]), std, med]
                         + within)
-    lines += _table(["method", "parameter", "n", "missing", "mean", "std", "median abs"]
+    lines += markdown_table(["method", "parameter", "n", "missing", "mean", "std", "median abs"]
                     + [f"within {x} % [%]" for x in TOLERANCES], body) + [""]
     if "confusion" in s:
         conf = s["confusion"]
         lines += ["SOM structure confusion (rows: true class, columns: identified class)", ""]
         body = [[f"**{t}**"] + [str(v) for v in row] for t, row in zip(conf["true"], conf["matrix"])]
-        lines += _table(["true \\ identified"] + conf["predicted"], body)
+        lines += markdown_table(["true \\ identified"] + conf["predicted"], body)
         total = sum(sum(r) for r in conf["matrix"])
         diag = sum(conf["matrix"][i][i] for i in range(len(conf["true"])))
         lines += ["", f"Structure accuracy: {diag} of {total} ({100 * diag / max(total, 1):.0f} %).", ""]

@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from sim import DriveConfig, Record, speed_quantum
+from sim import DriveConfig, Record, speed_quantum, time_scale
 from training.identification._plausibility import QUANTIZED_SHARE, on_grid
 from training.identification._result import IdentWarning
 from training.identification._sections import SectionSplit, diff_noise
@@ -65,7 +65,7 @@ class DriveValues:
     def time_scale(self, J_sigma: float) -> float:
         """The test's time scale ``tau = J_sigma w_max / M*`` [s] for the inertia ``J_sigma``: how long
         its torque takes to reach ``w_max`` (SPEC 3.1)."""
-        return J_sigma * self.w_max / self.M_star
+        return time_scale(J_sigma, self.M_star, self.w_max)
 
 
 def drive_values(record: Record, split: SectionSplit, torque: np.ndarray) -> tuple[DriveValues, list[IdentWarning]]:

@@ -33,7 +33,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
-from sim import EnvelopeRanges, PopulationRanges
+from sim import EnvelopeRanges, PopulationRanges, time_scale
 from som_torch import atomic_write
 from training._json import dumps
 from training.identification._result import IdentWarning
@@ -175,7 +175,7 @@ def trained_envelope(metadata: Mapping[str, Any]) -> Envelope:
     point = lambda v: (float(v), float(v))  # noqa: E731
     # M_N, M_max and M* themselves do not enter the features (torque and inertia scale together)
     trained = {"T_s": point(drive["T_s"]), "encoder_counts": point(drive["encoder_counts"]), "T_Ei": point(drive["T_Ei"]),
-               "time_scale": (J[0] * w_max / M_star, J[1] * w_max / M_star),
+               "time_scale": (time_scale(J[0], M_star, w_max), time_scale(J[1], M_star, w_max)),
                # up to the training drive's noise, with room for the estimate's own spread
                "current_noise": (0.0, NOISE_SPREAD * drive["current_noise_std"] * drive["K_M"] / M_star)}
     return Envelope(trained=trained)

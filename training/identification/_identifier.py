@@ -136,7 +136,8 @@ class Identifier:
         """One outcome per path, in the order given (``record`` = the path as given), as they are
         done: records are read and analysed, then recalled and refined in batches of
         :data:`CHUNK`; with ``jobs > 1`` whole batches run in ``jobs`` forked worker processes
-        (``None``: 1 for fewer than 16 records, else one per CPU), with the same outcomes.
+        (``None``: 1 for fewer than two batches, else one per CPU, at most one per batch), with the
+        same outcomes.
         ``progress`` is called with the number of records done as they are.
 
         A record that cannot be read, analysed or recalled gets an :class:`IdentificationFailure`

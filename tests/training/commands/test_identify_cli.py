@@ -220,6 +220,18 @@ def test_help_documents_exit_codes(capsys):
     assert "0 all records identified, 1 some records have an 'error'" in out
 
 
+def test_jobs_help_states_the_batching_the_code_uses(capsys):
+    # the help is written without importing the identification (start-up time): its figures are checked here
+    from training.identification import CHUNK
+    from training.identification._batch import default_jobs
+
+    with pytest.raises(SystemExit):
+        main(["identify", "--help"])
+    out = " ".join(capsys.readouterr().out.split())
+    assert f"batches of {CHUNK} records (default: 1 for fewer than {2 * CHUNK} records" in out
+    assert default_jobs(2 * CHUNK - 1) == 1
+
+
 def test_readme_python_example_runs(records, tmp_path, monkeypatch):
     readme = (REPO / "README.md").read_text()
     section = readme[readme.index("## Identify your own record"):]
