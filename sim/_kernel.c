@@ -216,10 +216,12 @@ int64_t run_test(int64_t n, int S, REAL dt, REAL h, REAL k6, REAL iTE, int nthre
                 int32_t tmo_now = !end & (q <= 6) & (t >= n_timeout);
                 ctmo[l] |= (act & tmo_now) << ((q - 1) & 7);
                 end = (end | tmo_now) & act;
-                cnI[l] = (end & (q == 1)) ? t : cnI[l];
-                cnIV[l] = (end & (q == 4)) ? t : cnIV[l];
+                /* selects as masks: the compiler's conditional stores would be masked stores, slow on some CPUs */
+                int32_t mI = -(end & (q == 1)), mIV = -(end & (q == 4)), mlen = -(end & (q == 7));
+                cnI[l] = (t & mI) | (cnI[l] & ~mI);
+                cnIV[l] = (t & mIV) | (cnIV[l] & ~mIV);
+                clen[l] = (kp1 & mlen) | (clen[l] & ~mlen);
                 q += end;
-                clen[l] = (end & (q == 8)) ? kp1 : clen[l];
                 ccnt[l] = act ? (end ? 0 : t) : ccnt[l];
                 csec[l] = q;
                 active |= act;
