@@ -89,10 +89,15 @@ def _centered(raw: np.ndarray) -> np.ndarray:
     return seg
 
 
-def _segments(x: np.ndarray, sections: Any) -> list[np.ndarray]:
-    if x.size == 0:
-        return []
-    return [_centered(x[a:b]) for a, b in section_bounds(sections, x.size) if b - a >= _MIN_SECTION]
+def _bounds(x: np.ndarray, sections: Any) -> list[tuple[int, int]]:
+    """The ``(start, stop)`` of each section of ``x`` (none for an empty ``x``)."""
+    return section_bounds(sections, x.size) if x.size else []
+
+
+def _segments(x: np.ndarray, bounds: list[tuple[int, int]]) -> list[tuple[int, int, np.ndarray]]:
+    """``(i, start, segment)`` of each section ``bounds[i]`` of at least ``_MIN_SECTION`` samples, the
+    segment of ``x`` centred: the one walk over the sections that every feature set makes."""
+    return [(i, a, _centered(x[a:b])) for i, (a, b) in enumerate(bounds) if b - a >= _MIN_SECTION]
 
 
 def _scale_ok(seg: np.ndarray) -> bool:
@@ -130,8 +135,8 @@ def eigenfrequency_features(w_osc: Any, T_s: float, sections: Any = None) -> np.
         the index 0..24 of the highest bin (0 when all are zero).
     """
     x, _ = _normalized(_check(w_osc, T_s))
-    segs = _segments(x, sections)
-    bars = np.mean([_eig_bars(s, float(T_s)) for s in segs], axis=0) if segs else np.zeros(EIG_N_BINS)
+    segs = _segments(x, _bounds(x, sections))
+    bars = np.mean([_eig_bars(s, float(T_s)) for _, _, s in segs], axis=0) if segs else np.zeros(EIG_N_BINS)
     idx = float(np.argmax(bars)) if bars.max() > 0 else 0.0
     return np.concatenate([bars, [idx]])
 
@@ -217,10 +222,7 @@ def structure_and_peaks(w_osc: Any, T_s: float, sections: Any = None) -> tuple[n
     normalized the same way), so a caller of both passes them on (``peaks``)."""
     x, _ = _normalized(_check(w_osc, T_s))
     out, peaks = [], {}
-    for i, (a, b) in enumerate(section_bounds(sections, x.size) if x.size else []):
-        if b - a < _MIN_SECTION:
-            continue
-        seg = _centered(x[a:b])
+    for i, _, seg in _segments(x, _bounds(x, sections)):
         if not _scale_ok(seg):
             continue
         seg = seg / np.max(np.abs(seg))
@@ -321,14 +323,11 @@ def extra_features(
     """
     x, scale = _normalized(_check(w_osc, T_s))
     T_s = float(T_s)
-    bounds = section_bounds(sections, x.size) if x.size else []
+    bounds = _bounds(x, sections)
     f_zc, f_pk, vj, dd = [], [], [], []
     steps = None if torque_steps is None else np.asarray(torque_steps, dtype=np.float64).ravel()
     fz_sec = np.zeros(len(bounds))
-    for i, (a, b) in enumerate(bounds):
-        if b - a < _MIN_SECTION:
-            continue
-        seg = _centered(x[a:b])
+    for i, a, seg in _segments(x, bounds):
         if not _scale_ok(seg):
             continue
         fz = zero_crossing_frequency(seg, T_s)
