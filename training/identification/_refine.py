@@ -77,6 +77,19 @@ class RefineConfig:
     ``climb_win`` x the first's (a clear win only: a narrow one added false gaps on stiff shafts
     of a coarse drive).
 
+    Rattle (gaps): after the torque drops to zero the masses rattle in the gap, and where the next
+    torque step finds them decides how far the motor runs free before it takes the load. The
+    quasi-static start puts the motor against the load there, and an exploration scored that way
+    reads the gap narrower than it is (measured on the large axis: 0.6-0.7 x, with the truth
+    scoring worse than the answer on exactly the two windows after the zero-torque sections).
+    Where the exploration's best has a gap (``s_N >= rattle_s_N``) and the record a zero-torque
+    section before a torque step, the search goes on with those windows simulated from their
+    zero-torque section's start (whose state is quasi-static: the section before it held one
+    torque): the exploration's elites and its best with ``s_N`` moved by ``rattle_shift`` decades,
+    then ``rattle_rounds`` rounds; its ``rattle_finalists`` best join the finalists. This costs a
+    replay of the two zero-torque sections per model for those records only (`twomass identify`
+    of 1000 reference records: 8 % longer).
+
     Polish (whole record, local): around the chosen model the whole-record error is nearly linear
     in :data:`COORDINATES`, and a model a few % off in ``f_e``, ``V_J`` or ``d`` still scores 10-1000
     x worse than the truth over a record of many periods (measured on every elastic reference
@@ -115,6 +128,10 @@ class RefineConfig:
     climb_above: float = 0.4  # climb: only where the start's f_e reaches this x the current loop's bandwidth
     climb_finalists: int = 3  # climb: its best models that join the finalists
     climb_win: float = 0.9  # climb: the first exploration's error ratio it must beat
+    rattle_s_N: float = 0.1  # rattle: only where the exploration's best has s_N >= this
+    rattle_shift: tuple[float, ...] = (-0.2, -0.1, 0.1, 0.2)  # rattle: its best's s_N moved [decades]
+    rattle_rounds: int = 2  # rattle: cross-entropy rounds
+    rattle_finalists: int = 4  # rattle: its best models that join the finalists
     polish_iterations: int = 3  # polish: Gauss-Newton iterations at most (0: no polish)
     polish_tolerance: float = 0.01  # polish: a problem stops once an iteration gains less than this share
     polish_steps: tuple[float, float, float, float] = (1e-3, 5e-3, 2e-3, 2e-2)  # polish: difference steps
@@ -301,21 +318,21 @@ class _ScoreWindows:
     torque step), computed once, each window padded with zeros to the longest (``L``): the
     measured speed ``y`` ``J x L``, the orthonormal bases ``Q`` ``J x L x 3`` of each window's
     quadratic trend, ``y`` detrended (``y_r``, with ``yy = ||y_r||^2``), ``inside`` (1 over each
-    window's own samples, else 0), and what the quasi-static start of each window needs: the
-    measured speed ``w`` at its first sample, the torque reference before (``M_prev``) and over
-    it (``M_new``), ``J`` each."""
+    window's own samples, else 0), its first sample ``at`` and the torque reference over it
+    (``M_new``), and ``lead``: the length of the zero-torque section before a window that follows
+    one (else 0); ``J`` each."""
 
     y: np.ndarray
     Q: np.ndarray
     y_r: np.ndarray
     yy: float
     inside: np.ndarray
-    w: np.ndarray
-    M_prev: np.ndarray
+    at: np.ndarray
     M_new: np.ndarray
+    lead: np.ndarray
 
     @classmethod
-    def of(cls, p: RefineProblem, windows: np.ndarray) -> "_ScoreWindows":
+    def of(cls, p: RefineProblem, windows: np.ndarray, lead: np.ndarray) -> "_ScoreWindows":
         first, lengths = windows[:, 0].tolist(), (windows[:, 1] - windows[:, 0]).tolist()
         J, L = len(first), max(lengths)
         y, Q = np.zeros((J, L)), np.zeros((J, L, 3))
@@ -325,8 +342,7 @@ class _ScoreWindows:
                 Q[j, :n, : min(3, n)] = _trend_basis(n)
         y_r = y - (Q @ (y[:, None, :] @ Q).transpose(0, 2, 1))[:, :, 0]  # J x L
         return cls(y, Q, y_r, float((y_r * y_r).sum()), (np.arange(L) < np.array(lengths)[:, None]).astype(np.float64),
-                   p.speed[windows[:, 0]], np.array([_level_at(p, a - 1) if a > 0 else 0.0 for a in first]),
-                   np.array([_level_at(p, a) for a in first]))
+                   windows[:, 0].copy(), np.array([_level_at(p, a) for a in first]), np.asarray(lead, dtype=np.int64))
 
 
 def _score_shape(theta: np.ndarray, X: np.ndarray, w: _ScoreWindows) -> tuple[np.ndarray, np.ndarray]:
@@ -358,47 +374,72 @@ def _level_at(p: RefineProblem, k: int) -> float:
     return float(p.level[np.searchsorted(p.start, k, side="right") - 1])
 
 
-def _window_speeds(items: list[tuple[RefineProblem, np.ndarray, _ScoreWindows]], drive: sim.DriveConfig,
+def _window_speeds(items: list[tuple[RefineProblem, np.ndarray, _ScoreWindows, bool]], drive: sim.DriveConfig,
                    substeps: int) -> list[np.ndarray]:
     """Motor speed ``C x J x L`` [rad/s] of each candidate ``theta`` ``C x 4`` of each item
-    ``(problem, theta, windows)`` over its windows (0 past each window's end; a diverged model's
-    reads 1e6 rad/s off the measured), all items on one drive in one replay call (the items'
-    results do not depend on each other), each window simulated on its own from a quasi-static
-    state: the torque before the window settled, both masses at the measured speed, the shaft
-    twisted by the torque that accelerates the load (``J_L a`` plus the load friction, ``a`` the
-    rigid acceleration) over ``C_F``, plus ``s`` on the loaded side. An oscillation still ringing
-    from before the window is not in that state (the exploring score tolerates it; the polish
-    simulates the whole record)."""
-    flat: dict[str, list[np.ndarray]] = {n: [] for n in sim.PARAM_NAMES + ("w_M", "dphi", "M_M", "M_new")}
-    for p, theta, w in items:
+    ``(problem, theta, windows, led)`` over its windows (0 past each window's end; a diverged
+    model's reads 1e6 rad/s off the measured), all items on one drive (the items' results do not
+    depend on each other), each window simulated on its own from a quasi-static state: the torque
+    before it settled, both masses at the measured speed, the shaft twisted by the torque that
+    accelerates the load (``J_L a`` plus the load friction, ``a`` the rigid acceleration) over
+    ``C_F``, plus ``s`` on the loaded side. With ``led``, a window after a zero-torque section
+    starts at that section's start instead (:class:`RefineConfig`, rattle); those windows run in
+    a replay of their own per item. An oscillation still
+    ringing from before a window is not in its start state (the exploring score tolerates it; the
+    polish simulates the whole record)."""
+    names = sim.PARAM_NAMES + ("w_M", "dphi", "M_M", "M_new", "lead")
+    flat: dict[str, list[np.ndarray]] = {n: [] for n in names}
+    led: list[dict[str, np.ndarray] | None] = []
+    for p, theta, w, with_lead in items:
         C, J = theta.shape[0], w.y.shape[0]
+        lead = np.broadcast_to(w.lead if with_lead else np.zeros(J, dtype=np.int64), (C, J))
+        first = w.at - lead  # C x J: the first simulated sample
+        w_M = p.speed[first]
+        M_prev = np.where(first > 0, p.level[np.searchsorted(p.start, first - 1, side="right") - 1], 0.0)
         m = _model_values(p, theta)
         dv = sim.two_mass_derived(m["J_sigma"], m["V_J"], m["f_e"], m["d"])
-        friction = m["M_FC"][:, None] * np.sign(w.w) + max(p.mu_F, 0.0) * w.w  # C x J
-        M_S = dv.J_L[:, None] * (w.M_prev - friction) / m["J_sigma"][:, None] + friction  # C x J: rigid motion
-        dphi = M_S / dv.C_F[:, None] + (m["backlash"] / 2.0)[:, None] * np.sign(M_S)
-        for n, v in m.items():
-            flat[n].append(np.repeat(v, J))  # C*J, window index fastest
-        for n, v in (("w_M", np.tile(w.w, C)), ("dphi", dphi.reshape(-1)), ("M_M", np.tile(w.M_prev, C)),
-                     ("M_new", np.tile(w.M_new, C))):
-            flat[n].append(v)
-    lanes = {n: np.concatenate(v) for n, v in flat.items()}
-    state = {"w_M": lanes["w_M"], "w_L": lanes["w_M"], "dphi": lanes["dphi"], "M_M": lanes["M_M"]}
-    start = torch.zeros(len(lanes["w_M"]), 1, dtype=torch.int32)
-    L = max(w.y.shape[1] for _, _, w in items)
-    out = replay_speed(_params(lanes), drive, start, torch.from_numpy(lanes["M_new"][:, None]), L, quantize=False,
-                       state=state, substeps=substeps).numpy()  # lanes x L (a time-major view)
+        friction = m["M_FC"][:, None] * np.sign(w_M) + max(p.mu_F, 0.0) * w_M  # C x J
+        M_S = dv.J_L[:, None] * (M_prev - friction) / m["J_sigma"][:, None] + friction  # C x J: rigid motion
+        lane = {**{n: np.repeat(v, J) for n, v in m.items()},  # C*J, window index fastest
+                "w_M": w_M.reshape(-1), "dphi": (M_S / dv.C_F[:, None] + (m["backlash"] / 2.0)[:, None]
+                                                 * np.sign(M_S)).reshape(-1),
+                "M_M": M_prev.reshape(-1), "M_new": np.tile(w.M_new, C), "lead": lead.reshape(-1)}
+        plain = lane["lead"] == 0
+        for n in names:
+            flat[n].append(lane[n][plain])
+        led.append({n: v[~plain] for n, v in lane.items()} if with_lead else None)
+    out = _replay_windows({n: np.concatenate(v) for n, v in flat.items()}, drive, substeps,
+                          max(w.y.shape[1] for _, _, w, _ in items))
     speeds, i = [], 0
-    for _, theta, w in items:
+    for (_, theta, w, _), lanes in zip(items, led):
         C, (J, L_w) = theta.shape[0], w.y.shape
-        X = out[i:i + C * J, :L_w].reshape(C, J, L_w).astype(np.float64, order="C")
+        plain = np.tile(w.lead == 0, C) if lanes is not None else np.ones(C * J, dtype=bool)
+        X = np.empty((C * J, L_w))
+        X[plain] = out[i:i + int(plain.sum()), :L_w]
+        i += int(plain.sum())
+        if lanes is not None and len(lanes["w_M"]):
+            lead = lanes["lead"]
+            X[~plain] = np.take_along_axis(_replay_windows(lanes, drive, substeps, int(lead.max()) + L_w),
+                                           lead[:, None] + np.arange(L_w), 1)
+        X = X.reshape(C, J, L_w)  # C*J -> C x J x L
         speeds.append((X if np.isfinite(X.sum()) else w.y + _finite(X - w.y)) * w.inside)
-        i += C * J
     return speeds
+
+
+def _replay_windows(lanes: dict[str, np.ndarray], drive: sim.DriveConfig, substeps: int, length: int) -> np.ndarray:
+    """Motor speed ``lanes x length`` [rad/s] of :func:`_window_speeds`' lanes: each from its start
+    state, at 0 over its first ``lead`` samples (a zero-torque section) and at ``M_new`` after."""
+    state = {"w_M": lanes["w_M"], "w_L": lanes["w_M"], "dphi": lanes["dphi"], "M_M": lanes["M_M"]}
+    start = np.stack([np.zeros_like(lanes["lead"]), lanes["lead"]], 1)  # lanes x 2
+    level = np.stack([np.where(lanes["lead"] > 0, 0.0, lanes["M_new"]), lanes["M_new"]], 1)
+    return replay_speed(_params(lanes), drive, torch.from_numpy(start), torch.from_numpy(level), length,
+                        quantize=False, state=state, substeps=substeps).numpy()  # lanes x length (a view)
 
 
 #: A search: yields candidates ``C x D``, is sent ``(cost C, candidates as scored)`` for each, returns its result.
 Search = Generator[np.ndarray, tuple[np.ndarray, np.ndarray], Any]
+#: The exploration's search: its candidates come with whether their windows take the lead (:func:`_window_speeds`).
+TaggedSearch = Generator[tuple[np.ndarray, bool], tuple[np.ndarray, np.ndarray], Any]
 
 
 def _cem(theta: np.ndarray, cost: np.ndarray, rounds: int, spread: np.ndarray, config: RefineConfig,
@@ -497,18 +538,25 @@ def _packs(problems: list[RefineProblem], sizes: list[int], substeps: list[int],
 
 def _explore_windows(p: RefineProblem, config: RefineConfig) -> _ScoreWindows:
     """The exploring stage's windows of ``p``: ``window_periods`` at the start's ``f_e`` (at
-    least 8 samples, at most ``window_max``) after each torque step."""
+    least 8 samples, at most ``window_max``) after each torque step, each after a zero-torque
+    section with that section's length as its lead."""
     period = 1.0 / (10.0 ** np.clip(p.theta[0], _LOW[0], _HIGH[0]) * p.T_s)  # samples per period at the start's f_e
-    return _ScoreWindows.of(p, _windows(p.segments, max(8, int(round(min(config.window_periods * period,
-                                                                             config.window_max / p.T_s))))))
+    seg = np.asarray(p.segments, dtype=np.int64)
+    after_zero = np.array([j > 0 and _level_at(p, a - 1) == 0.0 and _level_at(p, a) != 0.0
+                           for j, a in enumerate(seg[:, 0].tolist())])
+    lead = np.where(after_zero, seg[:, 0] - np.concatenate([[0], seg[:-1, 0]]), 0)  # the zero section's length
+    return _ScoreWindows.of(p, _windows(seg, max(8, int(round(min(config.window_periods * period,
+                                                                    config.window_max / p.T_s))))), lead)
 
 
-def _explore(p: RefineProblem, config: RefineConfig, rng: np.random.Generator) -> Search:
-    """The exploring stage of ``p`` as a :data:`Search` scored by :func:`_score_shape`; returns the
-    finalists ``F x 4`` (the maps' answer, the elites, the climb's best where it won: see
-    :class:`RefineConfig`) and the number of models explored."""
+def _explore(p: RefineProblem, windows: _ScoreWindows, config: RefineConfig,
+             rng: np.random.Generator) -> TaggedSearch:
+    """The exploring stage of ``p`` (``windows``: :func:`_explore_windows`) as a
+    :data:`TaggedSearch` scored by :func:`_score_shape`; returns the finalists ``F x 4`` (the maps' answer, the elites, the
+    climb's and the rattle's best where they ran: see :class:`RefineConfig`) and the number of
+    models explored."""
     theta0 = np.clip(np.asarray(p.theta, dtype=np.float64), _LOW, _HIGH)
-    theta, cost = yield from _search(theta0, config, rng)
+    theta, cost = yield from _tagged(_search(theta0, config, rng), False)
     finalists = [theta0[None], theta[np.argsort(cost)[: config.elites]]]
     explored = len(cost)
     best = theta[int(np.argmin(cost))]
@@ -516,11 +564,29 @@ def _explore(p: RefineProblem, config: RefineConfig, rng: np.random.Generator) -
         up = best.copy()
         up[0] += config.climb
         up[3] += math.log10(float(p.C_F(up) / p.C_F(best)))  # the same width 2s = 2 s_N M_N / C_F
-        theta_up, cost_up = yield from _search(np.clip(up, _LOW, _HIGH), config, rng)
+        theta_up, cost_up = yield from _tagged(_search(np.clip(up, _LOW, _HIGH), config, rng), False)
         explored += len(cost_up)
         if cost_up.min() < config.climb_win * cost.min():
             finalists.append(theta_up[np.argsort(cost_up)[: config.climb_finalists]])
+    if 10.0 ** best[3] >= config.rattle_s_N and windows.lead.any():
+        again = np.concatenate([finalists[1], np.repeat(best[None], len(config.rattle_shift), axis=0)])
+        again[-len(config.rattle_shift):, 3] += config.rattle_shift
+        cost_r, theta_r = yield np.clip(again, _LOW, _HIGH), True
+        theta_r, cost_r = yield from _tagged(_cem(theta_r, cost_r, config.rattle_rounds,
+                                                  np.asarray(config.spread, dtype=np.float64), config, rng), True)
+        explored += len(cost_r)
+        finalists.append(theta_r[np.argsort(cost_r)[: config.rattle_finalists]])
     return np.concatenate(finalists), explored
+
+
+def _tagged(search: Search, led: bool) -> TaggedSearch:
+    """``search`` with each of its candidates tagged ``led`` (:func:`_explore`)."""
+    try:
+        candidates = next(search)
+        while True:
+            candidates = search.send((yield candidates, led))
+    except StopIteration as done:
+        return done.value
 
 
 def _search(theta0: np.ndarray, config: RefineConfig, rng: np.random.Generator) -> Search:
@@ -548,22 +614,22 @@ def _explore_all(problems: list[RefineProblem], config: RefineConfig,
     and similar window length go to the simulator in one call (:func:`_packs`), so that the
     per-call costs are paid once per batch, not once per record."""
     windows = [_explore_windows(p, config) for p in problems]
-    searches = [_explore(p, config, rng) for p, rng in zip(problems, rngs)]
+    searches = [_explore(p, w, config, rng) for p, w, rng in zip(problems, windows, rngs)]
     asked = {i: next(s) for i, s in enumerate(searches)}
     explored: list[tuple[np.ndarray, int]] = [(np.empty(0), 0)] * len(problems)
     while asked:
         todo = sorted(asked)
-        substeps = [_problem_substeps(problems[i], asked[i]) for i in todo]
-        sizes = [len(asked[i]) * windows[i].y.shape[0] for i in todo]
+        substeps = [_problem_substeps(problems[i], asked[i][0]) for i in todo]
+        sizes = [len(asked[i][0]) * windows[i].y.shape[0] for i in todo]
         packs = _packs([problems[i] for i in todo], sizes, substeps, [windows[i].y.shape[1] for i in todo],
                        max_models=4096)
         for pack in packs:
             ids = [todo[k] for k in pack]
-            X = _window_speeds([(problems[i], asked[i], windows[i]) for i in ids], _drive(problems[ids[0]]),
-                               substeps[pack[0]])
+            X = _window_speeds([(problems[i], asked[i][0], windows[i], asked[i][1]) for i in ids],
+                               _drive(problems[ids[0]]), substeps[pack[0]])
             for i, x in zip(ids, X):
                 try:
-                    asked[i] = searches[i].send(_score_shape(asked[i], x, windows[i]))
+                    asked[i] = searches[i].send(_score_shape(asked[i][0], x, windows[i]))
                 except StopIteration as done:
                     explored[i] = done.value
                     del asked[i]
