@@ -20,7 +20,7 @@ from training.identification._features import (EIG_NAMES, EXTRA_NAMES, STRUCT_NA
                                                extra_features, structure_and_peaks)
 from training.identification._one_mass import OneMassFit, fit_one_mass
 from training.identification._oscillation import fit_oscillation
-from training.identification._plausibility import check_record
+from training.identification._plausibility import check_record, resolution_hint
 from training.identification._result import IdentWarning
 from training.identification._sections import SectionSplit, detect_sections
 
@@ -156,7 +156,13 @@ def _analyze(record: Record) -> Analysis:
     check_record(record)  # units and metadata against the signals
     T_s = record.T_s
     torque = record.motor_torque
-    split = detect_sections(record)
+    try:
+        split = detect_sections(record)
+    except ValueError as err:
+        hint = resolution_hint(record)
+        if hint is None:
+            raise
+        raise ValueError(f"{err}; {hint}") from err
     drive, drive_warnings = drive_values(record, split, torque)
     fit = fit_one_mass(torque, record.speed, T_s, sections=split.bounds)
     longest = int(np.max(split.bounds[:, 1] - split.bounds[:, 0]))

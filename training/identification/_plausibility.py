@@ -23,7 +23,9 @@ signal produces on the default population, measured on 800 simulated systems):
   opposite signs) and within 1e-7..1e4 kg m^2.
 
 A record whose speed is constant or whose torque is zero passes here: the section detection
-reports those with a more specific message.
+reports those with a more specific message. Where that detection fails on a speed quantized in
+steps of half ``w_max`` or more, :func:`resolution_hint` says why (the one-mass fit still reads
+``J_sigma`` from such a coarse speed where the sections show, so it is not refused here).
 """
 
 from __future__ import annotations
@@ -47,6 +49,7 @@ _ACCEL_WINDOW = 8  # samples over which the acceleration is measured
 J_RANGE = (1e-7, 1e4)  # plausible one-mass inertia [kg m^2]
 _MIN_CORRELATION = 0.5  # |correlation| of torque integral and speed change needed to judge the inertia
 QUANTIZED_SHARE = 0.99  # share of nonzero speed samples on a quantum grid to call the speed quantized
+RESOLUTION = 0.5  # largest speed quantum over w_max of a record the test can be read from
 
 
 def check_record(record: Record) -> None:
@@ -171,6 +174,22 @@ def _check_speed_quantum(speed: np.ndarray, T_s: float, meta: dict[str, Any]) ->
             raise ValueError(f"speed looks like wrong units (its values are multiples of {q_w * factor:.6g}, the "
                              f"encoder's speed quantum 2*pi/(encoder_counts*T_s) = {q_w:.6g} rad/s in {unit}; "
                              f"expected rad/s)")
+
+
+def resolution_hint(record: Record) -> str | None:
+    """Why the test's sections may not show, where the encoder hardly resolves the test: a speed
+    quantized in rad/s in steps ``2 pi / (encoder_counts T_s)`` of :data:`RESOLUTION` x ``w_max``
+    (or of the peak speed) or more; else None."""
+    counts, speed = record.meta.get("encoder_counts"), np.asarray(record.speed, dtype=np.float64)
+    x = speed[speed != 0]
+    if counts is None or not x.size:
+        return None
+    q_w = speed_quantum(float(counts), record.T_s)
+    w_max = float(record.meta.get("w_max") or np.abs(speed).max())
+    if q_w < RESOLUTION * w_max or on_grid(x, q_w) < QUANTIZED_SHARE:
+        return None
+    return (f"the encoder hardly resolves this test: its speed quantum 2*pi/(encoder_counts*T_s) = {q_w:.4g} rad/s "
+            f"is {q_w / w_max:.2g} x w_max = {w_max:.4g} rad/s; raise w_max, or record a finer speed")
 
 
 def _check_inertia(torque: np.ndarray, speed: np.ndarray, T_s: float, name: str) -> None:

@@ -157,7 +157,8 @@ def detect_sections(
         T_Ei: current-loop lag [s] for placing boundaries at the step instant (0 when unknown).
         torque_ref: ``(N,)`` ``M_ref`` [Nm]; when given it is classified instead of the torque.
         use_column: take the record's ``section`` column when present (else ignore it).
-        min_run: runs of one level shorter than this [s] are transitions and dropped.
+        min_run: runs of one level shorter than this [s] are transitions and dropped (in
+            ``torque_ref`` only where the sections do not show without them).
         w_max: the test's speed limit [rad/s] (the switching law on a noisy torque; estimated when ``None``).
         (A keyword given overrides the record's value.)
 
@@ -188,7 +189,10 @@ def detect_sections(
         if source == "torque":  # the switching law may still find it; else the levels' error stands
             with contextlib.suppress(ValueError):
                 return _switching_law(w, y, info, Ts, noise)
-        raise
+        if source != "torque_ref":
+            raise
+        runs = _level_runs(ys, Ms, 1)  # the reference is exact: a section shorter than min_run is one too
+        hit = _pattern_start(runs, Ms)
     step = _StepLocator(y, Ms, lag, exact=source == "torque_ref")
     bounds, tail, flags = _boundaries(runs, hit, step, Ts)
     _check_speed_follows(w, bounds)
@@ -457,10 +461,11 @@ def _boundaries(runs: list[list[int]], hit: int, step: _StepLocator,
 
 
 def _check_speed_follows(w: np.ndarray, bounds: np.ndarray) -> None:
-    """Each section must move the speed in its torque's direction."""
+    """Each section must move the speed in its torque's direction, by its last sample or the one
+    after it (the torque of sample ``k`` acts until sample ``k + 1``: a one-sample section shows there)."""
     for (a, b), level, name in zip(bounds.tolist(), SECTION_LEVELS, SECTION_NAMES):
         dirn = int(np.sign(level))
-        dw = w[b - 1] - w[a]
+        dw = max(w[b - 1] - w[a], w[min(b, w.size - 1)] - w[a], key=lambda d: d * dirn)
         if dirn and dw * dirn <= 0:
             raise ValueError(f"speed does not follow the torque: expected the speed to "
                              f"{'rise' if dirn > 0 else 'fall'} in section {name}, received a change of {dw:.4g} rad/s")

@@ -12,6 +12,7 @@ import torch
 
 from sim import (DriveConfig, Record, TestSignalConfig, TwoMassParams, iter_records, responses_to_records,
                  sample_population, simulate_test)
+from training.identification import analyze
 from training.identification._plausibility import check_record
 
 RPM = 60.0 / (2.0 * math.pi)
@@ -142,3 +143,16 @@ def test_absurd_inertia(good):
 def test_degenerate_signals_are_left_to_the_section_detection(good):
     check_record(variant(good, speed=np.zeros_like(good.speed)))
     check_record(variant(good, current=np.zeros_like(good.current)))
+
+
+def test_sections_an_encoder_cannot_resolve_are_refused_with_its_quantum():
+    # a drive SPEC 3.1's envelope allows (2^12 counts at 65 us: 24 rad/s per count and sample)
+    # tested at w_max 16 rad/s: the speed reads one count now and then, no section shows
+    drive = DriveConfig(M_max=609.0, M_N=205.0, T_Ei=1.18e-4, T_s=6.454e-5, encoder_counts=2**12, current_noise_std=0.095)
+    params = TwoMassParams(J_sigma=0.2835, V_J=1.58, f_e=120.9, d=0.056, backlash=0.0, M_FC=8.21, mu_F=0.23)
+    signal = TestSignalConfig(M_star=180.1, w_max=15.54)
+    rec = responses_to_records(simulate_test(params, drive, signal, seed=3), params.reshape(1), drive, signal)[0]
+    check_record(rec)  # plausible as a record: the one-mass fit reads J_sigma from coarser speeds than this
+    with pytest.raises(ValueError, match=r"^speed does not follow the torque: .*; the encoder hardly resolves this "
+                                         r"test: its speed quantum .* = 23\.77 rad/s is 1\.5 x w_max"):
+        analyze(rec)

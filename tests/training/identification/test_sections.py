@@ -12,7 +12,7 @@ import math
 import numpy as np
 import pytest
 
-from sim import Record
+from sim import DriveConfig, Record, TestSignalConfig, TwoMassParams, responses_to_records, simulate_test
 from training.identification._sections import SectionSplit, detect_sections
 
 LEVELS = (1.0, 0.0, -0.7, -1.0, 0.0, 0.7)  # SPEC 2, typed here: the reference stands alone
@@ -208,3 +208,26 @@ def test_torque_ringing_and_noise():
     split = detect_sections(speed=rec.speed, torque=rec.current + ring, T_s=rec.meta["T_s"], T_Ei=rec.meta["T_Ei"])
     assert np.abs(split.bounds - true).max() <= 2, (split.bounds, true)
     assert split.M_star == pytest.approx(10.0, rel=0.03)
+
+
+def _envelope_record(drive: DriveConfig, M_star: float, w_max: float, **mechanics: float) -> Record:
+    """One simulated test run (with ``torque_ref`` and the ``section`` column) on ``drive``."""
+    params = TwoMassParams(**mechanics)
+    signal = TestSignalConfig(M_star=M_star, w_max=w_max)
+    return responses_to_records(simulate_test(params, drive, signal, seed=3), params.reshape(1), drive, signal)[0]
+
+
+def test_a_section_shorter_than_the_noise_filter_is_found_in_the_torque_reference():
+    # a drive of SPEC 3.1's envelope (seed 11) whose section III lasts 4 samples (1 ms): the
+    # reference is exact, so no run of it is a transition (2 ms runs were dropped: no sections)
+    drive = DriveConfig(M_max=10.9, M_N=3.64, T_Ei=4.77e-4, T_s=2.51e-4, encoder_counts=2**19, current_noise_std=0.129)
+    rec = _envelope_record(drive, 4.84, 104.8, J_sigma=1.14e-3, V_J=2.87, f_e=28.6, d=0.02, backlash=5e-4,
+                           M_FC=0.0715, mu_F=2.5e-4)
+    column = np.asarray(rec.section)
+    lengths = [int((column == k).sum()) for k in range(1, 7)]
+    assert min(lengths) < 2e-3 / drive.T_s
+    split = detect_sections(rec)
+    assert split.source == "torque_ref"
+    found = split.bounds[:, 1] - split.bounds[:, 0]
+    np.testing.assert_array_equal(found[1:], lengths[1:])  # I: the column counts sample 0 (reference 0) too
+    assert abs(found[0] - lengths[0]) <= 1
