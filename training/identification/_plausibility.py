@@ -49,7 +49,7 @@ _ACCEL_WINDOW = 8  # samples over which the acceleration is measured
 J_RANGE = (1e-7, 1e4)  # plausible one-mass inertia [kg m^2]
 _MIN_CORRELATION = 0.5  # |correlation| of torque integral and speed change needed to judge the inertia
 QUANTIZED_SHARE = 0.99  # share of nonzero speed samples on a quantum grid to call the speed quantized
-RESOLUTION = 0.5  # largest speed quantum over w_max of a record the test can be read from
+RESOLUTION = 0.5  # speed quantum over w_max from which a failed section detection names the encoder
 
 
 def check_record(record: Record) -> None:

@@ -88,7 +88,7 @@ class RefineConfig:
     torque): the exploration's elites and its best with ``s_N`` moved by ``rattle_shift`` decades,
     then ``rattle_rounds`` rounds; its ``rattle_finalists`` best join the finalists. This costs a
     replay of the two zero-torque sections per model for those records only (`twomass identify`
-    of 1000 reference records: 8 % longer).
+    of 1000 reference records: 8-11 % longer).
 
     Polish (whole record, local): around the chosen model the whole-record error is nearly linear
     in :data:`COORDINATES`, and a model a few % off in ``f_e``, ``V_J`` or ``d`` still scores 10-1000
