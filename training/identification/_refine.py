@@ -418,12 +418,19 @@ def _window_speeds(items: list[tuple[RefineProblem, np.ndarray, _ScoreWindows, b
         X[plain] = out[i:i + int(plain.sum()), :L_w]
         i += int(plain.sum())
         if lanes is not None and len(lanes["w_M"]):
-            lead = lanes["lead"]
-            X[~plain] = np.take_along_axis(_replay_windows(lanes, drive, substeps, int(lead.max()) + L_w),
-                                           lead[:, None] + np.arange(L_w), 1)
+            n, length = len(lanes["w_M"]), int(lanes["lead"].max()) + L_w
+            step = max(64, _LED_SAMPLES // length)  # lanes per replay
+            X[~plain] = np.concatenate([
+                np.take_along_axis(_replay_windows({k: v[a:a + step] for k, v in lanes.items()}, drive, substeps, length),
+                                   lanes["lead"][a:a + step, None] + np.arange(L_w), 1) for a in range(0, n, step)])
         X = X.reshape(C, J, L_w)  # C*J -> C x J x L
         speeds.append((X if np.isfinite(X.sum()) else w.y + _finite(X - w.y)) * w.inside)
     return speeds
+
+
+#: Lanes x samples of one replay of led windows at most (float32: 64 MB; a zero-torque section
+#: that ran to its 10 s timeout at 62.5 us is 160 000 samples long).
+_LED_SAMPLES = 16 * 2**20
 
 
 def _replay_windows(lanes: dict[str, np.ndarray], drive: sim.DriveConfig, substeps: int, length: int) -> np.ndarray:

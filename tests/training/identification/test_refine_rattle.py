@@ -54,3 +54,17 @@ def test_no_rattle_without_a_gap():
     true = TwoMassParams(J_sigma=0.5, V_J=2.0, f_e=40.0, d=0.03, backlash=0.0, M_FC=2.0, mu_F=0.0)
     p = refine_problem(true, [math.log10(44.0), math.log10(1.8), 0.04, -3.0], AXIS, SIGNAL)
     assert refine([p])[0] == refine([p], NO_RATTLE)[0]
+
+
+def test_led_windows_replayed_in_chunks_give_the_same_speeds(monkeypatch):
+    import training.identification._refine as refine_module
+
+    p = refine_problem(TRUE, THETA, AXIS, SIGNAL)
+    w = _explore_windows(p, RefineConfig())
+    rng = np.random.default_rng(0)
+    theta = np.clip(np.array(THETA) + rng.normal(0.0, 0.05, (100, 4)), [-9, -9, 0.01, -9], 9)  # C x 4
+    drive = DriveConfig(M_max=1e9, T_Ei=AXIS.T_Ei, T_s=AXIS.T_s, encoder_counts=AXIS.encoder_counts)
+    S = _problem_substeps(p, theta)
+    whole = _window_speeds([(p, theta, w, True)], drive, S)[0]
+    monkeypatch.setattr(refine_module, "_LED_SAMPLES", 1000)  # 64 lanes per replay: 4 replays
+    np.testing.assert_array_equal(_window_speeds([(p, theta, w, True)], drive, S)[0], whole)
