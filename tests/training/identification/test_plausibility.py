@@ -156,3 +156,17 @@ def test_sections_an_encoder_cannot_resolve_are_refused_with_its_quantum():
     with pytest.raises(ValueError, match=r"^speed does not follow the torque: .*; the encoder hardly resolves this "
                                          r"test: its speed quantum .* = 23\.77 rad/s is 1\.5 x w_max"):
         analyze(rec)
+
+
+def test_a_speed_one_count_above_three_times_w_max_is_the_encoder_not_wrong_units():
+    # an envelope drive (2^12 counts at 89 us: 17.2 rad/s per count and sample) tested at w_max
+    # 5.7 rad/s: the speed reads 0, 17.2 or 34.3 rad/s, 3.03 x w_max at its peak; it was called
+    # "wrong units"
+    drive = DriveConfig(M_max=671.0, M_N=353.0, T_Ei=1.69e-3, T_s=8.944e-5, encoder_counts=2**12, current_noise_std=4.38)
+    params = TwoMassParams(J_sigma=315.0, V_J=0.888, f_e=117.4, d=0.0607, backlash=0.026, M_FC=1.63, mu_F=2.11)
+    signal = TestSignalConfig(M_star=593.6, w_max=5.655)
+    rec = responses_to_records(simulate_test(params, drive, signal, seed=3), params.reshape(1), drive, signal)[0]
+    assert np.abs(rec.speed).max() > 3.0 * 5.655
+    check_record(rec)
+    with pytest.raises(ValueError, match=r"the encoder hardly resolves this test: its speed quantum .* = 17\.15 rad/s"):
+        analyze(rec)
