@@ -374,6 +374,11 @@ def _level_at(p: RefineProblem, k: int) -> float:
     return float(p.level[np.searchsorted(p.start, k, side="right") - 1])
 
 
+#: Lanes x samples of one replay of led windows at most (float32: 64 MB; a zero-torque section
+#: that ran to its 10 s timeout at 62.5 us is 160 000 samples long).
+_LED_SAMPLES = 16 * 2**20
+
+
 def _window_speeds(items: list[tuple[RefineProblem, np.ndarray, _ScoreWindows, bool]], drive: sim.DriveConfig,
                    substeps: int) -> list[np.ndarray]:
     """Motor speed ``C x J x L`` [rad/s] of each candidate ``theta`` ``C x 4`` of each item
@@ -384,9 +389,9 @@ def _window_speeds(items: list[tuple[RefineProblem, np.ndarray, _ScoreWindows, b
     accelerates the load (``J_L a`` plus the load friction, ``a`` the rigid acceleration) over
     ``C_F``, plus ``s`` on the loaded side. With ``led``, a window after a zero-torque section
     starts at that section's start instead (:class:`RefineConfig`, rattle); those windows run in
-    a replay of their own per item. An oscillation still
-    ringing from before a window is not in its start state (the exploring score tolerates it; the
-    polish simulates the whole record)."""
+    replays of their own per item, at most :data:`_LED_SAMPLES` lane-samples each. An oscillation
+    still ringing from before a window is not in its start state (the exploring score tolerates
+    it; the polish simulates the whole record)."""
     names = sim.PARAM_NAMES + ("w_M", "dphi", "M_M", "M_new", "lead")
     flat: dict[str, list[np.ndarray]] = {n: [] for n in names}
     led: list[dict[str, np.ndarray] | None] = []
@@ -426,11 +431,6 @@ def _window_speeds(items: list[tuple[RefineProblem, np.ndarray, _ScoreWindows, b
         X = X.reshape(C, J, L_w)  # C*J -> C x J x L
         speeds.append((X if np.isfinite(X.sum()) else w.y + _finite(X - w.y)) * w.inside)
     return speeds
-
-
-#: Lanes x samples of one replay of led windows at most (float32: 64 MB; a zero-torque section
-#: that ran to its 10 s timeout at 62.5 us is 160 000 samples long).
-_LED_SAMPLES = 16 * 2**20
 
 
 def _replay_windows(lanes: dict[str, np.ndarray], drive: sim.DriveConfig, substeps: int, length: int) -> np.ndarray:
