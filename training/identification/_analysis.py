@@ -152,6 +152,15 @@ def applied_torque(record: Record, split: SectionSplit, T_Ei: float) -> np.ndarr
     return lfilter([0.0, 1.0 - a], [1.0, -a], ref)
 
 
+def _test_length_hint(split: SectionSplit, T_s: float) -> str:
+    """What the test's length says of the mechanics it can show: section I lasts about the test's
+    time scale ``tau = J_sigma w_max / M*``, and a mechanic below ``0.5 / tau`` hardly moves its
+    load in that time (``docs/identification.md``, Known gaps: tests shorter than the period)."""
+    tau = float(split.bounds[0, 1] - split.bounds[0, 0]) * T_s
+    return (f"section I lasted {tau * 1e3:.3g} ms, so a mechanic below {0.5 / tau:.3g} Hz hardly moves its load during "
+            "the test; a larger w_max or a lower M* lengthens it")
+
+
 def _analyze(record: Record) -> Analysis:
     check_record(record)  # units and metadata against the signals
     T_s = record.T_s
@@ -164,7 +173,10 @@ def _analyze(record: Record) -> Analysis:
             raise
         raise ValueError(f"{err}; {hint}") from err
     drive, drive_warnings = drive_values(record, split, torque)
-    fit = fit_one_mass(torque, record.speed, T_s, sections=split.bounds)
+    try:
+        fit = fit_one_mass(torque, record.speed, T_s, sections=split.bounds)
+    except ValueError as err:
+        raise ValueError(f"{err}; {_test_length_hint(split, T_s)}") from err
     longest = int(np.max(split.bounds[:, 1] - split.bounds[:, 0]))
     if drive.current_noise * T_s * math.sqrt(longest) > NOISE_QUANTA * drive.q_w * abs(fit.J_sigma):
         torque = applied_torque(record, split, drive.T_Ei)

@@ -279,3 +279,16 @@ def test_rk4_substeps_resolve_the_current_loop_and_the_fastest_mode():
     assert rk4_substeps(0.0, 6e-4, 2e-4, minimum=1) == 6  # dt <= T_Ei / 2
     assert rk4_substeps(1000.0, 1e-3, 1.0, w_0_dt=0.5, minimum=1) == 2  # w_0 dt <= 0.5
     assert rk4_substeps(0.0, 2.5e-4, 1e-3) == 4  # at least the minimum
+
+
+def test_a_one_mass_fit_that_fails_on_a_short_test_says_how_long_the_test_was():
+    # an envelope drive (seed 13) testing a 13 Hz mechanic in 20 ms (f_e tau 0.43): the load
+    # hardly moves during section I and the one-mass fit finds no positive inertia
+    drive = DriveConfig(M_max=0.388, M_N=0.1157, T_Ei=9.494e-4, T_s=6.786e-5, encoder_counts=2**19,
+                        current_noise_std=7.82e-4)
+    params = TwoMassParams(J_sigma=5.783e-6, V_J=1.241, f_e=13.17, d=0.0254, backlash=0.0124, M_FC=1.86e-3, mu_F=5.9e-6)
+    signal = TestSignalConfig(M_star=0.07169, w_max=405.6)
+    rec = responses_to_records(simulate_test(params, drive, signal, seed=3), params.reshape(1), drive, signal)[0]
+    with pytest.raises(ValueError, match=r"^one-mass fit: .*; section I lasted 19\.\d ms, so a mechanic below 2\d\.\d Hz "
+                                         r"hardly moves its load during the test; a larger w_max or a lower M\* lengthens it$"):
+        analyze(rec)
