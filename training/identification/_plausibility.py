@@ -15,8 +15,9 @@ signal produces on the default population, measured on 800 simulated systems):
 - speed scale: the peak ``|speed|`` within 0.3..3 x ``w_max`` (simulated: 1.00..1.61; the lower
   bound only when no section timed out) plus one speed quantum of the encoder (a coarse encoder
   read 3.03 x on an envelope drive whose quantum is 1.5 x ``w_max``) plus the overshoot the
-  record's own acceleration explains through the current loop's lag (:func:`overshoot_allowance`: a small drive with a small inertia
-  overshoots several times ``w_max``); rpm give 9.5x, deg/s 57x, counts/s ``counts/2pi`` x;
+  record's own acceleration explains through the current loop's lag (:func:`overshoot_allowance`:
+  a small drive with a small inertia overshoots several times ``w_max``); rpm give 9.5x, deg/s
+  57x, counts/s ``counts/2pi`` x;
 - speed quantum: when ``encoder_counts`` is given and the speed is exactly quantized, but in
   steps of the encoder's speed quantum expressed in another unit (rpm, deg/s, counts/s...);
 - inertia: a one-mass estimate (``J = int M dt / delta w``, least squares over the record;
@@ -149,7 +150,8 @@ def _check_speed_scale(speed: np.ndarray, T_s: float, meta: dict[str, Any]) -> N
     timed_out = any(bool(x) for x in (meta.get("timed_out") or []))
     counts = meta.get("encoder_counts")
     quantum = speed_quantum(float(counts), T_s) if counts else 0.0  # an encoder's speed reads up to one count high
-    if peak > hi * float(w_max) + overshoot_allowance(speed, T_s, meta.get("T_Ei")) + quantum or (ratio < lo and not timed_out):
+    allowed = hi * float(w_max) + overshoot_allowance(speed, T_s, meta.get("T_Ei")) + quantum
+    if peak > allowed or (ratio < lo and not timed_out):
         guess = _guess(ratio, _speed_units(meta, meta.get("T_s")))
         raise ValueError(f"speed looks like wrong units (peak |speed| {peak:.4g} is {ratio:.3g} x metadata "
                          f"w_max = {float(w_max):.4g} rad/s, expected {lo:g}..{hi:g} x{guess})")

@@ -342,7 +342,7 @@ class _ScoreWindows:
                 Q[j, :n, : min(3, n)] = _trend_basis(n)
         y_r = y - (Q @ (y[:, None, :] @ Q).transpose(0, 2, 1))[:, :, 0]  # J x L
         return cls(y, Q, y_r, float((y_r * y_r).sum()), (np.arange(L) < np.array(lengths)[:, None]).astype(np.float64),
-                   windows[:, 0].copy(), np.array([_level_at(p, a) for a in first]), np.asarray(lead, dtype=np.int64))
+                   windows[:, 0].copy(), _level_at(p, windows[:, 0]), np.asarray(lead, dtype=np.int64))
 
 
 def _score_shape(theta: np.ndarray, X: np.ndarray, w: _ScoreWindows) -> tuple[np.ndarray, np.ndarray]:
@@ -369,9 +369,9 @@ def _windows(segments: np.ndarray, length: int) -> np.ndarray:
     return np.stack([seg[:, 0], np.minimum(seg[:, 1], seg[:, 0] + length)], axis=1)
 
 
-def _level_at(p: RefineProblem, k: int) -> float:
-    """The torque reference [Nm] over sample ``k``."""
-    return float(p.level[np.searchsorted(p.start, k, side="right") - 1])
+def _level_at(p: RefineProblem, k: np.ndarray) -> np.ndarray:
+    """The torque reference [Nm] over each sample ``k`` (int array, any shape)."""
+    return p.level[np.searchsorted(p.start, k, side="right") - 1]
 
 
 #: Lanes x samples of one replay of led windows at most (float32: 64 MB; a zero-torque section
@@ -394,13 +394,13 @@ def _window_speeds(items: list[tuple[RefineProblem, np.ndarray, _ScoreWindows, b
     it; the polish simulates the whole record)."""
     names = sim.PARAM_NAMES + ("w_M", "dphi", "M_M", "M_new", "lead")
     flat: dict[str, list[np.ndarray]] = {n: [] for n in names}
-    led: list[dict[str, np.ndarray] | None] = []
+    led: list[tuple[np.ndarray, dict[str, np.ndarray]] | None] = []  # per item: its plain lanes' mask, its led lanes
     for p, theta, w, with_lead in items:
         C, J = theta.shape[0], w.y.shape[0]
         lead = np.broadcast_to(w.lead if with_lead else np.zeros(J, dtype=np.int64), (C, J))
         first = w.at - lead  # C x J: the first simulated sample
         w_M = p.speed[first]
-        M_prev = np.where(first > 0, p.level[np.searchsorted(p.start, first - 1, side="right") - 1], 0.0)
+        M_prev = np.where(first > 0, _level_at(p, first - 1), 0.0)  # C x J (rest before the record)
         m = _model_values(p, theta)
         dv = sim.two_mass_derived(m["J_sigma"], m["V_J"], m["f_e"], m["d"])
         friction = m["M_FC"][:, None] * np.sign(w_M) + max(p.mu_F, 0.0) * w_M  # C x J
@@ -412,17 +412,20 @@ def _window_speeds(items: list[tuple[RefineProblem, np.ndarray, _ScoreWindows, b
         plain = lane["lead"] == 0
         for n in names:
             flat[n].append(lane[n][plain])
-        led.append({n: v[~plain] for n, v in lane.items()} if with_lead else None)
+        led.append((plain, {n: v[~plain] for n, v in lane.items()}) if not plain.all() else None)
     out = _replay_windows({n: np.concatenate(v) for n, v in flat.items()}, drive, substeps,
                           max(w.y.shape[1] for _, _, w, _ in items))
     speeds, i = [], 0
-    for (_, theta, w, _), lanes in zip(items, led):
+    for (_, theta, w, _), item_led in zip(items, led):
         C, (J, L_w) = theta.shape[0], w.y.shape
-        plain = np.tile(w.lead == 0, C) if lanes is not None else np.ones(C * J, dtype=bool)
-        X = np.empty((C * J, L_w))
-        X[plain] = out[i:i + int(plain.sum()), :L_w]
-        i += int(plain.sum())
-        if lanes is not None and len(lanes["w_M"]):
+        if item_led is None:
+            X = out[i:i + C * J, :L_w].astype(np.float64)
+            i += C * J
+        else:
+            plain, lanes = item_led
+            X = np.empty((C * J, L_w))
+            X[plain] = out[i:i + int(plain.sum()), :L_w]
+            i += int(plain.sum())
             n, length = len(lanes["w_M"]), int(lanes["lead"].max()) + L_w
             step = max(64, _LED_SAMPLES // length)  # lanes per replay
             X[~plain] = np.concatenate([
@@ -549,9 +552,9 @@ def _explore_windows(p: RefineProblem, config: RefineConfig) -> _ScoreWindows:
     section with that section's length as its lead."""
     period = 1.0 / (10.0 ** np.clip(p.theta[0], _LOW[0], _HIGH[0]) * p.T_s)  # samples per period at the start's f_e
     seg = np.asarray(p.segments, dtype=np.int64)
-    after_zero = np.array([j > 0 and _level_at(p, a - 1) == 0.0 and _level_at(p, a) != 0.0
-                           for j, a in enumerate(seg[:, 0].tolist())])
-    lead = np.where(after_zero, seg[:, 0] - np.concatenate([[0], seg[:-1, 0]]), 0)  # the zero section's length
+    a = seg[:, 0]
+    after_zero = (np.arange(len(a)) > 0) & (_level_at(p, a - 1) == 0.0) & (_level_at(p, a) != 0.0)
+    lead = np.where(after_zero, a - np.concatenate([[0], a[:-1]]), 0)  # the zero section's length
     return _ScoreWindows.of(p, _windows(seg, max(8, int(round(min(config.window_periods * period,
                                                                     config.window_max / p.T_s))))), lead)
 
@@ -559,12 +562,13 @@ def _explore_windows(p: RefineProblem, config: RefineConfig) -> _ScoreWindows:
 def _explore(p: RefineProblem, windows: _ScoreWindows, config: RefineConfig,
              rng: np.random.Generator) -> TaggedSearch:
     """The exploring stage of ``p`` (``windows``: :func:`_explore_windows`) as a
-    :data:`TaggedSearch` scored by :func:`_score_shape`; returns the finalists ``F x 4`` (the maps' answer, the elites, the
-    climb's and the rattle's best where they ran: see :class:`RefineConfig`) and the number of
-    models explored."""
+    :data:`TaggedSearch` scored by :func:`_score_shape`; returns the finalists ``F x 4`` (the
+    maps' answer, the elites, the climb's and the rattle's best where they ran: see
+    :class:`RefineConfig`) and the number of models explored."""
     theta0 = np.clip(np.asarray(p.theta, dtype=np.float64), _LOW, _HIGH)
     theta, cost = yield from _tagged(_search(theta0, config, rng), False)
-    finalists = [theta0[None], theta[np.argsort(cost)[: config.elites]]]
+    elites = theta[np.argsort(cost)[: config.elites]]
+    finalists = [theta0[None], elites]
     explored = len(cost)
     best = theta[int(np.argmin(cost))]
     if _climbs(p, theta0, best, config):
@@ -576,7 +580,7 @@ def _explore(p: RefineProblem, windows: _ScoreWindows, config: RefineConfig,
         if cost_up.min() < config.climb_win * cost.min():
             finalists.append(theta_up[np.argsort(cost_up)[: config.climb_finalists]])
     if 10.0 ** best[3] >= config.rattle_s_N and windows.lead.any():
-        again = np.concatenate([finalists[1], np.repeat(best[None], len(config.rattle_shift), axis=0)])
+        again = np.concatenate([elites, np.repeat(best[None], len(config.rattle_shift), axis=0)])
         again[-len(config.rattle_shift):, 3] += config.rattle_shift
         cost_r, theta_r = yield np.clip(again, _LOW, _HIGH), True
         theta_r, cost_r = yield from _tagged(_cem(theta_r, cost_r, config.rattle_rounds,
