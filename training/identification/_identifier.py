@@ -41,6 +41,8 @@ _BACKLASH_CLASSES = ("elastic_backlash", "stiff_backlash")
 CLASS_MARGIN = 0.25
 #: The structure map's probability of ``stiff`` below which a stiff answer is refined too.
 STIFF_SURE = 0.6
+#: The refinement's :attr:`Refined.evidence` below which its class does not replace the maps' one.
+CLASS_EVIDENCE = 15.0
 
 
 @dataclass(frozen=True)
@@ -243,11 +245,14 @@ class Identifier:
     def _result(self, a: Analysis, m: _MapsAnswer, r: Refined | None, drive_findings: list[Finding],
                 name: str | None) -> IdentificationResult:
         warnings = list(a.warnings) + self._maps_warnings(a, m)
-        if r is None:
-            structure, parameters = m.structure, self._maps_parameters(a, m)
-        else:
-            structure, parameters = self._refined_parameters(a, r)
-            warnings += _refine_warnings(r, structure)
+        structure, parameters = m.structure, self._maps_parameters(a, m)
+        if r is not None:
+            refined_structure, refined_parameters = self._refined_parameters(a, r)
+            if refined_structure == m.structure or r.evidence >= CLASS_EVIDENCE or r.J_sigma is not None:
+                structure, parameters = refined_structure, refined_parameters
+                warnings += _refine_warnings(r, structure)
+            else:
+                warnings.append(_undecided(m.structure, refined_structure, r.evidence))
         if structure != "stiff" and m.structure == "stiff" and a.osc_quanta < 1.0:
             warnings.append(_below_quantum(a))
         findings = drive_findings + self.envelope.check(_mechanics_quantities(a, parameters))
@@ -302,6 +307,12 @@ class Identifier:
         if a.osc_quanta < 1.0 and m.structure != "stiff":
             out.append(_below_quantum(a))
         return out
+
+
+def _undecided(maps: str, refined: str, evidence: float) -> IdentWarning:
+    return IdentWarning("class_undecided", f"the record does not decide between {maps} (the maps' answer, kept) and "
+                                           f"{refined} (the refinement's: the evidence of its better fit is "
+                                           f"{evidence:.3g}, below {CLASS_EVIDENCE:g})")
 
 
 def _below_quantum(a: Analysis) -> IdentWarning:

@@ -181,9 +181,9 @@ class Refined:
     """The refined model: ``f_e`` [Hz], ``V_J``, ``d``, ``s_N``, ``backlash`` = ``2s`` [rad];
     ``residual`` and ``start_residual``: the detrended speed error of the refined model and of
     the maps' answer over the measured oscillation (both detrended the same way; about the
-    quantization noise over the oscillation for a perfect model); ``n_sims`` simulated models;
-    ``J_sigma``, ``M_FC``: refined one-mass values where the free stage won (else None: STEP 2's
-    stand)."""
+    quantization noise over the oscillation for a perfect model), ``dof`` the samples they are
+    taken over less the trends removed; ``n_sims`` simulated models; ``J_sigma``, ``M_FC``:
+    refined one-mass values where the free stage won (else None: STEP 2's stand)."""
 
     f_e: float
     V_J: float
@@ -192,9 +192,20 @@ class Refined:
     backlash: float
     residual: float
     start_residual: float
+    dof: int
     n_sims: int
     J_sigma: float | None = None
     M_FC: float | None = None
+
+    @property
+    def evidence(self) -> float:
+        """How much better the refined model explains the record than the maps' answer: the drop of
+        the squared error in units of the refined model's own error per degree of freedom (an F
+        statistic of the added model; 0 where it is no better, inf where it fits exactly)."""
+        gain = self.start_residual ** 2 - self.residual ** 2
+        if gain <= 0.0:
+            return 0.0
+        return math.inf if self.residual == 0.0 else gain * self.dof / self.residual ** 2
 
 
 def torque_reference(bounds: np.ndarray, M_star: float) -> tuple[np.ndarray, np.ndarray]:
@@ -660,7 +671,8 @@ def _finish(p: RefineProblem, theta: np.ndarray, cost: np.ndarray, full: list, m
         best_cost = float(_score(p, best[None], full, _drive(p))[0])
     free = len(best) == 6
     return Refined(**_answer(p, best, float(10.0 ** best[3])), residual=_relative(best_cost, measured),
-                   start_residual=_relative(float(cost[0]), measured), n_sims=n_sims,
+                   start_residual=_relative(float(cost[0]), measured), dof=sum(b - a - Q.shape[1] for a, b, Q in full),
+                   n_sims=n_sims,
                    J_sigma=float(10.0 ** best[4]) if free else None, M_FC=float(best[5]) if free else None)
 
 

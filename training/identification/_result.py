@@ -37,6 +37,8 @@ WARNING_CODES: dict[str, str] = {
     "drive_outside_training": "a drive or test value lies outside what the maps were trained on",
     "outside_envelope": "a drive, test or identified value lies outside SPEC 3.1's drive envelope",
     "backlash_below_resolution": "a backlash narrower than the encoder resolves may hide: an upper bound is given",
+    "class_undecided": "the refinement's class fits the record no better than the maps' one (within the record's "
+                       "noise): the maps' answer stands, the other class is about as likely",
     "class_near_threshold": "a quantity of the class rule lies near its threshold: the neighbouring class is about "
                             "as likely",
     "implausible_output": "an identified value the record cannot support (above Nyquist or the current loop's "

@@ -10,11 +10,13 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from sim import STRUCTURE_CLASSES, write_record
+from sim import STRUCTURE_CLASSES, two_mass_derived, write_record
 from training.errors import IdentificationError
 from training.identification import (PARAMETER_NAMES, WARNING_CODES, IdentificationFailure, IdentificationResult,
                                      Identifier, IdentWarning, Parameters, Quality, fit_one_mass)
-from training.identification import _batch, _identifier
+from training.identification import _batch, _identifier, analyze
+from training.identification._maps import MAP_SPECS
+from training.identification._refine import Refined
 
 #: The keys of SPEC section 9's object and of its ``quality`` (the refinement's last four).
 SPEC9_KEYS = ["structure", "parameters", "quality", "warnings"]
@@ -177,3 +179,38 @@ def test_load_defaults_to_the_checkpoints_folder_at_call_time(monkeypatch, tmp_p
     monkeypatch.setenv("TWOMASS_CHECKPOINTS", str(tmp_path / "elsewhere"))
     with pytest.raises((ValueError, OSError), match="elsewhere"):
         Identifier.load()
+
+
+def test_refined_evidence_is_the_drop_of_the_squared_error_per_degree_of_freedom():
+    """Hand-computed: residual 0.5 of the measured rms against the maps' 1.0 over 100 degrees of
+    freedom drops the squared error by 0.75, 300 times the refined model's 0.0025 per degree."""
+    def refined(residual: float, start: float) -> Refined:
+        return Refined(f_e=30.0, V_J=1.0, d=0.02, s_N=0.5, backlash=1e-3, residual=residual, start_residual=start,
+                       dof=100, n_sims=1)
+
+    assert refined(0.5, 1.0).evidence == pytest.approx(300.0)
+    assert refined(1.0, 0.9).evidence == 0.0  # no better than the maps' answer
+    assert refined(0.0, 0.1).evidence == float("inf")
+
+
+@pytest.mark.parametrize("residual, kept", [(0.9999, "maps"), (0.9, "refined")])
+def test_a_refined_class_stands_only_where_the_record_shows_it(ident, good, residual, kept):
+    """The maps say stiff; the refinement's model adds a backlash (stiff_backlash). Fitting the
+    record by 2e-4 of its rms better over 4000 degrees of freedom (evidence 0.8) does not show that
+    backlash: the maps' answer stays, warned ``class_undecided``. 10 % better (evidence 940) does."""
+    a = analyze(good)
+    m = _identifier._MapsAnswer("stiff", {c: 0.25 for c in STRUCTURE_CLASSES}, f_e=3000.0, V_J=1.0, d=0.05,
+                                s_N=1e-3, s_N_backlash=1e-3, distance_ratio=dict.fromkeys(MAP_SPECS, 0.5))
+    dv = two_mass_derived(a.fit.J_sigma, 1.0, 3000.0, 0.05)
+    backlash = 2.0 * 1.0 * a.M_N / dv.C_F  # s_N = 1
+    r = Refined(f_e=3000.0, V_J=1.0, d=0.05, s_N=1.0, backlash=backlash, residual=residual, start_residual=1.0,
+                dof=4000, n_sims=1)
+    assert ident._refined_parameters(a, r)[0] == "stiff_backlash"
+    res = ident._result(a, m, r, [], "x")
+    if kept == "maps":
+        assert res.structure == "stiff" and res.parameters.f_e is None
+        assert res.has_warning("class_undecided")
+        assert "between stiff (the maps' answer, kept) and stiff_backlash" in " ".join(w.text for w in res.warnings)
+    else:
+        assert res.structure == "stiff_backlash" and res.parameters.backlash == pytest.approx(backlash)
+        assert not res.has_warning("class_undecided")

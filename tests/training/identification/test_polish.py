@@ -20,7 +20,7 @@ def polish(problems, chosen, config=RefineConfig()):
 
 
 def _refined(f_e: float, V_J: float, d: float, s_N: float = 1e-3, J_sigma: float | None = None) -> Refined:
-    return Refined(f_e=f_e, V_J=V_J, d=d, s_N=s_N, backlash=0.0, residual=1.0, start_residual=1.0, n_sims=100,
+    return Refined(f_e=f_e, V_J=V_J, d=d, s_N=s_N, backlash=0.0, residual=1.0, start_residual=1.0, dof=1000, n_sims=100,
                    J_sigma=J_sigma)
 
 
