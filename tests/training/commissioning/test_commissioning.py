@@ -226,3 +226,13 @@ def test_command_runs_a_drive_from_a_file_and_a_pending_folder(tmp_path, capsys)
     assert main(["commission", "--resume", str(folder), "--no-progress"]) == 0
     assert "001_request.json" in capsys.readouterr().out
     assert json.loads((folder / "001_request.json").read_text())["kind"] == "test"
+
+
+def test_the_chain_reads_identification_codes_only():
+    """Every code the chain acts on is one the identification emits (a misspelt code would never
+    match); an undecided class makes the elastic values uncertain."""
+    from training.commissioning._chain import UNCERTAIN_CODES, UNDETERMINED_CODES
+    from training.identification import WARNING_CODES
+
+    assert UNCERTAIN_CODES <= set(WARNING_CODES) and UNDETERMINED_CODES <= UNCERTAIN_CODES
+    assert "class_undecided" in UNCERTAIN_CODES
