@@ -91,9 +91,16 @@ class Finding:
                 "envelope": None if self.envelope is None else list(self.envelope), "outside": list(self.outside)}
 
 
-def _inside(value: float, rng: tuple[float, float]) -> bool:
+#: Identified values whose own uncertainty is wide lie outside a range only beyond this factor of
+#: its ends. ``d`` is the least certain value (it trades off against ``V_J``): an answer with ``d``
+#: past 1.2 x the envelope's 0.1 was wrong for 27 of 31 elastic answers on the drive matrix and
+#: 2000 envelope systems (3 of them unwarned), within the slack right for 16 of 20 unwarned ones.
+SLACK: dict[str, float] = {"d": 1.2}
+
+
+def _inside(value: float, rng: tuple[float, float], slack: float = 1.0) -> bool:
     lo, hi = rng
-    return lo * (1.0 - REL_TOL) - 1e-300 <= value <= hi * (1.0 + REL_TOL) + 1e-300
+    return lo * (1.0 - REL_TOL) / slack - 1e-300 <= value <= hi * (1.0 + REL_TOL) * slack + 1e-300
 
 
 def _fmt(v: float) -> str:
@@ -115,7 +122,7 @@ class Envelope:
                 continue
             tr, env = self.trained.get(name), self.envelope.get(name)
             outside = tuple(k for k, rng in (("trained", tr), ("envelope", env)) if rng is not None
-                            and not _inside(value, rng))
+                            and not _inside(value, rng, SLACK.get(name, 1.0)))
             if outside:
                 out.append(Finding(name, float(value), tr, env, outside))
         return out

@@ -342,9 +342,10 @@ def _drive_quantities(a: Analysis) -> dict[str, float | None]:
 
 
 def _mechanics_quantities(a: Analysis, p: Parameters) -> dict[str, float | None]:
-    """The identified mechanics the envelope checks (``d`` is not: it is the least certain value)."""
+    """The identified mechanics the envelope checks (``d``, the least certain, with a slack:
+    :data:`._envelope.SLACK`)."""
     s_N = (0.5 * p.backlash * p.C_F / a.M_N) if p.backlash is not None and p.C_F is not None else None
-    return {"f_e": p.f_e, "V_J": p.V_J, "s_N": s_N,
+    return {"f_e": p.f_e, "V_J": p.V_J, "d": p.d, "s_N": s_N,
             "M_FC_over_M_star": None if p.M_FC is None else p.M_FC / a.M_star}
 
 

@@ -98,6 +98,16 @@ def test_the_shipped_envelope_is_the_maps_training_and_spec_3_1(ident):
         Envelope.from_dict({**data, "trained": {"speed": [0, 1]}})
 
 
+def test_a_damping_is_outside_the_envelope_only_beyond_its_slack(ident):
+    """``d`` (SPEC 3.1: 0.005 .. 0.1) is the least certain identified value: 0.11 and 0.0045 pass,
+    0.125 and 0.004 are named (beyond the ends divided or multiplied by 1.2, and the 1 % tolerance)."""
+    def outside(d: float) -> bool:
+        return [f.quantity for f in ident.envelope.check({"d": d})] == ["d"]
+
+    assert not outside(0.11) and not outside(0.0045) and outside(0.125) and outside(0.004)
+    assert ident.envelope.envelope["d"] == (0.005, 0.1)
+
+
 def test_a_backlash_the_low_resolution_encoder_cannot_show_is_bounded(ident):
     """2^13 counts at 1 ms: a 0.05 degree backlash (half a count of lead) is below what the record
     shows: no width, an upper bound and a warning (such widths came out as stiff, backlash 0, no
