@@ -246,10 +246,13 @@ class Identifier:
                 name: str | None) -> IdentificationResult:
         warnings = list(a.warnings) + self._maps_warnings(a, m)
         structure, parameters = m.structure, self._maps_parameters(a, m)
+        maps_model = (a.fit.J_sigma, m.V_J, m.f_e, m.d, m.s_N)  # of which the class rule speaks
+        models = [(maps_model, "")]
         if r is not None:
             refined_structure, refined_parameters = self._refined_parameters(a, r)
             if refined_structure == m.structure or r.evidence >= CLASS_EVIDENCE or r.J_sigma is not None:
                 structure, parameters = refined_structure, refined_parameters
+                models = [((refined_parameters.J_sigma, r.V_J, r.f_e, r.d, r.s_N), ""), (maps_model, " (the maps' estimate)")]
                 warnings += _refine_warnings(r, structure)
             else:
                 warnings.append(_undecided(m.structure, refined_structure, r.evidence))
@@ -261,7 +264,7 @@ class Identifier:
         warnings += impossible_warnings + implausible(parameters, T_s=a.T_s, T_Ei=a.T_Ei, travel=travel(a.fit.speed, a.T_s),
                                                       J_sigma_one_mass=a.fit.J_sigma)
         parameters, bound, bound_warnings = _backlash_bound(a, parameters)
-        warnings += bound_warnings + _near_threshold(a, m, parameters)
+        warnings += bound_warnings + _near_threshold(a, models, parameters)
         quality = Quality(
             structure_probabilities=m.probabilities, map_distance_ratio=m.distance_ratio, osc_quanta=a.osc_quanta,
             oscillation_fit_r2=a.feature("r2_fit"), one_mass_rel_residual=a.fit.rel_residual,
@@ -386,19 +389,28 @@ def _spec_class(a: Analysis, J_sigma: float, V_J: float, f_e: float, d: float, s
     return STRUCTURE_CLASSES[int(class_index(**_class_quantities(a, J_sigma, V_J, f_e, d, s_N)))]
 
 
-def _near_threshold(a: Analysis, m: _MapsAnswer, p: Parameters) -> list[IdentWarning]:
-    """``class_near_threshold`` where the answer's class quantities (the final parameters', else the
-    maps' estimate) lie within :data:`CLASS_MARGIN` of a threshold of the class rule: there the
-    neighbouring class is about as likely (the evaluation scores the class beyond 20 % only)."""
+def _near_threshold(a: Analysis, models: list[tuple[tuple[float, float, float, float, float], str]],
+                    p: Parameters) -> list[IdentWarning]:
+    """``class_near_threshold`` where the answer's class quantities lie within :data:`CLASS_MARGIN`
+    of a threshold of the class rule: there the neighbouring class is about as likely (the
+    evaluation scores the class beyond 20 % only). The quantities: the final parameters' where
+    they are elastic; else those of each of ``models`` (``J_sigma, V_J, f_e, d, s_N`` and a label
+    for the text: a ``stiff`` answer's own model, and the maps' estimate where the refinement's
+    stands; a record that shows little leaves both uncertain)."""
     if p.f_e is not None and p.V_J is not None and p.d is not None and p.J_sigma is not None:
         bounded = p.backlash is None or p.C_F is None  # a backlash bounded, not measured: its s_N unknown
         q = _class_quantities(a, p.J_sigma, p.V_J, p.f_e, p.d, 0.0 if bounded else 0.5 * p.backlash * p.C_F / a.M_N)
         if bounded:
             del q["s_N"]
+        sources = [(q, "")]
     else:
-        q = _class_quantities(a, a.fit.J_sigma, m.V_J, m.f_e, m.d, m.s_N)
-    near = [(name, v, thr) for name, v in q.items() if math.isfinite(v)
-            for thr in CLASS_THRESHOLDS[name] if abs(v - thr) < CLASS_MARGIN * thr]
-    return [IdentWarning("class_near_threshold", f"{name} = {v:.3g} lies within {CLASS_MARGIN:.0%} of the class "
-                                                 f"threshold {thr:g}: the neighbouring class is about as likely")
-            for name, v, thr in near]
+        sources = [(_class_quantities(a, *model), label) for model, label in models]
+    near: dict[tuple[str, float], str] = {}
+    for q, label in sources:
+        for name, v in q.items():
+            for thr in CLASS_THRESHOLDS[name]:
+                if math.isfinite(v) and abs(v - thr) < CLASS_MARGIN * thr:
+                    near.setdefault((name, thr), f"{name} = {v:.3g}{label}")
+    return [IdentWarning("class_near_threshold", f"{what} lies within {CLASS_MARGIN:.0%} of the class threshold "
+                                                 f"{thr:g}: the neighbouring class is about as likely")
+            for (name, thr), what in near.items()]

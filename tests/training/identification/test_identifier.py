@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import copy
 import json
+from dataclasses import replace
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -214,3 +215,25 @@ def test_a_refined_class_stands_only_where_the_record_shows_it(ident, good, resi
     else:
         assert res.structure == "stiff_backlash" and res.parameters.backlash == pytest.approx(backlash)
         assert not res.has_warning("class_undecided")
+
+
+def test_a_refined_stiff_answer_near_the_backlash_threshold_says_so(ident, good):
+    """The refinement's stiff model has s_N = 0.095, 5 % below the class threshold 0.1 (a large-axis
+    shaft with s_N 0.102 came out so, unwarned): the answer is warned on the refined model's s_N,
+    though the maps' estimate (0.001) lies far; and on the maps' estimate where only that lies near."""
+    a = analyze(good)
+    m = _identifier._MapsAnswer("stiff", {c: 0.25 for c in STRUCTURE_CLASSES}, f_e=3000.0, V_J=1.0, d=0.05,
+                                s_N=1e-3, s_N_backlash=1e-3, distance_ratio=dict.fromkeys(MAP_SPECS, 0.5))
+    backlash = 2.0 * 0.095 * a.M_N / two_mass_derived(a.fit.J_sigma, 1.0, 3000.0, 0.05).C_F
+    r = Refined(f_e=3000.0, V_J=1.0, d=0.05, s_N=0.095, backlash=backlash, residual=0.5, start_residual=1.0,
+                dof=4000, n_sims=1)
+    def near(m, r) -> list[str]:
+        res = ident._result(a, m, r, [], "x")
+        assert res.structure == "stiff"
+        return [w.text.split(" lies")[0] for w in res.warnings if w.code == "class_near_threshold"]
+
+    assert "s_N = 0.095" in near(m, r)
+    # a shaft with s_N 0.35 came out stiff at a refined 0.058 where only the maps' estimate lay near
+    m_near = replace(m, s_N=0.09)
+    r_far = replace(r, s_N=0.01, backlash=backlash * 0.01 / 0.095)
+    assert "s_N = 0.09 (the maps' estimate)" in near(m_near, r_far) and "s_N = 0.095" not in near(m_near, r_far)
