@@ -252,7 +252,8 @@ class Identifier:
             refined_structure, refined_parameters = self._refined_parameters(a, r)
             if refined_structure == m.structure or r.evidence >= CLASS_EVIDENCE or r.J_sigma is not None:
                 structure, parameters = refined_structure, refined_parameters
-                models = [((refined_parameters.J_sigma, r.V_J, r.f_e, r.d, r.s_N), ""), (maps_model, " (the maps' estimate)")]
+                refined_model = (refined_parameters.J_sigma, r.V_J, r.f_e, r.d, r.s_N)
+                models = [(refined_model, ""), (maps_model, " (the maps' estimate)")]
                 warnings += _refine_warnings(r, structure)
             else:
                 warnings.append(_undecided(m.structure, refined_structure, r.evidence))

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import copy
 import json
-from dataclasses import replace
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -194,46 +193,49 @@ def test_refined_evidence_is_the_drop_of_the_squared_error_per_degree_of_freedom
     assert refined(0.0, 0.1).evidence == float("inf")
 
 
+def _stiff_maps_answer(s_N: float = 1e-3) -> _identifier._MapsAnswer:
+    """The maps' answer ``stiff`` (a 3 kHz shaft) with the structure map's ``s_N``."""
+    return _identifier._MapsAnswer("stiff", {c: 0.25 for c in STRUCTURE_CLASSES}, f_e=3000.0, V_J=1.0, d=0.05,
+                                   s_N=s_N, s_N_backlash=s_N, distance_ratio=dict.fromkeys(MAP_SPECS, 0.5))
+
+
+def _refined_shaft(a, s_N: float, residual: float) -> Refined:
+    """The refinement's model of the same shaft with a gap ``s_N`` (relative residual ``residual``
+    against the maps' 1.0 over 4000 degrees of freedom)."""
+    backlash = 2.0 * s_N * a.M_N / two_mass_derived(a.fit.J_sigma, 1.0, 3000.0, 0.05).C_F
+    return Refined(f_e=3000.0, V_J=1.0, d=0.05, s_N=s_N, backlash=backlash, residual=residual, start_residual=1.0,
+                   dof=4000, n_sims=1)
+
+
 @pytest.mark.parametrize("residual, kept", [(0.9999, "maps"), (0.9, "refined")])
 def test_a_refined_class_stands_only_where_the_record_shows_it(ident, good, residual, kept):
     """The maps say stiff; the refinement's model adds a backlash (stiff_backlash). Fitting the
     record by 2e-4 of its rms better over 4000 degrees of freedom (evidence 0.8) does not show that
     backlash: the maps' answer stays, warned ``class_undecided``. 10 % better (evidence 940) does."""
     a = analyze(good)
-    m = _identifier._MapsAnswer("stiff", {c: 0.25 for c in STRUCTURE_CLASSES}, f_e=3000.0, V_J=1.0, d=0.05,
-                                s_N=1e-3, s_N_backlash=1e-3, distance_ratio=dict.fromkeys(MAP_SPECS, 0.5))
-    dv = two_mass_derived(a.fit.J_sigma, 1.0, 3000.0, 0.05)
-    backlash = 2.0 * 1.0 * a.M_N / dv.C_F  # s_N = 1
-    r = Refined(f_e=3000.0, V_J=1.0, d=0.05, s_N=1.0, backlash=backlash, residual=residual, start_residual=1.0,
-                dof=4000, n_sims=1)
+    r = _refined_shaft(a, 1.0, residual)
     assert ident._refined_parameters(a, r)[0] == "stiff_backlash"
-    res = ident._result(a, m, r, [], "x")
+    res = ident._result(a, _stiff_maps_answer(), r, [], "x")
     if kept == "maps":
         assert res.structure == "stiff" and res.parameters.f_e is None
         assert res.has_warning("class_undecided")
         assert "between stiff (the maps' answer, kept) and stiff_backlash" in " ".join(w.text for w in res.warnings)
     else:
-        assert res.structure == "stiff_backlash" and res.parameters.backlash == pytest.approx(backlash)
+        assert res.structure == "stiff_backlash" and res.parameters.backlash == pytest.approx(r.backlash)
         assert not res.has_warning("class_undecided")
 
 
 def test_a_refined_stiff_answer_near_the_backlash_threshold_says_so(ident, good):
     """The refinement's stiff model has s_N = 0.095, 5 % below the class threshold 0.1 (a large-axis
     shaft with s_N 0.102 came out so, unwarned): the answer is warned on the refined model's s_N,
-    though the maps' estimate (0.001) lies far; and on the maps' estimate where only that lies near."""
+    though the maps' estimate (0.001) lies far; and on the maps' estimate where only that lies near
+    (a shaft with s_N 0.35 came out stiff at a refined 0.058)."""
     a = analyze(good)
-    m = _identifier._MapsAnswer("stiff", {c: 0.25 for c in STRUCTURE_CLASSES}, f_e=3000.0, V_J=1.0, d=0.05,
-                                s_N=1e-3, s_N_backlash=1e-3, distance_ratio=dict.fromkeys(MAP_SPECS, 0.5))
-    backlash = 2.0 * 0.095 * a.M_N / two_mass_derived(a.fit.J_sigma, 1.0, 3000.0, 0.05).C_F
-    r = Refined(f_e=3000.0, V_J=1.0, d=0.05, s_N=0.095, backlash=backlash, residual=0.5, start_residual=1.0,
-                dof=4000, n_sims=1)
-    def near(m, r) -> list[str]:
-        res = ident._result(a, m, r, [], "x")
+
+    def near(maps_s_N: float, refined_s_N: float) -> list[str]:
+        res = ident._result(a, _stiff_maps_answer(maps_s_N), _refined_shaft(a, refined_s_N, 0.5), [], "x")
         assert res.structure == "stiff"
         return [w.text.split(" lies")[0] for w in res.warnings if w.code == "class_near_threshold"]
 
-    assert "s_N = 0.095" in near(m, r)
-    # a shaft with s_N 0.35 came out stiff at a refined 0.058 where only the maps' estimate lay near
-    m_near = replace(m, s_N=0.09)
-    r_far = replace(r, s_N=0.01, backlash=backlash * 0.01 / 0.095)
-    assert "s_N = 0.09 (the maps' estimate)" in near(m_near, r_far) and "s_N = 0.095" not in near(m_near, r_far)
+    assert "s_N = 0.095" in near(1e-3, 0.095)
+    assert "s_N = 0.09 (the maps' estimate)" in near(0.09, 0.01) and "s_N = 0.01" not in near(0.09, 0.01)
