@@ -12,6 +12,8 @@ import torch
 
 from sim import (DriveConfig, Record, TestSignalConfig, TwoMassParams, iter_records, responses_to_records,
                  sample_population, simulate_test)
+from test_sections import envelope_record
+
 from training.identification import analyze
 from training.identification._plausibility import check_record
 
@@ -149,9 +151,8 @@ def test_sections_an_encoder_cannot_resolve_are_refused_with_its_quantum():
     # a drive SPEC 3.1's envelope allows (2^12 counts at 65 us: 24 rad/s per count and sample)
     # tested at w_max 16 rad/s: the speed reads one count now and then, no section shows
     drive = DriveConfig(M_max=609.0, M_N=205.0, T_Ei=1.18e-4, T_s=6.454e-5, encoder_counts=2**12, current_noise_std=0.095)
-    params = TwoMassParams(J_sigma=0.2835, V_J=1.58, f_e=120.9, d=0.056, backlash=0.0, M_FC=8.21, mu_F=0.23)
-    signal = TestSignalConfig(M_star=180.1, w_max=15.54)
-    rec = responses_to_records(simulate_test(params, drive, signal, seed=3), params.reshape(1), drive, signal)[0]
+    rec = envelope_record(drive, 180.1, 15.54, J_sigma=0.2835, V_J=1.58, f_e=120.9, d=0.056, backlash=0.0, M_FC=8.21,
+                          mu_F=0.23)
     check_record(rec)  # plausible as a record: the one-mass fit reads J_sigma from coarser speeds than this
     with pytest.raises(ValueError, match=r"^speed does not follow the torque: .*; the encoder hardly resolves this "
                                          r"test: its speed quantum .* = 23\.77 rad/s is 1\.5 x w_max"):
@@ -163,9 +164,8 @@ def test_a_speed_one_count_above_three_times_w_max_is_the_encoder_not_wrong_unit
     # 5.7 rad/s: the speed reads 0, 17.2 or 34.3 rad/s, 3.03 x w_max at its peak; it was called
     # "wrong units"
     drive = DriveConfig(M_max=671.0, M_N=353.0, T_Ei=1.69e-3, T_s=8.944e-5, encoder_counts=2**12, current_noise_std=4.38)
-    params = TwoMassParams(J_sigma=315.0, V_J=0.888, f_e=117.4, d=0.0607, backlash=0.026, M_FC=1.63, mu_F=2.11)
-    signal = TestSignalConfig(M_star=593.6, w_max=5.655)
-    rec = responses_to_records(simulate_test(params, drive, signal, seed=3), params.reshape(1), drive, signal)[0]
+    rec = envelope_record(drive, 593.6, 5.655, J_sigma=315.0, V_J=0.888, f_e=117.4, d=0.0607, backlash=0.026,
+                          M_FC=1.63, mu_F=2.11)
     assert np.abs(rec.speed).max() > 3.0 * 5.655
     check_record(rec)
     with pytest.raises(ValueError, match=r"the encoder hardly resolves this test: its speed quantum .* = 17\.15 rad/s"):

@@ -8,7 +8,7 @@ import numpy as np
 from _refine_problems import refine_problem
 
 from sim import DriveConfig, TestSignalConfig, TwoMassParams
-from training.identification._refine import (RefineConfig, _explore_windows, _problem_substeps, _simulate,
+from training.identification._refine import (RefineConfig, _drive, _explore_windows, _problem_substeps, _simulate,
                                              _window_speeds, refine)
 
 # a large industrial axis (500 us, 2^16 counts, current loop 1.5 ms)
@@ -26,10 +26,9 @@ def test_a_window_after_a_zero_torque_section_started_at_that_section_replays_th
     after = np.flatnonzero(w.lead)
     assert len(after) == 2  # the windows after sections II and V
     theta = np.array([THETA])
-    whole = _simulate(p, theta, _drive := DriveConfig(M_max=1e9, T_Ei=AXIS.T_Ei, T_s=AXIS.T_s,
-                                                     encoder_counts=AXIS.encoder_counts))[:, 0] + p.speed  # N
+    whole = _simulate(p, theta, _drive(p))[:, 0] + p.speed  # N
     S = _problem_substeps(p, theta)
-    led, plain = (_window_speeds([(p, theta, w, tag)], _drive, S)[0][0] for tag in (True, False))  # J x L
+    led, plain = (_window_speeds([(p, theta, w, tag)], _drive(p), S)[0][0] for tag in (True, False))  # J x L
     for j in after:  # up to the quadratic trend the score removes (the one-mass part's drift)
         n, Q = int(w.inside[j].sum()), w.Q[j]
         ref = whole[w.at[j]:w.at[j] + n]
@@ -63,7 +62,7 @@ def test_led_windows_replayed_in_chunks_give_the_same_speeds(monkeypatch):
     w = _explore_windows(p, RefineConfig())
     rng = np.random.default_rng(0)
     theta = np.clip(np.array(THETA) + rng.normal(0.0, 0.05, (100, 4)), [-9, -9, 0.01, -9], 9)  # C x 4
-    drive = DriveConfig(M_max=1e9, T_Ei=AXIS.T_Ei, T_s=AXIS.T_s, encoder_counts=AXIS.encoder_counts)
+    drive = _drive(p)
     S = _problem_substeps(p, theta)
     whole = _window_speeds([(p, theta, w, True)], drive, S)[0]
     monkeypatch.setattr(refine_module, "_LED_SAMPLES", 1000)  # 64 lanes per replay: 4 replays

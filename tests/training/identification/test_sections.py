@@ -210,7 +210,7 @@ def test_torque_ringing_and_noise():
     assert split.M_star == pytest.approx(10.0, rel=0.03)
 
 
-def _envelope_record(drive: DriveConfig, M_star: float, w_max: float, **mechanics: float) -> Record:
+def envelope_record(drive: DriveConfig, M_star: float, w_max: float, **mechanics: float) -> Record:
     """One simulated test run (with ``torque_ref`` and the ``section`` column) on ``drive``."""
     params = TwoMassParams(**mechanics)
     signal = TestSignalConfig(M_star=M_star, w_max=w_max)
@@ -221,7 +221,7 @@ def test_a_section_shorter_than_the_noise_filter_is_found_in_the_torque_referenc
     # a drive of SPEC 3.1's envelope (seed 11) whose section III lasts 4 samples (1 ms): the
     # reference is exact, so no run of it is a transition (2 ms runs were dropped: no sections)
     drive = DriveConfig(M_max=10.9, M_N=3.64, T_Ei=4.77e-4, T_s=2.51e-4, encoder_counts=2**19, current_noise_std=0.129)
-    rec = _envelope_record(drive, 4.84, 104.8, J_sigma=1.14e-3, V_J=2.87, f_e=28.6, d=0.02, backlash=5e-4,
+    rec = envelope_record(drive, 4.84, 104.8, J_sigma=1.14e-3, V_J=2.87, f_e=28.6, d=0.02, backlash=5e-4,
                            M_FC=0.0715, mu_F=2.5e-4)
     column = np.asarray(rec.section)
     lengths = [int((column == k).sum()) for k in range(1, 7)]
