@@ -11,8 +11,9 @@ Substep (mode frozen over the substep): shaft torque
 *stuck* when ``w_L == 0`` and ``|M_S - M_ext| <= M_FC`` (then ``dw_L = 0``), else the friction
 sign is ``sign(w_L)`` (or ``sign(M_S - M_ext)`` when breaking away from rest). After the RK4
 update a load speed that changed sign against the friction direction is clamped to 0 (it stops
-and the next substep decides stick or slip). The motor angle is integrated per sample in float32
-/float64 and accumulated in float64, so the encoder count is exact.
+and the next substep decides stick or slip). A motor torque ``|M_M|`` below :data:`TORQUE_FLOOR`
+is 0. The motor angle is integrated per sample in float32/float64 and accumulated in float64, so
+the encoder count is exact.
 """
 
 from __future__ import annotations
@@ -30,6 +31,12 @@ from sim._kernel import load_kernel
 from sim.params import DriveConfig, TwoMassParams
 
 _DTYPES = (torch.float32, torch.float64)
+
+#: [Nm] A motor torque below this is 0 (its Kahan compensation too; ``TORQUE_FLOOR`` in ``_kernel.c``):
+#: at zero reference the current loop's lag decays exponentially, through subnormal numbers (in
+#: float32 from 69 ``T_Ei`` on), on which every operation costs the CPU a microcode assist; over a
+#: whole test the kernel ran 2.4x slower for them. Physically nothing: 1e-30 Nm.
+TORQUE_FLOOR = 1e-30
 
 
 def rk4_substeps(w_0: float, T_s: float, T_Ei: float, *, w_0_dt: float = 0.25, minimum: int = 4) -> int:
@@ -120,6 +127,8 @@ class _Work:
       ``M_ref - M_M``; ``coef`` their factors ``1/J_M``, ``1/J_L`` (0 while stuck), 1, ``1/T_Ei``:
       one product gives the four slopes (``x * 1 = x`` exactly);
     * ``Sum``: the RK4 sums of rows 0-4 of ``M``; stage 1 writes its slopes there directly.
+    * ``views``: per buffer its state, compensations, state rows and the pairs (value, compensation)
+      of ``w_L`` (the stop rule resets it) and of ``M_M`` (:data:`TORQUE_FLOOR`).
 
     Row views are made once (a view costs as much as a small op)."""
 
@@ -134,9 +143,9 @@ class _Work:
         self.coef = torch.stack((p.iJM, p.iJL, one, torch.full((n,), p.iTE, dtype=p.dtype)))
         self.e, self.t1, self.t2, self.MS, self.net, self.inc, self.sgn, self.fric = (
             torch.empty(n, dtype=p.dtype) for _ in range(8))
-        self.rest, self.stuck, self.stop = (torch.empty(n, dtype=torch.bool) for _ in range(3))
-        # per buffer: state, compensations, state rows, the pair (w_L, its compensation) the stop rule resets
-        self.views = tuple((B[:4], B[4:], B[:4].unbind(0), B[1::4]) for B in (self.P, self.P2))
+        self.rest, self.stuck, self.stop, self.gone = (torch.empty(n, dtype=torch.bool) for _ in range(4))
+        self.floor = _c(TORQUE_FLOOR, p.dtype)
+        self.views = tuple((B[:4], B[4:], B[:4].unbind(0), B[1::4], B[3::4]) for B in (self.P, self.P2))
         self.K4, self.K5, self.Xi, self.Xir = self.M[:4], self.M[:5], self.M[4:], self.M[4:].unbind(0)
         self.Sum4, self.Sum_w, self.kS4, self.kS_w, self.Nr = self.Sum[:4], self.Sum[4], self.kS[:4], self.kS[4], self.N.unbind(0)
 
@@ -189,7 +198,7 @@ def advance_eager(x: FastState, p: FastParams) -> None:
         C.copy_(x.comp)
         inc, zero, Mref, iJL_free = w.inc.zero_(), w.zero, x.M_ref, w.coef[1]
         for j in range(p.S):
-            (X, C, Xr, _), (T, Cn, Tr, stop_pair) = w.views[j % 2], w.views[1 - j % 2]
+            (X, C, Xr, _, _), (T, Cn, Tr, stop_pair, torque_pair) = w.views[j % 2], w.views[1 - j % 2]
             wM, wL, dp, MM = Xr
             # the mode, frozen over the substep (stuck, friction sign), from stage 1's net torque
             net = _net_torque(wM, wL, dp, p, w)
@@ -216,6 +225,8 @@ def advance_eager(x: FastState, p: FastParams) -> None:
             torch.sub(T, X, out=Cn).sub_(Y)
             stop = torch.lt(torch.mul(Tr[1], sgn, out=w.t2), zero, out=w.stop).logical_or_(stuck)
             torch.where(stop, zero, stop_pair, out=stop_pair)
+            gone = torch.lt(torch.abs(Tr[3], out=w.t2), w.floor, out=w.gone)
+            torch.where(gone, zero, torque_pair, out=torque_pair)
     X, C = w.views[p.S % 2][:2]
     x.comp = C.clone()
     x.w_M, x.w_L, x.dphi, x.M_M = X.clone().unbind(0)

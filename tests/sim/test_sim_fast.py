@@ -151,6 +151,33 @@ def test_eager_twin_and_kernel_share_the_state_layout(dtype: torch.dtype) -> Non
     assert not any(getattr(last, name).is_inference() for name in ("w_M", "w_L", "dphi", "M_M", "phi", "comp"))
 
 
+@pytest.mark.parametrize("use_kernel", [True, False])
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_decayed_motor_torque_ends_at_zero_not_in_subnormals(dtype: torch.dtype, use_kernel: bool) -> None:
+    # at zero reference the current loop's lag decays as exp(-t / T_Ei): below TORQUE_FLOOR (1e-30 Nm)
+    # it is 0 with its compensation, never a subnormal number (each costs the CPU a microcode assist).
+    # Hand count: after 10 samples at 1 Nm, M_M = 1 - exp(-5) = 0.9933 (T_s / T_Ei = 0.5); at 0 Nm it
+    # falls below 1e-30 once k / 2 > ln(0.9933e30) = 69.07, at the 139th sample
+    from sim._integrate_fast import TORQUE_FLOOR, FastParams, FastState, advance
+
+    if use_kernel and load_kernel() is None:
+        pytest.skip("no C compiler: only the eager path exists")
+    p = TwoMassParams(J_sigma=torch.tensor([0.02, 0.05]), V_J=2.0, f_e=torch.tensor([40.0, 20.0]), d=0.05,
+                      backlash=torch.tensor([0.003, 0.0]), M_FC=0.2, mu_F=0.001)
+    fp = FastParams.build(p, DRIVE, 4, dtype)
+    x = FastState.zeros(2, dtype)
+    torque = []
+    for k in range(300):
+        x.M_ref = torch.full((2,), 1.0 if k < 10 else 0.0, dtype=dtype)
+        advance(x, fp, use_kernel=use_kernel)
+        torque.append(x.M_M.clone())
+    M = torch.stack(torque)  # 300 x 2, after each sample
+    assert not bool(((M != 0) & (M.abs() < TORQUE_FLOOR)).any())
+    first_zero = (M == 0).to(torch.int8).argmax(0) - 9  # zero-reference samples until M_M is 0
+    assert first_zero.tolist() == [139, 139]
+    assert bool((M[200:] == 0).all()) and bool((x.comp[3] == 0).all())
+
+
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 def test_controller_decides_at_each_threshold_inclusively(dtype: torch.dtype) -> None:
     # one system per section, its speed exactly at the section's threshold (ends) and one quantum

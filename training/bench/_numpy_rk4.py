@@ -2,8 +2,8 @@
 
 What a competent user writes without our kernel: every operation an array op over all systems,
 fixed-step RK4 with ``S`` substeps per sample, the same model (two-mass plant, backlash dead zone,
-Coulomb + viscous load friction with stiction, first-order current loop, encoder quantization)
-and the same switching controller. It does the arithmetic of ``sim/_kernel.c`` operation for
+Coulomb + viscous load friction with stiction, first-order current loop with its torque floor,
+encoder quantization) and the same switching controller. It does the arithmetic of ``sim/_kernel.c`` operation for
 operation (Kahan-compensated state updates included), so the comparison is of equal work at equal
 precision, and the tests check it against the kernel's output.
 """
@@ -13,6 +13,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+
+from sim._integrate_fast import TORQUE_FLOOR
 
 #: add/sub/mul per system-substep here, counted as written: 7 (shaft torque, friction) + 4 x 15
 #: (the RK4 stages' right-hand sides) + 24 (stage states) + 7 (motor-angle increment) + 41 (four
@@ -45,7 +47,7 @@ def switching_test(coef: dict[str, np.ndarray], S: int, consts: tuple[float, flo
     iJM, iJL, CF, DF, s, MFC, muF, Mext = (coef[k] for k in ("iJM", "iJL", "CF", "DF", "s", "MFC", "muF", "Mext"))
     dt, h, k6, iTE = (dt_.type(v) for v in consts)
     Mstar, Mlow, wmax, wlow = (dt_.type(v) for v in levels)
-    Mmax, two, zero = dt_.type(M_max), dt_.type(2), dt_.type(0)
+    Mmax, two, zero, floor = dt_.type(M_max), dt_.type(2), dt_.type(0), dt_.type(TORQUE_FLOOR)
     qw, scale = encoder
     n = iJM.size
     wM, wL, dp, MM, Mref = (np.zeros(n, dt_) for _ in range(5))
@@ -109,7 +111,9 @@ def switching_test(coef: dict[str, np.ndarray], S: int, consts: tuple[float, flo
             stop = stuck | (t_wL * sgn < 0)  # a load that changed sign against its friction stops
             wL, cwL = np.where(stop, zero, t_wL), np.where(stop, zero, c_wL)
             dp, cdp = kahan(dp, c1, c2, c3, c4, cdp)
-            MM, cMM = kahan(MM, d1, d2, d3, d4, cMM)
+            t_MM, c_MM = kahan(MM, d1, d2, d3, d4, cMM)
+            gone = np.abs(t_MM) < floor  # the decayed current-loop torque is 0 (sim.TORQUE_FLOOR's rule)
+            MM, cMM = np.where(gone, zero, t_MM), np.where(gone, zero, c_MM)
         phi = phi + inc.astype(np.float64)
         Mref = new_ref
     return out
