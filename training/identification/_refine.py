@@ -49,7 +49,9 @@ class RefineConfig:
     """The search, in three stages.
 
     Explore: score only the first ``window_periods`` periods (at the start's ``f_e``; at most
-    ``window_max`` seconds) after each torque step, with each candidate's best gain projected
+    ``window_max`` seconds or ``window_samples`` samples, whichever is longer: the cost is per
+    sample, and on a slowly sampled drive 0.1 s held less than one period of a 10 Hz mechanic, too
+    little to tell a small gap) after each torque step, with each candidate's best gain projected
     out: a model whose frequency is a few % off does not lose its match to the phase error that
     builds up over a long section, nor a model with the right shape but a wrong ``V_J`` to its
     amplitude (the gain rescales its ``V_J``). A grid of ``grid_f_e`` eigenfrequencies over
@@ -118,7 +120,8 @@ class RefineConfig:
     grid_s_N: tuple[float, ...] = (0.0, 0.05, 0.3, 1.0, 3.0)  # explore: s_N of the first grid (0: the start's)
     grid_span: float = 0.25  # explore: the grid's half width [decades of f_e]
     window_periods: float = 4.0  # explore: periods scored after each torque step
-    window_max: float = 0.1  # explore: at most this long [s]
+    window_max: float = 0.1  # explore: at most this long [s] ...
+    window_samples: int = 400  # ... or this many samples, whichever is longer (0.1 s at 250 us)
     rounds: int = 3  # explore: cross-entropy rounds
     candidates: int = 64  # models per round
     elites: int = 12  # best models that set the next spread (and the finalists)
@@ -559,15 +562,15 @@ def _packs(problems: list[RefineProblem], sizes: list[int], substeps: list[int],
 
 def _explore_windows(p: RefineProblem, config: RefineConfig) -> _ScoreWindows:
     """The exploring stage's windows of ``p``: ``window_periods`` at the start's ``f_e`` (at
-    least 8 samples, at most ``window_max``) after each torque step, each after a zero-torque
-    section with that section's length as its lead."""
+    least 8 samples, at most ``window_max`` or ``window_samples``, whichever is longer) after each
+    torque step, each after a zero-torque section with that section's length as its lead."""
     period = 1.0 / (10.0 ** np.clip(p.theta[0], _LOW[0], _HIGH[0]) * p.T_s)  # samples per period at the start's f_e
     seg = np.asarray(p.segments, dtype=np.int64)
     a = seg[:, 0]
     after_zero = (np.arange(len(a)) > 0) & (_level_at(p, a - 1) == 0.0) & (_level_at(p, a) != 0.0)
     lead = np.where(after_zero, a - np.concatenate([[0], a[:-1]]), 0)  # the zero section's length
-    return _ScoreWindows.of(p, _windows(seg, max(8, int(round(min(config.window_periods * period,
-                                                                    config.window_max / p.T_s))))), lead)
+    longest = max(config.window_max / p.T_s, config.window_samples)  # [samples]
+    return _ScoreWindows.of(p, _windows(seg, max(8, int(round(min(config.window_periods * period, longest))))), lead)
 
 
 def _explore(p: RefineProblem, windows: _ScoreWindows, config: RefineConfig,
