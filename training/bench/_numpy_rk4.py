@@ -3,9 +3,9 @@
 What a competent user writes without our kernel: every operation an array op over all systems,
 fixed-step RK4 with ``S`` substeps per sample, the same model (two-mass plant, backlash dead zone,
 Coulomb + viscous load friction with stiction, first-order current loop with its torque floor,
-encoder quantization) and the same switching controller. It does the arithmetic of ``sim/_kernel.c`` operation for
-operation (Kahan-compensated state updates included), so the comparison is of equal work at equal
-precision, and the tests check it against the kernel's output.
+encoder quantization) and the same switching controller. It does the arithmetic of
+``sim/_kernel.c`` operation for operation (Kahan-compensated state updates included), so the
+comparison is of equal work at equal precision, and the tests check it against the kernel's output.
 """
 
 from __future__ import annotations

@@ -498,9 +498,9 @@ def refine(problems: list[RefineProblem], config: RefineConfig | None = None) ->
     replay)."""
     config = config or RefineConfig()
     if (config.elites < 2 or config.candidates < config.elites or config.rounds < 0 or config.window_periods <= 0
-            or config.polish_iterations < 0):
-        raise ValueError(f"RefineConfig: expected rounds >= 0, polish_iterations >= 0, window_periods > 0 and "
-                         f"candidates >= elites >= 2, received {config}")
+            or config.window_samples < 0 or config.polish_iterations < 0):
+        raise ValueError(f"RefineConfig: expected rounds >= 0, polish_iterations >= 0, window_periods > 0, "
+                         f"window_samples >= 0 and candidates >= elites >= 2, received {config}")
     rngs = [np.random.default_rng(config.seed) for _ in problems]
     explored = _explore_all(problems, config, rngs)
     finalists = [f for f, _ in explored]

@@ -75,3 +75,5 @@ def test_a_small_gap_on_a_slowly_sampled_drive_is_found():
 def test_bad_config_is_rejected():
     with pytest.raises(ValueError, match="candidates >= elites >= 2"):
         refine([], RefineConfig(candidates=4, elites=8))
+    with pytest.raises(ValueError, match="window_samples >= 0"):
+        refine([], RefineConfig(window_samples=-1))
