@@ -1,14 +1,44 @@
 /* Rows of comma-separated numbers, parsed by Clinger's fast path or else the C library's strtod (the
    record reader's fast path, see sim/_csv.py, which declares the signature). REAL is unused: the kernel convention compiles
    every kernel once per float type. */
+#include <float.h>
 #include <stdint.h>
 #include <stdio.h>
 #include <stdlib.h>
+#include <string.h>
+
+/* x87 extended precision (a 64-bit significand, stored first, little-endian): decimals of up to 19
+   digits, such as the %.17g time column, need no strtod (see extended_decimal) */
+#if LDBL_MANT_DIG == 64 && (defined(__x86_64__) || defined(__i386__))
+#define EXTENDED 1
+#endif
+
+#ifdef EXTENDED
+/* m * 10^e for m < 2^64 and |e| <= 27 (m and 10^|e| = 2^|e| 5^|e| are exact in a 64-bit
+   significand, so the product or quotient is rounded once, to 64 bits) as the correctly rounded
+   double, or 0 where that second rounding to 53 bits could differ from one rounding of the exact
+   value: where the 64-bit result lies on, or next to, the midpoint of two doubles (its 11 lowest
+   significand bits 0x3ff-0x401; the exact value lies within half a unit of the 64th bit). */
+static int extended_decimal(uint64_t m, int e, double *value) {
+    static const long double pow10[28] = {1e0L, 1e1L, 1e2L, 1e3L, 1e4L, 1e5L, 1e6L, 1e7L, 1e8L, 1e9L, 1e10L,
+                                          1e11L, 1e12L, 1e13L, 1e14L, 1e15L, 1e16L, 1e17L, 1e18L, 1e19L, 1e20L,
+                                          1e21L, 1e22L, 1e23L, 1e24L, 1e25L, 1e26L, 1e27L};
+    if (e < -27 || e > 27) return 0;
+    const long double x = e >= 0 ? (long double)m * pow10[e] : (long double)m / pow10[-e];
+    uint64_t significand;
+    memcpy(&significand, &x, sizeof significand);
+    const unsigned low = (unsigned)(significand & 0x7ff);
+    if (low >= 0x3ff && low <= 0x401) return 0;
+    *value = (double)x;
+    return 1;
+}
+#endif
 
 /* Clinger's fast path: a plain decimal [sign] digits [. digits] [e [sign] digits] whose digits form an
    integer m <= 2^53 and whose decimal exponent e has |e| <= 22 is m * 10^e or m / 10^-e, both exact
-   operands, so one IEEE operation rounds it correctly: the same double as strtod. Sets *end past the
-   number and returns 1, or returns 0 (anything else: strtod decides). */
+   operands, so one IEEE operation rounds it correctly: the same double as strtod; other decimals of
+   up to 19 digits go through extended_decimal where it exists. Sets *end past the number and returns
+   1, or returns 0 (anything else: strtod decides). */
 static int fast_decimal(const char *p, const char **end, double *value) {
     static const double pow10[23] = {1e0, 1e1, 1e2, 1e3, 1e4, 1e5, 1e6, 1e7, 1e8, 1e9, 1e10, 1e11,
                                      1e12, 1e13, 1e14, 1e15, 1e16, 1e17, 1e18, 1e19, 1e20, 1e21, 1e22};
@@ -42,8 +72,16 @@ static int fast_decimal(const char *p, const char **end, double *value) {
         e += negative_e ? -x : x;
         p = q;
     }
-    if (m > (UINT64_C(1) << 53) || e < -22 || e > 22) return 0;
-    const double v = e >= 0 ? (double)m * pow10[e] : (double)m / pow10[-e];
+    double v;
+    if (m <= (UINT64_C(1) << 53) && e >= -22 && e <= 22) {
+        v = e >= 0 ? (double)m * pow10[e] : (double)m / pow10[-e];
+    } else {
+#ifdef EXTENDED
+        if (!extended_decimal(m, e, &v)) return 0;
+#else
+        return 0;
+#endif
+    }
     *value = negative ? -v : v;
     *end = p;
     return 1;

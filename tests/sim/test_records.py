@@ -177,6 +177,32 @@ def test_fast_number_parser_rounds_decimals_as_python(numbers):
     assert [v.hex() for v in got[0]] == [float(t).hex() for t in numbers]
 
 
+def test_fast_number_parser_rounds_decimals_next_to_a_midpoint_as_python():
+    """17-19 digit decimals at, just above and just below the midpoint of two neighbouring doubles
+    (where rounding twice, to 64 bits and then to 53, could differ from rounding once), and the %.17g
+    time column of records: Python's float, bit for bit."""
+    import math
+    import random
+    from decimal import Decimal, localcontext
+
+    from sim._csv import parse_numbers
+
+    rng = random.Random(11)
+    texts = ["%.17g" % (k * T_s) for T_s in (2.5e-4, 1e-3, 6.25e-5, 5.1e-4) for k in range(0, 4000, 3)]
+    with localcontext() as ctx:
+        ctx.prec = 60
+        for _ in range(1500):
+            x = rng.uniform(1.0, 10.0) * 10.0 ** rng.randint(-20, 12)
+            mid = (Decimal(x) + Decimal(math.nextafter(x, math.inf))) / 2  # exact
+            for digits in (17, 18, 19):
+                at = Decimal(f"{mid:.{digits - 1}e}")
+                step = Decimal(10) ** (at.adjusted() - digits + 1)
+                texts += [f"{v:.{digits - 1}e}" for v in (at - step, at, at + step)]
+    got = parse_numbers(("\n".join(texts) + "\n").encode(), 1)
+    assert got is not None
+    assert [v.hex() for v in got[:, 0]] == [float(t).hex() for t in texts]
+
+
 @pytest.mark.parametrize("body", ["1,2\n", "1,2,3,4\n", "1,,3\n", "1,2,x\n", "# c\n1,2,3\n", "1;2;3\n", "1,2,3 4\n",
                                   "0x1p3,2,3\n", "1.5e,2,3\n"])
 def test_fast_number_parser_declines_what_is_not_plain_rows(body):
