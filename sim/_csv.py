@@ -4,11 +4,11 @@
 ``float``): by Clinger's exact fast path, on x86 decimals of up to 19 digits such as the ``%.17g``
 time column by an x87 extended-precision path that declines the values next to a midpoint of two
 doubles, else by ``strtod`` itself (7-9x numpy's ``loadtxt`` on these records; the time column
-took 2 of 3.2 ms per record through ``strtod``, 1 ms now); ``format_rows`` writes them with ``snprintf`` (the text
-``numpy.savetxt`` writes with the same ``%.Ng`` / ``%d`` formats, several times faster). Built and
-loaded like the simulator's kernel (:mod:`sim._kernel`); where it cannot be loaded, or a row is not
-plain numbers, :func:`parse_numbers` and :func:`format_numbers` return ``None`` and the records
-module uses numpy, which also words the errors.
+took 2 of 3.2 ms per record through ``strtod``, 1 ms now); ``format_rows`` writes them with
+``snprintf`` (the text ``numpy.savetxt`` writes with the same ``%.Ng`` / ``%d`` formats, several
+times faster). Built and loaded like the simulator's kernel (:mod:`sim._kernel`); where it cannot
+be loaded, or a row is not plain numbers, :func:`parse_numbers` and :func:`format_numbers` return
+``None`` and the records module uses numpy, which also words the errors.
 """
 
 from __future__ import annotations
