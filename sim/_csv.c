@@ -1,6 +1,7 @@
-/* Rows of comma-separated numbers, parsed by Clinger's fast path or else the C library's strtod (the
-   record reader's fast path, see sim/_csv.py, which declares the signature). REAL is unused: the kernel convention compiles
-   every kernel once per float type. */
+/* Rows of comma-separated numbers, parsed by Clinger's fast path, an x87 extended-precision path or
+   else the C library's strtod, each the double strtod gives (the record reader's fast path, see
+   sim/_csv.py, which declares the signature). REAL is unused: the kernel convention compiles every
+   kernel once per float type. */
 #include <float.h>
 #include <stdint.h>
 #include <stdio.h>
