@@ -74,15 +74,15 @@ static int fast_decimal(const char *p, const char **end, double *value) {
         p = q;
     }
     double v;
-    if (m <= (UINT64_C(1) << 53) && e >= -22 && e <= 22) {
+    if (m <= (UINT64_C(1) << 53) && e >= -22 && e <= 22)
         v = e >= 0 ? (double)m * pow10[e] : (double)m / pow10[-e];
-    } else {
 #ifdef EXTENDED
-        if (!extended_decimal(m, e, &v)) return 0;
+    else if (!extended_decimal(m, e, &v))
+        return 0;
 #else
+    else
         return 0;
 #endif
-    }
     *value = negative ? -v : v;
     *end = p;
     return 1;

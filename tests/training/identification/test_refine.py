@@ -7,7 +7,8 @@ import pytest
 
 from _refine_problems import DRIVE, refine_problem
 
-from sim import DriveConfig, TestSignalConfig, TwoMassParams
+from sim import TwoMassParams
+from training.evaluation import DRIVES
 from training.identification._refine import RefineConfig, RefineProblem, _explore_windows, refine, torque_reference
 
 
@@ -62,10 +63,11 @@ def test_a_small_gap_on_a_slowly_sampled_drive_is_found():
     # (s_N 0.023: elastic): without its gap no model reproduces the record (the truth without it
     # scores worse than the maps' start), and windows of 0.1 s (one period) never showed it: the
     # answer stayed at the start, V_J 0.6 x the truth
-    drive = DriveConfig(M_max=20.0, T_Ei=1e-3, T_s=1e-3, encoder_counts=2**13)
+    case = DRIVES["low_res_1ms"]
+    drive = case.drive
     true = TwoMassParams(J_sigma=0.04, V_J=0.68, f_e=9.66, d=0.016, backlash=0.0129, M_FC=0.1, mu_F=5.8e-4)
     start = np.array([0.982, -0.392, 0.041, -2.695])  # the maps' answer on such a record
-    p = refine_problem(true, start, drive, TestSignalConfig(M_star=10.0, w_max=100.0))
+    p = refine_problem(true, start, drive, case.signal)
     out = refine([p], RefineConfig(seed=0))[0]
     assert abs(out.f_e / 9.66 - 1) < 0.05 and abs(out.V_J / 0.68 - 1) < 0.3
     assert 0.5 < out.s_N / float(true.s_N(drive)) < 2.0

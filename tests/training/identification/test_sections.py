@@ -222,7 +222,7 @@ def test_a_section_shorter_than_the_noise_filter_is_found_in_the_torque_referenc
     # reference is exact, so no run of it is a transition (2 ms runs were dropped: no sections)
     drive = DriveConfig(M_max=10.9, M_N=3.64, T_Ei=4.77e-4, T_s=2.51e-4, encoder_counts=2**19, current_noise_std=0.129)
     rec = envelope_record(drive, 4.84, 104.8, J_sigma=1.14e-3, V_J=2.87, f_e=28.6, d=0.02, backlash=5e-4,
-                           M_FC=0.0715, mu_F=2.5e-4)
+                          M_FC=0.0715, mu_F=2.5e-4)
     column = np.asarray(rec.section)
     lengths = [int((column == k).sum()) for k in range(1, 7)]
     assert min(lengths) < 2e-3 / drive.T_s
