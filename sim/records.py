@@ -36,7 +36,10 @@ META_KEYS: frozenset[str] = frozenset({"K_M", "T_Ei", "T_s", "encoder_counts", "
                                        "current_noise_std", "timed_out", "aborted", "units", "format", "notes", "truth"})
 _POSITIVE_META = ("K_M", "T_Ei", "T_s", "encoder_counts", "M_star", "w_max", "M_max", "M_N")
 MIN_SAMPLES = 32
-UNIFORM_TOL = 0.01  # largest deviation from the uniform time grid [samples]
+#: Largest deviation from the uniform time grid [samples]: a missing or repeated row is a whole
+#: sample off; a time column printed to 1 us at 62.5 us is up to 0.016 off.
+UNIFORM_TOL = 0.05
+MAX_ENCODER_COUNTS = 2 ** 53  # counts per revolution a float64 angle still resolves
 
 
 class RecordError(ValueError):
@@ -133,8 +136,9 @@ def _validate_columns(rec: Record, where: Path | str) -> float:
     dev = np.abs(rec.t - (rec.t[0] + np.arange(n) * T_s_t))  # against the ideal uniform grid
     if dev.max() > UNIFORM_TOL * T_s_t:
         i = int(np.argmax(dev))
+        hint = "" if dev.max() >= 0.5 * T_s_t else " (a time column printed with too few digits?)"
         raise _err(where, f"non-uniform time step near row {i + 2}: t={float(rec.t[i])!r} s is "
-                          f"{float(dev[i]) / T_s_t:.3g} samples off the uniform grid (T_s={T_s_t!r} s)")
+                          f"{float(dev[i]) / T_s_t:.3g} samples off the uniform grid (T_s={T_s_t!r} s){hint}")
     if rec.section is not None:
         s = rec.section
         if not np.all(np.isin(s, np.arange(0, 7))):
@@ -154,10 +158,17 @@ def _validated_meta(rec: Record, T_s_t: float, where: Path | str) -> dict[str, A
             v = meta[k]
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
                 raise _err(where, f"metadata '{k}': expected a finite number > 0, received {v!r}")
-    if "encoder_counts" in meta and int(meta["encoder_counts"]) != meta["encoder_counts"]:
-        raise _err(where, f"metadata 'encoder_counts': expected an integer, received {meta['encoder_counts']!r}")
+    counts = meta.get("encoder_counts")
+    if counts is not None and (counts > MAX_ENCODER_COUNTS or int(counts) != counts):
+        raise _err(where, f"metadata 'encoder_counts': expected an integer up to 2^53, received {counts!r}")
     if "aborted" in meta and not isinstance(meta["aborted"], bool):
         raise _err(where, f"metadata 'aborted': expected true or false, received {meta['aborted']!r}")
+    tmo = meta.get("timed_out", [])
+    if not isinstance(tmo, list) or not all(isinstance(x, bool) for x in tmo):
+        raise _err(where, f"metadata 'timed_out': expected a list of true/false per section, received {tmo!r}")
+    noise = meta.get("current_noise_std", 0.0)
+    if isinstance(noise, bool) or not isinstance(noise, (int, float)) or not math.isfinite(noise) or noise < 0:
+        raise _err(where, f"metadata 'current_noise_std': expected a finite number >= 0, received {noise!r}")
     if "T_Ei" not in meta:
         raise _err(where, "metadata 'T_Ei' (current-loop time constant) is missing")
     if rec.torque is None and "K_M" not in meta:
@@ -182,8 +193,11 @@ def _validated_meta(rec: Record, T_s_t: float, where: Path | str) -> dict[str, A
 
 def _paths(path: str | os.PathLike[str]) -> tuple[Path, Path, str]:
     p = Path(path)
-    if p.suffix in (".csv", ".json"):
-        p = p.with_suffix("")
+    suffix = p.suffix.lower()
+    if suffix == ".csv":  # NAME.csv or NAME.CSV as given, its metadata beside it
+        return p, p.with_suffix(".json"), p.stem
+    if suffix == ".json":
+        return p.with_suffix(".csv"), p, p.stem
     return p.with_name(p.name + ".csv"), p.with_name(p.name + ".json"), p.name
 
 
@@ -208,11 +222,15 @@ def read_record(path: str | os.PathLike[str]) -> Record:
     """Read ``NAME.csv`` + ``NAME.json`` (path with or without suffix), validated."""
     csv_path, json_path, name = _paths(path)
     try:
-        text = csv_path.read_text()
+        text = csv_path.read_text(encoding="utf-8-sig")  # a byte-order mark (spreadsheets' "CSV UTF-8") is no column
     except FileNotFoundError:
         raise _err(csv_path, "file not found") from None
-    except (OSError, UnicodeDecodeError) as err:
+    except OSError as err:
         raise _err(csv_path, f"cannot read ({err.__class__.__name__})") from None
+    except UnicodeDecodeError:
+        with open(csv_path, "rb") as f:
+            what = "a gzip file (decompress it first)" if f.read(2) == b"\x1f\x8b" else "not UTF-8 text"
+        raise _err(csv_path, f"cannot read: {what}") from None
     # the header row: the first of text.splitlines(), without splitting the whole file
     header = text[: text.find("\n")] if "\n" in text else text
     header = header.splitlines()[0] if header else header

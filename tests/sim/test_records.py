@@ -10,7 +10,7 @@ from hypothesis import strategies as st
 
 from sim import (DriveConfig, Record, RecordError, TestSignalConfig, TwoMassParams, read_record,
                  responses_to_records, simulate_test, write_record)
-from sim.records import MIN_SAMPLES
+from sim.records import MIN_SAMPLES, validate
 
 
 def _record(n: int = 100, with_section: bool = True) -> Record:
@@ -90,6 +90,11 @@ def _csv(rows: int = 50, cols: str = "t,speed,current", fn=None) -> str:
     (_csv(), None, "metadata file not found"),
     ("", META, "empty file"),
     (_csv(cols="t,speed,current,section", fn=lambda k, v: v + [9]), META, "section"),
+    (_csv(), {**META, "timed_out": 5}, "'timed_out': expected a list of true/false"),
+    (_csv(), {**META, "timed_out": "no"}, "'timed_out'"),
+    (_csv(), {**META, "current_noise_std": "low"}, "'current_noise_std'"),
+    (_csv(), {**META, "current_noise_std": -1}, "'current_noise_std'"),
+    (_csv(), {**META, "encoder_counts": 1e30}, "'encoder_counts': expected an integer up to 2^53"),
 ])
 def test_bad_records_give_clear_one_line_errors(tmp_path, csv_text, meta, message):
     path = _write_raw(tmp_path, csv_text, meta)
@@ -98,6 +103,36 @@ def test_bad_records_give_clear_one_line_errors(tmp_path, csv_text, meta, messag
     msg = str(exc.value)
     assert message in msg and "\n" not in msg, msg
     assert "r.csv" in msg or "r.json" in msg
+
+
+def test_time_printed_to_whole_microseconds_at_62_5_us_is_read():
+    # 1 us rounding at T_s = 62.5 us puts samples up to 0.016 of a sample off the grid
+    n, T_s = 60_000, 62.5e-6
+    t = np.round(np.arange(n) * T_s, 6)
+    assert np.max(np.abs(t - np.arange(n) * T_s)) / T_s > 0.0079
+    rec = validate(Record(t=t, speed=np.zeros(n), current=np.zeros(n), meta=dict(META)))
+    assert rec.T_s == pytest.approx(T_s, rel=1e-6)
+
+
+def test_time_printed_with_too_few_digits_is_refused_with_a_hint():
+    t = np.array([float(f"{x:g}") for x in np.arange(40_000) * 62.5e-6])  # 6 digits: 10 us steps above 1 s
+    with pytest.raises(RecordError, match=r"samples off the uniform grid .*too few digits"):
+        validate(Record(t=t, speed=np.zeros(t.size), current=np.zeros(t.size), meta=dict(META)))
+
+
+def test_byte_order_mark_and_upper_case_suffix_are_read(tmp_path):
+    (tmp_path / "RUN.CSV").write_text("\ufeff" + _csv(), encoding="utf-8")
+    (tmp_path / "RUN.json").write_text(json.dumps(META))
+    rec = read_record(tmp_path / "RUN.CSV")
+    assert rec.name == "RUN" and rec.speed.size == 50
+
+
+def test_gzip_file_is_named_as_such(tmp_path):
+    import gzip
+    (tmp_path / "z.csv").write_bytes(gzip.compress(_csv().encode()))
+    (tmp_path / "z.json").write_text(json.dumps(META))
+    with pytest.raises(RecordError, match="a gzip file"):
+        read_record(tmp_path / "z.csv")
 
 
 def test_missing_file(tmp_path):

@@ -15,6 +15,7 @@ from scipy.signal import lfilter
 
 from sim import SECTION_LEVELS, Record
 from training.errors import IdentificationError, one_line
+from training.identification._consistency import consistency_warnings, torque_scale_hint
 from training.identification._drive import REFERENCE_DRIVE, DriveValues, drive_values
 from training.identification._features import (EIG_NAMES, EXTRA_NAMES, STRUCT_NAMES, eigenfrequency_features,
                                                extra_features, structure_and_peaks)
@@ -168,11 +169,12 @@ def _analyze(record: Record) -> Analysis:
     try:
         split = detect_sections(record)
     except ValueError as err:
-        hint = resolution_hint(record)
+        hint = resolution_hint(record) or torque_scale_hint(record)
         if hint is None:
             raise
         raise ValueError(f"{err}; {hint}") from err
     drive, drive_warnings = drive_values(record, split, torque)
+    drive_warnings += consistency_warnings(record, split, drive.w_max, drive.q_w, drive.T_Ei)
     try:
         fit = fit_one_mass(torque, record.speed, T_s, sections=split.bounds)
     except ValueError as err:

@@ -34,6 +34,12 @@ WARNING_CODES: dict[str, str] = {
     "one_mass_fit_collinear": "two regressors of the one-mass fit are nearly collinear (e.g. Coulomb friction and an "
                               "offset when the speed never reverses): those parameters are not determined",
     "drive_value_default": "a drive value is missing from the record; a documented default stands in for it",
+    "test_law_mismatch": "the record's sections do not end where SPEC 2's switching law ends them on its own speed "
+                         "with its w_max (a clipped or filtered speed, a wrong w_max, another test)",
+    "torque_scale_mismatch": "the measured torque holds the test's levels at another scale than M* (K_M, M_star or "
+                             "the current's units wrong): inertias and friction scale with it",
+    "record_starts_late": "the record starts inside section I, not at rest: the test's first torque step is missing",
+    "run_aborted": "the drive aborted the run at a limit (metadata aborted: true)",
     "drive_outside_training": "a drive or test value lies outside what the maps were trained on",
     "outside_envelope": "a drive, test or identified value lies outside SPEC 3.1's drive envelope",
     "backlash_below_resolution": "a backlash narrower than the encoder resolves may hide: an upper bound is given",

@@ -33,7 +33,7 @@ from scipy.ndimage import median_filter
 from sim import SECTION_LEVELS, SECTION_NAMES, SPEED_RETURN, Record
 from training._checks import as_signal
 
-__all__ = ["SectionSplit", "detect_sections", "sections_from_column", "diff_noise"]
+__all__ = ["SectionSplit", "detect_sections", "sections_from_column", "diff_noise", "law_end", "torque_amplitude"]
 
 #: The distinct torque levels of the test signal over ``M*``, highest first: ``(1, 0.7, 0, -0.7, -1)``.
 _CLASS_LEVELS = np.array(sorted(set(SECTION_LEVELS), reverse=True))
@@ -264,20 +264,32 @@ def _crossing(ys: np.ndarray, level: float, start: int, up: bool) -> float:
     return j - 1 + (float(np.clip((level - y0) / (y1 - y0), 0.0, 1.0)) if y1 != y0 else 1.0)
 
 
+def law_end(w: np.ndarray, k: int, start: int, before: int, w_max: float) -> int:
+    """Where SPEC 2's switching law ends section ``k`` (0..5 for I..VI) that starts at sample
+    ``start`` (:class:`sim.SwitchingController`): the sample after the first whose speed ``w``
+    meets the section's condition (the new ``M_ref`` applies from the next sample); II and V also
+    end once they have lasted ``before`` samples (the length of I, IV). Raises ValueError when
+    the condition is never met."""
+    w_low = SPEED_RETURN * w_max
+    if k in (1, 4):
+        j = np.arange(start, w.size)
+        hit = (j - start + 1 >= before) | ((w[start:] <= w_low) if k == 1 else (w[start:] >= -w_low))
+        return start + _first(hit, 0) + 1
+    cond = {0: w >= w_max, 2: w <= 0.0, 3: w <= -w_max, 5: w >= 0.0}[k]
+    return _first(cond, start) + 1
+
+
 def _replay(w: np.ndarray, k0: int, w_max: float) -> np.ndarray:
-    """``(6, 2)`` bounds of the switching law (SPEC 2, :class:`sim.SwitchingController`) replayed on
-    the measured speed ``w`` from section I's first sample ``k0``: a section ends at the sample
-    whose speed meets its condition, the next starts with the following sample. Raises
-    ValueError when a condition is never met."""
-    n, w_low = w.size, SPEED_RETURN * w_max
-    k = np.arange(n)
-    b1 = _first(w >= w_max, k0) + 1
-    b2 = _first((k - b1 + 1 >= b1 - k0) | (w <= w_low), b1) + 1  # II: as long as I, or down to 0.2 w_max
-    b3 = _first(w <= 0.0, b2) + 1
-    b4 = _first(w <= -w_max, b3) + 1
-    b5 = _first((k - b4 + 1 >= b4 - b3) | (w >= -w_low), b4) + 1
-    b6 = min(_first(w >= 0.0, b5) + 1, n)
-    return np.array([[k0, b1], [b1, b2], [b2, b3], [b3, b4], [b4, b5], [b5, b6]], dtype=np.int64)
+    """``(6, 2)`` bounds of the switching law (:func:`law_end`) replayed on the measured speed
+    ``w`` from section I's first sample ``k0``; the record may end in VI. Raises ValueError when
+    a condition is never met."""
+    bounds = np.zeros((6, 2), dtype=np.int64)
+    start, before = k0, 0
+    for k in range(6):
+        end = law_end(w, k, start, before, w_max)
+        bounds[k] = start, min(end, w.size)
+        before, start = (end - start if k in (0, 3) else before), end
+    return bounds
 
 
 def _level_fit(y: np.ndarray, bounds: np.ndarray, M_star: float | None) -> tuple[float, float]:
@@ -349,6 +361,12 @@ def _switching_law(w: np.ndarray, y: np.ndarray, info: dict[str, Any], Ts: float
         flags.append(f"{k0} samples before section I")
     flags += _duration_flags(bounds)
     return SectionSplit(bounds, (b6, int(n)), Ms, info.get("M_star") is None, levels, tuple(flags), "speed", n)
+
+
+def torque_amplitude(torque: np.ndarray) -> float:
+    """The largest level [Nm] of a measured ``torque``: ``M*`` as the section detection estimates it."""
+    ys = median_filter(torque, size=5, mode="nearest") if torque.size >= 5 else torque
+    return _amplitude(ys, None)[0]
 
 
 def _amplitude(ys: np.ndarray, M_star: float | None) -> tuple[float, bool]:
@@ -433,8 +451,10 @@ def _boundaries(runs: list[list[int]], hit: int, step: _StepLocator,
     """``(6, 2)`` section bounds, the tail and the flags, from the runs of the pattern at ``hit``."""
     runs6 = runs[hit:hit + 6]
     bounds = np.zeros((6, 2), dtype=np.int64)
-    # without a run before I, the record starts in section I (its first samples are the torque's rise)
-    bounds[0, 0] = step(runs[hit - 1], runs6[0]) if hit > 0 else 0
+    # I starts where the torque leaves its last zero run before I; without one the record starts in
+    # I (runs of other levels before it are the torque's rise through them, a slow current loop's)
+    zero = next((r for r in reversed(runs[:hit]) if r[2] == _ZERO), None)
+    bounds[0, 0] = step(zero, runs6[0]) if zero is not None else 0
     for k in range(5):
         b = step(runs6[k], runs6[k + 1])
         bounds[k, 1] = b
@@ -455,7 +475,7 @@ def _boundaries(runs: list[list[int]], hit: int, step: _StepLocator,
     bounds[5, 1] = b6
     if tail[1] - tail[0] < int(round(0.05 / Ts)) - 2 and tail[1] > tail[0]:
         flags.append("tail shorter than 50 ms")
-    if hit > 0:
+    if bounds[0, 0] > 0:
         flags.append(f"{bounds[0, 0]} samples before section I")
     return bounds, (int(tail[0]), int(tail[1])), flags
 

@@ -1,0 +1,113 @@
+"""Does the record show SPEC 2's test with its own metadata? Warnings where it does not.
+
+A record can be well formed and plausible in its units (:mod:`._plausibility`) and still not be
+the test its metadata describe: a speed clipped at the scope's full scale just below ``w_max``, a
+``w_max`` or ``K_M`` that is not the drive's, a recording triggered after the test had started,
+a run the drive aborted at a limit. The identification then fits the wrong torque or the wrong
+speed and answers with confidence; these checks say so (coded warnings, the answer stands):
+
+- ``test_law_mismatch``: the switching law replayed on the record's own speed with its ``w_max``
+  (:func:`._sections.law_end`) ends a section elsewhere than the record does, by more than the
+  section detection's uncertainty (exact with ``torque_ref``; the current loop's lag without);
+  not checked on runs that timed out, were aborted or start late (the law's durations fail there);
+- ``torque_scale_mismatch``: the measured torque (``current * K_M``) holds its levels at another
+  scale than ``M*`` (metadata, else ``torque_ref``'s levels) by more than :data:`TORQUE_SCALE_TOL`;
+- ``record_starts_late``: section I starts at a speed above a few quanta (the test starts at rest);
+- ``run_aborted``: metadata ``aborted: true`` (the drive stopped the run at a limit, SPEC 8.1).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from sim import SECTION_LEVELS, SECTION_NAMES, Record
+from training.identification._result import IdentWarning
+from training.identification._sections import SectionSplit, law_end, torque_amplitude
+
+__all__ = ["consistency_warnings", "torque_scale_hint", "TORQUE_SCALE_TOL"]
+
+#: The measured torque's levels may differ from ``M*``'s by this share before ``torque_scale_mismatch``.
+TORQUE_SCALE_TOL = 0.15
+_SETTLE = 5.0  # current-loop time constants skipped after each section start (the torque's rise)
+_START_QUANTA = 3.0  # speed quanta (or 1 % of w_max, the larger) at which section I starts "late"
+
+
+def consistency_warnings(record: Record, split: SectionSplit, w_max: float, q_w: float, T_Ei: float) -> list[IdentWarning]:
+    """The warnings of the module docstring for ``record`` with sections ``split``, its test's
+    ``w_max`` [rad/s] (from the record or estimated), speed quantum ``q_w`` [rad/s] and current-loop
+    lag ``T_Ei`` [s]."""
+    out = []
+    if record.meta.get("aborted"):
+        out.append(IdentWarning("run_aborted", "the drive aborted this run at a limit (metadata aborted: true): the "
+                                               "test is incomplete, its values are suspect"))
+    speed = np.asarray(record.speed, dtype=np.float64)
+    start = int(split.bounds[0, 0])
+    if abs(speed[start]) > max(_START_QUANTA * q_w, 0.01 * w_max):
+        out.append(IdentWarning("record_starts_late", f"section I starts at {speed[start]:.4g} rad/s, not at rest: the "
+                                                      "recording began after the test had started (its first torque "
+                                                      "step is missing)"))
+    # the law's durations and thresholds hold for a whole run that no limit or timeout cut short
+    if not out and not any(record.meta.get("timed_out") or []):
+        out += _law_mismatch(speed, split, w_max, math.ceil(2.0 * T_Ei / record.T_s) + 2)
+    return out + _torque_scale(record, split, T_Ei)
+
+
+def torque_scale_hint(record: Record) -> str | None:
+    """Why the sections may not show: the measured torque's largest level off the metadata's
+    ``M_star`` by more than :data:`TORQUE_SCALE_TOL` (else None)."""
+    M_star, torque = record.meta.get("M_star"), record.motor_torque
+    if M_star is None or torque is None or not np.any(torque):
+        return None
+    scale = torque_amplitude(np.asarray(torque, dtype=np.float64)) / float(M_star)
+    if abs(scale - 1.0) <= TORQUE_SCALE_TOL:
+        return None
+    what = "current * K_M" if record.torque is None else "the torque column"
+    return f"{what} reaches {scale:.3g} x metadata M_star = {float(M_star):.4g} Nm: K_M, M_star or the current's units wrong?"
+
+
+def _law_mismatch(speed: np.ndarray, split: SectionSplit, w_max: float, lag: int) -> list[IdentWarning]:
+    """``test_law_mismatch`` for the first section whose end the law puts elsewhere (each section
+    replayed from the record's own start of it, so that one disagreement does not cascade)."""
+    tol = 1 if split.source == "torque_ref" else lag
+    bounds = split.bounds.tolist()
+    for k, (a, b) in enumerate(bounds):
+        before = bounds[k - 1][1] - bounds[k - 1][0] if k in (1, 4) else 0
+        try:
+            end = law_end(speed, k, a, before, w_max)
+        except ValueError:
+            end = None
+        if k == 5 and b >= speed.size and (end is None or end >= b):
+            continue  # the record ends in VI
+        if end is None or abs(end - b) > tol:
+            law = "never" if end is None else f"at sample {end} ({speed[end - 1]:.4g} rad/s)"
+            return [IdentWarning("test_law_mismatch", f"section {SECTION_NAMES[k]} ends at sample {b} (speed "
+                                                      f"{speed[b - 1]:.4g} rad/s) but SPEC 2's switching law with w_max = "
+                                                      f"{w_max:.4g} rad/s ends it {law}: a clipped or filtered speed, a "
+                                                      "wrong w_max, or another test; the values are suspect")]
+    return []
+
+
+def _torque_scale(record: Record, split: SectionSplit, T_Ei: float) -> list[IdentWarning]:
+    """``torque_scale_mismatch`` where the measured torque's settled section means, fitted to the
+    levels ``SECTION_LEVELS x M*``, give a scale off ``M*`` (unless ``M*`` was estimated from the
+    measured torque itself)."""
+    if split.M_star_estimated and split.source == "torque":
+        return []
+    torque = record.motor_torque
+    skip = int(math.ceil(_SETTLE * T_Ei / record.T_s)) + 1
+    num = den = 0.0
+    for (a, b), level in zip(split.bounds.tolist(), SECTION_LEVELS):
+        if level and b - a > skip + 2:
+            num += level * float(np.sum(torque[a + skip:b]))
+            den += level * level * (b - a - skip)
+    if not den > 0:
+        return []
+    scale = num / den / split.M_star
+    if abs(scale - 1.0) <= TORQUE_SCALE_TOL:
+        return []
+    what = "current * K_M" if record.torque is None else "the torque column"
+    return [IdentWarning("torque_scale_mismatch", f"{what} holds the test's levels at {scale:.3g} x M* = "
+                                                  f"{split.M_star:.4g} Nm: K_M, M_star or the current's units are "
+                                                  "wrong; J_sigma, V_J and friction scale with it")]
