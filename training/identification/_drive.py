@@ -87,6 +87,13 @@ def drive_values(record: Record, split: SectionSplit, torque: np.ndarray) -> tup
                                                      "(the class rule w_e T_Ei and the refinement depend on it)")
     counts = record.encoder_counts
     sources["encoder_counts"] = "record"
+    if counts is not None and on_grid(np.abs(record.speed), speed_quantum(counts, T_s)) < QUANTIZED_SHARE:
+        finer = estimated_encoder_counts(record.speed, T_s)  # the speed shows steps the encoder cannot make
+        if finer is not None and finer > 1.5 * counts:
+            warnings.append(IdentWarning("drive_value_mismatch", f"encoder_counts {counts} (metadata) cannot make the "
+                                                                 f"speed's steps of 2*pi/({finer} T_s): {finer} counts "
+                                                                 "are used"))
+            counts, sources["encoder_counts"] = finer, "estimated"
     if counts is None:
         counts = estimated_encoder_counts(record.speed, T_s)
         sources["encoder_counts"] = "estimated"
@@ -128,10 +135,12 @@ def estimated_encoder_counts(speed: np.ndarray, T_s: float) -> int | None:
     if not q0 > 0:
         return None
     q = float(np.median(steps[steps < 1.5 * q0]))
-    if on_grid(x, q) < QUANTIZED_SHARE:
-        return None
+    n = np.round(x / q)  # each speed's multiple; their ratios refine q (a float32 speed's steps scatter)
+    q = float(np.median(x[n >= 1] / n[n >= 1]))
     counts = int(round(2.0 * math.pi / (q * T_s)))
-    return counts if counts >= 16 else None
+    if counts < 16 or on_grid(x, speed_quantum(counts, T_s)) < QUANTIZED_SHARE:
+        return None
+    return counts
 
 
 def torque_noise(torque: np.ndarray, split: SectionSplit, T_s: float, T_Ei: float) -> float:

@@ -33,6 +33,8 @@ WARNING_CODES: dict[str, str] = {
                                   "cannot be trusted",
     "one_mass_fit_collinear": "two regressors of the one-mass fit are nearly collinear (e.g. Coulomb friction and an "
                               "offset when the speed never reverses): those parameters are not determined",
+    "drive_value_mismatch": "a drive value of the metadata contradicts the signals; the value the signals show is "
+                            "used",
     "drive_value_default": "a drive value is missing from the record; a documented default stands in for it",
     "test_law_mismatch": "the record's sections do not end where SPEC 2's switching law ends them on its own speed "
                          "with its w_max (a clipped or filtered speed, a wrong w_max, another test)",

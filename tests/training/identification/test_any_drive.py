@@ -72,6 +72,19 @@ def test_the_encoder_is_estimated_from_a_quantized_speed():
     rec = _record(DriveConfig(encoder_counts=2**16))
     assert estimated_encoder_counts(rec.speed, rec.T_s) == 2**16
     assert estimated_encoder_counts(rec.speed + 1e-3 * np.sin(np.arange(len(rec))), rec.T_s) is None
+    # 2^20 counts: the float32 speed's steps scatter by 2e-4 of a quantum, 4000 quanta at w_max
+    fine = _record()
+    assert estimated_encoder_counts(fine.speed, fine.T_s) == 2**20
+
+
+def test_an_encoder_coarser_than_the_speed_shows_is_replaced_with_a_warning():
+    rec = _record()
+    rec.meta["encoder_counts"] = 4096  # the speed moves in steps of 2^20 counts
+    a = analyze(rec)
+    assert a.drive.encoder_counts == 2**20 and a.drive.sources["encoder_counts"] == "estimated"
+    assert [w.code for w in a.warnings if w.code == "drive_value_mismatch"] == ["drive_value_mismatch"]
+    rec.meta["encoder_counts"] = 2**20
+    assert not [w for w in analyze(rec).warnings if w.code == "drive_value_mismatch"]
 
 
 def test_a_drive_outside_the_training_or_the_envelope_is_named(ident):
