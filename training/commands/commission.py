@@ -4,9 +4,11 @@ The drive: the project's simulator (``--params`` / ``--population``: one :class:
 per plant), a user's drive object (``--drive MODULE:FACTORY`` or ``--drive path/file.py:FACTORY``;
 with ``--params`` / ``--population`` the factory is called with each plant's parameters as a dict,
 for simulators and hardware-in-the-loop rigs that take one), or a folder of files for a real drive
-and its scope (``--resume DIR``: :class:`training.commissioning.FileDrive`). A refusal is a normal
-outcome: it is printed clearly and the exit code stays 0; so is an experiment waiting for its
-recording (``--resume``).
+and its scope (``--resume DIR``: :class:`training.commissioning.FileDrive`). Exit codes: 0 when
+every drive got a controller inside the limits (a refusal answered by the fallback F1 included), and
+when an experiment waits for its recording (``--resume``); :data:`EXIT_NOT_DELIVERED` (3) when a
+drive got no controller or an experiment broke a limit (the report says why); 2 for bad input or a
+drive that fails (one line).
 """
 
 from __future__ import annotations
@@ -22,8 +24,12 @@ from typing import Any
 
 from training._json import dumps
 from training.commands import _progress
-from training.errors import ExperimentPending, OutputExistsError, UserError
+from training.errors import CommissioningError, ExperimentPending, OutputExistsError, UserError, one_line
 from training.params_file import read_params_file
+
+#: Exit code when a drive got no controller, or an experiment passed a limit (the reports say which).
+EXIT_NOT_DELIVERED = 3
+DEFAULT_W_LIMIT, DEFAULT_TRAVEL_LIMIT = 100.0, 100.0
 
 HELP = "run the self-commissioning chain (test signal, identify, validate, propose, tune) through a drive"
 
@@ -35,14 +41,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     src.add_argument("--population", type=int, metavar="N", help="draw N plants from the SPEC default population")
     src.add_argument("--resume", type=Path, metavar="DIR",
                      help="a file-based drive: DIR/drive.json (config, limits); the chain writes each experiment it "
-                          "wants as DIR/NNN_request.json and stops; run again once DIR/NNN.csv + NNN.json are there")
+                          "wants as DIR/NNN_request.json and stops; run again once DIR/NNN.csv + NNN.json are there. "
+                          "The folder's limits hold for its whole run: --w-limit, --travel-limit, --M-max must equal "
+                          "them (else exit 2), --drive is refused")
     parser.add_argument("--drive", metavar="MODULE:FACTORY",
                         help="a SPEC 8.1 drive from FACTORY() in an importable module or a path/to/file.py (with "
                              "--params/--population: FACTORY(plant_dict) per plant)")
     parser.add_argument("--seed", type=int, default=0, help="population and noise seed (default 0)")
-    parser.add_argument("--w-limit", type=float, default=100.0, help="speed limit |w| [rad/s] for every experiment (default 100)")
-    parser.add_argument("--travel-limit", type=float, default=100.0,
-                        help="travel limit |phi| [rad] from the start position of each experiment (default 100)")
+    parser.add_argument("--w-limit", type=float, default=None,
+                        help=f"speed limit |w| [rad/s] for every experiment (default {DEFAULT_W_LIMIT:g}; at least 10 speed "
+                             f"quanta of the drive's encoder)")
+    parser.add_argument("--travel-limit", type=float, default=None,
+                        help=f"travel limit |phi| [rad] from the start position of each experiment (default {DEFAULT_TRAVEL_LIMIT:g})")
     parser.add_argument("--M-max", type=float, default=None, help="torque limit [Nm] (default: the drive's M_max)")
     parser.add_argument("--no-tune", action="store_true", help="no tuning: the proposal only (still run on the drive)")
     parser.add_argument("--tune-evaluations", type=int, default=30,
@@ -62,7 +72,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "(NaN and inf as null)")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing --json file or --plots page")
     parser.add_argument("--checkpoints", type=Path, help="folder with the maps (default: the shipped checkpoints/)")
-    parser.add_argument("--quiet", action="store_true", help="print only the summary over several drives")
+    parser.add_argument("--quiet", action="store_true", help="print only the summary (also for one drive), not the reports")
+    parser.epilog = (f"exit codes: 0 every drive got a controller inside the limits (or an experiment waits for its recording); "
+                     f"{EXIT_NOT_DELIVERED} a drive got no controller or an experiment passed a limit; 2 bad input or a failing drive")
     _progress.add_option(parser)
 
 
@@ -95,12 +107,22 @@ def load_factory(spec: str) -> Any:
         loader = importlib.util.spec_from_file_location(f"_twomass_drive_{path.stem}", path)
         module = importlib.util.module_from_spec(loader)
         sys.modules[loader.name] = module  # multiprocessing (spawn) finds the module's functions again
-        loader.loader.exec_module(module)
+        folder = str(path.resolve().parent)
+        sys.path.insert(0, folder)  # the file's sibling modules import while it loads
+        try:
+            loader.loader.exec_module(module)
+        except Exception as err:  # whatever the user's file raises: one line, not a traceback
+            del sys.modules[loader.name]
+            raise UserError(f"--drive: importing {mod_name} failed: {type(err).__name__}: {one_line(err)}") from None
+        finally:
+            sys.path.remove(folder)
     else:
         try:
             module = importlib.import_module(mod_name)
         except ModuleNotFoundError as err:
             raise UserError(f"--drive: cannot import {mod_name!r} ({err}); is it on PYTHONPATH?") from None
+        except Exception as err:
+            raise UserError(f"--drive: importing {mod_name} failed: {type(err).__name__}: {one_line(err)}") from None
     factory = getattr(module, attr, None)
     if not callable(factory):
         raise UserError(f"--drive: {mod_name} has no callable {attr!r}")
@@ -116,9 +138,33 @@ def _plants(args: argparse.Namespace) -> tuple[list[dict[str, float]] | None, li
             raise UserError(f"--population: expected N >= 1, received {args.population}")
         return sim.sample_population(args.population, args.seed).to_dicts(), [f"plant{i:03d}" for i in range(args.population)]
     if args.params is not None:
+        from training._checks import check_sim_cost
+
         params, names = read_params_file(args.params, "plant")
+        check_sim_cost(f"--params {args.params}", params, sim.DriveConfig())  # the simulated drives are the reference drive
         return params.reshape(-1).to_dicts(), names
     return None, []
+
+
+def _same_limits(args: argparse.Namespace, stored: Any) -> None:
+    """``--resume DIR``: the folder's drive and limits hold for its whole run; a ``--drive`` or a limit
+    option that differs from ``DIR/drive.json`` is refused (the chain would plan with other limits)."""
+    if args.drive is not None:
+        raise UserError(f"--resume {args.resume} is the drive: --drive {args.drive} cannot be used with it")
+    for opt, given, have in (("--w-limit", args.w_limit, stored.w_max), ("--travel-limit", args.travel_limit, stored.travel),
+                             ("--M-max", args.M_max, stored.M_max)):
+        if given is not None and not (have is not None and math.isclose(given, have, rel_tol=1e-12)):
+            raise UserError(f"--resume {args.resume}: {opt} {given:g} differs from the folder's drive.json ({have}); its limits "
+                            f"hold for the whole run: drop {opt}, or start a new folder with the new limits")
+
+
+def _refuse_existing_pages(folder: Path | None, names: list[str], overwrite: bool) -> None:
+    """``--plots``: refuse, before any experiment, a page that exists (without ``--overwrite``)."""
+    if folder is None or overwrite:
+        return
+    for name in names:
+        if (folder / f"{name}.png").exists():
+            raise OutputExistsError(f"--plots: {str(folder / f'{name}.png')!r} exists (pass --overwrite to replace it)")
 
 
 def _drives(args: argparse.Namespace, limits: Any) -> tuple[list[tuple[str, Any]], Any]:
@@ -128,6 +174,7 @@ def _drives(args: argparse.Namespace, limits: Any) -> tuple[list[tuple[str, Any]
 
     if args.resume is not None:
         fd = FileDrive(args.resume)
+        _same_limits(args, fd.limits)
         return [(fd.name, lambda: fd)], fd.limits
     plants, names = _plants(args)
     if args.drive is not None:
@@ -145,14 +192,19 @@ def run(args: argparse.Namespace) -> int:
     from training.commissioning import CommissioningConfig, commission, summarize, summary_text
     from training.identification import Identifier
 
+    from training._checks import seed
+
+    seed("--seed", args.seed)
     for name in ("--w-limit", "--travel-limit", "--M-max", "--max-map-distance"):
         _check_positive(name, getattr(args, name[2:].replace("-", "_")))
     config = CommissioningConfig(tune=not args.no_tune, max_map_distance_ratio=args.max_map_distance,
                                  tune_evaluations=args.tune_evaluations, fallback=not args.no_fallback,
                                  validation_mode=args.validation)
     _refuse_existing(args.json, args.overwrite)
-    limits = sim.DriveLimits(w_max=args.w_limit, travel=args.travel_limit, M_max=args.M_max)
+    limits = sim.DriveLimits(w_max=DEFAULT_W_LIMIT if args.w_limit is None else args.w_limit,
+                             travel=DEFAULT_TRAVEL_LIMIT if args.travel_limit is None else args.travel_limit, M_max=args.M_max)
     drives, limits = _drives(args, limits)
+    _refuse_existing_pages(args.plots, [name for name, _ in drives], args.overwrite)
     if args.checkpoints is not None and not args.checkpoints.is_dir():
         raise UserError(f"--checkpoints: {args.checkpoints} is not a folder")
     identifier = Identifier.load(args.checkpoints)
@@ -174,9 +226,16 @@ def run(args: argparse.Namespace) -> int:
     try:
         for i, (name, make) in enumerate(drives):
             say(f"[{i + 1}/{n}] {name}")
-            drive = make()
+            try:
+                drive = make()
+            except (ExperimentPending, UserError):
+                raise
+            except Exception as err:  # the user's factory: one line naming it
+                raise UserError(f"--drive {args.drive}: building drive {name!r} failed: {type(err).__name__}: {one_line(err)}") from None
             try:
                 rep = commission(drive, limits, identifier=identifier, config=config, writer=writer, progress=say, name=name)
+            except CommissioningError as err:
+                raise CommissioningError(f"drive {name!r}: {one_line(err)}") from None
             finally:
                 close = getattr(drive, "close", None)
                 if callable(close):
@@ -189,7 +248,7 @@ def run(args: argparse.Namespace) -> int:
                         writer.add_scalar(f"commission/{k}", v, i)
             if args.plots is not None:
                 _plot(rep, args.plots, args.overwrite)
-            if not (args.quiet and n > 1):
+            if not args.quiet:
                 print(rep.to_text(), flush=True)
                 print(flush=True)
     except ExperimentPending as pending:
@@ -198,7 +257,7 @@ def run(args: argparse.Namespace) -> int:
     finally:
         if writer is not None:
             writer.close()
-    summary = summarize(reports, time.perf_counter() - t0) if n > 1 else None
+    summary = summarize(reports, time.perf_counter() - t0) if n > 1 or args.quiet else None
     if summary is not None:
         print(summary_text(summary), flush=True)
     if args.json is not None:
@@ -207,4 +266,9 @@ def run(args: argparse.Namespace) -> int:
         from som_torch import atomic_write
 
         atomic_write(args.json, lambda f: f.write(text), text=True)
+    failed = [r.name for r in reports if r.delivered is None or not r.checks.get("within_limits", False)]
+    if failed:
+        print(f"twomass commission: no controller or a limit passed for: {', '.join(failed)} (exit {EXIT_NOT_DELIVERED})",
+              file=sys.stderr)
+        return EXIT_NOT_DELIVERED
     return 0

@@ -19,7 +19,8 @@ from ._permission import (BLOCKING_WARNING_CODES, COMMISSIONING_WARNING_CODES, R
                           Permission, may_propose_controller)
 from ._report import CommissioningReport, PlantRun, summarize, summary_text
 from ._rules import ControllerProposal, ControllerSpec, propose_cautious, propose_controller, robust_models
-from ._tuning import TuningResult, TuningScenario, closed_loop_cost, load_estimate, plan_scenario, tune_controller
+from ._tuning import (LOOP_VERDICTS, TuningResult, TuningScenario, closed_loop_cost, load_estimate, loop_verdict, plan_scenario,
+                      tune_controller)
 from ._validation import ValidationResult, validate_model
 
 __all__ = [
@@ -31,5 +32,5 @@ __all__ = [
     "ControllerSpec", "ControllerProposal", "propose_controller", "propose_cautious", "robust_models", "PISpeedLaw",
     "NotchSpec", "Mechanics", "mechanics_from", "LinearPlant", "linear_plant", "loop_figures", "Margins", "margins",
     "ModelSet", "model_set", "bode", "tune_controller", "TuningResult", "TuningScenario", "plan_scenario",
-    "closed_loop_cost", "load_estimate",
+    "closed_loop_cost", "load_estimate", "loop_verdict", "LOOP_VERDICTS",
 ]

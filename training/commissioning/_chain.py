@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 
 import sim
-from training.errors import CommissioningError, one_line
+from training.errors import CommissioningError, ExperimentPending, UserError, one_line
 
 from ._bands import f1_bands, hidden_bands, widen
 from ._excitation import ExcitationResult, ExcitationRules, adapt_test_signal, guarded_limits, stop_headroom
@@ -33,10 +33,11 @@ from ._permission import (CommissioningWarning, IdentificationFailed, Identifica
                           outside_training)
 from ._report import CommissioningReport, PlantRun
 from ._rules import ControllerProposal, ControllerSpec, propose_cautious, propose_controller
-from ._tuning import Gains, TuningScenario, closed_loop_cost, plan_scenario, response_figures, tune_controller
+from ._tuning import (BOUNDED_VERDICTS, Gains, TuningScenario, closed_loop_cost, loop_verdict, model_response, plan_scenario,
+                      response_figures, tune_controller)
 from ._validation import OSC_METRICS, VALIDATION_MODES, ValidationResult, validate_model
 
-__all__ = ["CommissioningConfig", "commission", "limit_checks", "drive_config"]
+__all__ = ["CommissioningConfig", "commission", "limit_checks", "drive_config", "check_resolution", "MIN_LIMIT_QUANTA"]
 
 #: The drive's own description (SPEC 8.1 ``config``) the chain reads.
 CONFIG_KEYS: tuple[str, ...] = ("T_s", "K_M", "T_Ei", "encoder_counts", "M_N", "M_max")
@@ -132,6 +133,19 @@ def drive_config(drive: Any) -> sim.DriveConfig:
         raise CommissioningError(f"drive.config: {one_line(err)}") from None
 
 
+#: The smallest speed limit, in speed quanta of the drive's encoder, a test can be resolved within.
+MIN_LIMIT_QUANTA: float = 10.0
+
+
+def check_resolution(limits: sim.DriveLimits, config: sim.DriveConfig) -> None:
+    """Refuse (:class:`CommissioningError`) a speed limit below :data:`MIN_LIMIT_QUANTA` speed quanta
+    ``q_w`` of the drive's encoder: no run within it could show a response."""
+    q_w = sim.speed_quantum(float(config.encoder_counts), float(config.T_s))
+    if not limits.w_max >= MIN_LIMIT_QUANTA * q_w:
+        raise CommissioningError(f"limits: the speed limit {limits.w_max:g} rad/s is {limits.w_max / q_w:.3g} speed quanta of the "
+                                 f"drive's encoder (q_w {q_w:.3g} rad/s); at least {MIN_LIMIT_QUANTA:g} are needed to resolve a test")
+
+
 def _check_record(rec: Any, what: str) -> Any:
     if not isinstance(rec, sim.Record):
         raise CommissioningError(f"drive.{what}: expected a sim.Record, received {type(rec).__name__}")
@@ -148,14 +162,26 @@ class _CheckedDrive:
         self.experiments: list[tuple[str, Any]] = []
 
     def run_test(self, M_star: float, w_max: float, limits: sim.DriveLimits) -> Any:
-        rec = _check_record(self.drive.run_test(float(M_star), float(w_max), limits), "run_test")
+        rec = _check_record(_call(self.drive.run_test, "run_test", float(M_star), float(w_max), limits), "run_test")
         self.experiments.append(("test", rec))
         return rec
 
     def run_closed_loop(self, law: Any, scenario: sim.Scenario, limits: sim.DriveLimits, kind: str) -> Any:
-        rec = _check_record(self.drive.run_closed_loop(law, scenario, limits), "run_closed_loop")
+        rec = _check_record(_call(self.drive.run_closed_loop, "run_closed_loop", law, scenario, limits), "run_closed_loop")
         self.experiments.append((kind, rec))
         return rec
+
+
+def _call(method: Callable[..., Any], what: str, *args: Any) -> Any:
+    """A drive method's answer; whatever it raises (a hardware fault, a bug in the user's drive)
+    becomes one :class:`CommissioningError` naming the method and the exception. The file drive's
+    :class:`ExperimentPending` and our own errors pass unchanged."""
+    try:
+        return method(*args)
+    except (ExperimentPending, CommissioningError, UserError):
+        raise
+    except Exception as err:
+        raise CommissioningError(f"drive.{what} raised {type(err).__name__}: {one_line(err)}") from None
 
 
 def limit_checks(experiments: list[tuple[str, Any]], limits: sim.DriveLimits, config: Any) -> dict[str, Any]:
@@ -224,32 +250,39 @@ def _test_J(ex: ExcitationResult) -> float:
 
 def _run_candidates(run: _Run, proposal: ControllerProposal, gains: list[Gains], sc: TuningScenario,
                     kind: str) -> list[PlantRun]:
-    """Each gain set on the drive over ``sc`` (one experiment each), scored from its record."""
+    """Each gain set on the drive over ``sc`` (one experiment each), scored from its record and judged
+    (:func:`loop_verdict`) against what the identified model predicts for the same gains."""
     out = []
     mech = proposal.mechanics
+    cap = run.limits.torque_cap(run.config)
     for i, g in enumerate(gains):
         law = proposal.law(run.config, Kp=g[0], Ti=g[1], T_f=g[2])
         rec = run.drive.run_closed_loop(law, sc.scenario(), run.loop_limits, f"{kind} {i}")
         stopped = bool(rec.meta.get("aborted", False))
         w = np.asarray(rec.speed, dtype=np.float64)
         cost, terms = closed_loop_cost(w, sc, mech, stopped)
-        bounded = not stopped and bool(np.isfinite(w).all()) and float(np.abs(w).max()) <= sc.divergence_factor * sc.w_step
+        model_cost = float(closed_loop_cost(model_response(mech, run.config, [g], proposal.notch, sc), sc, mech)[0][0])
+        verdict, why = loop_verdict(w, rec.torque_ref, sc, cap, float(cost), model_cost, stopped)
         out.append(PlantRun(gains=g, cost=float(cost), motor=float(terms["motor"]), load=float(terms["load"]),
-                            settled=not bool(terms["unstable"]), aborted=stopped, bounded=bounded,
-                            figures=response_figures(w, sc, mech), speed=w))
+                            settled=verdict is None, aborted=stopped, bounded=verdict in BOUNDED_VERDICTS,
+                            figures=response_figures(w, sc, mech), speed=w, verdict=verdict, verdict_text=why,
+                            model_cost=model_cost))
         if stopped:
             run.warn("run_stopped", f"the drive stopped the closed-loop run {kind} {i} at a limit")
+        elif verdict not in BOUNDED_VERDICTS:
+            run.warn("loop_rejected", f"{kind} {i} not delivered [{verdict}]: {why}")
     return out
 
 
 def _choose(runs: list[PlantRun]) -> int | None:
-    """The delivered candidate: the lowest cost among the settled runs that are not worse than the
-    proposal's (index 0) on the motor nor on the (estimated) load; with an unsettled proposal the
-    lowest settled one; None when none settled."""
-    settled = [i for i, r in enumerate(runs) if r.settled]
+    """The delivered candidate: the lowest cost among the usable runs (:attr:`PlantRun.usable`:
+    settled, or near the reference and only slow) that are not worse than the proposal's (index 0)
+    on the motor nor on the (estimated) load; with an unusable proposal the lowest usable one; None
+    when none is usable."""
+    settled = [i for i, r in enumerate(runs) if r.usable]
     if not settled:
         return None
-    if runs[0].settled:
+    if runs[0].usable:
         settled = [i for i in settled if runs[i].motor <= runs[0].motor and runs[i].load <= runs[0].load]
     return min(settled, key=lambda i: (runs[i].cost, i))
 
@@ -417,14 +450,19 @@ def commission(
     if not isinstance(cfg, CommissioningConfig):
         raise TypeError(f"config: expected CommissioningConfig or None, received {type(cfg).__name__}")
     conf = drive_config(drive)
+    check_resolution(limits, conf)
     run = _Run(_CheckedDrive(drive, conf), conf, limits, cfg, progress or (lambda msg: None), writer, name, tag or name)
     run.say(f"{name}: adapting the test signal")
     ex = adapt_test_signal(run.drive, limits, cfg.rules)
     if any(e["aborted"] for e in ex.log):
         run.warn("run_stopped", "the drive stopped a test run at a limit")
     run.lap("excitation")
-    run.say(f"{name}: identifying")
-    result = _identify(identifier, ex.record)
+    if ex.code == "speed_against_torque":  # E10: nothing to identify; the maps would blame the units
+        run.warn("speed_against_torque", ex.reason)
+        result: Any = IdentificationFailed(f"not identified: {ex.reason}")
+    else:
+        run.say(f"{name}: identifying")
+        result = _identify(identifier, ex.record)
     validation, vwarn = _validate(result, conf, ex.record, cfg)
     run.warnings.extend(vwarn)
     if not ex.informative:
@@ -457,6 +495,9 @@ def commission(
         f1, f1_runs, f1_chosen, sc, prediction = _fallback(run, result, ex)
         if f1_chosen is not None:
             delivered, delivered_run = f1, f1_runs[f1_chosen]
+        else:
+            run.warn("loop_not_settled", f"the fallback F1 did not settle on the drive either ({f1_runs[0].verdict_text}): "
+                                         f"no controller delivered")
     elif chosen is not None:
         delivered_run = runs[chosen]
         if chosen == 0:

@@ -40,7 +40,16 @@ import numpy as np
 
 import sim
 
-__all__ = ["ExcitationRules", "ExcitationResult", "measure_response", "adapt_test_signal", "stop_headroom", "guarded_limits"]
+#: How the test-signal adaptation ended (:attr:`ExcitationResult.code`).
+EXCITATION_ENDS: dict[str, str] = {
+    "informative": "the response is informative (E7)",
+    "limits_reached": "no rule can change anything within the limits (E7)",
+    "max_iterations": "no informative response after max_iterations runs (E7)",
+    "run_repeated": "a stopped run repeated the previous stopped run's peak speed and travel (E8b)",
+    "speed_against_torque": "the speed moved against the torque reference: motor or encoder sign reversed (E10)",
+}
+
+__all__ = ["EXCITATION_ENDS", "ExcitationRules", "ExcitationResult", "measure_response", "adapt_test_signal", "stop_headroom", "guarded_limits"]
 
 
 @dataclass(frozen=True)
@@ -57,7 +66,10 @@ class ExcitationRules:
     speed limit for the first run). ``swing_allowance``: E6 plans the next peak at ``w_max' (1 +
     swing_allowance)`` at least: once a section lasts longer than half a period of a soft mode, the
     load swings the motor on after section I (the torque is 0 there, a stop changes nothing) by far
-    more than the short runs before showed.
+    more than the short runs before showed. ``against_quanta``: E10 stops when a run's speed moves
+    against the torque reference by more than this many speed quanta (summed over the samples at
+    more than half the peak torque reference). ``repeat_tolerance``: E8b stops when a stopped run's
+    peak speed and travel repeat the previous stopped run's within this share.
     """
 
     M_star_start: float = 0.1
@@ -74,6 +86,8 @@ class ExcitationRules:
     swing_allowance: float = 1.0
     delay_allowance: int = 1
     first_headroom: float = 0.25
+    against_quanta: float = 10.0
+    repeat_tolerance: float = 0.02
 
 
 @dataclass
@@ -88,6 +102,8 @@ class ExcitationResult:
     log: list[dict[str, Any]] = field(default_factory=list)
     informative: bool = False
     reason: str = ""
+    code: str = ""
+    """How the adaptation ended: a key of :data:`EXCITATION_ENDS`."""
 
 
 def _dominant_frequency(resid: list[np.ndarray], T_s: float) -> float:
@@ -134,7 +150,13 @@ def measure_response(record: Any, config: Any) -> dict[str, Any]:
     meta = record.meta or {}
     torque = record.torque if record.torque is not None else (
         None if record.current is None else np.asarray(record.current) * float(config.K_M))
+    along = math.nan  # speed gained in the direction of the torque reference [q_w] (negative: against it)
+    if record.torque_ref is not None and len(record.torque_ref) == len(w):
+        M = np.asarray(record.torque_ref, dtype=np.float64)
+        on = np.abs(M[:-1]) >= 0.5 * float(np.abs(M).max()) if np.abs(M).max() > 0 else np.zeros(len(w) - 1, dtype=bool)
+        along = float(np.sum(np.sign(M[:-1][on]) * np.diff(w)[on])) / q_w
     return {
+        "along_torque_quanta": along,
         "samples_per_section": counts,
         "samples_min": min(counts),
         "timed_out": bool(np.any(meta.get("timed_out", False))),
@@ -198,7 +220,7 @@ def adapt_test_signal(drive: Any, limits: sim.DriveLimits, rules: ExcitationRule
     log: list[dict[str, Any]] = []
     records: list[Any] = []
     w_ceiling = M_ceiling = math.inf
-    informative, reason = False, ""
+    informative, reason, code = False, "", ""
     accel_per_M = over_per_M = 0.0  # E9: what a stop can add, per Nm of M*, from the runs so far
 
     def headroom(M: float) -> float:
@@ -215,14 +237,36 @@ def adapt_test_signal(drive: Any, limits: sim.DriveLimits, rules: ExcitationRule
         accel_per_M = max(accel_per_M, m["accel"] / M_star)
         if not m["aborted"]:
             over_per_M = max(over_per_M, max(m["peak_speed"] - w_max, 0.0) / M_star)
-        if m["aborted"]:
-            # E8: the drive stopped the run at a limit: never accepted; half the speed target, and
-            # no later run above factor^-0.5 of the stopped one's
-            w_next = w_max / rules.factor
-            w_ceiling = min(w_ceiling, w_max / math.sqrt(rules.factor))
-            entry.update(decision=f"w_max {w_max:.4g} -> {w_next:.4g} rad/s", reason="stopped by the drive at a limit")
+        if m["along_torque_quanta"] < -rules.against_quanta:
+            # E10: the speed moves against the torque reference: a reversed motor or encoder sign; no
+            # rule can make such a run informative, and every further run would go the wrong way
+            code, reason = "speed_against_torque", (f"the speed moved against the torque reference ({-m['along_torque_quanta']:.0f} "
+                                                    f"speed quanta): motor or encoder sign reversed?")
+            entry.update(decision="stop", reason=reason)
             log.append(entry)
-            w_max = w_next
+            break
+        if m["aborted"]:
+            prev = next((e for e in reversed(log) if e["aborted"]), None)
+            if prev is not None and all(abs(m[k] - prev[k]) <= rules.repeat_tolerance * max(abs(prev[k]), 1e-300)
+                                        for k in ("peak_speed", "travel")):
+                # E8b: a smaller test changed nothing: the limit is passed before the signal matters
+                code, reason = "run_repeated", (f"the drive stopped the run at a limit again with the same peak speed "
+                                                f"{m['peak_speed']:.4g} rad/s and travel {m['travel']:.4g} rad: a smaller test "
+                                                f"signal changes nothing")
+                entry.update(decision="stop", reason=reason)
+                log.append(entry)
+                break
+            # E8: the drive stopped the run at a limit: never accepted; half the speed target and the
+            # torque (not below E1's start), no later run above factor^-0.5 of the stopped one's
+            w_next = w_max / rules.factor
+            M_next = max(M_star / rules.factor, min(M_star, rules.M_star_start * M_cap))
+            w_ceiling = min(w_ceiling, w_max / math.sqrt(rules.factor))
+            M_ceiling = min(M_ceiling, max(M_star / math.sqrt(rules.factor), M_next))
+            parts = [f"M_star {M_star:.4g} -> {M_next:.4g} Nm"] if M_next != M_star else []
+            entry.update(decision="; ".join(parts + [f"w_max {w_max:.4g} -> {w_next:.4g} rad/s"]),
+                         reason="stopped by the drive at a limit")
+            log.append(entry)
+            w_max, M_star = w_next, M_next
             continue
         # E2: what is missing
         short = m["samples_min"] < rules.min_section_samples
@@ -274,19 +318,19 @@ def adapt_test_signal(drive: Any, limits: sim.DriveLimits, rules: ExcitationRule
         problems = [p for p, on in (("section timed out", m["timed_out"]), ("sections too short", short),
                                     ("speed range too small", small), ("oscillation not visible", hidden)) if on]
         if not problems:
-            informative, reason = True, "informative"
+            informative, reason, code = True, "informative", "informative"
             entry.update(decision="accept", reason=reason)
             log.append(entry)
             break
         if hidden and not (m["timed_out"] or short or small) and M_star >= M_cap:
             # E7: oscillation still below resolution at the torque cap: stiff or weakly coupled mechanics
-            informative, reason = True, "informative (oscillation not visible at the torque cap: stiff or weakly coupled)"
+            informative, reason, code = True, "informative (oscillation not visible at the torque cap: stiff or weakly coupled)", "informative"
             entry.update(decision="accept", reason=reason)
             log.append(entry)
             break
         changed = abs(M_next - M_star) > 1e-9 * M_star or abs(w_next - w_max) > 1e-9 * w_max
         if not changed or w_next <= 0:
-            reason = f"limits reached before the response was informative: {', '.join(problems)}"
+            code, reason = "limits_reached", f"limits reached before the response was informative: {', '.join(problems)}"
             entry.update(decision="stop", reason=reason)
             log.append(entry)
             break
@@ -299,7 +343,7 @@ def adapt_test_signal(drive: Any, limits: sim.DriveLimits, rules: ExcitationRule
         log.append(entry)
         M_star, w_max = M_next, w_next
     else:
-        reason = f"no informative response after {rules.max_iterations} runs"
+        code, reason = "max_iterations", f"no informative response after {rules.max_iterations} runs"
     kept = [r for r, e in zip(records, log) if not e["aborted"]]
     return ExcitationResult(record=kept[-1] if kept else records[-1], records=records, log=log, informative=informative,
-                            reason=reason)
+                            reason=reason, code=code)

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 from pathlib import Path
 from typing import Any
 
@@ -80,7 +81,13 @@ class FileDrive:
             raise ExperimentPending(f"experiment {self.count} ({request['kind']}) written to {req_path}; run it on the drive, "
                                     f"drop the recording as {stem}.csv + {stem}.json, then: twomass commission --resume "
                                     f"{self.folder}", str(req_path))
-        return read_recording(stem)
+        rec = read_recording(stem)
+        for key in ("M_star", "w_max"):  # a test recording names its signal: it must be the one requested
+            got = rec.meta.get(key)
+            if key in request and got is not None and not math.isclose(float(got), float(request[key]), rel_tol=1e-6):
+                raise CommissioningError(f"{stem}.json: {key} {float(got):.6g} is not the requested {float(request[key]):.6g} "
+                                         f"({req_path}): a recording of another experiment")
+        return rec
 
     def run_test(self, M_star: float, w_max: float, limits: sim.DriveLimits) -> sim.Record:
         return self._exchange({"kind": "test", "M_star": M_star, "w_max": w_max, "limits": _limits(limits)})

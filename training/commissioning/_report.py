@@ -23,7 +23,7 @@ from training._json import json_safe
 from ._excitation import ExcitationResult
 from ._permission import CommissioningWarning, IdentificationOutcome, Permission
 from ._rules import ControllerProposal
-from ._tuning import Gains, TuningResult, TuningScenario
+from ._tuning import USABLE_VERDICTS, Gains, TuningResult, TuningScenario
 from ._validation import ValidationResult
 
 __all__ = ["CommissioningReport", "PlantRun", "summarize", "summary_text"]
@@ -35,10 +35,13 @@ _UNITS = {"J_sigma": "kg m^2", "f_e": "Hz", "backlash": "rad (2s)", "M_FC": "Nm"
 @dataclass(frozen=True)
 class PlantRun:
     """One closed-loop experiment on the drive: the gains, the cost from the measured record
-    (``motor`` + ``load`` terms; the load estimated by the identified model), ``settled`` (not
-    stopped, finite, settled near its reference), ``aborted`` (the drive stopped it), ``bounded``
-    (not stopped, finite, within the divergence bound: slow at worst), the figures
-    (:func:`response_figures`) and the measured speed ``N``."""
+    (``motor`` + ``load`` terms; the load estimated by the identified model), ``settled``
+    (``verdict`` None: not stopped, finite, inside the settling band at the end of the first step,
+    so ``figures["settling_time"]`` is finite; not saturated, no limit cycle, not far worse than
+    ``model_cost``, what the identified model predicts), ``aborted`` (the drive stopped it),
+    ``bounded`` (at worst slow: ``verdict`` None or ``not_settled``), ``verdict`` (a code of
+    :data:`LOOP_VERDICTS`) and ``verdict_text``, the figures (:func:`response_figures`) and the
+    measured speed ``N``."""
 
     gains: Gains
     cost: float
@@ -49,11 +52,20 @@ class PlantRun:
     figures: dict[str, float]
     speed: np.ndarray = field(repr=False)
     bounded: bool = True
-    """Not stopped by the drive, finite, within the divergence bound: a run that is only slow."""
+    """At worst slow: not stopped, not diverging, not saturated, no limit cycle, not unlike its model."""
+    verdict: str | None = None
+    verdict_text: str = "settled"
+    model_cost: float = math.nan
+
+    @property
+    def usable(self) -> bool:
+        """May be delivered as a model-based loop: settled, or near its reference and only slow."""
+        return self.verdict in USABLE_VERDICTS
 
     def to_dict(self) -> dict[str, Any]:
         return {"Kp": self.gains[0], "Ti": self.gains[1], "T_f": self.gains[2], "cost": self.cost, "motor": self.motor,
                 "load": self.load, "settled": self.settled, "bounded": self.bounded, "aborted": self.aborted,
+                "verdict": self.verdict, "verdict_text": self.verdict_text, "model_cost": self.model_cost,
                 "figures": self.figures}
 
 
@@ -114,8 +126,8 @@ class CommissioningReport:
     @property
     def improvement(self) -> float | None:
         """``1 - cost(delivered) / cost(proposal)`` on the drive, only against a proposal that
-        settled (a model-based delivery); None otherwise."""
-        if self.delivered_run is None or self.fallback is not None or not self.runs or not self.runs[0].settled:
+        settled or is only slow (:attr:`PlantRun.usable`; a model-based delivery); None otherwise."""
+        if self.delivered_run is None or self.fallback is not None or not self.runs or not self.runs[0].usable:
             return None
         return 1.0 - self.delivered_run.cost / self.runs[0].cost
 
@@ -225,10 +237,10 @@ class CommissioningReport:
              "   run       Kp      Ti [ms]  cost (motor+load)  rise [ms]  overshoot [%]  load overshoot [%]  settled"]
         for name, r in zip(names, runs):
             f = r.figures
-            cost = "-" if not r.settled else f"{r.cost:.4g} ({r.motor:.3g}+{r.load:.3g})"
+            cost = "-" if r.verdict in ("stopped", "diverging") else f"{r.cost:.4g} ({r.motor:.3g}+{r.load:.3g})"
             state = "yes" if r.settled else ("NO: stopped by the drive at a limit" if r.aborted else
-                                               "no: slow (bounded, not settled within the experiment)" if r.bounded else
-                                               "NO: diverging")
+                                               f"no [{r.verdict}]: slow ({r.verdict_text})" if r.bounded else
+                                               f"NO [{r.verdict}]: {r.verdict_text}")
             L.append(f"   {name:<8} {r.gains[0]:8.4g} {r.gains[1] * 1e3:9.4g}  {cost:>18}  {_ms(f['rise_time']):>9}  "
                      f"{f['overshoot_pct']:13.1f}  {f['load_overshoot_pct']:18.1f}  {state}")
         return L
@@ -245,7 +257,7 @@ class CommissioningReport:
         if imp is not None:
             L.append(f"   cost on the drive: proposal {self.runs[0].cost:.4g} -> delivered {self.delivered_run.cost:.4g} "
                      f"({100 * imp:.1f} % better)")
-        elif self.fallback is None and self.runs and not self.runs[0].settled:
+        elif self.fallback is None and self.runs and not self.runs[0].usable:
             L.append("   the proposal did not settle on the drive: no improvement percentage")
         return L
 

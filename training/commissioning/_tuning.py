@@ -40,7 +40,8 @@ from ._rules import ControllerProposal, ControllerSpec
 
 __all__ = [
     "TuningScenario", "TuningResult", "plan_scenario", "closed_loop_cost", "response_figures", "load_estimate",
-    "model_response", "tune_controller", "Gains",
+    "model_response", "tune_controller", "Gains", "loop_verdict", "LOOP_VERDICTS", "BOUNDED_VERDICTS",
+    "USABLE_VERDICTS",
 ]
 
 #: (Kp [Nm s/rad], Ti [s], T_f [s]).
@@ -70,6 +71,24 @@ class TuningScenario:
     oscillation_weight: float = 100.0
     divergence_factor: float = 20.0
     unstable_cost: float = 1e4
+    q_w: float = 0.0
+    """The drive's speed quantum [rad/s]: the settling band is never narrower than ``settle_quanta`` of it."""
+    settle_band: float = 0.05
+    """Settling band around the reference, as a share of ``w_step`` (at least ``settle_quanta q_w``)."""
+    settle_quanta: float = 3.0
+    saturated_share: float = 0.05
+    """A run whose torque reference sits at the torque cap in more than this share of its samples is saturated."""
+    limit_cycle_share: float = 0.1
+    """A run whose speed, over the last quarter of the segments, swings (RMS about its mean, median of the six
+    segments) by more than this share of ``w_step`` (and more than ``settle_quanta q_w``) is in a limit cycle."""
+    model_cost_factor: float = 20.0
+    """A run that costs more than this many times what the identified model predicts for the same gains is unlike
+    its model (the guarantee, computed on the model, does not describe it)."""
+
+    @property
+    def band(self) -> float:
+        """The settling band [rad/s]."""
+        return max(self.settle_band * self.w_step, self.settle_quanta * self.q_w)
 
     @property
     def n_samples(self) -> int:
@@ -161,9 +180,9 @@ def plan_scenario(proposal: ControllerProposal, extra: Sequence[Gains], config: 
     M_dist = min(0.2 * M_cap, half * limits.w_max / max(pw_d, 1e-300), half * limits.travel / max(pt_d, 1e-300))
     if not (math.isfinite(w_step) and w_step > 0 and math.isfinite(M_dist) and M_dist > 0):
         raise ValueError(f"scenario: the model predicts no bounded response (w_step {w_step}, M_dist {M_dist})")
-    sc = replace(unit, w_step=float(w_step), M_dist=float(M_dist), dip_ref=M_dist / (mech.J_sigma * w_c))
-    pw, pt = peaks(model_response(mech, config, gains, proposal.notch, sc))
     q_w = sim.speed_quantum(float(config.encoder_counts), T_s)
+    sc = replace(unit, w_step=float(w_step), M_dist=float(M_dist), dip_ref=M_dist / (mech.J_sigma * w_c), q_w=q_w)
+    pw, pt = peaks(model_response(mech, config, gains, proposal.notch, sc))
     return sc, {"peak_speed": pw, "travel": pt, "speed_quanta": w_step / q_w}
 
 
@@ -236,9 +255,9 @@ def _cost(w: np.ndarray, seg: np.ndarray, sc: TuningScenario, mech: Mechanics | 
 
 def response_figures(speed: np.ndarray, sc: TuningScenario, mech: Mechanics | None = None) -> dict[str, float]:
     """Figures of one run ``N`` [rad/s]: first step ``rise_time`` (10-90 %) [s], ``overshoot_pct``,
-    ``settling_time`` (2 % band) [s]; ``load_overshoot_pct`` (estimated load speed, two-mass);
+    ``settling_time`` (inside ``sc.band``: 5 % of ``w_step``, at least 3 speed quanta) [s]; ``load_overshoot_pct`` (estimated load speed, two-mass);
     disturbance ``dist_peak`` [rad/s] (largest speed change) and ``dist_recovery_time`` [s] (back
-    inside 2 % of ``w_step``). inf where a run never got there."""
+    inside the band). inf where a run never got there."""
     w = np.asarray(speed, dtype=np.float64)
     if len(w) < sc.n_samples or not np.isfinite(w).all():
         return {k: math.inf for k in ("rise_time", "overshoot_pct", "settling_time", "load_overshoot_pct",
@@ -258,11 +277,58 @@ def response_figures(speed: np.ndarray, sc: TuningScenario, mech: Mechanics | No
     return {
         "rise_time": first(y >= 0.9) - first(y >= 0.1),
         "overshoot_pct": float(max(0.0, y.max() - 1.0) * 100.0),
-        "settling_time": settle(np.abs(y - 1) > 0.02),
+        "settling_time": settle(np.abs(y - 1) * r > sc.band),
         "load_overshoot_pct": float(max(0.0, _segments(load, sc)[0].max() / r - 1.0) * 100.0) if load is not None else math.nan,
         "dist_peak": float(np.abs(seg[4]).max()),
-        "dist_recovery_time": settle(np.abs(seg[4] / r) > 0.02),
+        "dist_recovery_time": settle(np.abs(seg[4]) > sc.band),
     }
+
+
+#: Why a closed-loop run on the drive did not settle (:func:`loop_verdict`); a run with none of these settled.
+LOOP_VERDICTS: dict[str, str] = {
+    "stopped": "stopped by the drive at a limit",
+    "diverging": "not finite or beyond divergence_factor w_step",
+    "saturated": "the torque reference sits at the torque cap in more than saturated_share of the samples",
+    "limit_cycle": "the speed keeps swinging at the end of the segments (RMS above limit_cycle_share w_step)",
+    "not_settled": "the first step ends more than half a step off its reference (slow or unstable)",
+    "unlike_model": "the measured cost is more than model_cost_factor times the identified model's prediction",
+    "slow": "near its reference, but the first step is not inside the settling band by the end of its segment",
+}
+#: Verdicts of a run that may be delivered as a model-based loop (it settled, or it is close and only slow).
+USABLE_VERDICTS: frozenset[str | None] = frozenset({None, "slow"})
+#: Verdicts of a run that stayed bounded: at worst slow, not unstable (enough for the fallback F1).
+BOUNDED_VERDICTS: frozenset[str | None] = USABLE_VERDICTS | {"not_settled"}
+
+
+def loop_verdict(speed: np.ndarray, torque_ref: np.ndarray | None, sc: TuningScenario, M_cap: float, cost: float,
+                 model_cost: float, aborted: bool) -> tuple[str | None, str]:
+    """Did a measured run settle? ``(code, text)``: ``code`` a key of :data:`LOOP_VERDICTS` (the first
+    that applies, in its order), None when it settled (not saturated, no limit cycle, not unlike its
+    model, the first step inside the band at the end of its segment: ``settling_time`` finite);
+    ``text`` says what was measured."""
+    w = np.asarray(speed, dtype=np.float64)
+    N, n = sc.n_samples, sc.n_segment
+    if aborted or len(w) < N:
+        return "stopped", LOOP_VERDICTS["stopped"]
+    w = w[:N]
+    if not np.isfinite(w).all() or float(np.abs(w).max()) > sc.divergence_factor * sc.w_step:
+        return "diverging", LOOP_VERDICTS["diverging"]
+    if torque_ref is not None and len(torque_ref) and M_cap > 0:
+        share = float(np.mean(np.abs(np.asarray(torque_ref, dtype=np.float64)) >= 0.99 * M_cap))
+        if share > sc.saturated_share:
+            return "saturated", f"the torque reference sits at the torque cap {M_cap:.3g} Nm in {100 * share:.0f} % of the samples"
+    tail = _segments(w, sc)[:, -max(n // 4, 4):]
+    swing = float(np.median(tail.std(-1)))
+    if swing > max(sc.limit_cycle_share * sc.w_step, sc.settle_quanta * sc.q_w):
+        return "limit_cycle", (f"the speed keeps swinging by {swing:.3g} rad/s RMS at the end of the segments "
+                               f"({100 * swing / sc.w_step:.0f} % of the step {sc.w_step:.3g} rad/s)")
+    if cost >= sc.unstable_cost:
+        return "not_settled", "the first step ends more than half a step off its reference"
+    if math.isfinite(model_cost) and model_cost > 0 and cost > sc.model_cost_factor * model_cost:
+        return "unlike_model", f"measured cost {cost:.4g} is {cost / model_cost:.3g} x the model's {model_cost:.4g}"
+    if not math.isfinite(response_figures(w, sc)["settling_time"]):
+        return "slow", f"the first step is not inside +-{sc.band:.3g} rad/s of its reference by the end of its segment"
+    return None, "settled"
 
 
 @dataclass

@@ -50,7 +50,7 @@ def main() -> None:
                "true_pm": (rep.truth or {}).get("phase_margin"), "true_gm": (rep.truth or {}).get("gain_margin_dB"),
                "true_stable": (rep.truth or {}).get("stable"), "improvement": rep.improvement,
                "not_worse": None if rep.delivered_run is None or rep.fallback is not None else
-               bool(rep.delivered_run.settled and (not runs[0].settled or (  # an unsettled proposal is worse
+               bool(rep.delivered_run.usable and (not runs[0].usable or (  # an unsettled proposal is worse
                    rep.delivered_run.motor <= runs[0].motor and rep.delivered_run.load <= runs[0].load))),
                "seconds": rep.timings.get("total")}
         rows.append(row)

@@ -69,7 +69,8 @@ def test_limits_never_exceeded_in_any_run(params, limits):
 
 def test_a_run_stopped_by_the_drive_is_never_accepted():
     """A drive whose travel limit is far tighter than the chain's (it stops every run that moves
-    more than 2 mrad): every run is flagged, none accepted, w_max halves each time (E8)."""
+    more than 2 mrad): every run is flagged, none accepted, w_max halves (E8); the second stopped run
+    repeats the first's peak and travel (M* is already at E1's start), so the adaptation stops (E8b)."""
     drive = sim.SimulatedDrive(dict(J_sigma=0.05, V_J=1.0, f_e=50.0, d=0.05, backlash=0.0, M_FC=0.1, mu_F=0.0))
     tight = sim.DriveLimits(w_max=100.0, travel=0.002)
 
@@ -81,7 +82,8 @@ def test_a_run_stopped_by_the_drive_is_never_accepted():
 
     res = adapt_test_signal(Tight(), sim.DriveLimits(w_max=100.0, travel=100.0), ExcitationRules(max_iterations=3))
     assert not res.informative and all(e["aborted"] for e in res.log)
-    assert [e["w_max"] for e in res.log] == pytest.approx([res.log[0]["w_max"] / 2**i for i in range(3)])
+    assert [e["w_max"] for e in res.log] == pytest.approx([res.log[0]["w_max"] / 2**i for i in range(2)])
+    assert res.code == "run_repeated" and res.log[-1]["decision"] == "stop"
     rec = res.record
     stop = int(np.argmax(np.abs(np.cumsum(rec.speed) * DRIVE.T_s) > tight.travel))
     assert np.all(rec.torque_ref[stop + 2:] == 0.0)  # torque reference 0 from the stop on
