@@ -9,6 +9,7 @@ import os
 import pickle
 import zipfile
 from pathlib import Path
+from collections.abc import Sequence
 from typing import Any
 
 import torch
@@ -127,15 +128,15 @@ def file_sha256(path: str | os.PathLike) -> str:
     return h.hexdigest()
 
 
-def write_manifest(folder: str | os.PathLike, name: str = "manifest.json") -> Path:
-    """Write ``folder/name``: ``{"files": {relative path: sha256}}`` for every regular file in
-    ``folder`` (recursively, hidden files and the manifest itself excluded); atomic."""
+def write_manifest(folder: str | os.PathLike, name: str = "manifest.json", files: Sequence[str] | None = None) -> Path:
+    """Write ``folder/name``: ``{"files": {relative path: sha256}}`` for the relative paths ``files``,
+    else for every regular file in ``folder`` (recursively, hidden files and the manifest itself
+    excluded); atomic."""
     folder = Path(folder)
-    files = {
-        p.relative_to(folder).as_posix(): file_sha256(p)
-        for p in sorted(folder.rglob("*"))
-        if p.is_file() and p.name != name and not any(part.startswith(".") for part in p.relative_to(folder).parts)
-    }
+    if files is None:
+        files = [p.relative_to(folder).as_posix() for p in folder.rglob("*")
+                 if p.is_file() and p.name != name and not any(part.startswith(".") for part in p.relative_to(folder).parts)]
+    files = {f: file_sha256(folder / f) for f in sorted(files)}
     text = json.dumps({"algorithm": "sha256", "files": files}, indent=2, sort_keys=True) + "\n"
     out = folder / name
     atomic_write(out, lambda f: f.write(text.encode()))

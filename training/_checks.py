@@ -1,10 +1,14 @@
-"""Input checks shared by the signal-processing modules (one-line errors naming the input)."""
+"""Input checks shared by the signal-processing modules and the commands (one-line errors naming the input)."""
 
 from __future__ import annotations
 
+import math
+import os
 from typing import Any
 
 import numpy as np
+
+from training.errors import UserError
 
 
 def as_signal(name: str, x: Any) -> np.ndarray:
@@ -17,3 +21,74 @@ def as_signal(name: str, x: Any) -> np.ndarray:
     if not np.all(np.isfinite(arr)):
         raise ValueError(f"{name}: expected finite values, received {int(np.sum(~np.isfinite(arr)))} NaN/inf")
     return arr
+
+
+# --- command-line input checks (one-line UserErrors naming the option; shared by the commands) ---
+
+#: RK4 substeps per sample above which a simulation is refused (:func:`check_sim_cost`). SPEC 3.1's
+#: envelope needs at most about 20 (f_e 500 Hz at T_s 1 ms, or T_s / T_Ei = 10); 1000 allows eigen-
+#: frequencies far beyond it (about 160 kHz on the reference drive) at 250 x the usual cost.
+MAX_SUBSTEPS = 1000
+
+
+def finite_number(option: str, value: float, *, positive: bool = True) -> float:
+    """``value`` if finite (and > 0 with ``positive``); else a :class:`UserError` naming ``option``."""
+    if not math.isfinite(value) or (positive and value <= 0):
+        raise UserError(f"{option}: expected a finite number{' > 0' if positive else ''}, received {value!r}")
+    return value
+
+
+def seed(option: str, value: int) -> int:
+    """``value`` if it is a usable seed (an integer >= 0); else a :class:`UserError` naming ``option``."""
+    if value < 0:
+        raise UserError(f"{option}: expected an integer >= 0, received {value}")
+    return value
+
+
+def record_name(source: str, name: str) -> str:
+    """``name`` if it names a file inside the output folder (no path separator, not ``.``/``..``)."""
+    if name in ("", ".", "..") or any(sep in name for sep in ("/", "\\", os.sep, os.altsep or "/", "\0")):
+        raise UserError(f"{source}: record name {name!r}: expected a plain file name (no path separators, "
+                        "not '.' or '..')")
+    return name
+
+
+def machine_memory() -> int | None:
+    """This machine's physical memory [bytes]; ``None`` where the platform does not say."""
+    try:
+        return int(os.sysconf("SC_PAGE_SIZE")) * int(os.sysconf("SC_PHYS_PAGES"))
+    except (AttributeError, ValueError, OSError):
+        return None
+
+
+def _size(n_bytes: float) -> str:
+    for unit in ("B", "KiB", "MiB", "GiB", "TiB"):
+        if n_bytes < 1024 or unit == "TiB":
+            return f"{n_bytes:.3g} {unit}"
+        n_bytes /= 1024
+    return f"{n_bytes:.3g} TiB"
+
+
+def check_memory(what: str, n_bytes: float, available: int | None = None) -> None:
+    """A :class:`UserError` where ``what`` needs more memory (an estimate, ``n_bytes``) than the
+    machine has (``available``: default :func:`machine_memory`)."""
+    have = machine_memory() if available is None else available
+    if have is not None and n_bytes > have:
+        raise UserError(f"{what}: needs about {_size(n_bytes)} of memory, this machine has {_size(have)}; "
+                        "ask for less")
+
+
+def check_sim_cost(source: str, params: Any, drive: Any) -> None:
+    """A :class:`UserError` naming ``f_e`` where simulating ``params`` (``sim.TwoMassParams``) on
+    ``drive`` takes more than :data:`MAX_SUBSTEPS` RK4 substeps per sample (the cost grows with ``f_e``)."""
+    from sim import default_substeps
+    flat = params.reshape(-1)
+    if default_substeps(flat, drive) <= MAX_SUBSTEPS:
+        return
+    w_0 = flat.w_0.reshape(-1)
+    i = int(w_0.argmax())
+    f_e = float(flat.f_e.reshape(-1)[i])
+    f_max = MAX_SUBSTEPS * 0.25 / drive.T_s * f_e / float(w_0[i])  # substeps ~ w_0 T_s / 0.25, w_0 ~ f_e
+    raise UserError(f"{source}: f_e {f_e:g} Hz needs {default_substeps(flat, drive)} RK4 substeps per "
+                    f"sample (T_s {drive.T_s * 1e6:g} us); at most {MAX_SUBSTEPS} are allowed (f_e up to about "
+                    f"{f_max:.3g} Hz on this drive)")

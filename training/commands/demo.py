@@ -149,15 +149,18 @@ def run(args: argparse.Namespace) -> int:
     from sim import DriveConfig, TestSignalConfig, TwoMassParams, responses_to_records, simulate_test
     from training._json import dumps
     from training.commands.identify import load_identifier
+    from training._checks import check_sim_cost, seed
     from training.params_file import read_params_file
 
+    seed("--seed", args.seed)
+    drive, signal = DriveConfig(), TestSignalConfig()
     if args.params is None:
         labels = [label for label, _ in DEFAULT_PLANTS]
         params = TwoMassParams.from_dicts([dict(p) for _, p in DEFAULT_PLANTS])
     else:
         params, labels = read_params_file(args.params, name_prefix="plant")
+        check_sim_cost("--params", params, drive)
     n = len(labels)
-    drive, signal = DriveConfig(), TestSignalConfig()
     steps = 1 + n if args.json else 2 + n * (1 + REPEATS)
     with _progress.bar(args, total=steps, desc="demo", unit="step") as bar:
         bar.set_postfix_str("loading the maps")

@@ -8,10 +8,16 @@ import time
 from pathlib import Path
 from typing import Any
 
+from training.commands import _progress
+
 HELP = "evaluate the SOM identification against IV4 on the paper's grid and a random set (tables + figures)"
 
 DEFAULT_OUT = Path("docs/results")
 DEFAULT_CACHE = Path("data/evaluate-cache")
+
+#: Largest grid backlash width accepted by ``--backlash`` [degrees]: 10 x the default population's
+#: widest (1 degree); wider is no gear backlash the test run or the maps are meant for.
+MAX_BACKLASH_DEG = 10.0
 
 
 def _floats(text: str) -> tuple[float, ...]:
@@ -26,7 +32,10 @@ def _floats(text: str) -> tuple[float, ...]:
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """The options (no heavy import here: ``--help`` stays fast; the grid defaults are filled in by :func:`run`)."""
-    parser.add_argument("--out", type=Path, default=DEFAULT_OUT, help=f"report folder (default {DEFAULT_OUT})")
+    parser.add_argument("--out", type=Path, default=DEFAULT_OUT,
+                        help=f"report folder (default {DEFAULT_OUT}, relative to the working folder)")
+    parser.add_argument("--overwrite", action="store_true",
+                        help="replace report files already in --out (without it nothing is computed when any exists)")
     parser.add_argument("--seed", type=int, default=5,
                         help="seed of the grid draw; the random set uses seed + 1 (default 5)")
     parser.add_argument("--per-cell", type=int, default=20, help="systems per grid cell (default 20; 0 = no grid)")
@@ -36,7 +45,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="grid eigenfrequencies [Hz], comma-separated (default: the paper's 10,20,30,50,80,120)")
     parser.add_argument("--backlash", type=_floats, default=None, metavar="DEG_LIST",
                         help="grid backlash widths in DEGREES (total width 2s, as in the paper; parameter files "
-                             "and the JSON output use rad), comma-separated (default: the paper's 0,0.2,0.5)")
+                             f"and the JSON output use rad), 0 to {MAX_BACKLASH_DEG:g}, comma-separated (default: the "
+                             "paper's 0,0.2,0.5)")
     parser.add_argument("--checkpoints", type=Path, default=None, help="map folder (default: the shipped maps)")
     parser.add_argument("--cache", type=Path, default=DEFAULT_CACHE,
                         help=f"cache of per-system results, keyed by config (default {DEFAULT_CACHE})")
@@ -55,7 +65,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="with --drives N: instead of the matrix, K drives and tests drawn at random over SPEC "
                              "3.1's envelope (seed --seed; drives no matrix chose), N systems each, and all together; "
                              "written to OUT/drives_envelope.md and OUT/drives_envelope.json")
-    parser.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
+    _progress.add_option(parser)
 
 
 def command_line(args: argparse.Namespace) -> str:
@@ -79,6 +89,7 @@ def _run_drives(args: argparse.Namespace) -> int:
 
     from som_torch import atomic_write
     from training._json import dumps
+    from training.figures import refuse_existing
     from training.evaluation import DRIVES, drive_figures, drive_rows, drives_markdown, envelope_rows
     from training.identification import Identifier
 
@@ -89,6 +100,7 @@ def _run_drives(args: argparse.Namespace) -> int:
         raise ValueError(f"--envelope-drives: expected K >= 1 drives, received {args.envelope_drives}")
     stem = "drives_envelope" if envelope else "drives"
     md, js = args.out / f"{stem}.md", args.out / f"{stem}.json"
+    refuse_existing([md, js], args.overwrite)
     identifier = Identifier.load(args.checkpoints)
     command = (f"twomass evaluate --drives {args.drives}"
                + (f" --envelope-drives {args.envelope_drives}" if envelope else "")
@@ -116,19 +128,39 @@ def _run_drives(args: argparse.Namespace) -> int:
     return 0
 
 
+def _check_grid(f_e: tuple[float, ...], backlash_deg: tuple[float, ...]) -> None:
+    """Grid values the study can simulate: finite ``f_e`` > 0 at a bounded cost, backlash 0 ..
+    :data:`MAX_BACKLASH_DEG`; else a :class:`UserError` naming the option."""
+    from sim import DriveConfig, TwoMassParams
+    from training._checks import check_sim_cost, finite_number
+    from training.errors import UserError
+
+    for f in f_e:
+        finite_number("--f-e", f)
+    check_sim_cost("--f-e", TwoMassParams.from_dicts([{"J_sigma": 0.05, "V_J": 1.0, "f_e": f} for f in f_e]),
+                   DriveConfig())
+    for b in backlash_deg:
+        if not 0.0 <= b <= MAX_BACKLASH_DEG:  # NaN too
+            raise UserError(f"--backlash: expected widths 0 .. {MAX_BACKLASH_DEG:g} degrees, received {b:g}")
+
+
 def run(args: argparse.Namespace) -> int:
+    from training._checks import seed
+
+    seed("--seed", args.seed)
     if args.drives is not None:
         return _run_drives(args)
     if args.envelope_drives is not None:
         raise ValueError("--envelope-drives K: give the systems per drive with --drives N")
-    from tqdm import tqdm
-
     from training._distributed import process_group
-    from training.evaluation import GRID_BACKLASH_DEG, GRID_F_E, grid_set, population_set, run_study, write_report
+    from training.evaluation import (GRID_BACKLASH_DEG, GRID_F_E, grid_set, population_set, report_files, run_study,
+                                     write_report)
+    from training.figures import refuse_existing
 
     t0 = time.perf_counter()
     args.f_e = GRID_F_E if args.f_e is None else args.f_e
     args.backlash = GRID_BACKLASH_DEG if args.backlash is None else args.backlash
+    _check_grid(args.f_e, args.backlash)
     group = process_group()  # under torchrun: the systems are split, rank 0 writes the report
     if args.per_cell < 0 or args.population < 0:
         raise ValueError(f"--per-cell and --population: expected >= 0, received {args.per_cell}, {args.population}")
@@ -143,8 +175,9 @@ def run(args: argparse.Namespace) -> int:
         sets["grid"] = grid_set(args.per_cell, args.seed, f_e=args.f_e, backlash_deg=args.backlash)
     if args.population:
         sets["population"] = population_set(args.population, args.seed + 1)
-    with tqdm(total=sum(s.size for s in sets.values()), unit="sys", desc="evaluate", file=sys.stderr,
-              disable=args.no_progress or not group.main) as bar:
+    refuse_existing(report_files(args.out, list(sets), plots=not args.no_plots), args.overwrite)  # before the work
+    with _progress.bar(args, show=_progress.wanted(args) and group.main, total=sum(s.size for s in sets.values()),
+                       unit="sys", desc="evaluate") as bar:
         summary, rows_by_set = run_study(sets, methods=methods, checkpoints=args.checkpoints,
                                          cache_dir=None if args.no_cache else args.cache, workers=workers,
                                          progress=bar.update)

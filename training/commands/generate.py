@@ -12,6 +12,9 @@ HELP = "make training data: population responses and their features, sharded to 
 #: Default sharding: at least this many shards where N allows, of at most this many systems.
 MIN_SHARDS, MAX_SHARD_SIZE = 10, 500
 
+#: Memory per system of the drawn population besides its stored columns [bytes] (as ``simulate``'s).
+BYTES_PER_SYSTEM = 1024
+
 
 def default_shard_size(n: int) -> int:
     """Systems per shard for ``n`` systems when ``--shard-size`` is not given."""
@@ -29,7 +32,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="draw drives, test runs and mechanics over SPEC 3.1's drive envelope (the shipped maps' "
                              "data) instead of the SPEC 1 population on the reference drive")
     parser.add_argument("--workers", type=int, default=None,
-                        help="analysis processes (default: CPU count; under torchrun: each process's share)")
+                        help="analysis processes, >= 1 (default: CPU count; under torchrun: each process's share)")
     _progress.add_option(parser)
 
 
@@ -38,9 +41,18 @@ def run(args: argparse.Namespace) -> int:
     from sim import EnvelopeRanges
     from training.learning import GenerateConfig, generate, load_dataset
 
+    from training._checks import check_memory, seed
+    from training.identification import FEATURE_NAMES
+    from training.learning import ESTIMATE_NAMES, TRUTH_NAMES
+
     shard_size = default_shard_size(args.n) if args.shard_size is None else args.shard_size
     if args.n < 1 or shard_size < 1:
         raise ValueError(f"--n and --shard-size: expected >= 1, received {args.n}, {shard_size}")
+    seed("--seed", args.seed)
+    if args.workers is not None and args.workers < 1:
+        raise ValueError(f"--workers: expected >= 1, received {args.workers}")
+    columns = len(FEATURE_NAMES) + len(TRUTH_NAMES) + len(ESTIMATE_NAMES) + 1
+    check_memory(f"--n {args.n}", args.n * (BYTES_PER_SYSTEM + 3 * 8 * columns))  # drawn, shards, loaded
     config = GenerateConfig(n=args.n, seed=args.seed, shard_size=shard_size,
                             envelope=EnvelopeRanges() if args.envelope else None)
     group = process_group()  # under torchrun: the ranks share the shards, rank 0 writes and prints

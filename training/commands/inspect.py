@@ -46,14 +46,19 @@ def run(args: argparse.Namespace) -> int:
 
     if args.out.exists() and not args.out.is_dir():
         raise UserError(f"--out: expected a folder, received the file {str(args.out)!r}")
+    if not args.checkpoints.is_dir():
+        raise UserError(f"CHECKPOINT_DIR: expected a folder with the trained maps and manifest.json, received "
+                        f"{str(args.checkpoints)!r} (not found)")
     maps = load_identifier(args.checkpoints, refine=False).maps
     rows = _training_rows(args.data, maps) if args.data is not None else {}
+    plots = plots_available()
+    if plots:  # before anything is printed or drawn
+        refuse_existing([p for name, t in maps.items() for p in map_png_paths(t, args.out, hits=name in rows).values()],
+                        args.overwrite)
     print(dumps({name: _summary(t) for name, t in maps.items()}))
-    if not plots_available():
+    if not plots:
         print(f"twomass inspect: no figures written; {PLOT_HINT}", file=sys.stderr)
         return 0
-    refuse_existing([p for name, t in maps.items() for p in map_png_paths(t, args.out, hits=name in rows).values()],
-                    args.overwrite)
     written = [p for name, t in maps.items()
                for p in write_map_pngs(t, args.out, rows.get(name), overwrite=args.overwrite)]
     print(f"twomass inspect: {len(written)} figure(s) of {len(maps)} map(s) written to {args.out}", file=sys.stderr)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import sys
 from pathlib import Path
+from typing import Any
 
 from training.commands import _progress
 from training.errors import OutputExistsError, UserError
@@ -42,20 +43,58 @@ def _refuse_existing(folder: Path, names: list[str], overwrite: bool) -> None:
                                 "nothing written (pass --overwrite to replace them)")
 
 
+#: Memory per system of a drawn population (parameters, their derived values, the sort by duration) [bytes]:
+#: a generous estimate, for refusing sizes that cannot fit before numpy or torch fail to allocate.
+BYTES_PER_SYSTEM = 1024
+
+
+def _memory_estimate(params: Any, drive: Any, signal: Any, method: str, itemsize: int) -> float:
+    """Bytes the simulation of ``params`` holds at once: the fast path one group of systems (``sim.iter_records``:
+    512) at a time, the reference method all of them; each with its record's samples (as long as
+    ``sim`` expects the test to run, at most every section timing out)."""
+    n = params.J_sigma.numel()
+    expected = float(signal.expected_duration(params.J_sigma.reshape(-1)).max()) / drive.T_s
+    samples = min(signal.max_samples(drive), 1.25 * expected + 2048)
+    per_sample = 2 * (3 * itemsize + 1) if method == "fast" else 64  # growing buffers are copied once
+    at_once = min(n, 512) if method == "fast" else n
+    return n * BYTES_PER_SYSTEM + at_once * samples * per_sample + 48 * samples  # + one record in float64
+
+
+def _signal(args: argparse.Namespace, drive: Any) -> Any:
+    """The test signal of the options: finite levels, ``M*`` within the drive's ``M_max`` (SPEC 3.1)."""
+    from sim import TestSignalConfig
+    from training._checks import finite_number
+
+    for option, value in (("--M-star", args.M_star), ("--w-max", args.w_max), ("--timeout", args.timeout)):
+        finite_number(option, value)
+    if args.M_star > drive.M_max:
+        raise UserError(f"--M-star: expected at most the drive's M_max {drive.M_max:g} Nm (SPEC 3.1), "
+                        f"received {args.M_star:g}")
+    return TestSignalConfig(M_star=args.M_star, w_max=args.w_max, timeout=args.timeout)
+
+
 def run(args: argparse.Namespace) -> int:
     import torch
 
-    from sim import DriveConfig, TestSignalConfig, iter_records, sample_population, write_record
+    from sim import DriveConfig, iter_records, sample_population, write_record
+    from training._checks import check_memory, check_sim_cost, record_name, seed
 
     drive = DriveConfig()
-    signal = TestSignalConfig(M_star=args.M_star, w_max=args.w_max, timeout=args.timeout)
+    signal = _signal(args, drive)
+    seed("--seed", args.seed)
     if args.params is not None:
         params, names = read_params_file(args.params, "sys")
+        for name in names:
+            record_name(f"--params {args.params}", name)
     else:
         if args.population < 1:
             raise UserError(f"--population: expected N >= 1, received {args.population}")
+        check_memory(f"--population {args.population}", args.population * BYTES_PER_SYSTEM)
         params, names = sample_population(args.population, args.seed), None
     n = params.J_sigma.numel()
+    check_sim_cost(f"--params {args.params}" if args.params is not None else "--population", params, drive)
+    check_memory(f"simulate ({n} systems, --timeout {args.timeout:g}, --w-max {args.w_max:g})",
+                 _memory_estimate(params, drive, signal, args.method, 8 if args.float64 else 4))
     _refuse_existing(args.out, names or [f"sys{i:05d}" for i in range(n)], args.overwrite)
     dtype = torch.float64 if args.float64 else torch.float32
     bar = _progress.bar(args, total=n, desc="simulate", unit="sys")

@@ -50,6 +50,10 @@ def run(args: argparse.Namespace) -> int:
     from training.identification import MAP_SPECS
     from training.learning import load_dataset, train_maps
 
+    from training._checks import seed
+
+    if args.seed is not None:
+        seed("--seed", args.seed)
     config = _config(args)
     device = _device(args.device)
     group = process_group()  # under torchrun: the processes share the work, rank 0 writes and prints

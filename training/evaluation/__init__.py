@@ -6,7 +6,7 @@ from ._cache import load_cached, method_config, save_cached, source_digest
 from ._iv4 import ARXResult, IV4Result, arx, identify_iv4, iv4, mean_torque, two_mass_from_discrete
 from ._metrics import (CLASS_THRESHOLDS, confusion_matrix, recognition_rate, recognized, relative_error,
                        threshold_margin)
-from ._report import render_markdown, write_report
+from ._report import render_markdown, report_files, write_report
 from ._sets import GRID_BACKLASH_DEG, GRID_F_E, METHODS, EvalSet, grid_set, population_set
 from ._study import iv4_result, run_set, run_study, som_result
 from ._summary import summarize
@@ -14,7 +14,7 @@ from ._summary import summarize
 __all__ = [
     "DRIVES", "DriveCase", "drive_rows", "drive_figures", "drives_markdown", "envelope_rows",
     "EvalSet", "grid_set", "population_set", "GRID_F_E", "GRID_BACKLASH_DEG", "METHODS",
-    "run_set", "run_study", "som_result", "iv4_result", "summarize", "render_markdown", "write_report",
+    "run_set", "run_study", "som_result", "iv4_result", "summarize", "render_markdown", "report_files", "write_report",
     "method_config", "load_cached", "save_cached", "source_digest",
     "relative_error", "recognized", "recognition_rate", "confusion_matrix", "threshold_margin", "CLASS_THRESHOLDS",
     "iv4", "arx", "identify_iv4", "two_mass_from_discrete", "mean_torque", "ARXResult", "IV4Result",

@@ -288,6 +288,17 @@ def _plot(summary: Mapping[str, Any], rows_by_set: Mapping[str, Sequence[Mapping
     return files
 
 
+def report_files(out_dir: str | os.PathLike[str], set_names: Sequence[str], *, plots: bool = True) -> list[Path]:
+    """Every file :func:`write_report` may write for the sets ``set_names`` (so that a caller can refuse
+    existing ones before any work): the tables, and with ``plots`` the figures."""
+    out = Path(out_dir)
+    files = [out / "report.md", out / "report.json", out / "systems.csv"]
+    if plots:
+        files += [out / f"fig9_{name}.png" for name in set_names]
+        files += [out / "fig10_recognition.png"] if "grid" in set_names else []
+    return files
+
+
 def write_report(summary: Mapping[str, Any], rows_by_set: Mapping[str, Sequence[Mapping[str, Any]]],
                  out_dir: str | os.PathLike[str], *, command: str = "", plots: bool = True) -> dict[str, Any]:
     """Write ``report.md``, ``report.json``, ``systems.csv`` and (if matplotlib imports) the PNGs.

@@ -17,6 +17,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import zipfile
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
@@ -32,7 +33,7 @@ from som_torch import atomic_write
 from training._distributed import process_group
 from training._pool import worker_pool
 from training._json import dumps
-from training.errors import UserError
+from training.errors import UserError, one_line
 from training.identification import FEATURE_NAMES, FEATURE_VERSION, analyze
 
 #: The drive and test run of each system (its record's metadata): the test's ``M_star`` [Nm] and
@@ -122,6 +123,11 @@ def _prepare(out: Path, config: GenerateConfig) -> list[int]:
             raise UserError(f"{out} holds a dataset of another config (n/seed/ranges/features differ); "
                             "choose a new folder or remove it")
     else:
+        strays = sorted(p.name for p in out.glob("shard_*.npz"))
+        if strays:  # shards no dataset.json vouches for: of another config, or not ours at all
+            more = f" and {len(strays) - 1} more" if len(strays) > 1 else ""
+            raise UserError(f"{out} holds shard files ({strays[0]}{more}) but no dataset.json that says what made "
+                            "them; choose a new folder or remove them")
         atomic_write(cfg_path, lambda f: f.write(dumps(want, indent=1)), text=True)
     return [k for k in range(config.n_shards) if not (out / f"shard_{k:05d}.npz").exists()]
 
@@ -200,19 +206,26 @@ def generate(out_dir: str | os.PathLike[str], config: GenerateConfig, *, workers
     """
     out = Path(out_dir)
     group = process_group()
-    missing = group.on_main(lambda: _prepare(out, config))
+    population = _population(config)  # before dataset.json: a config that cannot be drawn leaves nothing behind
+    new, missing = group.on_main(lambda: (not (out / "dataset.json").exists(), _prepare(out, config)))
     own = progress if group.main else None
     if own:
         own(config.n - sum(hi - lo for lo, hi in (_bounds(config, k) for k in missing)))
-    population = _population(config)
-    with worker_pool(workers or group.cpus()) as pool:
-        for r in range(0, len(missing), group.world):
-            deal = missing[r:r + group.world]  # shard deal[i] goes to rank i
-            mine = _shard(deal[group.rank], population, config, pool, own) if group.rank < len(deal) else None
-            for i, (k, arrays) in enumerate(zip(deal, group.gather(mine) or [])):
-                atomic_write(out / f"shard_{k:05d}.npz", lambda f: np.savez(f, **arrays))
-                if own and i != group.rank:
-                    own(len(arrays["ok"]))
+    written = False
+    try:
+        with worker_pool(workers or group.cpus()) as pool:
+            for r in range(0, len(missing), group.world):
+                deal = missing[r:r + group.world]  # shard deal[i] goes to rank i
+                mine = _shard(deal[group.rank], population, config, pool, own) if group.rank < len(deal) else None
+                for i, (k, arrays) in enumerate(zip(deal, group.gather(mine) or [])):
+                    atomic_write(out / f"shard_{k:05d}.npz", lambda f: np.savez(f, **arrays))
+                    written = True
+                    if own and i != group.rank:
+                        own(len(arrays["ok"]))
+    except BaseException:
+        if new and not written and group.main:  # nothing to resume: no dataset.json without a shard
+            (out / "dataset.json").unlink(missing_ok=True)
+        raise
     return out
 
 
@@ -236,9 +249,13 @@ def load_dataset(folder: str | os.PathLike[str]) -> Dataset:
     parts: dict[str, list[np.ndarray]] = {"features": [], "estimate": [], "truth": [], "ok": []}
     for p in paths:
         h.update(p.read_bytes())
-        with np.load(p) as z:
-            for key in parts:
-                parts[key].append(z[key])
+        try:
+            with np.load(p) as z:
+                for key in parts:
+                    parts[key].append(z[key])
+        except (ValueError, OSError, KeyError, zipfile.BadZipFile) as err:  # not a shard `twomass generate` wrote
+            raise UserError(f"{p}: not a readable dataset shard ({one_line(err)}); "
+                            "rerun `twomass generate` into a new folder") from None
     cat = {k: np.concatenate(v) for k, v in parts.items()}
     truth = {n: cat["truth"][:, i] for i, n in enumerate(TRUTH_NAMES)}
     truth["structure"] = truth["structure"].astype(int)

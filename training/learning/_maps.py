@@ -220,8 +220,9 @@ def _check_folder(folder: Path, overwrite: bool, config: TrainConfig, dataset: D
     finished = [n for n in existing if _resumable(folder, n, config, dataset)] if interrupted else []
     foreign = [n for n in existing if n not in finished]
     if foreign and not overwrite:
-        raise OutputExistsError(f"{folder} already holds maps {foreign} (from another config or dataset); "
-                                "pass --overwrite to replace them")
+        why = ("of a finished training run (manifest.json)" if (folder / "manifest.json").exists()
+               else "from another config or dataset")
+        raise OutputExistsError(f"{folder} already holds maps {foreign} ({why}); pass --overwrite to replace them")
     folder.mkdir(parents=True, exist_ok=True)
     return finished
 
@@ -268,5 +269,6 @@ def train_maps(dataset: Dataset, folder: Path, config: TrainConfig, *, logdir: P
             writer.close()
     if group.main:  # what the maps were trained on, beside them (checked against every record)
         trained_envelope(trained["structure"].metadata).write(folder / "envelope.json")
-        st.write_manifest(folder)
+        # only what training wrote: files the user keeps in the folder are not the maps'
+        st.write_manifest(folder, files=[f"{name}.pt" for name in MAP_SPECS] + ["envelope.json"])
     return trained

@@ -219,8 +219,10 @@ def test_cli_tiny_end_to_end(tmp_path, capsys):
     assert [c["n"] for c in data["sets"]["grid"]["cells"]] == [1, 1]
     assert set(data["sets"]["grid"]["overall"]) == methods
     assert len(list(cache.glob("*.json"))) == 2 * len(methods)
-    # rerun: everything from the cache, same numbers
-    assert main(argv) == 0
+    # rerun: everything from the cache, same numbers (the report replaced only with --overwrite)
+    assert main(argv) == 2
+    assert "report.md" in capsys.readouterr().err
+    assert main(argv + ["--overwrite"]) == 0
     again = json.loads((out / "report.json").read_text())
     assert all(info["cached"] for t in again["timing"]["sets"].values() for info in t["methods"].values())
     assert all(not info["cached"] for t in data["timing"]["sets"].values() for info in t["methods"].values())
@@ -232,7 +234,7 @@ def test_cli_tiny_end_to_end(tmp_path, capsys):
     assert main(["evaluate", "--per-cell", "0", "--population", "0", "--out", str(out)]) == 2
     assert "expected at least one > 0" in capsys.readouterr().err
     assert main(["evaluate", "--out", str(out), "--per-cell", "1", "--population", "0", "--no-cache",
-                 "--checkpoints", str(tmp_path / "none"), "--no-progress"]) == 2
+                 "--checkpoints", str(tmp_path / "none"), "--no-progress", "--overwrite"]) == 2
     assert "expected a checkpoint folder" in capsys.readouterr().err
 
 

@@ -37,3 +37,24 @@ def test_train_resumes_and_writes_identical_files(dataset, tmp_path):
     (ck / "manifest.json").unlink()
     with pytest.raises(OutputExistsError, match="another config or dataset"):
         train_maps(dataset, ck, TrainConfig(rows=4, cols=4, ensemble=2, epochs=1, seed=5))
+
+
+def test_the_manifest_lists_only_what_training_wrote(dataset, tmp_path):
+    """The user's own files in --out are not vouched for: changing them later breaks nothing."""
+    import json
+
+    from training.identification import Identifier
+
+    ck = tmp_path / "ck"
+    ck.mkdir()
+    (ck / "notes.txt").write_text("my notes\n")
+    (ck / "extra_map.pt").write_bytes(b"not ours")
+    train_maps(dataset, ck, CONFIG)
+    listed = json.loads((ck / "manifest.json").read_text())["files"]
+    assert sorted(listed) == sorted([f"{n}.pt" for n in MAP_SPECS] + ["envelope.json"])
+    with open(ck / "notes.txt", "a") as f:
+        f.write("more\n")
+    Identifier.load(ck)  # no SHA-256 mismatch
+    with pytest.raises(OutputExistsError, match="finished training run") as err:
+        train_maps(dataset, ck, CONFIG)
+    assert "another config" not in str(err.value)
