@@ -5,12 +5,16 @@ the cost per record from the difference of the two."""
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 import tempfile
 from pathlib import Path
 
 from training.bench._report import Table, machine_line, ProcessCost, run_process, write_figures
 from training.errors import UserError
+
+#: The file in ``--records-dir`` that says which seed its records were simulated with.
+MARKER = "bench_records.json"
 
 HELP = "'twomass identify' on 1 and on N population records, fresh processes: wall, CPU, peak memory, per record"
 
@@ -30,9 +34,19 @@ def _records(folder: Path, n: int, seed: int) -> list[str]:
     import sim
 
     paths = [folder / f"sys{i:05d}.csv" for i in range(n)]  # iter_records' names
-    if all(p.exists() for p in paths):
-        return [str(p) for p in paths]
+    marker = folder / MARKER
+    if any(p.exists() for p in paths):  # reuse only the records of this seed
+        try:
+            made = json.loads(marker.read_text()).get("seed")
+        except (OSError, ValueError, AttributeError):
+            made = None
+        if made != seed:
+            held = "records this bench did not write" if made is None else f"records of --seed {made}"
+            raise UserError(f"--records-dir {folder}: holds {held} ({MARKER}); pass their seed or another folder")
+        if all(p.exists() for p in paths):
+            return [str(p) for p in paths]
     folder.mkdir(parents=True, exist_ok=True)
+    marker.write_text(json.dumps({"seed": seed}))
     print(f"simulating and writing {n} records to {folder} (not timed)...", flush=True)
     drive, signal = sim.DriveConfig(), sim.TestSignalConfig()
     params = sim.sample_population(n, seed)
@@ -65,6 +79,9 @@ def run(args: argparse.Namespace) -> int:
     table.add(f"{label}, {args.n} records", f"{many.wall:.2f}", f"{many.cpu:.2f}", *many.memory())
     table.add("per record ((N records - 1 record) / (N - 1))", f"{per_wall:.3f}", f"{per_cpu:.3f}", "-", "-")
     print(table.render())
+    if per_cpu <= 0:
+        print(f"note: the per-record figures are not meaningful: {args.n} records cost no more than one (the "
+              "start-up's spread exceeds their work); use a larger --n")
     print(f"records: population seed {args.seed}, the default drive and test; each run a fresh process "
           "(start-up included)")
     print(f"reproduce: {args.command_line}")

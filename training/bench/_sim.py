@@ -148,6 +148,8 @@ def run(args: argparse.Namespace) -> int:
     for name in ("batch", "samples", "repeat"):
         if getattr(args, name) < 1:
             raise ValueError(f"--{name}: expected a positive integer, received {getattr(args, name)}")
+    if args.naive_samples < 0:
+        raise ValueError(f"--naive-samples: expected an integer >= 0 (0: skip), received {args.naive_samples}")
     dtype = torch.float64 if args.float64 else torch.float32
     drive, signal, params, fp = _inputs(args.batch, args.seed, dtype)
     nk, S, B = args.samples, fp.S, args.batch

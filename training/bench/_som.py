@@ -84,19 +84,19 @@ MATCHED = (
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--maps", type=int, default=10, help="maps trained in one som_torch call (default 10)")
-    parser.add_argument("--rows", type=int, default=40)
-    parser.add_argument("--cols", type=int, default=40)
+    parser.add_argument("--rows", type=int, default=40, help="map rows (default 40)")
+    parser.add_argument("--cols", type=int, default=40, help="map columns (default 40)")
     parser.add_argument("--samples", type=int, default=1800, help="training vectors per map (default 1800)")
-    parser.add_argument("--active", type=int, default=26, help="active components (features)")
-    parser.add_argument("--inactive", type=int, default=3, help="inactive components (parameters)")
-    parser.add_argument("--epochs", type=int, default=10)
+    parser.add_argument("--active", type=int, default=26, help="active components (features; default 26)")
+    parser.add_argument("--inactive", type=int, default=3, help="inactive components (parameters; default 3)")
+    parser.add_argument("--epochs", type=int, default=10, help="passes over the vectors (default 10)")
     parser.add_argument("--sigma", type=float, default=8.0, help="initial neighbourhood radius (default 8)")
     parser.add_argument("--learning-rate", type=float, default=0.5, help="initial learning rate (default 0.5)")
     parser.add_argument("--minisom-maps", type=int, default=1,
                         help="maps MiniSom trains, one after the other (default 1; 0 = skip)")
     parser.add_argument("--method", choices=["fast", "native", "torch"], default="fast",
                         help="som_torch online implementation: fast = native C kernel if it builds, else torch")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seed", type=int, default=0, help="data and initial weights seed (default 0)")
     parser.add_argument("--json", dest="json_out", default=None, help="also write the figures to this JSON file")
 
 
@@ -178,9 +178,16 @@ def run(args: argparse.Namespace) -> int:
     from som_torch import _native
     from threadpoolctl import threadpool_limits
 
+    from training._checks import finite_number, seed
+
     for name in ("maps", "rows", "cols", "samples", "active", "epochs"):
         if getattr(args, name) < 1:
             raise ValueError(f"--{name}: expected a positive integer, received {getattr(args, name)}")
+    if args.inactive < 0:
+        raise ValueError(f"--inactive: expected an integer >= 0, received {args.inactive}")
+    finite_number("--sigma", args.sigma)
+    finite_number("--learning-rate", args.learning_rate)
+    seed("--seed", args.seed)
     C, R, K, M = args.active + args.inactive, args.rows, args.cols, args.maps
     names = [f"feature_{i}" for i in range(args.active)] + [f"param_{i}" for i in range(args.inactive)]
     active = [True] * args.active + [False] * args.inactive

@@ -62,3 +62,25 @@ def test_bench_som_without_minisom(capsys: pytest.CaptureFixture[str], monkeypat
     out = capsys.readouterr().out
     assert "MiniSom not installed (pip install 'minisom==2.3.6'" in out and "float64 | 2 |" in out
     assert out.rstrip().endswith("reproduce: twomass bench som " + " ".join(argv))
+
+
+@pytest.mark.parametrize("target, argv, message", [
+    ("som", ["--learning-rate", "nan"], "--learning-rate: expected a finite number > 0"),
+    ("som", ["--sigma", "0"], "--sigma: expected a finite number > 0"),
+    ("som", ["--inactive", "-1"], "--inactive: expected an integer >= 0"),
+    ("sim", ["--naive-samples", "-1"], "--naive-samples: expected an integer >= 0"),
+])
+def test_bad_bench_options_are_refused_before_any_work(target: str, argv: list[str], message: str) -> None:
+    with pytest.raises(ValueError, match=message):
+        run_target(target, argv)
+
+
+def test_bench_identify_reuses_records_of_its_own_seed_only(tmp_path) -> None:
+    from training.bench._identify import MARKER
+
+    (tmp_path / "sys00000.csv").write_text("t,speed,current\n")  # records of an earlier run
+    with pytest.raises(UserError, match="holds records this bench did not write"):
+        run_target("identify", ["--n", "2", "--records-dir", str(tmp_path)])
+    (tmp_path / MARKER).write_text('{"seed": 7}')
+    with pytest.raises(UserError, match="holds records of --seed 7"):
+        run_target("identify", ["--n", "2", "--seed", "8", "--records-dir", str(tmp_path)])
