@@ -309,17 +309,18 @@ def identify_pages(outcome: Outcome, folder: str | os.PathLike[str], *, record: 
 
 
 def page_names(records: list[str]) -> dict[str, str]:
-    """A distinct file stem per record path: its stem, or ``<stem>_2``, ``_3``, ... where two
-    records in different folders share one."""
+    """A distinct file stem per record path: its stem, or ``<stem>_2``, ``_3``, ... where its pages
+    ``<name>.png`` or ``<name>_maps.png`` would be another record's (two records in different
+    folders with one name; records ``x`` and ``x_maps``)."""
     out: dict[str, str] = {}
-    taken: set[str] = set()
+    taken: set[str] = set()  # the page stems given out
     for rec in records:
-        stem = Path(rec).stem if Path(rec).suffix in (".csv", ".json") else Path(rec).name
+        stem = Path(rec).stem if Path(rec).suffix.lower() in (".csv", ".json") else Path(rec).name
         name, k = stem, 1
-        while name in taken:
+        while name in taken or f"{name}_maps" in taken:
             k += 1
             name = f"{stem}_{k}"
-        taken.add(name)
+        taken.update((name, f"{name}_maps"))
         out[rec] = name
     return out
 

@@ -95,7 +95,9 @@ class Finding:
 #: its ends. ``d`` is the least certain value (it trades off against ``V_J``): an answer with ``d``
 #: past 1.2 x the envelope's 0.1 was wrong for 27 of 31 elastic answers on the drive matrix and
 #: 2000 envelope systems (3 of them unwarned); between 0.1 and 0.12, right for 16 of 17 unwarned.
-SLACK: dict[str, float] = {"d": 1.2}
+#: ``current_noise`` is an estimate too (a percent or two of spread on a test run): a record made at
+#: the envelope's 5 % read 5.06 % and was called outside.
+SLACK: dict[str, float] = {"d": 1.2, "current_noise": 1.1}
 
 
 def _inside(value: float, rng: tuple[float, float], slack: float = 1.0) -> bool:

@@ -303,7 +303,7 @@ def _lstsq_normal(G: np.ndarray, b: np.ndarray, y: np.ndarray,
             f"one-mass fit: expected an informative record (regressor rank {p}), received "
             f"{'a rank-deficient regressor' if rank < 0 else f'rank {rank}'}; "
             "the speed must change sign or vary enough to separate inertia, friction and offset "
-            "(try offset=False)")
+            "(fit_one_mass in Python: try offset=False)")
     theta = np.linalg.solve(Gs, b / scale) / scale
     r = y - predict(theta)
     sigma2 = float(r @ r) / max(1, y.size - p)
@@ -336,8 +336,8 @@ def _trust_warnings(G: np.ndarray, n_par: int, rel: float) -> tuple[IdentWarning
     collinear = [_PARAMETERS[j] for j in range(n_par) if not inflation[j] < COLLINEAR_INFLATION]
     if collinear:
         out.append(IdentWarning("one_mass_fit_collinear", f"one-mass fit: the regressors of {', '.join(collinear)} are "
-                                "nearly collinear (does the speed never reverse? try offset=False): those values are "
-                                "not determined by this record"))
+                                "nearly collinear (does the speed never reverse? fit_one_mass in Python: "
+                                "offset=False): those values are not determined by this record"))
     if rel > UNINFORMATIVE_RESIDUAL:
         out.append(IdentWarning("one_mass_fit_uninformative", f"one-mass fit: residual {rel:.2f} of the signal's rms: "
                                 "the model explains little of this record (noisy current, too little acceleration?); "

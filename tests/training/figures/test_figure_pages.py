@@ -105,3 +105,7 @@ def test_failure_page_says_why(good) -> None:
 def test_page_names_are_distinct() -> None:
     assert page_names(["a/run.csv", "b/run", "c/run.json", "other.csv"]) == {
         "a/run.csv": "run", "b/run": "run_2", "c/run.json": "run_3", "other.csv": "other"}
+    # x's maps page is x_maps.png: a record named x_maps gets another stem, in either order
+    assert page_names(["x", "x_maps"]) == {"x": "x", "x_maps": "x_maps_2"}
+    assert page_names(["x_maps", "x"]) == {"x_maps": "x_maps", "x": "x_2"}
+    assert page_names(["RUN.CSV"]) == {"RUN.CSV": "RUN"}

@@ -121,6 +121,14 @@ def test_a_damping_is_outside_the_envelope_only_beyond_its_slack(ident):
     assert ident.envelope.envelope["d"] == (0.005, 0.1)
 
 
+def test_a_noise_estimate_at_the_envelope_edge_is_inside(ident):
+    """A record made at SPEC 3.1's 5 % current noise read 5.06 % (the estimate's spread)."""
+    def outside(noise: float) -> list[str]:
+        return [o for f in ident.envelope.check({"current_noise": noise}) for o in f.outside]
+
+    assert outside(0.0506) == [] and outside(0.06) == ["envelope"] and outside(0.075) == ["trained", "envelope"]
+
+
 def test_a_backlash_the_low_resolution_encoder_cannot_show_is_bounded(ident):
     """2^13 counts at 1 ms: a 0.05 degree backlash (half a count of lead) is below what the record
     shows: no width, an upper bound and a warning (such widths came out as stiff, backlash 0, no
