@@ -11,6 +11,7 @@ Every problem raises :class:`RecordError` with a one-line message naming the fil
 
 from __future__ import annotations
 
+import dataclasses
 import io
 import json
 import math
@@ -107,6 +108,40 @@ def validate(rec: Record, where: Path | str = "record", meta_where: Path | str |
         T_s_t = _validate_columns(rec, where)
         rec.meta = _validated_meta(rec, T_s_t, where if meta_where is None else meta_where)
         return rec
+
+
+def as_record(record: Any, where: str = "record") -> Record:
+    """A validated copy of an in-memory record (:func:`validate`): its columns as 1-D numpy arrays
+    (torch tensors and sequences converted; ``section`` int64, the others float64), its metadata
+    checked and ``T_s`` filled in from ``t`` where absent. The caller's record stays as it was.
+
+    Raises:
+        TypeError: ``record`` is no :class:`Record`.
+        RecordError: one line, as :func:`read_record` words it.
+    """
+    if not isinstance(record, Record):
+        raise TypeError(f"{where}: expected a sim.Record (read_record(path) reads a file), received "
+                        f"{type(record).__name__}")
+    where = record.name if where == "record" else where
+    cols = {c: _column(where, c, v) for c, v in record.columns().items()}
+    copy = dataclasses.replace(record, meta=dict(record.meta), **{c: cols.get(c) for c in COLUMNS})
+    return validate(copy, where)
+
+
+def _column(where: str, name: str, values: Any) -> np.ndarray:
+    """Column ``name``'s ``values`` (numpy, torch, a sequence) as float64 (``section``: int64, whole
+    numbers only)."""
+    if hasattr(values, "detach"):  # a torch tensor, on any device, with or without grad
+        values = values.detach().cpu().numpy()
+    try:
+        arr = np.asarray(values, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise _err(where, f"column '{name}': expected numbers, received {type(values).__name__}") from None
+    if name != "section":
+        return arr
+    if not (np.isfinite(arr).all() and np.all(arr == np.round(arr))):
+        raise _err(where, "column 'section': expected integers 0..6")
+    return arr.astype(np.int64)
 
 
 def _validate_columns(rec: Record, where: Path | str) -> float:
@@ -273,7 +308,7 @@ _DIGITS = {"t": 17, "speed": 12, "current": 7, "torque": 7, "torque_ref": 7, "se
 def write_record(path: str | os.PathLike[str], record: Record, overwrite: bool = False) -> tuple[Path, Path]:
     """Write ``NAME.csv`` and ``NAME.json``; refuses to overwrite unless ``overwrite=True``."""
     csv_path, json_path, _ = _paths(path)
-    validate(record, csv_path)
+    record = validate(dataclasses.replace(record, meta=dict(record.meta)), csv_path)  # the caller's record unchanged
     if not overwrite:
         for p in (csv_path, json_path):
             if p.exists():

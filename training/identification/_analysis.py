@@ -14,6 +14,7 @@ import numpy as np
 from scipy.signal import lfilter
 
 from sim import SECTION_LEVELS, Record
+from sim.records import as_record
 from training.errors import IdentificationError, one_line
 from training.identification._consistency import consistency_warnings, torque_scale_hint
 from training.identification._drive import REFERENCE_DRIVE, DriveValues, drive_values
@@ -95,14 +96,16 @@ class Analysis:
 
 
 def analyze(record: Record) -> Analysis:
-    """Sections, one-mass fit and features of one record.
+    """Sections, one-mass fit and features of one record (a validated copy of it: columns may be
+    numpy arrays, torch tensors or sequences; ``T_s`` may be left to the ``t`` column).
 
     Raises:
+        TypeError: ``record`` is no ``sim.Record``.
         IdentificationError: one line, when the record cannot be analysed (implausible units,
             no recognisable test run, an uninformative one-mass fit, a missing ``K_M``).
     """
     try:
-        return _analyze(record)
+        return _analyze(as_record(record))
     except IdentificationError:
         raise
     except ValueError as err:  # RecordError, plausibility, sections, fit

@@ -145,6 +145,9 @@ class Identifier:
         A record that cannot be read, analysed or recalled gets an :class:`IdentificationFailure`
         (an unexpected exception is named as such: ``"unexpected TypeError in the analysis: ..."``);
         the others are still answered."""
+        if isinstance(paths, (str, bytes, os.PathLike)):  # its characters are no paths
+            raise TypeError(f"paths: expected a list of record paths, received one {type(paths).__name__} "
+                            "(identify_file(path) answers one)")
         return answered_files([str(p) for p in paths], jobs, self._recall_chunk, progress)
 
     def identify_analyses(self, analyses: Sequence[Analysis]) -> list[IdentificationResult]:
