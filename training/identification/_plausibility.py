@@ -17,7 +17,7 @@ signal produces on the default population, measured on 800 simulated systems):
   read 3.03 x on an envelope drive whose quantum is 1.5 x ``w_max``) plus the overshoot the
   record's own acceleration explains through the current loop's lag (:func:`overshoot_allowance`:
   a small drive with a small inertia overshoots several times ``w_max``); rpm give 9.5x, deg/s
-  57x, counts/s ``counts/2pi`` x;
+  57x, counts/s ``counts/2pi`` x; at most three samples above it are named as glitches instead;
 - speed quantum: when ``encoder_counts`` is given and the speed is exactly quantized, but in
   steps of the encoder's speed quantum expressed in another unit (rpm, deg/s, counts/s...);
 - inertia: a one-mass estimate (``J = int M dt / delta w``, least squares over the record;
@@ -48,6 +48,7 @@ TORQUE_RATIO = (0.3, 3.0)  # 99th percentile of |torque| over M_star
 TORQUE_OVER_M_MAX = 1.5  # 99th percentile of |torque| over M_max (when M_star is not given)
 SPEED_RATIO = (0.3, 3.0)  # peak |speed| over w_max (above: beyond the overshoot the record's acceleration explains)
 _ACCEL_WINDOW = 8  # samples over which the acceleration is measured
+_GLITCH_SAMPLES = 3  # at most this many samples above the plausible peak: glitches, not units
 J_RANGE = (1e-7, 1e4)  # plausible one-mass inertia [kg m^2]
 _MIN_CORRELATION = 0.5  # |correlation| of torque integral and speed change needed to judge the inertia
 QUANTIZED_SHARE = 0.99  # share of nonzero speed samples on a quantum grid to call the speed quantized
@@ -151,6 +152,12 @@ def _check_speed_scale(speed: np.ndarray, T_s: float, meta: dict[str, Any]) -> N
     counts = meta.get("encoder_counts")
     quantum = speed_quantum(float(counts), T_s) if counts else 0.0  # an encoder's speed reads up to one count high
     allowed = hi * float(w_max) + overshoot_allowance(speed, T_s, meta.get("T_Ei")) + quantum
+    above = np.flatnonzero(np.abs(speed) > allowed)
+    if 0 < above.size <= _GLITCH_SAMPLES:  # a few samples far above the rest: no unit does that
+        rest = float(np.max(np.abs(np.delete(speed, above))))
+        raise ValueError(f"speed has {above.size} sample(s) far above the rest (peak |speed| {peak:.4g} rad/s at row "
+                         f"{int(above[np.argmax(np.abs(speed[above]))]) + 2}, the others at most {rest:.4g}; metadata "
+                         f"w_max = {float(w_max):.4g} rad/s): glitches in the recording?")
     if peak > allowed or (ratio < lo and not timed_out):
         guess = _guess(ratio, _speed_units(meta, meta.get("T_s")))
         raise ValueError(f"speed looks like wrong units (peak |speed| {peak:.4g} is {ratio:.3g} x metadata "

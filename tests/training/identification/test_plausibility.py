@@ -78,6 +78,13 @@ def test_speed_in_rpm_against_w_max(good):
         check_record(variant(good, speed=good.speed * RPM))
 
 
+def test_a_speed_glitch_is_named_as_such_not_as_units(good):
+    speed = good.speed.copy()
+    speed[500] = 3.5 * good.meta["w_max"]  # one sample
+    with pytest.raises(ValueError, match=r"^speed has 1 sample\(s\) far above the rest .*row 502.*glitches"):
+        check_record(variant(good, speed=speed))
+
+
 @pytest.mark.parametrize("J_sigma, w_max, T_Ei", [(1e-4, 2.0, 1e-3), (1e-4, 1.0, 2e-3), (2e-4, 0.5, 1e-3)])
 def test_small_drive_overshoot_is_not_wrong_units(J_sigma, w_max, T_Ei):
     # issue 13: a tiny inertia keeps accelerating while the current loop takes the torque away, so
