@@ -137,11 +137,16 @@ def _column(where: str, name: str, values: Any) -> np.ndarray:
         arr = np.asarray(values, dtype=np.float64)
     except (TypeError, ValueError):
         raise _err(where, f"column '{name}': expected numbers, received {type(values).__name__}") from None
-    if name != "section":
-        return arr
-    if not (np.isfinite(arr).all() and np.all(arr == np.round(arr))):
-        raise _err(where, "column 'section': expected integers 0..6")
-    return arr.astype(np.int64)
+    return arr if name != "section" else _section(where, arr)
+
+
+def _section(where: Path | str, values: np.ndarray) -> np.ndarray:
+    """The ``section`` column's float ``values`` as int64, each a whole number 0..6."""
+    bad = ~np.isin(values, np.arange(7.0))
+    if bad.any():
+        raise _err(where, f"column 'section': expected integers 0..6, received {float(values[np.argmax(bad)])!r} at row "
+                          f"{int(np.argmax(bad)) + 2}")
+    return values.astype(np.int64)
 
 
 def _validate_columns(rec: Record, where: Path | str) -> float:
@@ -293,9 +298,7 @@ def read_record(path: str | os.PathLike[str]) -> Record:
         raise _err(json_path, "expected a JSON object")
     section = cols.pop("section", None)
     if section is not None:
-        if np.isfinite(section).all() and not np.all(section == np.round(section)):
-            raise _err(csv_path, "column 'section': expected integers 0..6")
-        section = np.nan_to_num(section, nan=-1.0).astype(np.int64) if np.isfinite(section).all() else section
+        section = _section(csv_path, section)
     rec = Record(t=cols.pop("t", None), speed=cols.pop("speed", None), meta=meta, current=cols.pop("current", None),
                  torque=cols.pop("torque", None), torque_ref=cols.pop("torque_ref", None), section=section, name=name)
     return validate(rec, csv_path, json_path)

@@ -90,6 +90,7 @@ def _csv(rows: int = 50, cols: str = "t,speed,current", fn=None) -> str:
     (_csv(), None, "metadata file not found"),
     ("", META, "empty file"),
     (_csv(cols="t,speed,current,section", fn=lambda k, v: v + [9]), META, "section"),
+    (_csv(cols="t,speed,current,section", fn=lambda k, v: v + [1e30]), META, "'section': expected integers 0..6, received 1e+30"),
     (_csv(), {**META, "timed_out": 5}, "'timed_out': expected a list of true/false"),
     (_csv(), {**META, "timed_out": "no"}, "'timed_out'"),
     (_csv(), {**META, "current_noise_std": "low"}, "'current_noise_std'"),
