@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import operator
 from dataclasses import dataclass
 from functools import cached_property
 
@@ -82,4 +83,19 @@ class Grid:
 
     @classmethod
     def from_dict(cls, d: dict) -> "Grid":
-        return cls(int(d["rows"]), int(d["cols"]), str(d["topology"]))
+        """The grid of :meth:`to_dict`; ``rows``/``cols`` must be integers (``3.7`` is refused, not truncated)."""
+        try:
+            rows, cols, topology = d["rows"], d["cols"], d["topology"]
+        except (KeyError, TypeError):
+            raise ValueError(f"Grid.from_dict: expected a dict with rows, cols, topology, received {d!r}") from None
+        return cls(_as_int(rows), _as_int(cols), str(topology))
+
+
+def _as_int(value: object) -> object:
+    """An integer-like ``value`` (e.g. numpy's) as an int; anything else unchanged, for ``Grid`` to refuse."""
+    if isinstance(value, bool):
+        return value
+    try:
+        return operator.index(value)
+    except TypeError:
+        return value

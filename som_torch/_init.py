@@ -25,7 +25,7 @@ def map_seeds(seed: int | Sequence[int] | torch.Tensor, batch_shape: torch.Size)
 def init_random(som: SOM, data: torch.Tensor, seed: int | Sequence[int] | torch.Tensor = 0) -> SOM:
     """Uniform random weights within each component's [min, max] of ``data`` (per map, NaN
     ignored; paper section 3.4). ``data``: raw ``N x C`` or ``*batch x N x C``."""
-    x = som.normalize(data)  # *batch x N x C
+    x = som.normalize(data, min_samples=1)  # *batch x N x C
     B, C, U = som.batch_shape.numel(), som.n_components, som.n_units
     x = x.reshape(B, -1, C)  # B x N x C
     nan = torch.isnan(x)
@@ -45,7 +45,7 @@ def init_linear(som: SOM, data: torch.Tensor, seed: int | Sequence[int] | torch.
     """Linear initialization: the data mean plus the grid spread along the first two principal
     components (all components; NaN replaced by the column mean), scaled by their standard
     deviations (rows -> 1st PC, columns -> 2nd). Deterministic; ``seed`` is unused."""
-    x = som.normalize(data)
+    x = som.normalize(data, min_samples=1)
     B, C = som.batch_shape.numel(), som.n_components
     x = x.reshape(B, -1, C)  # B x N x C
     mean = torch.nanmean(x, 1)  # B x C

@@ -16,30 +16,33 @@ def _has_active(som: SOM, data: torch.Tensor) -> torch.Tensor:
 
 def quantization_error(som: SOM, data: torch.Tensor) -> torch.Tensor:
     """Mean Euclidean distance from each sample to its best match over the active, non-NaN
-    components (normalized units), float64 ``*batch``. Samples without any active value are skipped."""
+    components (normalized units), float64 ``*batch``. Samples without any active value are
+    skipped; a map with no such sample (e.g. ``N = 0``) gets NaN."""
     _, d2 = best_matching_units(som, data)  # *batch x N
     ok = _has_active(som, data)
-    return (d2.sqrt() * ok).sum(-1) / ok.sum(-1).clamp_min(1)
+    return torch.where(ok, d2.sqrt(), 0.0).sum(-1) / ok.sum(-1)  # 0 / 0 = NaN: no sample
 
 
 def topographic_error(som: SOM, data: torch.Tensor) -> torch.Tensor:
     """Share of samples whose best and second-best units (active components) are not grid
-    neighbours (rectangular: 8-neighbourhood as MiniSom; hexagonal: 6), float64 ``*batch``."""
+    neighbours (rectangular: 8-neighbourhood as MiniSom; hexagonal: 6), float64 ``*batch``.
+    Samples without any active value are skipped; a map with no such sample (e.g. ``N = 0``) gets NaN."""
     if som.n_units < 2:
         raise ValueError("topographic_error: needs at least 2 units")
-    units, _ = best_matching_units(som, data, k=2)  # *batch x N x 2
-    adjacent = som.grid.adjacency[units[..., 0], units[..., 1]]  # *batch x N
+    units, _ = best_matching_units(som, data, k=2)  # *batch x N x 2 (-1: no match)
+    u = units.clamp_min(0)
+    error = (~som.grid.adjacency[u[..., 0], u[..., 1]]).to(torch.float64)  # *batch x N
+    error = torch.where(units[..., 0] >= 0, error, torch.nan)  # no match (NaN weights): NaN
     ok = _has_active(som, data)
-    return ((~adjacent) & ok).sum(-1).to(torch.float64) / ok.sum(-1).clamp_min(1)
+    return torch.where(ok, error, 0.0).sum(-1) / ok.sum(-1)  # 0 / 0 = NaN: no sample
 
 
 def hit_counts(som: SOM, data: torch.Tensor) -> torch.Tensor:
     """Samples per unit (best match on active components), long ``*batch x rows x cols``."""
-    units, _ = best_matching_units(som, data)  # *batch x N
-    ok = _has_active(som, data)
+    units, _ = best_matching_units(som, data)  # *batch x N (-1: no match, no hit)
     B = som.batch_shape.numel()
     hits = torch.zeros(B, som.n_units, dtype=torch.long)
-    hits.scatter_add_(1, units.reshape(B, -1), ok.reshape(B, -1).long())  # B x U
+    hits.scatter_add_(1, units.clamp_min(0).reshape(B, -1), (units >= 0).reshape(B, -1).long())  # B x U
     return hits.reshape(*som.batch_shape, som.grid.rows, som.grid.cols)  # *batch x rows x cols
 
 

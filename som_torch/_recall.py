@@ -17,11 +17,16 @@ CHUNK_ELEMENTS = 2**21
 def _features(som: SOM, features: torch.Tensor) -> torch.Tensor:
     """Accept ``... x C`` or, when all maps share one active mask, ``... x n_active``;
     return raw ``*batch x M x C`` (inactive columns NaN when they were not given)."""
-    f = torch.as_tensor(features, dtype=torch.float64)
+    try:
+        f = torch.as_tensor(features, dtype=torch.float64)
+    except (TypeError, ValueError, RuntimeError):
+        raise TypeError(f"features: expected a tensor of numbers, received {type(features).__name__}") from None
     C = som.n_components
     act = som.active.reshape(-1, C)
     n_act = int(act[0].sum())
-    if f.dim() >= 1 and f.shape[-1] != C and f.shape[-1] == n_act and bool((act == act[0]).all()):
+    if f.dim() == 0:
+        raise ValueError(f"features: expected ... x C (C={C}) or ... x n_active ({n_act}), received a scalar")
+    if f.shape[-1] != C and f.shape[-1] == n_act and bool((act == act[0]).all()):
         full = torch.full((*f.shape[:-1], C), torch.nan, dtype=torch.float64)
         full[..., act[0]] = f
         f = full
@@ -34,7 +39,8 @@ def _features(som: SOM, features: torch.Tensor) -> torch.Tensor:
 
 def distances(som: SOM, features: torch.Tensor) -> torch.Tensor:
     """Squared distances over the active, non-NaN components (normalized units),
-    float64 ``*batch x M x U``. ``features``: raw ``M x C`` or ``*batch x M x C``."""
+    float64 ``*batch x M x U``; NaN for a sample with no active non-NaN component (no distance).
+    ``features``: raw ``M x C`` or ``*batch x M x C``."""
     return _distances(som, _features(som, features))
 
 
@@ -50,6 +56,7 @@ def _distances(som: SOM, f: torch.Tensor) -> torch.Tensor:
         m = (active & ~nan).to(torch.float64)  # B x M x C
         x = torch.where(nan, 0.0, x) * m
         w2 = m @ (w * w).transpose(1, 2)  # B x M x U
+        w2 = torch.where(m.any(-1, keepdim=True), w2, torch.nan)  # no active value: no distance
     else:  # one set of components for all samples: one matrix product less
         x = x * active
         w2 = ((w * w) @ active.to(torch.float64).transpose(1, 2)).transpose(1, 2)  # B x 1 x U
@@ -61,9 +68,9 @@ def best_matching_units(som: SOM, features: torch.Tensor, k: int = 1) -> tuple[t
     """Best matches on the active components only (paper eq. 2), NaN features skipped.
 
     Returns ``(units, dist2)``: long and float64 ``*batch x M`` (``k == 1``) or
-    ``*batch x M x k`` (``k > 1``, nearest first)."""
-    if not isinstance(k, int) or not 1 <= k <= som.n_units:
-        raise ValueError(f"k: expected an int in 1..{som.n_units}, received {k!r}")
+    ``*batch x M x k`` (``k > 1``, nearest first). A sample with no active non-NaN component
+    has no match: unit ``-1``, distance NaN (so do samples where the weights are NaN)."""
+    _check_k(som, k, "k")
     f = _features(som, features)  # *batch x M x C
     M = f.shape[-2]
     shape = (*f.shape[:-1], k)  # *batch x M x k
@@ -75,8 +82,15 @@ def best_matching_units(som: SOM, features: torch.Tensor, k: int = 1) -> tuple[t
     for m0 in range(0, M, step):
         d2 = _distances(som, f[..., m0:m0 + step, :])  # *batch x m x U
         d, i = (d2.min(-1, keepdim=True) if k == 1 else torch.topk(d2, k, dim=-1, largest=False, sorted=True))
+        i = torch.where(torch.isnan(d), -1, i)
         units[..., m0:m0 + step, :], dist[..., m0:m0 + step, :] = i, d
     return (units[..., 0], dist[..., 0]) if k == 1 else (units, dist)
+
+
+def _check_k(som: SOM, k: int, name: str) -> None:
+    """``k`` nearest units: an int in ``1 .. U``."""
+    if not isinstance(k, int) or isinstance(k, bool) or not 1 <= k <= som.n_units:
+        raise ValueError(f"{name}: expected an int in 1..{som.n_units}, received {k!r}")
 
 
 @dataclass
@@ -86,7 +100,8 @@ class Recall:
     units: long ``*batch x M`` best-matching units; distance: float64 ``*batch x M``
     (Euclidean, active components, normalized units); values: float64 ``*batch x M x C``
     raw-unit weights read out (interpolated if asked); the inactive columns are the
-    identified parameters; ``component_names`` names the columns."""
+    identified parameters; ``component_names`` names the columns. A sample with no active
+    non-NaN feature has unit ``-1``, distance NaN and NaN values."""
 
     units: torch.Tensor
     distance: torch.Tensor
@@ -95,6 +110,8 @@ class Recall:
 
     def __getitem__(self, name: str) -> torch.Tensor:
         """Read-out of one component by name, ``*batch x M``."""
+        if name not in self.component_names:
+            raise ValueError(f"Recall[{name!r}]: unknown component, expected one of {self.component_names}")
         return self.values[..., self.component_names.index(name)]
 
 
@@ -103,11 +120,14 @@ def recall(som: SOM, features: torch.Tensor, *, interpolate: int = 1, eps: float
 
     ``interpolate = k > 1`` averages the ``k`` nearest units weighted by ``1 / (distance + eps)``.
     ``features``: raw ``M x C``, ``*batch x M x C`` or ``... x n_active`` (see :func:`distances`).
+    A sample without an active non-NaN feature gets unit ``-1``, distance NaN and NaN values.
     """
+    _check_k(som, interpolate, "interpolate")
     units, d2 = best_matching_units(som, features, k=interpolate)
     w = som.raw_weights  # *batch x U x C
     flat = units.reshape(*som.batch_shape, -1)  # *batch x (M*k)
-    picked = torch.gather(w, -2, flat.unsqueeze(-1).expand(*flat.shape, som.n_components))  # *batch x (M*k) x C
+    picked = torch.gather(w, -2, flat.clamp_min(0).unsqueeze(-1).expand(*flat.shape, som.n_components))  # *batch x (M*k) x C
+    picked = torch.where(flat.unsqueeze(-1) >= 0, picked, torch.nan)  # no match: NaN read-out
     if interpolate == 1:
         return Recall(units, d2.sqrt(), picked, list(som.component_names))
     picked = picked.reshape(*units.shape, som.n_components)  # *batch x M x k x C

@@ -3,6 +3,7 @@ per-component normalization."""
 
 from __future__ import annotations
 
+import operator
 from collections.abc import Sequence
 
 import torch
@@ -10,13 +11,16 @@ import torch
 from ._grid import Grid
 
 
-def _as_batch_shape(shape: Sequence[int] | int | torch.Size) -> torch.Size:
+def _as_batch_shape(shape: Sequence[int] | int | torch.Size, name: str = "batch_shape") -> torch.Size:
     if isinstance(shape, int):
         shape = (shape,)
     try:
-        return torch.Size(int(s) for s in shape)
+        size = torch.Size(operator.index(s) for s in shape)
     except (TypeError, ValueError) as err:
-        raise TypeError(f"batch_shape: expected a tuple of ints, received {shape!r}") from err
+        raise TypeError(f"{name}: expected a tuple of ints, received {shape!r}") from err
+    if any(s < 1 for s in size):
+        raise ValueError(f"{name}: expected positive batch sizes (at least one map), received {tuple(size)}")
+    return size
 
 
 class SOM:
@@ -48,6 +52,8 @@ class SOM:
     ) -> None:
         if not isinstance(grid, Grid):
             raise TypeError(f"grid: expected a som_torch.Grid, received {type(grid).__name__}")
+        if not isinstance(dtype, torch.dtype) or not dtype.is_floating_point:
+            raise TypeError(f"dtype: expected a floating-point torch dtype (e.g. torch.float32), received {dtype!r}")
         names = [str(n) for n in component_names]
         if len(set(names)) != len(names):
             raise ValueError(f"component_names: expected unique names, received {names}")
@@ -59,7 +65,7 @@ class SOM:
             if not isinstance(weights, torch.Tensor) or weights.dim() < 2 or weights.shape[-2:] != (U, C):
                 got = tuple(weights.shape) if isinstance(weights, torch.Tensor) else type(weights).__name__
                 raise ValueError(f"weights: expected *batch x U x C with U={U}, C={C}, received {got}")
-            batch_shape = weights.shape[:-2]
+            batch_shape = _as_batch_shape(weights.shape[:-2], "weights")
             self.weights = weights.to(dtype)
         else:
             self.weights = torch.zeros(*batch_shape, U, C, dtype=dtype)
@@ -76,8 +82,10 @@ class SOM:
             raise ValueError("active: every map needs at least one active component")
         self.offset = self._per_component(offset, 0.0, "offset")
         self.scale = self._per_component(scale, 1.0, "scale")
-        if bool((self.scale <= 0).any()):
-            raise ValueError("scale: expected positive values")
+        if not bool(torch.isfinite(self.offset).all()):
+            raise ValueError("offset: expected finite values")
+        if not bool((torch.isfinite(self.scale) & (self.scale > 0)).all()):
+            raise ValueError("scale: expected finite positive values")
 
     def _per_component(self, value: torch.Tensor | None, default: float, name: str) -> torch.Tensor:
         C = self.n_components
@@ -140,14 +148,20 @@ class SOM:
                 f"dtype={self.weights.dtype})")
 
     # --- data and normalization ---------------------------------------------------------
-    def check_data(self, data: torch.Tensor, name: str = "data") -> torch.Tensor:
-        """Broadcast ``data`` (``N x C`` or ``*batch x N x C``) to ``*batch x N x C`` float64 on the maps' device."""
+    def check_data(self, data: torch.Tensor, name: str = "data", *, min_samples: int = 0) -> torch.Tensor:
+        """Broadcast ``data`` (``N x C`` or ``*batch x N x C``) to ``*batch x N x C`` float64 on the maps' device.
+        ``min_samples``: the least ``N`` accepted (training and normalization need 1)."""
         if not isinstance(data, torch.Tensor):
-            data = torch.as_tensor(data)
+            try:
+                data = torch.as_tensor(data)
+            except (TypeError, ValueError, RuntimeError) as err:
+                raise TypeError(f"{name}: expected a tensor of numbers, received {type(data).__name__}") from err
         if data.dim() < 2 or data.shape[-1] != self.n_components:
             raise ValueError(
                 f"{name}: expected N x C or *batch x N x C with C={self.n_components}, received {tuple(data.shape)}"
             )
+        if data.shape[-2] < min_samples:
+            raise ValueError(f"{name}: expected at least {min_samples} sample(s), received N={data.shape[-2]}")
         try:
             return data.to(self.device, torch.float64).expand(*self.batch_shape, data.shape[-2], self.n_components)
         except RuntimeError as err:
@@ -155,9 +169,9 @@ class SOM:
                 f"{name}: shape {tuple(data.shape)} does not broadcast to batch {tuple(self.batch_shape)} x N x C"
             ) from err
 
-    def normalize(self, data: torch.Tensor) -> torch.Tensor:
-        """Raw ``*batch x N x C`` -> normalized (float64)."""
-        data = self.check_data(data)
+    def normalize(self, data: torch.Tensor, *, min_samples: int = 0) -> torch.Tensor:
+        """Raw ``*batch x N x C`` -> normalized (float64); ``min_samples`` as in :meth:`check_data`."""
+        data = self.check_data(data, min_samples=min_samples)
         return (data - self.offset.unsqueeze(-2)) / self.scale.unsqueeze(-2)
 
     def denormalize(self, values: torch.Tensor) -> torch.Tensor:
@@ -175,7 +189,7 @@ class SOM:
         ``mode``: ``"range"`` maps [min, max] to [0, 1]; ``"standard"`` to zero mean, unit std;
         ``"none"`` resets to the identity. Constant components get scale 1. Call before training.
         """
-        data = self.check_data(data)
+        data = self.check_data(data, min_samples=1)
         if mode == "none":
             self.offset.zero_()
             self.scale.fill_(1.0)

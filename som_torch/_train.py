@@ -16,24 +16,51 @@ Hook = Callable[[int, SOM, dict], None]
 """``hook(epoch, som, info)`` after each epoch; ``info``: ``step``, ``epochs``,
 ``learning_rate`` and ``sigma`` (float64 ``*batch``, the values used last)."""
 Value = Union[float, torch.Tensor]
-Range = Union[Value, tuple[Value, Value]]
+Range = Union[Value, tuple[Value, Value], list[Value]]
 
 
-def _start_end(value: Range | None, default: tuple[float, float], batch: torch.Size, name: str) -> tuple[torch.Tensor, torch.Tensor]:
-    """``value`` (start or (start, end), each a float or ``*batch`` tensor) -> two float64 ``B`` tensors."""
+def _start_end(value: Range | None, default: tuple[float, float], batch: torch.Size, name: str,
+               schedule: str | Callable) -> tuple[torch.Tensor, torch.Tensor]:
+    """``value`` -> the schedule's start and end, two float64 ``B`` tensors.
+
+    ``value``: ``start`` or ``(start, end)``, a tuple or a 2-element list (e.g. from JSON); each a
+    number or a ``*batch`` tensor/array. Per-map values only as tensors or arrays: a bare list is
+    always ``(start, end)``, never one value per map. The start must be finite and > 0; the end
+    finite and >= 0 (a linear decay may end at 0), and > 0 for ``"exponential"`` (no geometric
+    decay reaches 0); ``"asymptotic"`` and ``"constant"`` ignore the end but check it too."""
     if value is None:
         value = default
-    start, end = value if isinstance(value, tuple) else (value, default[1])
+    if isinstance(value, (tuple, list)):
+        if len(value) != 2:
+            raise ValueError(f"{name}: expected start or (start, end), per-map values as a *batch tensor, received {value!r}")
+        start, end = value
+    else:
+        start, end = value, default[1]
     out = []
     for v, what in ((start, "start"), (end, "end")):
-        t = torch.as_tensor(v, dtype=torch.float64)
+        try:
+            t = torch.as_tensor(v, dtype=torch.float64)
+        except (TypeError, ValueError, RuntimeError):
+            raise TypeError(f"{name} {what}: expected a number or a *batch tensor, received {v!r}") from None
         try:
             out.append(t.expand(batch).reshape(-1))  # B
         except RuntimeError:
             raise ValueError(f"{name} {what}: expected a float or *batch = {tuple(batch)}, received shape {tuple(t.shape)}") from None
-    if bool((out[0] <= 0).any()):
-        raise ValueError(f"{name}: expected a positive start value, received {start!r}")
-    return out[0], out[1]
+    first, last = out
+    if not bool((torch.isfinite(first) & (first > 0)).all()):
+        raise ValueError(f"{name}: expected a finite positive start value, received {start!r}")
+    strict = schedule == "exponential"
+    if not bool((torch.isfinite(last) & ((last > 0) if strict else (last >= 0))).all()):
+        raise ValueError(f"{name}: expected a finite end value {'> 0' if strict else '>= 0'} "
+                         f"(schedule {schedule!r}), received {end!r}")
+    return first, last
+
+
+def _threads(num_threads: int | None) -> int | None:
+    """``num_threads`` checked: a positive int or None."""
+    if num_threads is not None and (not isinstance(num_threads, int) or isinstance(num_threads, bool) or num_threads < 1):
+        raise ValueError(f"num_threads: expected a positive int or None, received {num_threads!r}")
+    return num_threads
 
 
 def _table(schedule: str, start: torch.Tensor, end: torch.Tensor, steps: torch.Tensor, total: int) -> torch.Tensor:
@@ -85,8 +112,10 @@ def train_online(
         som: weights ``*batch x U x C`` (initialize first; see :func:`fit`).
         data: raw ``N x C`` (shared) or ``*batch x N x C`` (per map); inactive columns carry
             the parameters; NaN = missing.
-        learning_rate, sigma: ``start`` or ``(start, end)``, each a float or ``*batch`` tensor
-            (per-map schedules). ``sigma`` (grid radius) defaults to ``(max(rows, cols)/2, 1)``.
+        learning_rate, sigma: ``start`` or ``(start, end)`` (a tuple or a 2-element list), each a
+            float or a ``*batch`` tensor (per-map schedules; a list is never read per map).
+            Start > 0; end >= 0 (> 0 for ``"exponential"``), see :func:`_start_end`.
+            ``sigma`` (grid radius) defaults to ``(max(rows, cols)/2, 1)``.
         schedule: one of :data:`SCHEDULES` (default ``"asymptotic"``: MiniSom's default decay).
         neighbourhood: one of :data:`NEIGHBOURHOODS`.
         seed: int (maps get ``seed, seed+1, ...``) or ``*batch`` seeds.
@@ -112,13 +141,12 @@ def train_online(
     methods = {"fast": _online_native if native_ok else _online_fast, "native": _online_native,
                "torch": _online_fast, "reference": _online_reference}
     step_fn = lookup(methods, method, "method")
-    x = som.normalize(data)  # *batch x N x C
+    num_threads = _threads(num_threads)
+    x = som.normalize(data, min_samples=1)  # *batch x N x C
     B, C, U, N = som.batch_shape.numel(), som.n_components, som.n_units, x.shape[-2]
-    if N < 1:
-        raise ValueError("data: expected at least one sample, received N=0")
-    lr0, lr1 = _start_end(learning_rate, (0.5, 0.01), som.batch_shape, "learning_rate")
-    sg0, sg1 = _start_end(sigma, (max(som.grid.rows, som.grid.cols) / 2.0, 1.0), som.batch_shape, "sigma")
     lookup(SCHEDULES, schedule, "schedule")
+    lr0, lr1 = _start_end(learning_rate, (0.5, 0.01), som.batch_shape, "learning_rate", schedule)
+    sg0, sg1 = _start_end(sigma, (max(som.grid.rows, som.grid.cols) / 2.0, 1.0), som.batch_shape, "sigma", schedule)
     total = epochs * N
     gens = [torch.Generator().manual_seed(s) for s in map_seeds(seed, som.batch_shape)]
     ctx = dict(x=x.reshape(B, N, C), active=som.active.reshape(B, C), nb=nb,  # B x N x C
@@ -133,7 +161,7 @@ def train_online(
         threads = torch.get_num_threads()
         try:
             if num_threads is not None:
-                torch.set_num_threads(int(num_threads))
+                torch.set_num_threads(num_threads)
             weights = step_fn(weights, som.grid, order, lr, sg, **ctx)
         finally:
             torch.set_num_threads(threads)
@@ -265,9 +293,11 @@ def train_batch(
     if not isinstance(epochs, int) or epochs < 1:
         raise ValueError(f"epochs: expected a positive int, received {epochs!r}")
     nb = lookup(NEIGHBOURHOODS, neighbourhood, "neighbourhood")
-    sg0, sg1 = _start_end(sigma, (max(som.grid.rows, som.grid.cols) / 2.0, 1.0), som.batch_shape, "sigma")
+    num_threads = _threads(num_threads)
+    lookup(SCHEDULES, schedule, "schedule")
+    sg0, sg1 = _start_end(sigma, (max(som.grid.rows, som.grid.cols) / 2.0, 1.0), som.batch_shape, "sigma", schedule)
     sg = _table(schedule, sg0, sg1, torch.arange(epochs), epochs)  # E x B
-    x = som.normalize(data)
+    x = som.normalize(data, min_samples=1)
     B, C, U, N = som.batch_shape.numel(), som.n_components, som.n_units, x.shape[-2]
     dt, dev, f64 = som.weights.dtype, som.device, torch.float64
     x = x.reshape(B, N, C)  # B x N x C (float64)
@@ -285,7 +315,7 @@ def train_batch(
     threads = torch.get_num_threads()
     try:
         if num_threads is not None:
-            torch.set_num_threads(int(num_threads))
+            torch.set_num_threads(num_threads)
         for epoch in range(epochs):
             wT = w.transpose(1, 2)  # B x C x U
             d = torch.baddbmm(torch.bmm(m, wT * wT), xm, wT, alpha=-2.0)  # B x N x U (+ |x|^2 omitted)

@@ -253,7 +253,7 @@ def test_recall_of_a_smooth_parameter(mode):
 def test_nan_features_skipped():
     som = tiny_som()
     units, d2 = st.best_matching_units(som, torch.tensor([[float("nan"), 100.0], [1.9, float("nan")]]))
-    assert units.tolist() == [0, 2] and d2[0].item() == 0.0  # no active value: distance 0, unit 0
+    assert units.tolist() == [-1, 2] and math.isnan(d2[0])  # no active value: no match (unit -1, NaN)
     som2 = st.SOM(st.Grid(1, 3), ["a", "b", "p"], [True, True, False], dtype=torch.float64)
     som2.weights = torch.tensor([[0.0, 5.0, 1.0], [1.0, 0.0, 2.0], [2.0, 9.0, 3.0]], dtype=torch.float64)
     r = st.recall(som2, torch.tensor([[float("nan"), 0.2, 0.0], [2.1, float("nan"), 0.0]]))

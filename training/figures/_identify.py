@@ -238,7 +238,10 @@ def best_match(trained: TrainedMap, features: np.ndarray, member: int = 0) -> in
     ``features`` (``F``, :data:`training.identification.FEATURE_NAMES`), as the recall finds it."""
     cols = [FEATURE_NAMES.index(f) for f in trained.spec.features]
     r = st.recall(trained.som, torch.as_tensor(np.asarray(features, dtype=np.float64)[cols])[None])
-    return int(r.units.reshape(-1)[member])
+    unit = int(r.units.reshape(-1)[member])
+    if unit < 0:  # som_torch's "no match": not one active feature is finite
+        raise ValueError(f"features: no finite value among the {trained.spec.name} map's features")
+    return unit
 
 
 def _identified(symbol: str, result: IdentificationResult | None) -> float | None:
