@@ -32,6 +32,7 @@ __all__ = ["consistency_warnings", "torque_scale_hint", "TORQUE_SCALE_TOL"]
 TORQUE_SCALE_TOL = 0.15
 _SETTLE = 5.0  # current-loop time constants skipped after each section start (the torque's rise)
 _START_QUANTA = 3.0  # speed quanta (or 1 % of w_max, the larger) at which section I starts "late"
+_CLIP_QUANTA = 3.0  # speed quanta per sample the speed must still gain at a switch to call a flat top clipped
 
 
 def consistency_warnings(record: Record, split: SectionSplit, w_max: float, q_w: float, T_Ei: float) -> list[IdentWarning]:
@@ -51,7 +52,25 @@ def consistency_warnings(record: Record, split: SectionSplit, w_max: float, q_w:
     # the law's durations and thresholds hold for a whole run that no limit or timeout cut short
     if not out and not any(record.meta.get("timed_out") or []):
         out += _law_mismatch(speed, split, w_max, math.ceil(2.0 * T_Ei / record.T_s) + 2)
-    return out + _torque_scale(record, split, T_Ei)
+    return out + _clipped(speed, split, q_w) + _torque_scale(record, split, T_Ei)
+
+
+def _clipped(speed: np.ndarray, split: SectionSplit, q_w: float) -> list[IdentWarning]:
+    """``test_law_mismatch`` for a speed clipped at the switching speed itself (a scope's full
+    scale set to ``w_max``): where I (IV) ends the speed rose (fell) by :data:`_CLIP_QUANTA` quanta
+    a sample, and the current loop's lag still drives it on for a sample or more; the record
+    instead holds its extreme value, exactly, from the switch on."""
+    for k, sign in ((0, 1.0), (3, -1.0)):
+        j = int(split.bounds[k, 1]) - 1  # the sample whose speed ended the section
+        if j < 2 or j + 3 > speed.size:
+            continue
+        w = sign * speed
+        if w[j - 1] - w[j - 2] >= _CLIP_QUANTA * q_w and np.all(w[j:j + 3] == w.max()):
+            return [IdentWarning("test_law_mismatch", f"the speed holds {speed[j]:.4g} rad/s exactly from the end of "
+                                                      f"section {SECTION_NAMES[k]} on, where it rose by "
+                                                      f"{w[j - 1] - w[j - 2]:.3g} rad/s a sample before: a speed "
+                                                      "clipped at the scope's full scale? the values are suspect")]
+    return []
 
 
 def torque_scale_hint(record: Record) -> str | None:

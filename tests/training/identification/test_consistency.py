@@ -45,6 +45,15 @@ def test_speed_clipped_below_w_max_breaks_the_switching_law(run, keep_ref):
     assert "test_law_mismatch" in _codes(r)
 
 
+@pytest.mark.parametrize("keep_ref", [True, False])
+def test_speed_clipped_exactly_at_w_max_is_named(keep_ref):
+    # a = M*/J_sigma = 500 rad/s^2: 5 speed quanta a sample at the switch, and on for T_Ei after it
+    r = _variant(simulate_switching(J_sigma=0.02, seed=4), keep_ref=keep_ref)
+    assert _codes(r) == set()
+    r.speed = np.clip(r.speed, -100.0, 100.0)  # the scope's full scale = w_max: the law's ends still hold
+    assert "test_law_mismatch" in _codes(r)
+
+
 @pytest.mark.parametrize("w_max", [50.0, 200.0])
 def test_wrong_w_max_breaks_the_switching_law(run, w_max):
     assert "test_law_mismatch" in _codes(_variant(run, w_max=w_max))
