@@ -18,14 +18,13 @@ for evaluation; the commissioning chain never decides on it.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 import torch
 
-from sim.params import DriveConfig, TwoMassParams
+from sim.params import DriveConfig, TwoMassParams, check_real
 from sim.plant import simulate, simulate_test
 from sim.records import Record, responses_to_records
 from sim._signal import SwitchingController, TestSignalConfig
@@ -47,8 +46,13 @@ class DriveLimits:
             v = getattr(self, name)
             if v is None and name == "M_max":
                 continue
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not (math.isfinite(v) and v > 0):
+            try:
+                v = check_real(f"DriveLimits.{name}", v)
+            except TypeError as err:  # this class has always said ValueError for every bad value
+                raise ValueError(str(err)) from None
+            if v <= 0:
                 raise ValueError(f"DriveLimits.{name}: expected a finite number > 0, received {v!r}")
+            object.__setattr__(self, name, v)
 
     def torque_cap(self, config: Any) -> float:
         """The torque the experiments may use [Nm]: ``min(M_max, config.M_max)``."""

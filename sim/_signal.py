@@ -18,7 +18,7 @@ from typing import TypeVar
 
 import torch
 
-from sim.params import DriveConfig
+from sim.params import DriveConfig, check_real
 
 _T = TypeVar("_T", float, torch.Tensor)
 
@@ -45,7 +45,8 @@ def inertia_of_time_scale(tau: _T, M_star: _T | float, w_max: _T | float) -> _T:
 
 @dataclass(frozen=True)
 class TestSignalConfig:
-    """``M_star`` [Nm], ``w_max`` [rad/s], section ``timeout`` [s], ``tail`` [s]."""
+    """``M_star`` [Nm], ``w_max`` [rad/s], section ``timeout`` [s], ``tail`` [s]: finite real numbers
+    (numpy scalars stored as Python numbers; bools and strings raise ``TypeError``)."""
 
     __test__ = False  # not a pytest class
 
@@ -56,9 +57,8 @@ class TestSignalConfig:
 
     def __post_init__(self) -> None:
         for f in fields(self):
-            v = getattr(self, f.name)
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-                raise TypeError(f"TestSignalConfig.{f.name}: expected a finite number, received {v!r}")
+            v = check_real(f"TestSignalConfig.{f.name}", getattr(self, f.name))
+            object.__setattr__(self, f.name, v)
             if v <= 0 and f.name != "tail":
                 raise ValueError(f"TestSignalConfig.{f.name}: expected > 0, received {v}")
             if v < 0:

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import functools
 import math
+import numbers
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, fields
 from typing import Any, NamedTuple
@@ -44,9 +45,31 @@ CLASS_THRESHOLDS: dict[str, tuple[float, ...]] = {
     "s_N": (S_N_ELASTIC, S_N_STIFF_BACKLASH), "w_e_T_Ei": (W_E_T_EI_STIFF,), "r_osc": (R_OSC_VISIBLE,)}
 
 
+def check_real(where: str, value: Any) -> int | float:
+    """``value`` if it is a finite real number (Python, numpy or other ``numbers.Real``; not a bool),
+    as a Python ``int`` or ``float`` (builtin values unchanged); else a one-line ``TypeError`` naming
+    ``where``. The one check of the scalar settings of ``sim`` (drive, test signal, limits)."""
+    if isinstance(value, bool) or not isinstance(value, numbers.Real) or not math.isfinite(value):
+        raise TypeError(f"{where}: expected a finite number, received {value!r}")
+    if type(value) in (int, float):
+        return value
+    return int(value) if isinstance(value, numbers.Integral) else float(value)
+
+
+def check_int(where: str, value: Any, low: int | None = None) -> int:
+    """``value`` as a Python ``int`` if it is an integer (numpy ints too; not a bool) ``>= low``;
+    else a one-line ``ValueError`` naming ``where``."""
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral) or (low is not None and value < low):
+        raise ValueError(f"{where}: expected an int{'' if low is None else f' >= {low}'}, received {value!r}")
+    return int(value)
+
+
 @dataclass(frozen=True)
 class DriveConfig:
-    """The known drive: torque limits, current loop, sampling, encoder, current noise."""
+    """The known drive: torque limits, current loop, sampling, encoder, current noise.
+
+    Each field takes any finite real number (numpy scalars are stored as Python numbers); bools,
+    strings and non-finite values raise ``TypeError``, out-of-range values ``ValueError``."""
 
     M_max: float = 20.0  # torque limit [Nm]
     M_N: float = 10.0  # rated torque [Nm]
@@ -58,9 +81,8 @@ class DriveConfig:
 
     def __post_init__(self) -> None:
         for f in fields(self):
-            v = getattr(self, f.name)
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-                raise TypeError(f"DriveConfig.{f.name}: expected a finite number, received {v!r}")
+            v = check_real(f"DriveConfig.{f.name}", getattr(self, f.name))
+            object.__setattr__(self, f.name, v)
             if f.name == "current_noise_std":
                 if v < 0:
                     raise ValueError(f"DriveConfig.current_noise_std: expected >= 0, received {v}")
@@ -104,7 +126,16 @@ def one_mass_stand_in(T_s: float) -> dict[str, float]:
     return {"V_J": 0.01, "f_e": min(1000.0, 0.25 / T_s), "d": 0.1}
 
 
+def _is_bool(value: Any) -> bool:
+    """A bool, or a tensor, array or flat list of bools (``True`` would pass as 1.0)."""
+    if isinstance(value, (list, tuple)):
+        return any(isinstance(v, bool) for v in value)
+    return isinstance(value, bool) or str(getattr(value, "dtype", "")) in ("bool", "torch.bool")
+
+
 def _as_tensor(name: str, value: Any, check_finite: bool = True) -> torch.Tensor:
+    if _is_bool(value):
+        raise TypeError(f"TwoMassParams.{name}: expected a number or tensor, received a bool {value!r}")
     if isinstance(value, torch.Tensor):
         t = value.detach().to(torch.float64)
     elif isinstance(value, (int, float)) and not isinstance(value, bool):
@@ -162,6 +193,9 @@ class _Derived:
 class TwoMassParams:
     """Two-mass mechanic, population parameterization; tensors of shape ``*batch``.
 
+    Each field takes a number, a tensor or an array-like (not bools) and is stored as a float64
+    tensor of its own (a copy: editing the caller's tensor afterwards changes nothing here; do not
+    edit these tensors in place either, the validation and the cached derived values rely on them).
     ``J_sigma`` total inertia [kg m^2], ``V_J = J_L/J_M``, ``f_e`` eigenfrequency [Hz],
     ``d`` relative damping, ``backlash`` total width ``2s`` [rad], ``M_FC`` load Coulomb friction
     [Nm], ``mu_F`` load viscous friction [Nm s/rad].
@@ -181,8 +215,8 @@ class TwoMassParams:
         if shape is None:
             raise ValueError(f"TwoMassParams: parameter shapes do not broadcast: "
                              f"{ {n: tuple(t.shape) for n, t in ts.items()} }")
-        for n, t in ts.items():
-            object.__setattr__(self, n, t.expand(shape).contiguous())
+        for n, t in ts.items():  # a copy of its own: the caller's tensor (or array) may change later
+            object.__setattr__(self, n, torch.empty(shape, dtype=torch.float64, device=t.device).copy_(t))
         # one pass over all values (a model fit builds many small candidate batches)
         values = torch.stack([getattr(self, n).reshape(-1) for n in PARAM_NAMES])  # 7 x n
         finite = torch.isfinite(values).all(1)
@@ -263,7 +297,7 @@ class TwoMassParams:
         """From one dict (a single system) or a list of dicts (batch ``(n,)``).
 
         Each dict holds the seven parameters (``backlash``, ``M_FC``, ``mu_F``, ``d`` default to 0)
-        or the physical set ``J_M, J_L, C_F`` (+ optional ``D_F``)."""
+        or the physical set ``J_M, J_L, C_F`` (+ optional ``D_F``), not both (``ValueError``)."""
         single = isinstance(items, Mapping)
         rows = [items] if single else list(items)
         if not rows:
@@ -277,8 +311,16 @@ class TwoMassParams:
             if unknown:
                 raise ValueError(f"TwoMassParams.from_dicts: system {i}: unknown keys {unknown}; "
                                  f"expected {list(PARAM_NAMES)} or J_M, J_L, C_F, D_F")
+            physical = sorted(set(row) & {"J_M", "J_L", "C_F", "D_F"})
+            population = sorted(set(row) & {"J_sigma", "V_J", "f_e", "d"})
+            if physical and population:
+                raise ValueError(f"TwoMassParams.from_dicts: system {i}: expected either J_sigma, V_J, f_e, d or "
+                                 f"J_M, J_L, C_F, D_F, received both {population} and {physical}")
             rest = {k: row.get(k, 0.0) for k in ("backlash", "M_FC", "mu_F")}
-            if {"J_M", "J_L", "C_F"} <= set(row):
+            if physical:
+                missing = [k for k in ("J_M", "J_L", "C_F") if k not in row]
+                if missing:
+                    raise ValueError(f"TwoMassParams.from_dicts: system {i}: missing keys {missing}")
                 parts.append(cls.from_physical(J_M=row["J_M"], J_L=row["J_L"], C_F=row["C_F"],
                                                D_F=row.get("D_F", 0.0), **rest))
             else:

@@ -20,7 +20,7 @@ from sim._integrate_fast import (FastParams, FastState, SignalState, advance, de
                                   run_test_chunk)
 from sim._kernel import load_kernel
 from sim.measurement import measure_speed, noisy_current
-from sim.params import DriveConfig, TwoMassParams
+from sim.params import DriveConfig, TwoMassParams, check_int
 from sim._signal import SwitchingController, TestSignalConfig
 
 
@@ -78,9 +78,14 @@ class Response:
         return self.length.shape
 
 
-def _check(params: TwoMassParams, drive: DriveConfig, method: str, dtype: torch.dtype) -> None:
+def _check(params: TwoMassParams, drive: DriveConfig, method: str, dtype: torch.dtype, seed: int) -> None:
+    """The arguments both simulators share; one-line ``TypeError``/``ValueError`` naming the argument."""
     if not isinstance(params, TwoMassParams):
         raise TypeError(f"params: expected TwoMassParams, received {type(params).__name__}")
+    if params.J_sigma.numel() == 0:
+        raise ValueError(f"params: expected at least one system, received batch shape {tuple(params.batch_shape)}")
+    if check_int("seed", seed) != min(max(seed, -2**63), 2**64 - 1):  # what torch.Generator takes
+        raise ValueError(f"seed: expected an int in -2**63 .. 2**64-1, received {seed!r}")
     if not isinstance(drive, DriveConfig):
         raise TypeError(f"drive: expected DriveConfig, received {type(drive).__name__}")
     if method not in ("fast", "reference"):
@@ -96,13 +101,13 @@ def simulate(params: TwoMassParams, drive: DriveConfig, controller: Controller, 
     """Run ``controller`` in closed loop around the plant for up to ``n_samples`` samples.
 
     ``load_torque``: external load torque ``M_ext`` on the load side [Nm], ``*batch`` or scalar
-    (constant). ``method="reference"`` integrates with torchdiffeq in float64 (slow).
+    (constant). ``method="reference"`` integrates with torchdiffeq in float64 (slow). ``seed``
+    (an int) seeds the current noise (see :func:`simulate_test`).
     ``use_kernel=False`` forces the torch eager twin of the fused kernel."""
     if method == "reference":
         dtype = torch.float64
-    _check(params, drive, method, dtype)
-    if isinstance(n_samples, bool) or not isinstance(n_samples, int) or n_samples < 1:
-        raise ValueError(f"n_samples: expected an int >= 1, received {n_samples!r}")
+    _check(params, drive, method, dtype, seed)
+    check_int("n_samples", n_samples, 1)
     shape = params.batch_shape
     n = params.J_sigma.numel()
     S = default_substeps(params, drive) if substeps is None else substeps
@@ -151,12 +156,13 @@ def simulate(params: TwoMassParams, drive: DriveConfig, controller: Controller, 
 
 def _finish(out: dict[str, torch.Tensor], states: dict[str, torch.Tensor], length: torch.Tensor,
             timed_out: torch.Tensor, shape: torch.Size, N: int, drive: DriveConfig, S: int, seed: int) -> Response:
-    """Pad beyond each length, add current noise, reshape to ``*batch x N``."""
+    """Pad beyond each length, add current noise, reshape to ``*batch x N``. The noise: one draw of
+    ``n x N`` standard normals (flat batch, row-major) from a generator seeded with ``seed``."""
     pad = torch.arange(N) >= length.unsqueeze(-1)
     for k in ("speed", "torque", "torque_ref"):
         out[k] = out[k].masked_fill(pad, 0.0)
     out["section"] = out["section"].masked_fill(pad, -1)
-    g = torch.Generator().manual_seed(seed)
+    g = torch.Generator().manual_seed(int(seed))
     current = noisy_current(out["torque"], drive, g).masked_fill(pad, 0.0)
     r = lambda v: v.reshape(*shape, N)  # noqa: E731
     return Response(t=torch.arange(N, dtype=torch.float64) * drive.T_s, speed=r(out["speed"]), current=r(current),
@@ -175,12 +181,25 @@ def simulate_test(params: TwoMassParams, drive: DriveConfig | None = None, signa
     Fast path: the fused C kernel runs the controller, the encoder and the RK4 substeps in one
     loop; systems are sorted by expected duration and run in groups of ``chunk_systems``.
     ``progress(n)`` is called with the number of systems finished. Without the kernel (or with
-    ``method="reference"`` / ``return_states``) the generic :func:`simulate` loop runs instead."""
-    drive = drive or DriveConfig()
-    signal = signal or TestSignalConfig()
+    ``method="reference"`` / ``return_states``) the generic :func:`simulate` loop runs instead.
+    ``chunk_systems``, ``chunk_samples``: ints >= 1 (memory and scheduling only: the numbers do
+    not depend on them).
+
+    The response is in input order (flattened batch), whatever order the groups ran in. Current
+    noise (as in :func:`simulate`): one ``torch.Generator`` seeded with ``seed`` draws standard
+    normals of ``dtype`` for the whole padded ``n x N`` batch at once (row-major; ``n`` systems,
+    ``N`` the longest record), so a system's noise depends on its flat index and on ``n`` and ``N``:
+    the same system alone or in another batch gets other noise, although its speed and torque are
+    the same when ``substeps`` is (the default substeps are chosen for the stiffest system of the
+    batch). :func:`sim.iter_records` draws its noise per record instead (see docs/simulator.md)."""
+    drive = DriveConfig() if drive is None else drive
+    signal = TestSignalConfig() if signal is None else signal
     if method == "reference":
         dtype = torch.float64
-    _check(params, drive, method, dtype)
+    _check(params, drive, method, dtype, seed)
+    if not isinstance(signal, TestSignalConfig):
+        raise TypeError(f"signal: expected TestSignalConfig or None, received {type(signal).__name__}")
+    chunk_systems, chunk_samples = check_int("chunk_systems", chunk_systems, 1), check_int("chunk_samples", chunk_samples, 1)
     shape = params.batch_shape
     N_max = signal.max_samples(drive)
     lib = load_kernel() if use_kernel else None

@@ -11,6 +11,7 @@ torque [Nm], speed [rad/s], ``Kp`` [Nm s/rad], ``Ti``, ``T_f``, ``T_s`` [s].
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import dataclass
 from typing import Any
 
@@ -43,8 +44,28 @@ class NotchSpec:
         return b / a[0], a / a[0]
 
 
+def _array(value: Any, name: str) -> np.ndarray:
+    """``value`` (a number, numpy array or CPU torch tensor) as a float64 array; else ``TypeError`` naming it."""
+    if value is None:  # np.asarray(None, float) would be NaN
+        raise TypeError(f"{name}: expected a number or an array of numbers, received None")
+    try:
+        return np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError, RuntimeError) as err:
+        raise TypeError(f"{name}: expected a number or an array of numbers, received {type(value).__name__} "
+                        f"({str(err).splitlines()[0] if str(err) else 'not convertible'})") from None
+
+
+def _positive(value: Any, name: str) -> float:
+    """``value`` as a float if it is a finite real number > 0 (not a bool); else a one-line error naming it."""
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        raise TypeError(f"{name}: expected a finite number > 0, received {value!r}")
+    if not (math.isfinite(value) and value > 0):
+        raise ValueError(f"{name}: expected a finite number > 0, received {value!r}")
+    return float(value)
+
+
 def _gain(value: Any, name: str, positive: bool) -> np.ndarray:
-    a = np.asarray(value, dtype=np.float64)
+    a = _array(value, name)
     bad = (a <= 0) if positive else (a < 0)
     if not np.isfinite(a).all() or bad.any():
         raise ValueError(f"{name}: expected finite values {'> 0' if positive else '>= 0'}, received {value}")
@@ -60,17 +81,17 @@ class PISpeedLaw:
 
     Args:
         Kp [Nm s/rad], Ti [s], T_f [s] (0: no low-pass): floats, or arrays ``B`` (broadcast).
-        T_s: sample time [s]. M_max: torque limit [Nm]. notch: optional :class:`NotchSpec`.
+        T_s: sample time [s]. M_max: torque limit [Nm] (finite real numbers > 0). notch: optional
+        :class:`NotchSpec`. ``step`` takes numbers, numpy arrays or CPU torch tensors.
     """
 
     def __init__(self, Kp: Any, Ti: Any, *, T_s: float, M_max: float, T_f: Any = 0.0,
                  notch: NotchSpec | None = None) -> None:
         self.Kp, self.Ti, self.T_f = _gain(Kp, "Kp", True), _gain(Ti, "Ti", True), _gain(T_f, "T_f", False)
-        if not (T_s > 0 and M_max > 0):
-            raise ValueError(f"T_s, M_max: expected > 0, received {T_s}, {M_max}")
+        T_s, M_max = _positive(T_s, "T_s"), _positive(M_max, "M_max")
         if notch is not None and not isinstance(notch, NotchSpec):
             raise TypeError(f"notch: expected NotchSpec or None, received {type(notch).__name__}")
-        self.T_s, self.M_max, self.notch = float(T_s), float(M_max), notch
+        self.T_s, self.M_max, self.notch = T_s, M_max, notch
         self.shape = np.broadcast_shapes(self.Kp.shape, self.Ti.shape, self.T_f.shape)
         self._ki = self.Kp * self.T_s / self.Ti
         self._a = np.where(self.T_f > 0, np.exp(-self.T_s / np.maximum(self.T_f, 1e-300)), 0.0)
@@ -92,7 +113,10 @@ class PISpeedLaw:
         self._started = False
 
     def step(self, w_meas: Any, w_ref: Any) -> Any:
-        w = np.asarray(w_meas, dtype=np.float64)
+        """``M_ref`` [Nm] for the measured speed ``w_meas`` and the reference ``w_ref`` [rad/s]: numbers,
+        numpy arrays or CPU torch tensors (converted to float64 numpy); a float when all is scalar,
+        else a numpy array of the broadcast shape."""
+        w, w_ref = _array(w_meas, "w_meas"), _array(w_ref, "w_ref")
         if not self._started:
             self._wf = np.broadcast_to(w, np.broadcast_shapes(w.shape, self.shape)).copy()
             self._started = True
