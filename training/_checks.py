@@ -53,6 +53,12 @@ def record_name(source: str, name: str) -> str:
     return name
 
 
+#: Memory per system of a drawn population (parameters, their derived values, the sort by duration,
+#: a dataset row) [bytes]: a generous estimate, for refusing sizes that cannot fit before numpy or
+#: torch fail to allocate.
+BYTES_PER_SYSTEM = 1024
+
+
 def machine_memory() -> int | None:
     """This machine's physical memory [bytes]; ``None`` where the platform does not say."""
     try:

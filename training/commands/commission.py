@@ -78,11 +78,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     _progress.add_option(parser)
 
 
-def _check_positive(name: str, v: float | None) -> None:
-    if v is not None and not (math.isfinite(v) and v > 0):
-        raise UserError(f"{name}: expected a finite number > 0, received {v}")
-
-
 def _plot(report: Any, folder: Path, overwrite: bool) -> None:
     """``folder/<name>.png``: the commissioning page (:func:`training.figures.commission_figure`)."""
     from training.figures import commission_figure, save_png
@@ -192,11 +187,13 @@ def run(args: argparse.Namespace) -> int:
     from training.commissioning import CommissioningConfig, commission, summarize, summary_text
     from training.identification import Identifier
 
-    from training._checks import seed
+    from training._checks import finite_number, seed
 
     seed("--seed", args.seed)
     for name in ("--w-limit", "--travel-limit", "--M-max", "--max-map-distance"):
-        _check_positive(name, getattr(args, name[2:].replace("-", "_")))
+        value = getattr(args, name[2:].replace("-", "_"))
+        if value is not None:
+            finite_number(name, value)
     config = CommissioningConfig(tune=not args.no_tune, max_map_distance_ratio=args.max_map_distance,
                                  tune_evaluations=args.tune_evaluations, fallback=not args.no_fallback,
                                  validation_mode=args.validation)

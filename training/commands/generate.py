@@ -12,10 +12,6 @@ HELP = "make training data: population responses and their features, sharded to 
 #: Default sharding: at least this many shards where N allows, of at most this many systems.
 MIN_SHARDS, MAX_SHARD_SIZE = 10, 500
 
-#: Memory per system of the drawn population besides its stored columns [bytes] (as ``simulate``'s).
-BYTES_PER_SYSTEM = 1024
-
-
 def default_shard_size(n: int) -> int:
     """Systems per shard for ``n`` systems when ``--shard-size`` is not given."""
     return max(1, min(MAX_SHARD_SIZE, -(-n // MIN_SHARDS)))
@@ -41,7 +37,7 @@ def run(args: argparse.Namespace) -> int:
     from sim import EnvelopeRanges
     from training.learning import GenerateConfig, generate, load_dataset
 
-    from training._checks import check_memory, seed
+    from training._checks import BYTES_PER_SYSTEM, check_memory, seed
     from training.identification import FEATURE_NAMES
     from training.learning import ESTIMATE_NAMES, TRUTH_NAMES
 

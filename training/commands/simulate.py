@@ -43,15 +43,12 @@ def _refuse_existing(folder: Path, names: list[str], overwrite: bool) -> None:
                                 "nothing written (pass --overwrite to replace them)")
 
 
-#: Memory per system of a drawn population (parameters, their derived values, the sort by duration) [bytes]:
-#: a generous estimate, for refusing sizes that cannot fit before numpy or torch fail to allocate.
-BYTES_PER_SYSTEM = 1024
-
-
 def _memory_estimate(params: Any, drive: Any, signal: Any, method: str, itemsize: int) -> float:
     """Bytes the simulation of ``params`` holds at once: the fast path one group of systems (``sim.iter_records``:
     512) at a time, the reference method all of them; each with its record's samples (as long as
     ``sim`` expects the test to run, at most every section timing out)."""
+    from training._checks import BYTES_PER_SYSTEM
+
     n = params.J_sigma.numel()
     expected = float(signal.expected_duration(params.J_sigma.reshape(-1)).max()) / drive.T_s
     samples = min(signal.max_samples(drive), 1.25 * expected + 2048)
@@ -77,7 +74,7 @@ def run(args: argparse.Namespace) -> int:
     import torch
 
     from sim import DriveConfig, iter_records, sample_population, write_record
-    from training._checks import check_memory, check_sim_cost, record_name, seed
+    from training._checks import BYTES_PER_SYSTEM, check_memory, check_sim_cost, record_name, seed
 
     drive = DriveConfig()
     signal = _signal(args, drive)
