@@ -10,6 +10,7 @@ speed and answers with confidence; these checks say so (coded warnings, the answ
   (:func:`._sections.law_end`) ends a section elsewhere than the record does, by more than the
   section detection's uncertainty (exact with ``torque_ref``; the current loop's lag without);
   not checked on runs that timed out, were aborted or start late (the law's durations fail there);
+  also a speed clipped at ``w_max`` itself, whose ends the law keeps (:func:`_clipped`);
 - ``torque_scale_mismatch``: the measured torque (``current * K_M``) holds its levels at another
   scale than ``M*`` (metadata, else ``torque_ref``'s levels) by more than :data:`TORQUE_SCALE_TOL`;
 - ``record_starts_late``: section I starts at a speed above a few quanta (the test starts at rest);
@@ -50,9 +51,9 @@ def consistency_warnings(record: Record, split: SectionSplit, w_max: float, q_w:
                                                       "recording began after the test had started (its first torque "
                                                       "step is missing)"))
     # the law's durations and thresholds hold for a whole run that no limit or timeout cut short
-    if not out and not any(record.meta.get("timed_out") or []):
-        out += _law_mismatch(speed, split, w_max, math.ceil(2.0 * T_Ei / record.T_s) + 2)
-    return out + _clipped(speed, split, q_w) + _torque_scale(record, split, T_Ei)
+    law = _law_mismatch(speed, split, w_max, math.ceil(2.0 * T_Ei / record.T_s) + 2) \
+        if not out and not any(record.meta.get("timed_out") or []) else []
+    return out + (law or _clipped(speed, split, q_w)) + _torque_scale(record, split, T_Ei)
 
 
 def _clipped(speed: np.ndarray, split: SectionSplit, q_w: float) -> list[IdentWarning]:
@@ -67,7 +68,7 @@ def _clipped(speed: np.ndarray, split: SectionSplit, q_w: float) -> list[IdentWa
         w = sign * speed
         if w[j - 1] - w[j - 2] >= _CLIP_QUANTA * q_w and np.all(w[j:j + 3] == w.max()):
             return [IdentWarning("test_law_mismatch", f"the speed holds {speed[j]:.4g} rad/s exactly from the end of "
-                                                      f"section {SECTION_NAMES[k]} on, where it rose by "
+                                                      f"section {SECTION_NAMES[k]} on, where it moved by "
                                                       f"{w[j - 1] - w[j - 2]:.3g} rad/s a sample before: a speed "
                                                       "clipped at the scope's full scale? the values are suspect")]
     return []
