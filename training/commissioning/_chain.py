@@ -509,6 +509,10 @@ def commission(
             delivered = proposal.with_gains(conf, *g, rule=(
                 f"T2 on the drive: the geometric mean of the proposal's and the tuned gains: Kp {g[0]:.4g}, Ti {g[1]:.4g} s, "
                 f"T_f {g[2]:.3g} s"))
+    if delivered_run is not None and sc is not None and delivered_run.cost > sc.model_warn_factor * delivered_run.model_cost:
+        run.warn("loop_unlike_model", f"the delivered loop costs {delivered_run.cost / delivered_run.model_cost:.3g} x what "
+                                      "the identified model predicts for its gains: the margins guaranteed on the model "
+                                      "may not hold on this drive (a torque scale or K_M off? a plant unlike the model?)")
     if prediction:
         prediction = {**prediction, "stop_at": run.loop_limits.w_max}
     checks = limit_checks(run.drive.experiments, limits, conf)

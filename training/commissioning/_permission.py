@@ -42,6 +42,8 @@ COMMISSIONING_WARNING_CODES: dict[str, str] = {
     "validation_not_run": "the identified model could not be re-simulated under the record's test signal",
     "margins_not_reached": "no model-based design keeps the guaranteed margins on the identified model's spread (R7)",
     "loop_not_settled": "no candidate loop settled on the drive within the scenario",
+    "loop_unlike_model": "the delivered loop costs far more on the drive than the identified model predicts: its "
+                         "guaranteed margins may not hold there",
     "loop_rejected": "a loop on the drive saturated, kept swinging or was far worse than its model: not delivered",
     "speed_against_torque": "the speed moved against the torque reference in a test run (motor or encoder sign reversed?)",
     "run_stopped": "the drive stopped an experiment at a limit (never scored as a good run)",

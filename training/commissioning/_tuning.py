@@ -84,6 +84,9 @@ class TuningScenario:
     model_cost_factor: float = 20.0
     """A run that costs more than this many times what the identified model predicts for the same gains is unlike
     its model (the guarantee, computed on the model, does not describe it)."""
+    model_warn_factor: float = 8.0
+    """A delivered run above this many times its model's cost gets ``loop_unlike_model`` (the 50-plant studies'
+    delivered and candidate runs: at most 6.7 x, median 0.9-1.3 x; a drive applying 20 x the law's torque: 18.5 x)."""
 
     @property
     def band(self) -> float:

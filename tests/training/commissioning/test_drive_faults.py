@@ -65,6 +65,19 @@ def test_an_oscillating_loop_is_not_delivered_and_never_called_settled(stub):
     assert "8 delivered: none" in rep.to_text()
 
 
+def test_a_delivered_loop_far_from_its_model_is_named(stub):
+    """14 x the law's torque: a loop settles and is delivered, at many times the model's cost (the
+    50-plant studies' runs reach 6.7 x at most)."""
+    drive = faulty_drives.GainDrive(faulty_drives.PLANT)
+    drive.gain = 14.0
+    rep = commission(drive, LIMITS, identifier=stub("elastic", faulty_drives.PLANT), config=FAST)
+    assert rep.delivered is not None and rep.delivered_run.cost > 8.0 * rep.delivered_run.model_cost
+    assert "loop_unlike_model" in {w.code for w in rep.warnings}
+    healthy = commission(sim.SimulatedDrive(faulty_drives.PLANT), LIMITS,
+                         identifier=stub("elastic", faulty_drives.PLANT), config=FAST)
+    assert "loop_unlike_model" not in {w.code for w in healthy.warnings}
+
+
 def test_settled_runs_have_a_settling_time(stub):
     rep = commission(sim.SimulatedDrive(faulty_drives.PLANT), LIMITS, identifier=stub("elastic", faulty_drives.PLANT),
                      config=FAST)
