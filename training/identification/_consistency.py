@@ -75,16 +75,20 @@ def _clipped(speed: np.ndarray, split: SectionSplit, q_w: float) -> list[IdentWa
 
 
 def torque_scale_hint(record: Record) -> str | None:
-    """Why the sections may not show: the measured torque's largest level off the metadata's
-    ``M_star`` by more than :data:`TORQUE_SCALE_TOL` (else None)."""
-    M_star, torque = record.meta.get("M_star"), record.motor_torque
-    if M_star is None or torque is None or not np.any(torque):
+    """Why the sections may not show: the largest level of ``torque_ref``, else of the measured
+    torque, off the metadata's ``M_star`` by more than :data:`TORQUE_SCALE_TOL` (else None)."""
+    M_star = record.meta.get("M_star")
+    if M_star is None:
         return None
-    scale = torque_amplitude(np.asarray(torque, dtype=np.float64)) / float(M_star)
-    if abs(scale - 1.0) <= TORQUE_SCALE_TOL:
-        return None
-    what = "current * K_M" if record.torque is None else "the torque column"
-    return f"{what} reaches {scale:.3g} x metadata M_star = {float(M_star):.4g} Nm: K_M, M_star or the current's units wrong?"
+    for what, signal in (("torque_ref", record.torque_ref),
+                         ("current * K_M" if record.torque is None else "the torque column", record.motor_torque)):
+        if signal is None or not np.any(signal):
+            continue
+        scale = torque_amplitude(np.asarray(signal, dtype=np.float64)) / float(M_star)
+        if abs(scale - 1.0) > TORQUE_SCALE_TOL:
+            why = "its units (Nm) or M_star wrong?" if what == "torque_ref" else "K_M, M_star or the current's units wrong?"
+            return f"{what} reaches {scale:.3g} x metadata M_star = {float(M_star):.4g} Nm: {why}"
+    return None
 
 
 def _law_mismatch(speed: np.ndarray, split: SectionSplit, w_max: float, lag: int) -> list[IdentWarning]:

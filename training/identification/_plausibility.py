@@ -24,9 +24,10 @@ signal produces on the default population, measured on 800 simulated systems):
   simulated: 0.8..1.02 x the true ``J_sigma``) must be positive (else speed and current have
   opposite signs) and within 1e-7..1e4 kg m^2.
 
-A record whose speed is constant or whose torque is zero passes here: the section detection
-reports those with a more specific message. Where that detection fails on a speed quantized in
-steps of half ``w_max`` or more, :func:`resolution_hint` says why (the one-mass fit still reads
+A record whose speed is constant passes here (the section detection reports it with a more
+specific message); a torque that is zero throughout while the speed moves is refused here (a
+``torque_ref`` would still show the sections, and the one-mass fit would fail on it obscurely).
+Where that detection fails on a speed quantized in steps of half ``w_max`` or more, :func:`resolution_hint` says why (the one-mass fit still reads
 ``J_sigma`` from such a coarse speed where the sections show, so it is not refused here).
 """
 
@@ -71,8 +72,11 @@ def check_record(record: Record) -> None:
         return  # format problems: sim.records / the analysis report them
     T_s = record.T_s
     _check_timing(T_s, meta.get("T_Ei"))
-    if not np.any(torque != 0) or not np.ptp(speed) > 0:
-        return  # zero torque / constant speed: the section detection says so
+    if not np.any(torque != 0) and np.ptp(speed) > 0:  # a torque_ref would still show the sections
+        raise ValueError(f"{name}: expected the test's torque steps, received zeros throughout while the speed moves "
+                         f"(the {name} was not recorded?)")
+    if not np.ptp(speed) > 0:
+        return  # constant speed: the section detection says so
     _check_torque_scale(torque, name, meta)
     _check_speed_scale(speed, T_s, meta)
     _check_speed_quantum(speed, T_s, meta)

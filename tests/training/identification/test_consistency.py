@@ -70,6 +70,13 @@ def test_wrong_K_M_without_torque_ref_names_K_M_when_no_sections_show(run):
         analyze(r)
 
 
+def test_torque_ref_in_percent_names_its_units_when_no_sections_show(run):
+    r = _variant(run)
+    r.torque_ref = r.torque_ref * 10.0  # % of M_N = 10 Nm instead of Nm
+    with pytest.raises(IdentificationError, match=r"torque_ref reaches 10 x metadata M_star = 10 Nm: its units"):
+        analyze(r)
+
+
 @pytest.mark.parametrize("keep_ref", [True, False])
 def test_recording_that_starts_inside_section_I_is_named(run, keep_ref):
     r = _variant(run, keep_ref=keep_ref)

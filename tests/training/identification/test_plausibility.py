@@ -78,6 +78,11 @@ def test_speed_in_rpm_against_w_max(good):
         check_record(variant(good, speed=good.speed * RPM))
 
 
+def test_a_current_that_is_zero_throughout_is_named(good):
+    with pytest.raises(ValueError, match=r"^current: expected the test's torque steps, received zeros throughout"):
+        check_record(variant(good, current=np.zeros_like(good.current)))
+
+
 def test_a_speed_glitch_is_named_as_such_not_as_units(good):
     speed = good.speed.copy()
     speed[500] = 3.5 * good.meta["w_max"]  # one sample
@@ -151,7 +156,7 @@ def test_absurd_inertia(good):
 
 def test_degenerate_signals_are_left_to_the_section_detection(good):
     check_record(variant(good, speed=np.zeros_like(good.speed)))
-    check_record(variant(good, current=np.zeros_like(good.current)))
+    check_record(variant(good, speed=np.zeros_like(good.speed), current=np.zeros_like(good.current)))
 
 
 def test_sections_an_encoder_cannot_resolve_are_refused_with_its_quantum():
