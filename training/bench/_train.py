@@ -28,6 +28,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     if args.n < 1:
         raise UserError(f"--n: expected >= 1, received {args.n}")
+    from training.learning import TrainConfig
+
+    # the map options, checked as train checks them, before a long generate
+    TrainConfig(rows=args.size[0], cols=args.size[1], ensemble=args.ensemble, epochs=args.epochs)
     cli = [sys.executable, "-m", "training.cli"]
     print(machine_line(), flush=True)
     with tempfile.TemporaryDirectory(prefix="twomass-bench-") as tmp:

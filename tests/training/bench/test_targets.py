@@ -69,6 +69,7 @@ def test_bench_som_without_minisom(capsys: pytest.CaptureFixture[str], monkeypat
     ("som", ["--sigma", "0"], "--sigma: expected a finite number > 0"),
     ("som", ["--inactive", "-1"], "--inactive: expected an integer >= 0"),
     ("sim", ["--naive-samples", "-1"], "--naive-samples: expected an integer >= 0"),
+    ("train", ["--ensemble", "0"], "ensemble >= 1"),  # before its long generate
 ])
 def test_bad_bench_options_are_refused_before_any_work(target: str, argv: list[str], message: str) -> None:
     with pytest.raises(ValueError, match=message):
