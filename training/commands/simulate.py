@@ -70,7 +70,12 @@ def _signal(args: argparse.Namespace, drive: Any) -> Any:
     return TestSignalConfig(M_star=args.M_star, w_max=args.w_max, timeout=args.timeout)
 
 
+def _params_text(truth: dict[str, Any]) -> str:
+    return ", ".join(f"{k} {truth[k]:.3g}" for k in ("J_sigma", "V_J", "f_e", "d", "backlash", "M_FC", "mu_F"))
+
+
 def run(args: argparse.Namespace) -> int:
+    import numpy as np
     import torch
 
     from sim import DriveConfig, iter_records, sample_population, write_record
@@ -107,6 +112,10 @@ def run(args: argparse.Namespace) -> int:
     for rec in records:
         if names is not None and args.method == "fast":
             rec.name = names[int(rec.name[3:])]
+        if not (np.isfinite(rec.speed).all() and np.isfinite(rec.current).all()):
+            raise UserError(f"{rec.name}: the simulation diverged (non-finite speed or current; {written} record(s) "
+                            f"written before it): its parameters lie far outside what the simulator resolves "
+                            f"({_params_text(rec.meta['truth'])})")
         write_record(args.out / rec.name, rec, overwrite=args.overwrite)
         written += 1
         if args.method == "fast":

@@ -53,6 +53,14 @@ def test_simulate_refuses_record_names_that_leave_out(tmp_path, capsys, name):
     assert not (tmp_path / "o").exists() and not (tmp_path / "escape.csv").exists()
 
 
+def test_simulate_names_a_system_whose_simulation_diverges(tmp_path, capsys):
+    params = tmp_path / "p.json"
+    params.write_text(json.dumps({**PLANT, "J_sigma": 1e300, "name": "huge"}))
+    _refused(["simulate", "--params", str(params), "--out", str(tmp_path / "o")], capsys,
+             "huge: the simulation diverged", "J_sigma 1e+300")
+    assert not (tmp_path / "o").exists()
+
+
 @pytest.mark.parametrize("command", [["simulate", "--population", "1"], ["generate", "--n", "4"],
                                      ["train", "--data", "d"], ["demo"], ["evaluate"]])
 def test_a_negative_seed_is_refused_naming_the_option(tmp_path, capsys, command):
