@@ -249,7 +249,7 @@ def _plot(summary: Mapping[str, Any], rows_by_set: Mapping[str, Sequence[Mapping
         ax2.set_ylabel("s_N")
         ax2.set_xlabel("system (sorted by s_N)")
         fig.tight_layout()
-        fname = f"fig9_{name}.png"
+        fname = _FIG9.format(name)
         fig.savefig(out / fname, dpi=110)
         plt.close(fig)
         files.append(fname)
@@ -282,21 +282,23 @@ def _plot(summary: Mapping[str, Any], rows_by_set: Mapping[str, Sequence[Mapping
             ax.legend(fontsize=7, loc="lower left")
         axes[0].set_ylabel("E_x [%]")
         fig.tight_layout()
-        fig.savefig(out / "fig10_recognition.png", dpi=110)
+        fig.savefig(out / _FIG10, dpi=110)
         plt.close(fig)
-        files.append("fig10_recognition.png")
+        files.append(_FIG10)
     return files
+
+
+#: The report's files: its tables, a Fig. 9 per set, Fig. 10 of the grid.
+_TABLES, _FIG9, _FIG10 = ("report.md", "report.json", "systems.csv"), "fig9_{}.png", "fig10_recognition.png"
 
 
 def report_files(out_dir: str | os.PathLike[str], set_names: Sequence[str], *, plots: bool = True) -> list[Path]:
     """Every file :func:`write_report` may write for the sets ``set_names`` (so that a caller can refuse
     existing ones before any work): the tables, and with ``plots`` the figures."""
-    out = Path(out_dir)
-    files = [out / "report.md", out / "report.json", out / "systems.csv"]
+    names = list(_TABLES)
     if plots:
-        files += [out / f"fig9_{name}.png" for name in set_names]
-        files += [out / "fig10_recognition.png"] if "grid" in set_names else []
-    return files
+        names += [_FIG9.format(name) for name in set_names] + ([_FIG10] if "grid" in set_names else [])
+    return [Path(out_dir) / n for n in names]
 
 
 def write_report(summary: Mapping[str, Any], rows_by_set: Mapping[str, Sequence[Mapping[str, Any]]],
@@ -315,10 +317,9 @@ def write_report(summary: Mapping[str, Any], rows_by_set: Mapping[str, Sequence[
         except ImportError:
             note = NO_MATPLOTLIB
     md = render_markdown(summary, command=command, figures=figures, figure_note=note)
-    _write_text(out / "report.md", md)
-    _write_text(out / "report.json", dumps({**summary, "command": command, "figures": figures}, indent=1) + "\n")
-    methods = summary["methods"]
-    header, lines = _csv_rows([r for rows in rows_by_set.values() for r in rows], methods)
-    _write_text(out / "systems.csv", _csv_text(header, lines))
-    files = [out / "report.md", out / "report.json", out / "systems.csv"] + [out / f for f in figures]
+    header, lines = _csv_rows([r for rows in rows_by_set.values() for r in rows], summary["methods"])
+    texts = (md, dumps({**summary, "command": command, "figures": figures}, indent=1) + "\n", _csv_text(header, lines))
+    for name, text in zip(_TABLES, texts):
+        _write_text(out / name, text)
+    files = [out / n for n in (*_TABLES, *figures)]
     return {"files": [str(f) for f in files], "note": note}

@@ -24,6 +24,7 @@ import math
 import numpy as np
 
 from sim import SECTION_LEVELS, SECTION_NAMES, Record
+from training.identification._drive import settled_bounds
 from training.identification._result import IdentWarning
 from training.identification._sections import SectionSplit, law_end, torque_amplitude
 
@@ -31,7 +32,6 @@ __all__ = ["consistency_warnings", "torque_scale_hint", "TORQUE_SCALE_TOL"]
 
 #: The measured torque's levels may differ from ``M*``'s by this share before ``torque_scale_mismatch``.
 TORQUE_SCALE_TOL = 0.15
-_SETTLE = 5.0  # current-loop time constants skipped after each section start (the torque's rise)
 _START_QUANTA = 3.0  # speed quanta (or 1 % of w_max, the larger) at which section I starts "late"
 _CLIP_QUANTA = 3.0  # speed quanta per sample the speed must still gain at a switch to call a flat top clipped
 
@@ -120,12 +120,12 @@ def _torque_scale(record: Record, split: SectionSplit, T_Ei: float) -> list[Iden
     if split.M_star_estimated and split.source == "torque":
         return []
     torque = record.motor_torque
-    skip = int(math.ceil(_SETTLE * T_Ei / record.T_s)) + 1
     num = den = 0.0
-    for (a, b), level in zip(split.bounds.tolist(), SECTION_LEVELS):
-        if level and b - a > skip + 2:
-            num += level * float(np.sum(torque[a + skip:b]))
-            den += level * level * (b - a - skip)
+    for settled, level in zip(settled_bounds(split, record.T_s, T_Ei), SECTION_LEVELS):
+        if level and settled is not None:
+            lo, hi = settled
+            num += level * float(np.sum(torque[lo:hi]))
+            den += level * level * (hi - lo)
     if not den > 0:
         return []
     scale = num / den / split.M_star

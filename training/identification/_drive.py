@@ -32,7 +32,7 @@ from training.identification._sections import SectionSplit, diff_noise
 #: (with a warning).
 REFERENCE_DRIVE = DriveConfig()
 
-_SETTLE = 5.0  # current-loop time constants skipped after each section start for the noise estimate
+_SETTLE = 5.0  # current-loop time constants after each section start before the torque holds its level
 
 
 @dataclass(frozen=True)
@@ -147,6 +147,12 @@ def torque_noise(torque: np.ndarray, split: SectionSplit, T_s: float, T_Ei: floa
     """Std [Nm] of the measured torque's noise: inside the sections, once the current loop has
     settled, the torque follows a constant reference, so the sample-to-sample spread is the noise
     (:func:`training.identification._sections.diff_noise`)."""
-    skip = int(math.ceil(_SETTLE * T_Ei / T_s)) + 1
-    parts = [torque[a + skip:b] for a, b in split.bounds.tolist() if b - a > skip + 2]
+    parts = [torque[s[0]:s[1]] for s in settled_bounds(split, T_s, T_Ei) if s is not None]
     return diff_noise(*(parts or [torque]))
+
+
+def settled_bounds(split: SectionSplit, T_s: float, T_Ei: float) -> list[tuple[int, int] | None]:
+    """Per section I..VI of ``split``: ``[start, stop)`` once the current loop has settled on the
+    section's level (:data:`_SETTLE` time constants ``T_Ei`` in), ``None`` where it is too short."""
+    skip = int(math.ceil(_SETTLE * T_Ei / T_s)) + 1
+    return [(a + skip, b) if b - a > skip + 2 else None for a, b in split.bounds.tolist()]

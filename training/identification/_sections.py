@@ -228,8 +228,7 @@ def _classified_signal(y: np.ndarray, info: dict[str, Any], Ts: float) -> tuple[
         if ref.size != y.size:
             raise ValueError(f"torque_ref: expected {y.size} samples, received {ref.size}")
         return ref, "torque_ref", 0.0
-    ys = median_filter(y, size=5, mode="nearest") if y.size >= 5 else y
-    return ys, "torque", float(info.get("T_Ei") or 0.0) * math.log(2.0) / Ts
+    return _despiked(y), "torque", float(info.get("T_Ei") or 0.0) * math.log(2.0) / Ts
 
 
 def diff_noise(*parts: np.ndarray) -> float:
@@ -365,8 +364,12 @@ def _switching_law(w: np.ndarray, y: np.ndarray, info: dict[str, Any], Ts: float
 
 def torque_amplitude(torque: np.ndarray) -> float:
     """The largest level [Nm] of a measured ``torque``: ``M*`` as the section detection estimates it."""
-    ys = median_filter(torque, size=5, mode="nearest") if torque.size >= 5 else torque
-    return _amplitude(ys, None)[0]
+    return _amplitude(_despiked(torque), None)[0]
+
+
+def _despiked(y: np.ndarray) -> np.ndarray:
+    """The measured torque through a 5-sample median filter (spikes, noise), as it is classified."""
+    return median_filter(y, size=5, mode="nearest") if y.size >= 5 else y
 
 
 def _amplitude(ys: np.ndarray, M_star: float | None) -> tuple[float, bool]:
