@@ -5,7 +5,7 @@ Standard library only: ``setup.py`` loads this file by its path, without torch.
 
 * Flags: the kernel's own flags without ``-march=native``/``-mtune=native`` (:func:`portable_flags`),
   so that a wheel runs on every CPU of its architecture; plus, per architecture, optional
-  :data:`VARIANTS` for newer CPUs (x86-64: ``-march=x86-64-v3``, AVX2 + FMA). The run-time build
+  :data:`VARIANTS` for newer CPUs (x86-64: ``-march=x86-64-v4``, AVX-512; ``-march=x86-64-v3``, AVX2 + FMA). The run-time build
   with ``-march=native`` is never needed, only the fallback where no prebuilt library fits.
 * Name: ``_<kernel>_<REAL>[_<variant>]_<key>`` + the interpreter's extension suffix, beside the
   kernel's ``.c`` file; ``key`` hashes the source, ``REAL``, the flags and the variant, so a library
@@ -22,10 +22,14 @@ from collections.abc import Sequence
 from pathlib import Path
 
 #: Builds made beside the base build, per ``platform.machine()``: variant -> extra compile flags.
-VARIANTS: dict[str, dict[str, tuple[str, ...]]] = {"x86_64": {"x86_64_v3": ("-march=x86-64-v3",)}}
-#: The ``/proc/cpuinfo`` flags a variant needs (x86-64-v3: AVX, AVX2, BMI1/2, F16C, FMA, LZCNT, MOVBE).
-NEEDS: dict[str, frozenset[str]] = {"x86_64_v3": frozenset({"avx", "avx2", "bmi1", "bmi2", "f16c", "fma", "abm",
-                                                             "movbe", "xsave"})}
+#: Best first: a CPU runs the first whose :data:`NEEDS` it has.
+VARIANTS: dict[str, dict[str, tuple[str, ...]]] = {
+    "x86_64": {"x86_64_v4": ("-march=x86-64-v4",), "x86_64_v3": ("-march=x86-64-v3",)}}
+_V3 = frozenset({"avx", "avx2", "bmi1", "bmi2", "f16c", "fma", "abm", "movbe", "xsave"})
+#: The ``/proc/cpuinfo`` flags a variant needs (x86-64-v3: AVX, AVX2, BMI1/2, F16C, FMA, LZCNT, MOVBE;
+#: x86-64-v4: those and AVX-512 F, BW, CD, DQ, VL).
+NEEDS: dict[str, frozenset[str]] = {
+    "x86_64_v4": _V3 | {"avx512f", "avx512bw", "avx512cd", "avx512dq", "avx512vl"}, "x86_64_v3": _V3}
 _NATIVE = ("-march=native", "-mtune=native")
 _VERSION = "prebuilt-1"  # bump when the build steps change
 

@@ -144,7 +144,9 @@ def test_prebuilt_library_of_another_source_is_not_used(kernel, tmp_path):
 def test_prebuilt_variants_follow_the_cpu():
     from som_torch import _prebuilt
 
-    v3 = _prebuilt.NEEDS["x86_64_v3"]
+    v3, v4 = _prebuilt.NEEDS["x86_64_v3"], _prebuilt.NEEDS["x86_64_v4"]
+    assert _prebuilt.usable_variants("x86_64", v4) == ["x86_64_v4", "x86_64_v3", ""]
+    assert _prebuilt.usable_variants("x86_64", v4 - {"avx512vl"}) == ["x86_64_v3", ""]
     assert _prebuilt.usable_variants("x86_64", v3) == ["x86_64_v3", ""]
     assert _prebuilt.usable_variants("x86_64", v3 - {"avx2"}) == [""]
     assert _prebuilt.usable_variants("aarch64", v3) == [""]
