@@ -23,8 +23,11 @@ static inline int plan_of(int c, const REAL *vv, const REAL *xn, const REAL *vn,
     return !(vv && vv[c] == 0) * MOVE + (xn && ab[c] != 0 && !(vn && vn[c] == 0)) * NEXT;
 }
 
-#if defined(__GNUC__)  /* GCC and clang: vector extensions (else every unit takes the loops over units) */
-#if defined(__AVX__)
+#if defined(__GNUC__) && !defined(SOM_TORCH_SCALAR)  /* GCC and clang: vector extensions (else, or with
+   -DSOM_TORCH_SCALAR, blocks of one unit in loops over units) */
+#if defined(__AVX512F__)
+#define VBYTES 64
+#elif defined(__AVX__)
 #define VBYTES 32
 #else
 #define VBYTES 16
@@ -34,12 +37,12 @@ typedef REAL vec_u __attribute__((vector_size(VBYTES), aligned(sizeof(REAL)), ma
 #define NV 4  /* vectors per block: 4 independent sums over the components hide the FMA latency */
 #define BLK (NV * (int)(VBYTES / sizeof(REAL)))
 
-/* One step on the BLK units of a block (w: its first unit's weight of component 0, rows U apart):
+/* One step on the BLK units of a block (w: the block's BLK x C weights, component-major):
    the neighbourhood weights h and the next sample's distances stay in registers while the loop runs
    over the components, so each weight is loaded and stored once (the loops over units in som_epoch
    load h and the distances and store the distances again for every component). Per unit the same
    operations in the same order as those loops: the same numbers. */
-static inline __attribute__((always_inline)) void pass_block(REAL *restrict w, int U, int C,
+static inline __attribute__((always_inline)) void pass_block(REAL *restrict w, int C,
         const unsigned char *restrict plan, const REAL *restrict xv, const REAL *restrict xn,
         const REAL *restrict h, REAL *restrict dist)
 {
@@ -49,7 +52,7 @@ static inline __attribute__((always_inline)) void pass_block(REAL *restrict w, i
         db[k] = (vec){0};
     }
     for (int c = 0; c < C; ++c) {
-        vec_u *restrict wc = (vec_u *)(w + (size_t)c * U);
+        vec_u *restrict wc = (vec_u *)(w + (size_t)c * BLK);
         if (plan[c] == (MOVE | NEXT)) {
             const REAL xc = xv[c], xnc = xn[c];
             for (int k = 0; k < NV; ++k) {
@@ -72,6 +75,9 @@ static inline __attribute__((always_inline)) void pass_block(REAL *restrict w, i
     }
     for (int k = 0; k < NV; ++k) ((vec_u *)dist)[k] = db[k];
 }
+#define VECTORS 1
+#else
+#define BLK 1  /* no vector extensions: the blocked layout with one unit per block, no pass_block */
 #endif
 
 /* The gaussian weights h[u] = rate exp(-d_u^2 / (2 s^2)) of the units of a rows x cols grid around
@@ -113,38 +119,52 @@ static void gaussian_weights(int rows, int cols, const REAL *restrict yr, const 
     }
 }
 
-/* w: B x C x U (transposed weights); x, valid: N x B x C; act: B x C; the grid: rows x cols = U units,
-   row coordinates yr (rows), column coordinates xc (2 x cols: even, odd rows); d2: U x U squared grid
-   distances (NULL for the gaussian, which needs only yr and xc); lr, sg: N x B;
-   kind: 0 gaussian, 1 bubble, 2 cut_gaussian, 3 epanechnikov; nthreads: OpenMP threads;
-   dist_all, h_all: B x U scratch (one row per map); bmus: N x B.
-   Maps are independent: the threads take one map at a time, each map's arithmetic is the same
-   on any number of threads (bit-identical results). One pass over a map's weights per step: the
-   update of step i also accumulates the distances of sample i+1 (known in advance) to the
-   updated weights; blocks of BLK units (pass_block), the remaining units (and all of them where
-   the plan cannot be allocated) in loops over units, with the same numbers. */
-void som_epoch(int B, int U, int C, int N, REAL *restrict w, const REAL *restrict x,
+/* Units per block of the weights' layout (BLK: 4 vectors of this build): the caller lays the weights out in blocks. */
+int som_lanes(void) { return BLK; }
+
+/* Weight of unit u, component c, in a map's blocked weights (NB x C x BLK). */
+#define W(wb, u, c, C) ((wb)[((size_t)((u) / BLK) * (C) + (c)) * BLK + (u) % BLK])
+
+/* w: B x NB x C x BLK (the weights in blocks of BLK units, component-major within a block: each
+   block's weights are contiguous; NB = ceil(U / BLK) blocks, units from U on are padding); x, valid:
+   N x B x C (NB and L: the caller's blocks, som_lanes() units each; -1 where they do not fit U and
+   this build, else 0); act: B x C; the grid: rows x cols = U units, row coordinates yr (rows), column
+   coordinates xc (2 x cols: even, odd rows); d2: U x U squared grid distances (NULL for the gaussian,
+   which needs only yr and xc); lr, sg: N x B; kind: 0 gaussian, 1 bubble, 2 cut_gaussian,
+   3 epanechnikov; nthreads: OpenMP threads; dist_all, h_all: B x NB*BLK scratch (one row per map);
+   bmus: N x B. Maps are independent: the threads take one map at a time, each map's arithmetic is
+   the same on any number of threads (bit-identical results). One pass over a map's weights per step:
+   the update of step i also accumulates the distances of sample i+1 (known in advance) to the
+   updated weights; block by block (pass_block), or where the plan cannot be allocated in loops over
+   units, with the same numbers. Padding units get the neighbourhood weight 0 (their weights stay)
+   and never win the best match. */
+int som_epoch(int B, int U, int C, int N, int NB, int L, REAL *restrict w, const REAL *restrict x,
                const REAL *restrict valid, const REAL *restrict act, int rows, int cols,
                const REAL *restrict yr, const REAL *restrict xc, const REAL *restrict d2,
                const REAL *restrict lr, const REAL *restrict sg, int kind, int nthreads,
                REAL *restrict dist_all, REAL *restrict h_all, long long *restrict bmus)
 {
+    if (L != BLK || NB != (U + BLK - 1) / BLK) return -1;
+    const int UP = NB * BLK;
 #pragma omp parallel for schedule(dynamic, 1) num_threads(nthreads)
     for (int b = 0; b < B; ++b) {          /* maps are independent: one map's weights stay in cache */
-        REAL *restrict dist = dist_all + (size_t)b * U, *restrict h = h_all + (size_t)b * U;
-        REAL *restrict wb = w + (size_t)b * C * U;
+        REAL *restrict dist = dist_all + (size_t)b * UP, *restrict h = h_all + (size_t)b * UP;
+        REAL *restrict wb = w + (size_t)b * C * UP;
         const REAL *restrict ab = act + (size_t)b * C;
         unsigned char *plan = malloc((size_t)C);  /* per component: MOVE | NEXT (NULL: loops over units) */
         REAL *axes = kind == 0 ? malloc(sizeof(REAL) * (size_t)(2 * rows + 4 * cols)) : NULL;  /* gaussian scratch */
-        for (int u = 0; u < U; ++u) dist[u] = 0;
+        for (int u = 0; u < UP; ++u) dist[u] = 0, h[u] = 0;
         {
             const REAL *restrict xv = x + (size_t)b * C;
             const REAL *restrict vv = valid ? valid + (size_t)b * C : NULL;
-            for (int c = 0; c < C; ++c) {
-                if (ab[c] == 0 || (vv && vv[c] == 0)) continue;
-                const REAL xc = xv[c];
-                const REAL *restrict wc = wb + (size_t)c * U;
-                for (int u = 0; u < U; ++u) { REAL d = xc - wc[u]; dist[u] += d * d; }
+            for (int k = 0; k < NB; ++k) {
+                for (int c = 0; c < C; ++c) {
+                    if (ab[c] == 0 || (vv && vv[c] == 0)) continue;
+                    const REAL xc = xv[c];
+                    const REAL *restrict wc = wb + ((size_t)k * C + c) * BLK;
+                    REAL *restrict dk = dist + (size_t)k * BLK;
+                    for (int l = 0; l < BLK; ++l) { REAL d = xc - wc[l]; dk[l] += d * d; }
+                }
             }
         }
         for (int i = 0; i < N; ++i) {
@@ -152,7 +172,7 @@ void som_epoch(int B, int U, int C, int N, REAL *restrict w, const REAL *restric
             const REAL *restrict vv = valid ? valid + ((size_t)i * B + b) * C : NULL;
             const REAL *restrict xn = i + 1 < N ? x + ((size_t)(i + 1) * B + b) * C : NULL;
             const REAL *restrict vn = (valid && xn) ? valid + ((size_t)(i + 1) * B + b) * C : NULL;
-            REAL bd = dist[0];                 /* min (vectorizes), then its first index */
+            REAL bd = dist[0];                 /* min over the U units (vectorizes), then its first index */
             for (int u = 1; u < U; ++u) bd = dist[u] < bd ? dist[u] : bd;
             int best = 0;
             for (int hit = 0; best + SCAN <= U; best += SCAN) {
@@ -175,33 +195,27 @@ void som_epoch(int B, int U, int C, int N, REAL *restrict w, const REAL *restric
                     h[u] = rate * v;
                 }
             }
-            int u0 = 0;                        /* units [0, u0) in blocks */
-#ifdef BLK
+#ifdef VECTORS
             if (plan) {
                 for (int c = 0; c < C; ++c) plan[c] = (unsigned char)plan_of(c, vv, xn, vn, ab);
-                for (; u0 + BLK <= U; u0 += BLK) pass_block(wb + u0, U, C, plan, xv, xn, h + u0, dist + u0);
+                for (int k = 0; k < NB; ++k)
+                    pass_block(wb + (size_t)k * C * BLK, C, plan, xv, xn, h + (size_t)k * BLK, dist + (size_t)k * BLK);
+                continue;
             }
 #endif
-            for (int u = u0; u < U; ++u) dist[u] = 0;
-            for (int c = 0; c < C && u0 < U; ++c) {
-                REAL *restrict wc = wb + (size_t)c * U;
+            for (int u = 0; u < UP; ++u) dist[u] = 0;
+            for (int c = 0; c < C; ++c) {
                 const int how = plan_of(c, vv, xn, vn, ab), move = how & MOVE, next = how & NEXT;
                 const REAL xc = xv[c], xnc = xn ? xn[c] : 0;
-                if (move && next) {
-                    for (int u = u0; u < U; ++u) {
-                        REAL nw = wc[u] + h[u] * (xc - wc[u]);
-                        wc[u] = nw;
-                        REAL d = xnc - nw;
-                        dist[u] += d * d;
-                    }
-                } else if (move) {
-                    for (int u = u0; u < U; ++u) wc[u] += h[u] * (xc - wc[u]);
-                } else if (next) {
-                    for (int u = u0; u < U; ++u) { REAL d = xnc - wc[u]; dist[u] += d * d; }
+                for (int u = 0; u < UP; ++u) {
+                    REAL *restrict wu = &W(wb, u, c, C);
+                    if (move) *wu += h[u] * (xc - *wu);
+                    if (next) { REAL d = xnc - *wu; dist[u] += d * d; }
                 }
             }
         }
         free(plan);
         free(axes);
     }
+    return 0;
 }

@@ -2,7 +2,8 @@
 
 The online rule is sequential (one sample per step), so with torch every step pays ~10 kernel
 launches on small tensors. This kernel (``_native.c``) runs a whole epoch in one call on the
-transposed weights ``B x C x U`` (the unit axis is contiguous and vectorizes), the maps of the
+weights in blocks of units ``B x NB x C x L`` (:func:`lanes` units per block, unit axis innermost:
+it vectorizes, and each block's weights are contiguous), the maps of the
 batch in parallel on :func:`threads` OpenMP threads (one map per thread at a time: the same
 numbers on any number of threads). It is compiled when the package is built or installed
 (``setup.py``, portable flags, see :mod:`som_torch._prebuilt`); in a checkout without those
@@ -35,12 +36,14 @@ LINK_FLAGS = ("-fopenmp", "-lm", "-lmvec")
 KERNEL = CKernel(
     name=NAME,
     source=Path(__file__).with_name(SOURCE),
-    functions={"som_epoch": CFunction((
-        "B: int", "U: int", "C: int", "N: int",
-        "w: REAL[B, C, U]", "x: REAL[N, B, C]", "valid: REAL[N, B, C]?", "act: REAL[B, C]", "rows: int", "cols: int",
-        "yr: REAL[rows]", "xc: REAL[2, cols]", "d2: REAL[U, U]?",
-        "lr: REAL[N, B]", "sg: REAL[N, B]", "kind: int", "nthreads: int", "dist: REAL[B, U]", "h: REAL[B, U]",
-        "bmus: int64[N, B]"))},
+    functions={
+        "som_epoch": CFunction((
+            "B: int", "U: int", "C: int", "N: int", "NB: int", "L: int",
+            "w: REAL[B, NB, C, L]", "x: REAL[N, B, C]", "valid: REAL[N, B, C]?", "act: REAL[B, C]", "rows: int",
+            "cols: int", "yr: REAL[rows]", "xc: REAL[2, cols]", "d2: REAL[U, U]?",
+            "lr: REAL[N, B]", "sg: REAL[N, B]", "kind: int", "nthreads: int", "dist: REAL[B, NB, L]",
+            "h: REAL[B, NB, L]", "bmus: int64[N, B]"), returns="int"),
+        "som_lanes": CFunction((), returns="int")},
     flags=FLAGS,
     link_flags=LINK_FLAGS,
 )
@@ -73,3 +76,12 @@ def kernel(dtype: torch.dtype) -> CheckedFunction | None:
     if lib is None or dtype not in (torch.float32, torch.float64):
         return None
     return lib.function("som_epoch", dtype)
+
+
+def lanes(dtype: torch.dtype) -> int:
+    """Units per block of the epoch function's weight layout (``B x NB x C x lanes``) for ``dtype``;
+    the kernel must be available."""
+    lib = _library()
+    if lib is None:
+        raise RuntimeError("som_torch native kernel: not available")
+    return int(lib.function("som_lanes", dtype)())

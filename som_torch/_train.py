@@ -184,7 +184,11 @@ def _online_native(w, grid, order, lr, sg, *, x, active, nb, refresh, kind):
     dt = w.dtype
     fn = _native.kernel(dt)
     N = order.shape[0]
-    wt = w.transpose(1, 2).contiguous()  # B x C x U
+    L = _native.lanes(dt)
+    NB = -(-U // L)
+    wp = torch.zeros(B, NB * L, C, dtype=dt)  # B x NB*L x C: padding units (weight 0) fill the last block
+    wp[:, :U] = w
+    wt = wp.view(B, NB, L, C).transpose(2, 3).contiguous()  # B x NB x C x L
     xe = x[torch.arange(B)[None, :], order].to(dt)  # N x B x C
     valid = ~torch.isnan(xe)
     vv = valid.to(dt).contiguous() if bool((~valid).any()) else None  # N x B x C or none
@@ -193,10 +197,12 @@ def _online_native(w, grid, order, lr, sg, *, x, active, nb, refresh, kind):
     y, xc = (a.to(dt).contiguous() for a in grid.axes)  # rows, 2 x cols
     d2 = None if kind == _native.KINDS["gaussian"] else grid.distances2.to(dt).contiguous()  # U x U
     lr, sg = lr.to(dt).contiguous(), sg.to(dt).contiguous()  # N x B each
-    dist, h = torch.empty(B, U, dtype=dt), torch.empty(B, U, dtype=dt)  # per-map scratch
+    dist, h = torch.empty(B, NB, L, dtype=dt), torch.empty(B, NB, L, dtype=dt)  # per-map scratch
     bmus = torch.empty(N, B, dtype=torch.long)
-    fn(B, U, C, N, wt, xe, vv, act, grid.rows, grid.cols, y, xc, d2, lr, sg, kind, _native.threads(B), dist, h, bmus)
-    return wt.transpose(1, 2).contiguous()  # B x U x C
+    if fn(B, U, C, N, NB, L, wt, xe, vv, act, grid.rows, grid.cols, y, xc, d2, lr, sg, kind, _native.threads(B),
+          dist, h, bmus) != 0:
+        raise RuntimeError(f"som_torch native kernel: blocks of {L} units do not fit this build")
+    return wt.transpose(2, 3).reshape(B, NB * L, C)[:, :U].contiguous()  # B x U x C
 
 
 def _online_fast(w, grid, order, lr, sg, *, x, active, nb, refresh, kind=-1):

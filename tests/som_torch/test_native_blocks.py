@@ -1,5 +1,6 @@
-"""The native kernel's blocks of units (weights, neighbourhood weights and distances in registers) and the
-loops over the remaining units: both against the torch reference, at unit counts around a block's size."""
+"""The native kernel's blocks of units (each block's weights contiguous; weights, neighbourhood weights and
+distances in registers), the last one padded: against the torch reference, at unit counts around a block's
+size; the layout check."""
 
 from __future__ import annotations
 
@@ -9,12 +10,14 @@ import pytest
 import torch
 
 import som_torch as st
-from som_torch import _native
+from som_torch import _config, _native
+from som_torch._cbuild import CKernel
 
 native = pytest.mark.skipif(not _native.available(), reason="no C compiler")
 
-# Units per block: 8, 16 or 32 (float64 / float32, SSE or AVX): counts below, at and above each.
-GRIDS = [(1, 7), (3, 3), (4, 4), (1, 17), (3, 11), (7, 9), (3, 11, "hexagonal"), (7, 9, "hexagonal")]
+# Units per block: 8, 16, 32 or 64 (float64 / float32, SSE, AVX or AVX-512): counts below, at and above each.
+GRIDS = [(1, 7), (3, 3), (4, 4), (1, 17), (3, 11), (7, 9), (8, 8), (5, 13), (3, 11, "hexagonal"),
+         (7, 9, "hexagonal")]
 
 
 def _data(n: int, seed: int) -> torch.Tensor:
@@ -77,3 +80,36 @@ def test_one_gaussian_step_by_hand(topology):
                      dtype=torch.float64)
     torch.testing.assert_close(som.weights, w0 + g[:, None] * (x - w0), rtol=0, atol=1e-15)
 
+
+
+@native
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_a_layout_that_does_not_fit_the_build_is_refused(dtype):
+    L = _native.lanes(dtype)
+    assert L in (8, 16, 32, 64)
+    fn = _native.kernel(dtype)
+    U, C, N = 6, 2, 1
+    z = lambda *shape: torch.zeros(*shape, dtype=dtype)  # noqa: E731
+    for NB, lanes in ((1, L), (1, 2 * L), (2, L)):
+        args = (1, U, C, N, NB, lanes, z(1, NB, C, lanes), z(N, 1, C), None, torch.ones(1, C, dtype=dtype), 2, 3,
+                z(2), z(2, 3), None, z(N, 1) + 0.1, z(N, 1) + 1.0, 0, 1, z(1, NB, lanes), z(1, NB, lanes),
+                torch.zeros(N, 1, dtype=torch.long))
+        assert fn(*args) == (0 if (NB, lanes) == (1, L) else -1)
+
+
+@native
+def test_the_scalar_build_equals_the_reference(tmp_path, monkeypatch):
+    # compilers without vector extensions (-DSOM_TORCH_SCALAR here): blocks of one unit, loops over units
+    k = _native.KERNEL
+    scalar = CKernel("som_torch_epoch_scalar", k.source, k.functions, flags=(*k.flags, "-DSOM_TORCH_SCALAR"),
+                     link_flags=k.link_flags).load(tmp_path, _config.compiler())
+    monkeypatch.setattr(_native, "_library", lambda: scalar)
+    assert _native.lanes(torch.float64) == 1
+    data = _data(30, 3)
+    som = _som((3, 11, "hexagonal"), torch.float64)
+    st.init_random(som, data, 1)
+    fast, ref = som.clone(), som.clone()
+    opts = dict(epochs=2, learning_rate=(0.5, 0.05), sigma=(2.0, 0.5), seed=4)
+    st.train_online(fast, data, method="native", **opts)
+    st.train_online(ref, data, method="reference", **opts)
+    torch.testing.assert_close(fast.weights, ref.weights, rtol=0, atol=1e-9)
