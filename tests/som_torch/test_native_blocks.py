@@ -5,6 +5,7 @@ size; the layout check."""
 from __future__ import annotations
 
 import math
+import shutil
 
 import pytest
 import torch
@@ -98,6 +99,7 @@ def test_a_layout_that_does_not_fit_the_build_is_refused(dtype):
 
 
 @native
+@pytest.mark.skipif(shutil.which("cc") is None and shutil.which("gcc") is None, reason="no C compiler")
 def test_the_scalar_build_equals_the_reference(tmp_path, monkeypatch):
     # compilers without vector extensions (-DSOM_TORCH_SCALAR here): blocks of one unit, loops over units
     k = _native.KERNEL
