@@ -125,19 +125,19 @@ int som_lanes(void) { return BLK; }
 /* Weight of unit u, component c, in a map's blocked weights (NB x C x BLK). */
 #define W(wb, u, c, C) ((wb)[((size_t)((u) / BLK) * (C) + (c)) * BLK + (u) % BLK])
 
-/* w: B x NB x C x BLK (the weights in blocks of BLK units, component-major within a block: each
-   block's weights are contiguous; NB = ceil(U / BLK) blocks, units from U on are padding); x, valid:
-   N x B x C (NB and L: the caller's blocks, som_lanes() units each; -1 where they do not fit U and
-   this build, else 0); act: B x C; the grid: rows x cols = U units, row coordinates yr (rows), column
-   coordinates xc (2 x cols: even, odd rows); d2: U x U squared grid distances (NULL for the gaussian,
-   which needs only yr and xc); lr, sg: N x B; kind: 0 gaussian, 1 bubble, 2 cut_gaussian,
-   3 epanechnikov; nthreads: OpenMP threads; dist_all, h_all: B x NB*BLK scratch (one row per map);
-   bmus: N x B. Maps are independent: the threads take one map at a time, each map's arithmetic is
-   the same on any number of threads (bit-identical results). One pass over a map's weights per step:
-   the update of step i also accumulates the distances of sample i+1 (known in advance) to the
-   updated weights; block by block (pass_block), or where the plan cannot be allocated in loops over
-   units, with the same numbers. Padding units get the neighbourhood weight 0 (their weights stay)
-   and never win the best match. */
+/* NB, L: the caller's blocks of units (NB = ceil(U / L), L = som_lanes(); the call returns -1 where they
+   do not fit U and this build, else 0); w: B x NB x C x L (the weights in blocks of L units,
+   component-major within a block, so that each block's weights are contiguous; units from U on are
+   padding); x, valid: N x B x C; act: B x C; the grid: rows x cols = U units, row coordinates yr
+   (rows), column coordinates xc (2 x cols: even, odd rows); d2: U x U squared grid distances (NULL
+   for the gaussian, which needs only yr and xc); lr, sg: N x B; kind: 0 gaussian, 1 bubble,
+   2 cut_gaussian, 3 epanechnikov; nthreads: OpenMP threads; dist_all, h_all: B x NB x L scratch (one
+   row per map); bmus: N x B. Maps are independent: the threads take one map at a time, each map's
+   arithmetic is the same on any number of threads (bit-identical results). One pass over a map's
+   weights per step: the update of step i also accumulates the distances of sample i+1 (known in
+   advance) to the updated weights; block by block (pass_block), or where the plan cannot be
+   allocated in loops over units, with the same numbers. Padding units get the neighbourhood weight
+   0 (their weights stay) and never win the best match. */
 int som_epoch(int B, int U, int C, int N, int NB, int L, REAL *restrict w, const REAL *restrict x,
                const REAL *restrict valid, const REAL *restrict act, int rows, int cols,
                const REAL *restrict yr, const REAL *restrict xc, const REAL *restrict d2,
