@@ -290,16 +290,29 @@ def adapt_test_signal(drive: Any, limits: sim.DriveLimits, rules: ExcitationRule
         # travel ~ w_max^2 J / M_star; the benefit of a larger M_star is counted with exponent
         # 1/2 only (friction and the coasting section II do not scale): conservative
         travel_per = m["travel"] / w_max**2 if m["travel"] > 0 else 0.0
+        # E6d: travel ~ peak^2 as well, the peak w_max' + (peak - w_max) M'/M_star: where w_max lies
+        # below what the encoder resolves, the speed runs on to the first quanta it shows (a peak
+        # many times w_max, growing with M_star) and the travel follows the peak, not w_max
+        travel_per_peak = m["travel"] / m["peak_speed"]**2 if m["travel"] > 0 and m["peak_speed"] > 0 else 0.0
+        run_on = max(m["peak_speed"] - w_max, 0.0)
 
         def travel_gain(M_new: float) -> float:
             return math.sqrt(M_star / M_new)
+
+        def travel_cap(M_new: float) -> float:
+            """The largest w_max' whose predicted travel (both models) fits; <= 0: none at M_new."""
+            if travel_per == 0.0:
+                return math.inf
+            # the travel at which the drive stops the run (it coasts on from there): the plan stays below it
+            stop_travel = guarded_limits(limits, headroom(M_new), config, rules).travel
+            room = rules.travel_margin * stop_travel / travel_gain(M_new)
+            return min(math.sqrt(room / travel_per), math.sqrt(room / travel_per_peak) - run_on * M_new / M_star)
 
         def cap(M_new: float) -> float:
             """The largest w_max' whose predicted peak w_max' + max(swing w_max', over) and travel fit."""
             room = rules.speed_margin * (w_limit - headroom(M_new))
             speed = min(room / (1 + rules.swing_allowance), max(room - over * M_new / M_star, 0.0), w_ceiling)
-            travel = math.sqrt(rules.travel_margin * travel_limit / (travel_per * travel_gain(M_new))) if travel_per > 0 else math.inf
-            return min(speed, travel)
+            return min(speed, travel_cap(M_new))
 
         if want_w and cap(M_next) < w_next and M_next < M_cap:
             # E6b: travel ~ w_max^2 / M_star: more torque buys speed range within the same travel
@@ -310,11 +323,14 @@ def adapt_test_signal(drive: Any, limits: sim.DriveLimits, rules: ExcitationRule
             # E4b: the limits keep w_max from rising: less torque makes the sections longer (and
             # the headroom after a stop smaller); no later raise above it
             M_next = M_ceiling = M_star / rules.factor
+        if M_next > M_star and travel_cap(M_next) <= 0.0 < travel_cap(M_star):
+            M_next = M_star  # E6d: more torque alone would run past the travel limit
         w_next = min(w_next, cap(M_next))  # may lower w_max: the limits come first
         if w_max < w_next < w_max * rules.factor**0.1 and M_next <= M_star:
             w_next = w_max  # E6c: a raise of less than factor^0.1 is no progress
         entry["predicted_peak_speed"] = w_next + max(rules.swing_allowance * w_next, over * M_next / M_star)
-        entry["predicted_travel"] = travel_per * w_next**2 * travel_gain(M_next)
+        entry["predicted_travel"] = max(travel_per * w_next**2, travel_per_peak * (w_next + run_on * M_next / M_star)**2) \
+            * travel_gain(M_next)
         problems = [p for p, on in (("section timed out", m["timed_out"]), ("sections too short", short),
                                     ("speed range too small", small), ("oscillation not visible", hidden)) if on]
         if not problems:

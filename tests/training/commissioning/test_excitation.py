@@ -121,3 +121,21 @@ def test_soft_mode_swinging_on_after_section_one_stays_inside():
     bold = Recording(p)
     adapt_test_signal(bold, limits, ExcitationRules(swing_allowance=0.0, first_headroom=0.0))
     assert max(np.abs(r.speed).max() for r in bold.records) > 20.0
+
+
+@pytest.mark.parametrize("params", [
+    # light plants (population seed 3, systems 6 and 8): with a 10 mrad travel limit, w_max lies below
+    # the encoder's speed quantum, the speed runs on to the quanta it shows (a peak of 16-35 x w_max
+    # that grows with M_star), and the travel follows the peak: a larger M_star alone ran 2.3 x past
+    # the limit when the travel was predicted from w_max alone
+    dict(J_sigma=0.01814, V_J=4.243, f_e=237.8, d=0.04247, backlash=0.0, M_FC=0.005657, mu_F=0.002512),
+    dict(J_sigma=0.03363, V_J=1.670, f_e=5.099, d=0.03747, backlash=0.001331, M_FC=0.3969, mu_F=0.003137),
+])
+def test_a_travel_limit_below_the_quantized_run_on_holds(params):
+    limits = sim.DriveLimits(w_max=100.0, travel=0.01)
+    drive = Recording(params)
+    res = adapt_test_signal(drive, limits)
+    for rec in drive.records:
+        assert not rec.meta["aborted"]
+        assert np.abs(np.cumsum(rec.speed) * DRIVE.T_s).max() <= limits.travel
+    assert not res.informative and res.code == "limits_reached"  # said so, not run past
