@@ -293,7 +293,7 @@ def adapt_test_signal(drive: Any, limits: sim.DriveLimits, rules: ExcitationRule
         # E6d: travel ~ peak^2 as well, the peak w_max' + (peak - w_max) M'/M_star: where w_max lies
         # below what the encoder resolves, the speed runs on to the first quanta it shows (a peak
         # many times w_max, growing with M_star) and the travel follows the peak, not w_max
-        travel_per_peak = m["travel"] / m["peak_speed"]**2 if m["travel"] > 0 and m["peak_speed"] > 0 else 0.0
+        travel_per_peak = m["travel"] / m["peak_speed"]**2 if m["travel"] > 0 else 0.0  # the travel sums the speed: peak > 0
         run_on = max(m["peak_speed"] - w_max, 0.0)
 
         def travel_gain(M_new: float) -> float:
