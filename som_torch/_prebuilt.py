@@ -5,8 +5,9 @@ Standard library only: ``setup.py`` loads this file by its path, without torch.
 
 * Flags: the kernel's own flags without ``-march=native``/``-mtune=native`` (:func:`portable_flags`),
   so that a wheel runs on every CPU of its architecture; plus, per architecture, optional
-  :data:`VARIANTS` for newer CPUs (x86-64: ``-march=x86-64-v4``, AVX-512; ``-march=x86-64-v3``, AVX2 + FMA). The run-time build
-  with ``-march=native`` is never needed, only the fallback where no prebuilt library fits.
+  :data:`VARIANTS` for newer CPUs (x86-64: ``-march=x86-64-v4``, AVX-512; ``-march=x86-64-v3``,
+  AVX2 + FMA). The run-time build with ``-march=native`` is never needed, only the fallback where
+  no prebuilt library fits.
 * Name: ``_<kernel>_<REAL>[_<variant>]_<key>`` + the interpreter's extension suffix, beside the
   kernel's ``.c`` file; ``key`` hashes the source, ``REAL``, the flags and the variant, so a library
   built from another source or with other flags is never found (an editable checkout whose ``.c``
