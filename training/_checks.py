@@ -31,10 +31,10 @@ def as_signal(name: str, x: Any) -> np.ndarray:
 MAX_SUBSTEPS = 1000
 
 
-def finite_number(option: str, value: float, *, positive: bool = True) -> float:
-    """``value`` if finite (and > 0 with ``positive``); else a :class:`UserError` naming ``option``."""
-    if not math.isfinite(value) or (positive and value <= 0):
-        raise UserError(f"{option}: expected a finite number{' > 0' if positive else ''}, received {value!r}")
+def finite_number(option: str, value: float) -> float:
+    """``value`` if finite and > 0; else a :class:`UserError` naming ``option``."""
+    if not math.isfinite(value) or value <= 0:
+        raise UserError(f"{option}: expected a finite number > 0, received {value!r}")
     return value
 
 
@@ -47,7 +47,7 @@ def seed(option: str, value: int) -> int:
 
 def record_name(source: str, name: str) -> str:
     """``name`` if it names a file inside the output folder (no path separator, not ``.``/``..``)."""
-    if name in ("", ".", "..") or any(sep in name for sep in ("/", "\\", os.sep, os.altsep or "/", "\0")):
+    if name in ("", ".", "..") or any(sep in name for sep in ("/", "\\", "\0")):
         raise UserError(f"{source}: record name {name!r}: expected a plain file name (no path separators, "
                         "not '.' or '..')")
     return name
@@ -68,17 +68,17 @@ def machine_memory() -> int | None:
 
 
 def _size(n_bytes: float) -> str:
-    for unit in ("B", "KiB", "MiB", "GiB", "TiB"):
-        if n_bytes < 1024 or unit == "TiB":
+    for unit in ("B", "KiB", "MiB", "GiB"):
+        if n_bytes < 1024:
             return f"{n_bytes:.3g} {unit}"
         n_bytes /= 1024
     return f"{n_bytes:.3g} TiB"
 
 
-def check_memory(what: str, n_bytes: float, available: int | None = None) -> None:
+def check_memory(what: str, n_bytes: float) -> None:
     """A :class:`UserError` where ``what`` needs more memory (an estimate, ``n_bytes``) than the
-    machine has (``available``: default :func:`machine_memory`)."""
-    have = machine_memory() if available is None else available
+    machine has (:func:`machine_memory`)."""
+    have = machine_memory()
     if have is not None and n_bytes > have:
         raise UserError(f"{what}: needs about {_size(n_bytes)} of memory, this machine has {_size(have)}; "
                         "ask for less")
@@ -89,12 +89,13 @@ def check_sim_cost(source: str, params: Any, drive: Any) -> None:
     ``drive`` takes more than :data:`MAX_SUBSTEPS` RK4 substeps per sample (the cost grows with ``f_e``)."""
     from sim import default_substeps
     flat = params.reshape(-1)
-    if default_substeps(flat, drive) <= MAX_SUBSTEPS:
+    substeps = default_substeps(flat, drive)
+    if substeps <= MAX_SUBSTEPS:
         return
-    w_0 = flat.w_0.reshape(-1)
+    w_0 = flat.w_0
     i = int(w_0.argmax())
-    f_e = float(flat.f_e.reshape(-1)[i])
+    f_e = float(flat.f_e[i])
     f_max = MAX_SUBSTEPS * 0.25 / drive.T_s * f_e / float(w_0[i])  # substeps ~ w_0 T_s / 0.25, w_0 ~ f_e
-    raise UserError(f"{source}: f_e {f_e:g} Hz needs {default_substeps(flat, drive)} RK4 substeps per "
+    raise UserError(f"{source}: f_e {f_e:g} Hz needs {substeps} RK4 substeps per "
                     f"sample (T_s {drive.T_s * 1e6:g} us); at most {MAX_SUBSTEPS} are allowed (f_e up to about "
                     f"{f_max:.3g} Hz on this drive)")

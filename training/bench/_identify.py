@@ -35,7 +35,8 @@ def _records(folder: Path, n: int, seed: int) -> list[str]:
 
     paths = [folder / f"sys{i:05d}.csv" for i in range(n)]  # iter_records' names
     marker = folder / MARKER
-    if any(p.exists() for p in paths):  # reuse only the records of this seed
+    present = [p.exists() for p in paths]
+    if any(present):  # reuse only the records of this seed
         try:
             made = json.loads(marker.read_text()).get("seed")
         except (OSError, ValueError, AttributeError):
@@ -43,7 +44,7 @@ def _records(folder: Path, n: int, seed: int) -> list[str]:
         if made != seed:
             held = "records this bench did not write" if made is None else f"records of --seed {made}"
             raise UserError(f"--records-dir {folder}: holds {held} ({MARKER}); pass their seed or another folder")
-        if all(p.exists() for p in paths):
+        if all(present):
             return [str(p) for p in paths]
     folder.mkdir(parents=True, exist_ok=True)
     marker.write_text(json.dumps({"seed": seed}))

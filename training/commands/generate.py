@@ -35,11 +35,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from training._distributed import process_group
     from sim import EnvelopeRanges
-    from training.learning import GenerateConfig, generate, load_dataset
+    from training.learning import ESTIMATE_NAMES, TRUTH_NAMES, GenerateConfig, generate, load_dataset
 
     from training._checks import BYTES_PER_SYSTEM, check_memory, seed
     from training.identification import FEATURE_NAMES
-    from training.learning import ESTIMATE_NAMES, TRUTH_NAMES
 
     shard_size = default_shard_size(args.n) if args.shard_size is None else args.shard_size
     if args.n < 1 or shard_size < 1:

@@ -71,14 +71,16 @@ def _signal(args: argparse.Namespace, drive: Any) -> Any:
 
 
 def _params_text(truth: dict[str, Any]) -> str:
-    return ", ".join(f"{k} {truth[k]:.3g}" for k in ("J_sigma", "V_J", "f_e", "d", "backlash", "M_FC", "mu_F"))
+    from sim import PARAM_NAMES
+
+    return ", ".join(f"{k} {truth[k]:.3g}" for k in PARAM_NAMES)
 
 
 def run(args: argparse.Namespace) -> int:
     import numpy as np
     import torch
 
-    from sim import DriveConfig, iter_records, sample_population, write_record
+    from sim import DriveConfig, RecordError, iter_records, sample_population, write_record
     from training._checks import BYTES_PER_SYSTEM, check_memory, check_sim_cost, record_name, seed
 
     drive = DriveConfig()
@@ -112,11 +114,14 @@ def run(args: argparse.Namespace) -> int:
     for rec in records:
         if names is not None and args.method == "fast":
             rec.name = names[int(rec.name[3:])]
-        if not (np.isfinite(rec.speed).all() and np.isfinite(rec.current).all()):
+        try:
+            write_record(args.out / rec.name, rec, overwrite=args.overwrite)  # refuses NaN/inf, writing nothing
+        except RecordError:
+            if np.isfinite(rec.speed).all() and np.isfinite(rec.current).all():
+                raise
             raise UserError(f"{rec.name}: the simulation diverged (non-finite speed or current; {written} record(s) "
                             f"written before it): its parameters lie far outside what the simulator resolves "
-                            f"({_params_text(rec.meta['truth'])})")
-        write_record(args.out / rec.name, rec, overwrite=args.overwrite)
+                            f"({_params_text(rec.meta['truth'])})") from None
         written += 1
         if args.method == "fast":
             bar.update(1)

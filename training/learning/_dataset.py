@@ -15,6 +15,7 @@ share the shards and rank 0 writes them (see :func:`generate`).
 from __future__ import annotations
 
 import hashlib
+import io
 import json
 import os
 import zipfile
@@ -112,12 +113,13 @@ def _truth_row(truth: dict[str, Any], drive: DriveConfig, signal: TestSignalConf
     return np.array([float(row[k]) for k in TRUTH_NAMES])
 
 
-def _prepare(out: Path, config: GenerateConfig) -> list[int]:
-    """Check (or write) ``out/dataset.json``; the shards still missing."""
+def _prepare(out: Path, config: GenerateConfig) -> tuple[bool, list[int]]:
+    """Check (or write) ``out/dataset.json``; whether this call wrote it, and the shards still missing."""
     out.mkdir(parents=True, exist_ok=True)
     cfg_path = out / "dataset.json"
     want = json.loads(dumps(config.to_dict()))  # as it reads back (tuples become lists)
-    if cfg_path.exists():
+    new = not cfg_path.exists()
+    if not new:
         have = json.loads(cfg_path.read_text())
         if have != want:
             raise UserError(f"{out} holds a dataset of another config (n/seed/ranges/features differ); "
@@ -129,7 +131,7 @@ def _prepare(out: Path, config: GenerateConfig) -> list[int]:
             raise UserError(f"{out} holds shard files ({strays[0]}{more}) but no dataset.json that says what made "
                             "them; choose a new folder or remove them")
         atomic_write(cfg_path, lambda f: f.write(dumps(want, indent=1)), text=True)
-    return [k for k in range(config.n_shards) if not (out / f"shard_{k:05d}.npz").exists()]
+    return new, [k for k in range(config.n_shards) if not (out / f"shard_{k:05d}.npz").exists()]
 
 
 def _bounds(config: GenerateConfig, k: int) -> tuple[int, int]:
@@ -207,7 +209,7 @@ def generate(out_dir: str | os.PathLike[str], config: GenerateConfig, *, workers
     out = Path(out_dir)
     group = process_group()
     population = _population(config)  # before dataset.json: a config that cannot be drawn leaves nothing behind
-    new, missing = group.on_main(lambda: (not (out / "dataset.json").exists(), _prepare(out, config)))
+    new, missing = group.on_main(lambda: _prepare(out, config))
     own = progress if group.main else None
     if own:
         own(config.n - sum(hi - lo for lo, hi in (_bounds(config, k) for k in missing)))
@@ -248,12 +250,16 @@ def load_dataset(folder: str | os.PathLike[str]) -> Dataset:
     h = hashlib.sha256()
     parts: dict[str, list[np.ndarray]] = {"features": [], "estimate": [], "truth": [], "ok": []}
     for p in paths:
-        h.update(p.read_bytes())
+        data = p.read_bytes()
+        h.update(data)
         try:
-            with np.load(p) as z:
+            z = np.load(io.BytesIO(data))
+            if not isinstance(z, np.lib.npyio.NpzFile):  # a lone .npy array
+                raise ValueError("a single array, not an .npz archive")
+            with z:
                 for key in parts:
                     parts[key].append(z[key])
-        except (ValueError, OSError, KeyError, zipfile.BadZipFile) as err:  # not a shard `twomass generate` wrote
+        except (ValueError, OSError, EOFError, KeyError, zipfile.BadZipFile) as err:  # not a shard generate wrote
             raise UserError(f"{p}: not a readable dataset shard ({one_line(err)}); "
                             "rerun `twomass generate` into a new folder") from None
     cat = {k: np.concatenate(v) for k, v in parts.items()}

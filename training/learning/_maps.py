@@ -18,6 +18,7 @@ from training.errors import OutputExistsError
 from training.figures import log_map_figures
 from training.identification import (FEATURE_NAMES, FEATURE_VERSION, MAP_SPECS, SUBSETS, TARGETS, MapSpec, TrainedMap,
                                      load_map, recall_targets, trained_envelope)
+from training.identification._envelope import FILE_NAME as ENVELOPE_FILE
 from training.learning._dataset import Dataset
 
 
@@ -216,12 +217,12 @@ def _check_folder(folder: Path, overwrite: bool, config: TrainConfig, dataset: D
     """The maps already finished in ``folder`` by an interrupted run (no manifest yet) of the same
     config on the same dataset (resumed, not retrained); other maps there are refused unless ``overwrite``."""
     existing = [n for n in MAP_SPECS if (folder / f"{n}.pt").exists()]
-    interrupted = not overwrite and not (folder / "manifest.json").exists()  # a finished run wrote its manifest
+    manifest = (folder / "manifest.json").exists()  # a finished run wrote its manifest
+    interrupted = not overwrite and not manifest
     finished = [n for n in existing if _resumable(folder, n, config, dataset)] if interrupted else []
     foreign = [n for n in existing if n not in finished]
     if foreign and not overwrite:
-        why = ("of a finished training run (manifest.json)" if (folder / "manifest.json").exists()
-               else "from another config or dataset")
+        why = "of a finished training run (manifest.json)" if manifest else "from another config or dataset"
         raise OutputExistsError(f"{folder} already holds maps {foreign} ({why}); pass --overwrite to replace them")
     folder.mkdir(parents=True, exist_ok=True)
     return finished
@@ -268,7 +269,7 @@ def train_maps(dataset: Dataset, folder: Path, config: TrainConfig, *, logdir: P
         if writer is not None:
             writer.close()
     if group.main:  # what the maps were trained on, beside them (checked against every record)
-        trained_envelope(trained["structure"].metadata).write(folder / "envelope.json")
+        trained_envelope(trained["structure"].metadata).write(folder / ENVELOPE_FILE)
         # only what training wrote: files the user keeps in the folder are not the maps'
-        st.write_manifest(folder, files=[f"{name}.pt" for name in MAP_SPECS] + ["envelope.json"])
+        st.write_manifest(folder, files=[f"{name}.pt" for name in MAP_SPECS] + [ENVELOPE_FILE])
     return trained

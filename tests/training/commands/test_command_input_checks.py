@@ -97,6 +97,19 @@ def test_an_unreadable_shard_is_named(tmp_path, capsys):
              str(tmp_path / "shard_00000.npz"))
 
 
+
+@pytest.mark.parametrize("stray", ["npy", "empty"])
+def test_a_stray_shard_that_is_no_archive_is_named(tmp_path, capsys, stray):
+    from training.learning import GenerateConfig
+    from training.learning._dataset import _prepare
+
+    _prepare(tmp_path, GenerateConfig(n=4, seed=1, shard_size=4))  # a dataset.json vouching for one shard
+    with open(tmp_path / "shard_00000.npz", "wb") as f:  # a plain .npy array, or nothing at all
+        if stray == "npy":
+            np.save(f, np.zeros(3))
+    _refused(["train", "--data", str(tmp_path), "--out", str(tmp_path / "ck"), "--no-progress"], capsys,
+             str(tmp_path / "shard_00000.npz"), "not a readable dataset shard")
+
 def test_a_failed_generate_leaves_no_dataset_json(tmp_path, capsys, monkeypatch):
     import training.learning._dataset as dataset
 
