@@ -151,19 +151,22 @@ int som_epoch(int B, int U, int C, int N, int NB, int L, REAL *restrict w, const
         REAL *restrict dist = dist_all + (size_t)b * UP, *restrict h = h_all + (size_t)b * UP;
         REAL *restrict wb = w + (size_t)b * C * UP;
         const REAL *restrict ab = act + (size_t)b * C;
+#ifdef VECTORS
         unsigned char *plan = malloc((size_t)C);  /* per component: MOVE | NEXT (NULL: loops over units) */
+#endif
         REAL *axes = kind == 0 ? malloc(sizeof(REAL) * (size_t)(2 * rows + 4 * cols)) : NULL;  /* gaussian scratch */
-        for (int u = 0; u < UP; ++u) dist[u] = 0, h[u] = 0;
+        for (int u = 0; u < UP; ++u) dist[u] = 0;
+        for (int u = U; u < UP; ++u) h[u] = 0;  /* padding: weight 0 (each step rewrites h[0..U)) */
         {
             const REAL *restrict xv = x + (size_t)b * C;
             const REAL *restrict vv = valid ? valid + (size_t)b * C : NULL;
             for (int k = 0; k < NB; ++k) {
                 for (int c = 0; c < C; ++c) {
                     if (ab[c] == 0 || (vv && vv[c] == 0)) continue;
-                    const REAL xc = xv[c];
+                    const REAL xvc = xv[c];
                     const REAL *restrict wc = wb + ((size_t)k * C + c) * BLK;
                     REAL *restrict dk = dist + (size_t)k * BLK;
-                    for (int l = 0; l < BLK; ++l) { REAL d = xc - wc[l]; dk[l] += d * d; }
+                    for (int l = 0; l < BLK; ++l) { REAL d = xvc - wc[l]; dk[l] += d * d; }
                 }
             }
         }
@@ -206,15 +209,17 @@ int som_epoch(int B, int U, int C, int N, int NB, int L, REAL *restrict w, const
             for (int u = 0; u < UP; ++u) dist[u] = 0;
             for (int c = 0; c < C; ++c) {
                 const int how = plan_of(c, vv, xn, vn, ab), move = how & MOVE, next = how & NEXT;
-                const REAL xc = xv[c], xnc = xn ? xn[c] : 0;
+                const REAL xvc = xv[c], xnc = xn ? xn[c] : 0;
                 for (int u = 0; u < UP; ++u) {
                     REAL *restrict wu = &W(wb, u, c, C);
-                    if (move) *wu += h[u] * (xc - *wu);
+                    if (move) *wu += h[u] * (xvc - *wu);
                     if (next) { REAL d = xnc - *wu; dist[u] += d * d; }
                 }
             }
         }
+#ifdef VECTORS
         free(plan);
+#endif
         free(axes);
     }
     return 0;

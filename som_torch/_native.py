@@ -84,4 +84,10 @@ def lanes(dtype: torch.dtype) -> int:
     lib = _library()
     if lib is None:
         raise RuntimeError("som_torch native kernel: not available")
+    return _lanes(lib, dtype)
+
+
+@lru_cache(maxsize=None)
+def _lanes(lib: CLibrary, dtype: torch.dtype) -> int:
+    """:func:`lanes` of a loaded library (a build constant: asked once per library and dtype)."""
     return int(lib.function("som_lanes", dtype)())

@@ -6,7 +6,7 @@ from dataclasses import dataclass
 
 import torch
 
-from ._som import SOM
+from ._som import SOM, _as_numbers
 
 
 #: Distances computed at once by :func:`best_matching_units` (float64 elements; 16 MiB): it works
@@ -17,10 +17,7 @@ CHUNK_ELEMENTS = 2**21
 def _features(som: SOM, features: torch.Tensor) -> torch.Tensor:
     """Accept ``... x C`` or, when all maps share one active mask, ``... x n_active``;
     return raw ``*batch x M x C`` (inactive columns NaN when they were not given)."""
-    try:
-        f = torch.as_tensor(features, dtype=torch.float64)
-    except (TypeError, ValueError, RuntimeError):
-        raise TypeError(f"features: expected a tensor of numbers, received {type(features).__name__}") from None
+    f = _as_numbers(features, "features", torch.float64)
     C = som.n_components
     act = som.active.reshape(-1, C)
     n_act = int(act[0].sum())
@@ -71,6 +68,11 @@ def best_matching_units(som: SOM, features: torch.Tensor, k: int = 1) -> tuple[t
     ``*batch x M x k`` (``k > 1``, nearest first). A sample with no active non-NaN component
     has no match: unit ``-1``, distance NaN (so do samples where the weights are NaN)."""
     _check_k(som, k, "k")
+    return _best_matching_units(som, features, k)
+
+
+def _best_matching_units(som: SOM, features: torch.Tensor, k: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`best_matching_units` with ``k`` already checked."""
     f = _features(som, features)  # *batch x M x C
     M = f.shape[-2]
     shape = (*f.shape[:-1], k)  # *batch x M x k
@@ -123,7 +125,7 @@ def recall(som: SOM, features: torch.Tensor, *, interpolate: int = 1, eps: float
     A sample without an active non-NaN feature gets unit ``-1``, distance NaN and NaN values.
     """
     _check_k(som, interpolate, "interpolate")
-    units, d2 = best_matching_units(som, features, k=interpolate)
+    units, d2 = _best_matching_units(som, features, interpolate)
     w = som.raw_weights  # *batch x U x C
     flat = units.reshape(*som.batch_shape, -1)  # *batch x (M*k)
     picked = torch.gather(w, -2, flat.clamp_min(0).unsqueeze(-1).expand(*flat.shape, som.n_components))  # *batch x (M*k) x C

@@ -23,6 +23,14 @@ def _as_batch_shape(shape: Sequence[int] | int | torch.Size, name: str = "batch_
     return size
 
 
+def _as_numbers(value, name: str, dtype: torch.dtype | None = None) -> torch.Tensor:
+    """``torch.as_tensor(value, dtype=dtype)``; what is not numbers raises a one-line TypeError naming ``name``."""
+    try:
+        return torch.as_tensor(value, dtype=dtype)
+    except (TypeError, ValueError, RuntimeError):
+        raise TypeError(f"{name}: expected a tensor of numbers, received {type(value).__name__}") from None
+
+
 class SOM:
     """A batch of self-organizing maps sharing one grid and one list of components.
 
@@ -152,10 +160,7 @@ class SOM:
         """Broadcast ``data`` (``N x C`` or ``*batch x N x C``) to ``*batch x N x C`` float64 on the maps' device.
         ``min_samples``: the least ``N`` accepted (training and normalization need 1)."""
         if not isinstance(data, torch.Tensor):
-            try:
-                data = torch.as_tensor(data)
-            except (TypeError, ValueError, RuntimeError) as err:
-                raise TypeError(f"{name}: expected a tensor of numbers, received {type(data).__name__}") from err
+            data = _as_numbers(data, name)
         if data.dim() < 2 or data.shape[-1] != self.n_components:
             raise ValueError(
                 f"{name}: expected N x C or *batch x N x C with C={self.n_components}, received {tuple(data.shape)}"

@@ -63,9 +63,9 @@ def _threads(num_threads: int | None) -> int | None:
     return num_threads
 
 
-def _table(schedule: str, start: torch.Tensor, end: torch.Tensor, steps: torch.Tensor, total: int) -> torch.Tensor:
-    """Schedule values, float64 ``len(steps) x B``."""
-    return lookup(SCHEDULES, schedule, "schedule")(start, end, steps.to(torch.float64)[:, None], total)
+def _table(schedule: Callable, start: torch.Tensor, end: torch.Tensor, steps: torch.Tensor, total: int) -> torch.Tensor:
+    """Values of the schedule function (resolved by ``lookup``), float64 ``len(steps) x B``."""
+    return schedule(start, end, steps.to(torch.float64)[:, None], total)
 
 
 def _progress(enabled: bool, total: int, desc: str):
@@ -144,7 +144,7 @@ def train_online(
     num_threads = _threads(num_threads)
     x = som.normalize(data, min_samples=1)  # *batch x N x C
     B, C, U, N = som.batch_shape.numel(), som.n_components, som.n_units, x.shape[-2]
-    lookup(SCHEDULES, schedule, "schedule")
+    schedule_fn = lookup(SCHEDULES, schedule, "schedule")
     lr0, lr1 = _start_end(learning_rate, (0.5, 0.01), som.batch_shape, "learning_rate", schedule)
     sg0, sg1 = _start_end(sigma, (max(som.grid.rows, som.grid.cols) / 2.0, 1.0), som.batch_shape, "sigma", schedule)
     total = epochs * N
@@ -155,8 +155,8 @@ def train_online(
     weights = som.weights.reshape(B, U, C)  # B x U x C
     for epoch in range(epochs):
         steps = torch.arange(epoch * N, (epoch + 1) * N)
-        lr = _table(schedule, lr0, lr1, steps, total)  # N x B
-        sg = _table(schedule, sg0, sg1, steps, total)  # N x B
+        lr = _table(schedule_fn, lr0, lr1, steps, total)  # N x B
+        sg = _table(schedule_fn, sg0, sg1, steps, total)  # N x B
         order = _orders(gens, N, shuffle)  # N x B
         threads = torch.get_num_threads()
         try:
@@ -186,9 +186,9 @@ def _online_native(w, grid, order, lr, sg, *, x, active, nb, refresh, kind):
     N = order.shape[0]
     L = _native.lanes(dt)
     NB = -(-U // L)
-    wp = torch.zeros(B, NB * L, C, dtype=dt)  # B x NB*L x C: padding units (weight 0) fill the last block
-    wp[:, :U] = w
-    wt = wp.view(B, NB, L, C).transpose(2, 3).contiguous()  # B x NB x C x L
+    # B x NB*L x C (a copy): padding units (weight 0) fill the last block
+    wp = torch.nn.functional.pad(w, (0, 0, 0, NB * L - U))
+    wt = wp.reshape(B, NB, L, C).transpose(2, 3).contiguous()  # B x NB x C x L
     xe = x[torch.arange(B)[None, :], order].to(dt)  # N x B x C
     valid = ~torch.isnan(xe)
     vv = valid.to(dt).contiguous() if bool((~valid).any()) else None  # N x B x C or none
@@ -199,9 +199,9 @@ def _online_native(w, grid, order, lr, sg, *, x, active, nb, refresh, kind):
     lr, sg = lr.to(dt).contiguous(), sg.to(dt).contiguous()  # N x B each
     dist, h = torch.empty(B, NB, L, dtype=dt), torch.empty(B, NB, L, dtype=dt)  # per-map scratch
     bmus = torch.empty(N, B, dtype=torch.long)
-    if fn(B, U, C, N, NB, L, wt, xe, vv, act, grid.rows, grid.cols, y, xc, d2, lr, sg, kind, _native.threads(B),
-          dist, h, bmus) != 0:
-        raise RuntimeError(f"som_torch native kernel: blocks of {L} units do not fit this build")
+    # L and NB = ceil(U / L) come from fn's own library: the layout always fits (fn returns 0)
+    fn(B, U, C, N, NB, L, wt, xe, vv, act, grid.rows, grid.cols, y, xc, d2, lr, sg, kind, _native.threads(B),
+       dist, h, bmus)
     return wt.transpose(2, 3).reshape(B, NB * L, C)[:, :U].contiguous()  # B x U x C
 
 
@@ -300,9 +300,9 @@ def train_batch(
         raise ValueError(f"epochs: expected a positive int, received {epochs!r}")
     nb = lookup(NEIGHBOURHOODS, neighbourhood, "neighbourhood")
     num_threads = _threads(num_threads)
-    lookup(SCHEDULES, schedule, "schedule")
+    schedule_fn = lookup(SCHEDULES, schedule, "schedule")
     sg0, sg1 = _start_end(sigma, (max(som.grid.rows, som.grid.cols) / 2.0, 1.0), som.batch_shape, "sigma", schedule)
-    sg = _table(schedule, sg0, sg1, torch.arange(epochs), epochs)  # E x B
+    sg = _table(schedule_fn, sg0, sg1, torch.arange(epochs), epochs)  # E x B
     x = som.normalize(data, min_samples=1)
     B, C, U, N = som.batch_shape.numel(), som.n_components, som.n_units, x.shape[-2]
     dt, dev, f64 = som.weights.dtype, som.device, torch.float64

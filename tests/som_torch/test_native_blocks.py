@@ -82,7 +82,6 @@ def test_one_gaussian_step_by_hand(topology):
     torch.testing.assert_close(som.weights, w0 + g[:, None] * (x - w0), rtol=0, atol=1e-15)
 
 
-
 @native
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 def test_a_layout_that_does_not_fit_the_build_is_refused(dtype):
