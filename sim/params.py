@@ -138,7 +138,7 @@ def _as_tensor(name: str, value: Any, check_finite: bool = True) -> torch.Tensor
         raise TypeError(f"TwoMassParams.{name}: expected a number or tensor, received a bool {value!r}")
     if isinstance(value, torch.Tensor):
         t = value.detach().to(torch.float64)
-    elif isinstance(value, (int, float)) and not isinstance(value, bool):
+    elif isinstance(value, (int, float)):
         t = torch.tensor(float(value), dtype=torch.float64)
     else:
         try:
@@ -149,6 +149,13 @@ def _as_tensor(name: str, value: Any, check_finite: bool = True) -> torch.Tensor
         raise ValueError(f"TwoMassParams.{name}: expected finite values, received {t}")
     return t
 
+
+#: The keys of :meth:`TwoMassParams.from_dicts`: the physical set, the population set, the keys
+#: both take (default 0) and all of them.
+_PHYSICAL_KEYS = frozenset({"J_M", "J_L", "C_F", "D_F"})
+_POPULATION_KEYS = frozenset({"J_sigma", "V_J", "f_e", "d"})
+_SHARED_KEYS = ("backlash", "M_FC", "mu_F")
+_DICT_KEYS = frozenset(PARAM_NAMES) | _PHYSICAL_KEYS
 
 #: The valid range of each parameter, as the error states it (checked by :func:`_out_of_range`).
 _RANGE_TEXT = {"J_sigma": "> 0", "V_J": "> 0", "f_e": "> 0", "d": "0 <= d < 1", "backlash": ">= 0", "M_FC": ">= 0",
@@ -306,17 +313,16 @@ class TwoMassParams:
         for i, row in enumerate(rows):
             if not isinstance(row, Mapping):
                 raise TypeError(f"TwoMassParams.from_dicts: system {i}: expected a dict, received {type(row).__name__}")
-            known = set(PARAM_NAMES) | {"J_M", "J_L", "C_F", "D_F"}
-            unknown = sorted(set(row) - known)
+            unknown = sorted(set(row) - _DICT_KEYS)
             if unknown:
                 raise ValueError(f"TwoMassParams.from_dicts: system {i}: unknown keys {unknown}; "
                                  f"expected {list(PARAM_NAMES)} or J_M, J_L, C_F, D_F")
-            physical = sorted(set(row) & {"J_M", "J_L", "C_F", "D_F"})
-            population = sorted(set(row) & {"J_sigma", "V_J", "f_e", "d"})
+            physical = sorted(set(row) & _PHYSICAL_KEYS)
+            population = sorted(set(row) & _POPULATION_KEYS)
             if physical and population:
                 raise ValueError(f"TwoMassParams.from_dicts: system {i}: expected either J_sigma, V_J, f_e, d or "
                                  f"J_M, J_L, C_F, D_F, received both {population} and {physical}")
-            rest = {k: row.get(k, 0.0) for k in ("backlash", "M_FC", "mu_F")}
+            rest = {k: row.get(k, 0.0) for k in _SHARED_KEYS}
             if physical:
                 missing = [k for k in ("J_M", "J_L", "C_F") if k not in row]
                 if missing:

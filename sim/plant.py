@@ -78,13 +78,15 @@ class Response:
         return self.length.shape
 
 
-def _check(params: TwoMassParams, drive: DriveConfig, method: str, dtype: torch.dtype, seed: int) -> None:
-    """The arguments both simulators share; one-line ``TypeError``/``ValueError`` naming the argument."""
+def _check(params: TwoMassParams, drive: DriveConfig, method: str, dtype: torch.dtype, seed: int) -> int:
+    """The arguments both simulators share; one-line ``TypeError``/``ValueError`` naming the argument.
+    Returns ``seed`` as a Python ``int``."""
     if not isinstance(params, TwoMassParams):
         raise TypeError(f"params: expected TwoMassParams, received {type(params).__name__}")
     if params.J_sigma.numel() == 0:
         raise ValueError(f"params: expected at least one system, received batch shape {tuple(params.batch_shape)}")
-    if check_int("seed", seed) != min(max(seed, -2**63), 2**64 - 1):  # what torch.Generator takes
+    seed_int = check_int("seed", seed)
+    if not -2**63 <= seed_int <= 2**64 - 1:  # what torch.Generator takes
         raise ValueError(f"seed: expected an int in -2**63 .. 2**64-1, received {seed!r}")
     if not isinstance(drive, DriveConfig):
         raise TypeError(f"drive: expected DriveConfig, received {type(drive).__name__}")
@@ -92,6 +94,7 @@ def _check(params: TwoMassParams, drive: DriveConfig, method: str, dtype: torch.
         raise ValueError(f"method: expected 'fast' or 'reference', received {method!r}")
     if dtype not in (torch.float32, torch.float64):
         raise TypeError(f"dtype: expected torch.float32 or torch.float64, received {dtype}")
+    return seed_int
 
 
 def simulate(params: TwoMassParams, drive: DriveConfig, controller: Controller, n_samples: int, *,
@@ -106,8 +109,8 @@ def simulate(params: TwoMassParams, drive: DriveConfig, controller: Controller, 
     ``use_kernel=False`` forces the torch eager twin of the fused kernel."""
     if method == "reference":
         dtype = torch.float64
-    _check(params, drive, method, dtype, seed)
-    check_int("n_samples", n_samples, 1)
+    seed = _check(params, drive, method, dtype, seed)
+    n_samples = check_int("n_samples", n_samples, 1)
     shape = params.batch_shape
     n = params.J_sigma.numel()
     S = default_substeps(params, drive) if substeps is None else substeps
@@ -162,7 +165,7 @@ def _finish(out: dict[str, torch.Tensor], states: dict[str, torch.Tensor], lengt
     for k in ("speed", "torque", "torque_ref"):
         out[k] = out[k].masked_fill(pad, 0.0)
     out["section"] = out["section"].masked_fill(pad, -1)
-    g = torch.Generator().manual_seed(int(seed))
+    g = torch.Generator().manual_seed(seed)
     current = noisy_current(out["torque"], drive, g).masked_fill(pad, 0.0)
     r = lambda v: v.reshape(*shape, N)  # noqa: E731
     return Response(t=torch.arange(N, dtype=torch.float64) * drive.T_s, speed=r(out["speed"]), current=r(current),
@@ -196,7 +199,7 @@ def simulate_test(params: TwoMassParams, drive: DriveConfig | None = None, signa
     signal = TestSignalConfig() if signal is None else signal
     if method == "reference":
         dtype = torch.float64
-    _check(params, drive, method, dtype, seed)
+    seed = _check(params, drive, method, dtype, seed)
     if not isinstance(signal, TestSignalConfig):
         raise TypeError(f"signal: expected TestSignalConfig or None, received {type(signal).__name__}")
     chunk_systems, chunk_samples = check_int("chunk_systems", chunk_systems, 1), check_int("chunk_samples", chunk_samples, 1)

@@ -102,30 +102,30 @@ def _err(where: Path | str, msg: str) -> RecordError:
 
 
 def validate(rec: Record, where: Path | str = "record", meta_where: Path | str | None = None) -> Record:
-    """Check a record (arrays, time grid, metadata); returns it with ``meta['T_s']`` filled in.
-    Errors name ``where``, those of the metadata ``meta_where`` (default ``where``)."""
+    """Check a record (arrays, time grid, metadata); returns a copy of it (the same arrays) with
+    its own ``meta``, ``meta['T_s']`` filled in; ``rec`` stays as it was. Errors name ``where``,
+    those of the metadata ``meta_where`` (default ``where``)."""
     with np.errstate(all="ignore"):  # independent of a caller's np.seterr
         T_s_t = _validate_columns(rec, where)
-        rec.meta = _validated_meta(rec, T_s_t, where if meta_where is None else meta_where)
-        return rec
+        return dataclasses.replace(rec, meta=_validated_meta(rec, T_s_t, where if meta_where is None else meta_where))
 
 
-def as_record(record: Any, where: str = "record") -> Record:
+def as_record(record: Any, where: str | None = None) -> Record:
     """A validated copy of an in-memory record (:func:`validate`): its columns as 1-D numpy arrays
     (torch tensors and sequences converted; ``section`` int64, the others float64), its metadata
     checked and ``T_s`` filled in from ``t`` where absent. The caller's record stays as it was.
+    Errors name ``where`` (default: the record's name).
 
     Raises:
         TypeError: ``record`` is no :class:`Record`.
         RecordError: one line, as :func:`read_record` words it.
     """
     if not isinstance(record, Record):
-        raise TypeError(f"{where}: expected a sim.Record (read_record(path) reads a file), received "
-                        f"{type(record).__name__}")
-    where = record.name if where == "record" else where
+        raise TypeError(f"{'record' if where is None else where}: expected a sim.Record (read_record(path) reads a "
+                        f"file), received {type(record).__name__}")
+    where = record.name if where is None else where
     cols = {c: _column(where, c, v) for c, v in record.columns().items()}
-    copy = dataclasses.replace(record, meta=dict(record.meta), **{c: cols.get(c) for c in COLUMNS})
-    return validate(copy, where)
+    return validate(dataclasses.replace(record, **{c: cols.get(c) for c in COLUMNS}), where)
 
 
 def _column(where: str, name: str, values: Any) -> np.ndarray:
@@ -311,7 +311,7 @@ _DIGITS = {"t": 17, "speed": 12, "current": 7, "torque": 7, "torque_ref": 7, "se
 def write_record(path: str | os.PathLike[str], record: Record, overwrite: bool = False) -> tuple[Path, Path]:
     """Write ``NAME.csv`` and ``NAME.json``; refuses to overwrite unless ``overwrite=True``."""
     csv_path, json_path, _ = _paths(path)
-    record = validate(dataclasses.replace(record, meta=dict(record.meta)), csv_path)  # the caller's record unchanged
+    record = validate(record, csv_path)  # a copy: the caller's record unchanged
     if not overwrite:
         for p in (csv_path, json_path):
             if p.exists():

@@ -177,7 +177,7 @@ def _analyze(record: Record) -> Analysis:
             raise
         raise ValueError(f"{err}; {hint}") from err
     drive, drive_warnings = drive_values(record, split, torque)
-    drive_warnings += consistency_warnings(record, split, drive.w_max, drive.q_w, drive.T_Ei)
+    drive_warnings += consistency_warnings(record, split, drive, torque)
     try:
         fit = fit_one_mass(torque, record.speed, T_s, sections=split.bounds)
     except ValueError as err:

@@ -24,7 +24,7 @@ import math
 import numpy as np
 
 from sim import SECTION_LEVELS, SECTION_NAMES, Record
-from training.identification._drive import settled_bounds
+from training.identification._drive import DriveValues, settled_bounds
 from training.identification._result import IdentWarning
 from training.identification._sections import SectionSplit, law_end, torque_amplitude
 
@@ -36,15 +36,18 @@ _START_QUANTA = 3.0  # speed quanta (or 1 % of w_max, the larger) at which secti
 _CLIP_QUANTA = 3.0  # speed quanta per sample the speed must still gain at a switch to call a flat top clipped
 
 
-def consistency_warnings(record: Record, split: SectionSplit, w_max: float, q_w: float, T_Ei: float) -> list[IdentWarning]:
-    """The warnings of the module docstring for ``record`` with sections ``split``, its test's
-    ``w_max`` [rad/s] (from the record or estimated), speed quantum ``q_w`` [rad/s] and current-loop
-    lag ``T_Ei`` [s]."""
+def consistency_warnings(record: Record, split: SectionSplit, drive: DriveValues,
+                         torque: np.ndarray) -> list[IdentWarning]:
+    """The warnings of the module docstring for ``record`` with sections ``split``, its drive
+    values ``drive`` (its test's ``w_max`` [rad/s] from the record or estimated, speed quantum
+    ``q_w`` [rad/s], current-loop lag ``T_Ei`` [s]) and measured torque ``torque`` [Nm]
+    (``record.motor_torque``)."""
+    w_max, q_w, T_Ei = drive.w_max, drive.q_w, drive.T_Ei
     out = []
     if record.meta.get("aborted"):
         out.append(IdentWarning("run_aborted", "the drive aborted this run at a limit (metadata aborted: true): the "
                                                "test is incomplete, its values are suspect"))
-    speed = np.asarray(record.speed, dtype=np.float64)
+    speed = record.speed
     start = int(split.bounds[0, 0])
     if abs(speed[start]) > max(_START_QUANTA * q_w, 0.01 * w_max):
         out.append(IdentWarning("record_starts_late", f"section I starts at {speed[start]:.4g} rad/s, not at rest: the "
@@ -53,7 +56,7 @@ def consistency_warnings(record: Record, split: SectionSplit, w_max: float, q_w:
     # the law's durations and thresholds hold for a whole run that no limit or timeout cut short
     law = _law_mismatch(speed, split, w_max, math.ceil(2.0 * T_Ei / record.T_s) + 2) \
         if not out and not any(record.meta.get("timed_out") or []) else []
-    return out + (law or _clipped(speed, split, q_w)) + _torque_scale(record, split, T_Ei)
+    return out + (law or _clipped(speed, split, q_w)) + _torque_scale(record, split, torque, T_Ei)
 
 
 def _clipped(speed: np.ndarray, split: SectionSplit, q_w: float) -> list[IdentWarning]:
@@ -80,11 +83,10 @@ def torque_scale_hint(record: Record) -> str | None:
     M_star = record.meta.get("M_star")
     if M_star is None:
         return None
-    for what, signal in (("torque_ref", record.torque_ref),
-                         ("current * K_M" if record.torque is None else "the torque column", record.motor_torque)):
+    for what, signal in (("torque_ref", record.torque_ref), (_measured(record), record.motor_torque)):
         if signal is None or not np.any(signal):
             continue
-        scale = torque_amplitude(np.asarray(signal, dtype=np.float64)) / float(M_star)
+        scale = torque_amplitude(signal) / float(M_star)
         if abs(scale - 1.0) > TORQUE_SCALE_TOL:
             why = "its units (Nm) or M_star wrong?" if what == "torque_ref" else "K_M, M_star or the current's units wrong?"
             return f"{what} reaches {scale:.3g} x metadata M_star = {float(M_star):.4g} Nm: {why}"
@@ -96,10 +98,10 @@ def _law_mismatch(speed: np.ndarray, split: SectionSplit, w_max: float, lag: int
     replayed from the record's own start of it, so that one disagreement does not cascade)."""
     tol = 1 if split.source == "torque_ref" else lag
     bounds = split.bounds.tolist()
+    before = [0] + [b - a for a, b in bounds]  # the length of the section before each one
     for k, (a, b) in enumerate(bounds):
-        before = bounds[k - 1][1] - bounds[k - 1][0] if k in (1, 4) else 0
         try:
-            end = law_end(speed, k, a, before, w_max)
+            end = law_end(speed, k, a, before[k], w_max)
         except ValueError:
             end = None
         if k == 5 and b >= speed.size and (end is None or end >= b):
@@ -113,13 +115,12 @@ def _law_mismatch(speed: np.ndarray, split: SectionSplit, w_max: float, lag: int
     return []
 
 
-def _torque_scale(record: Record, split: SectionSplit, T_Ei: float) -> list[IdentWarning]:
-    """``torque_scale_mismatch`` where the measured torque's settled section means, fitted to the
+def _torque_scale(record: Record, split: SectionSplit, torque: np.ndarray, T_Ei: float) -> list[IdentWarning]:
+    """``torque_scale_mismatch`` where the measured ``torque``'s settled section means, fitted to the
     levels ``SECTION_LEVELS x M*``, give a scale off ``M*`` (unless ``M*`` was estimated from the
     measured torque itself)."""
     if split.M_star_estimated and split.source == "torque":
         return []
-    torque = record.motor_torque
     num = den = 0.0
     for settled, level in zip(settled_bounds(split, record.T_s, T_Ei), SECTION_LEVELS):
         if level and settled is not None:
@@ -131,7 +132,11 @@ def _torque_scale(record: Record, split: SectionSplit, T_Ei: float) -> list[Iden
     scale = num / den / split.M_star
     if abs(scale - 1.0) <= TORQUE_SCALE_TOL:
         return []
-    what = "current * K_M" if record.torque is None else "the torque column"
-    return [IdentWarning("torque_scale_mismatch", f"{what} holds the test's levels at {scale:.3g} x M* = "
+    return [IdentWarning("torque_scale_mismatch", f"{_measured(record)} holds the test's levels at {scale:.3g} x M* = "
                                                   f"{split.M_star:.4g} Nm: K_M, M_star or the current's units are "
                                                   "wrong; J_sigma, V_J and friction scale with it")]
+
+
+def _measured(record: Record) -> str:
+    """What the measured torque of ``record`` is, as the warnings name it."""
+    return "current * K_M" if record.torque is None else "the torque column"

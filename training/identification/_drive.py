@@ -87,7 +87,7 @@ def drive_values(record: Record, split: SectionSplit, torque: np.ndarray) -> tup
                                                      "(the class rule w_e T_Ei and the refinement depend on it)")
     counts = record.encoder_counts
     sources["encoder_counts"] = "record"
-    if counts is not None and on_grid(np.abs(record.speed), speed_quantum(counts, T_s)) < QUANTIZED_SHARE:
+    if counts is not None and on_grid(np.abs(record.speed), record.q_w) < QUANTIZED_SHARE:
         finer = estimated_encoder_counts(record.speed, T_s)  # the speed shows steps the encoder cannot make
         if finer is not None and finer > 1.5 * counts:
             warnings.append(IdentWarning("drive_value_mismatch", f"encoder_counts {counts} (metadata) cannot make the "
@@ -136,7 +136,8 @@ def estimated_encoder_counts(speed: np.ndarray, T_s: float) -> int | None:
         return None
     q = float(np.median(steps[steps < 1.5 * q0]))
     n = np.round(x / q)  # each speed's multiple; their ratios refine q (a float32 speed's steps scatter)
-    q = float(np.median(x[n >= 1] / n[n >= 1]))
+    whole = n >= 1
+    q = float(np.median(x[whole] / n[whole]))
     counts = int(round(2.0 * math.pi / (q * T_s)))
     if counts < 16 or on_grid(x, speed_quantum(counts, T_s)) < QUANTIZED_SHARE:
         return None

@@ -72,10 +72,11 @@ def check_record(record: Record) -> None:
         return  # format problems: sim.records / the analysis report them
     T_s = record.T_s
     _check_timing(T_s, meta.get("T_Ei"))
-    if not np.any(torque != 0) and np.ptp(speed) > 0:  # a torque_ref would still show the sections
+    moves = np.ptp(speed) > 0
+    if not np.any(torque != 0) and moves:  # a torque_ref would still show the sections
         raise ValueError(f"{name}: expected the test's torque steps, received zeros throughout while the speed moves "
                          f"(the {name} was not recorded?)")
-    if not np.ptp(speed) > 0:
+    if not moves:
         return  # constant speed: the section detection says so
     _check_torque_scale(torque, name, meta)
     _check_speed_scale(speed, T_s, meta)
@@ -149,18 +150,19 @@ def _check_speed_scale(speed: np.ndarray, T_s: float, meta: dict[str, Any]) -> N
     w_max = meta.get("w_max")
     if w_max is None:
         return
-    peak = float(np.max(np.abs(speed)))
+    abs_speed = np.abs(speed)
+    peak = float(np.max(abs_speed))
     ratio = peak / float(w_max)
     lo, hi = SPEED_RATIO
     timed_out = any(bool(x) for x in (meta.get("timed_out") or []))
     counts = meta.get("encoder_counts")
     quantum = speed_quantum(float(counts), T_s) if counts else 0.0  # an encoder's speed reads up to one count high
     allowed = hi * float(w_max) + overshoot_allowance(speed, T_s, meta.get("T_Ei")) + quantum
-    above = np.flatnonzero(np.abs(speed) > allowed)
+    above = np.flatnonzero(abs_speed > allowed)
     if 0 < above.size <= _GLITCH_SAMPLES:  # a few samples far above the rest: no unit does that
-        rest = float(np.max(np.abs(np.delete(speed, above))))
+        rest = float(np.max(np.delete(abs_speed, above)))
         raise ValueError(f"speed has {above.size} sample(s) far above the rest (peak |speed| {peak:.4g} rad/s at row "
-                         f"{int(above[np.argmax(np.abs(speed[above]))]) + 2}, the others at most {rest:.4g}; metadata "
+                         f"{int(above[np.argmax(abs_speed[above])]) + 2}, the others at most {rest:.4g}; metadata "
                          f"w_max = {float(w_max):.4g} rad/s): glitches in the recording?")
     if peak > allowed or (ratio < lo and not timed_out):
         guess = _guess(ratio, _speed_units(meta, meta.get("T_s")))

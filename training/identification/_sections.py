@@ -267,15 +267,15 @@ def law_end(w: np.ndarray, k: int, start: int, before: int, w_max: float) -> int
     """Where SPEC 2's switching law ends section ``k`` (0..5 for I..VI) that starts at sample
     ``start`` (:class:`sim.SwitchingController`): the sample after the first whose speed ``w``
     meets the section's condition (the new ``M_ref`` applies from the next sample); II and V also
-    end once they have lasted ``before`` samples (the length of I, IV). Raises ValueError when
-    the condition is never met."""
-    w_low = SPEED_RETURN * w_max
+    end once they have lasted ``before`` samples, the length of the section before (I, IV; the
+    other sections ignore it). Raises ValueError when the condition is never met."""
     if k in (1, 4):
+        w_low = SPEED_RETURN * w_max
         j = np.arange(start, w.size)
         hit = (j - start + 1 >= before) | ((w[start:] <= w_low) if k == 1 else (w[start:] >= -w_low))
         return start + _first(hit, 0) + 1
-    cond = {0: w >= w_max, 2: w <= 0.0, 3: w <= -w_max, 5: w >= 0.0}[k]
-    return _first(cond, start) + 1
+    rising, level = {0: (True, w_max), 2: (False, 0.0), 3: (False, -w_max), 5: (True, 0.0)}[k]
+    return _first(w >= level if rising else w <= level, start) + 1
 
 
 def _replay(w: np.ndarray, k0: int, w_max: float) -> np.ndarray:
@@ -287,7 +287,7 @@ def _replay(w: np.ndarray, k0: int, w_max: float) -> np.ndarray:
     for k in range(6):
         end = law_end(w, k, start, before, w_max)
         bounds[k] = start, min(end, w.size)
-        before, start = (end - start if k in (0, 3) else before), end
+        before, start = end - start, end
     return bounds
 
 
