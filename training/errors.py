@@ -45,6 +45,11 @@ def one_line(err: BaseException) -> str:
     return lines[0] if lines else type(err).__name__
 
 
+def error_text(err: BaseException) -> str:
+    """``"<type>: <first line>"`` of ``err`` (:func:`one_line` after its class name)."""
+    return f"{type(err).__name__}: {one_line(err)}"
+
+
 @dataclass(frozen=True)
 class CodedWarning:
     """A warning: a stable machine-readable ``code`` (a key of the subclass's :attr:`CODES`, which

@@ -24,7 +24,7 @@ from typing import Any
 
 from training._json import dumps
 from training.commands import _progress
-from training.errors import CommissioningError, ExperimentPending, OutputExistsError, UserError, one_line
+from training.errors import CommissioningError, ExperimentPending, OutputExistsError, UserError, error_text, one_line
 from training.params_file import read_params_file
 
 #: Exit code when a drive got no controller, or an experiment passed a limit (the reports say which).
@@ -85,9 +85,13 @@ def _plot(report: Any, folder: Path, overwrite: bool) -> None:
     save_png(commission_figure(report), folder / f"{report.name}.png", overwrite=overwrite)
 
 
-def _refuse_existing(path: Path | None, overwrite: bool) -> None:
-    if path is not None and path.exists() and not overwrite:
-        raise OutputExistsError(f"--json: {str(path)!r} exists (pass --overwrite to replace it)")
+def _refuse_existing(option: str, paths: list[Path], overwrite: bool) -> None:
+    """Refuse an output of ``option`` (``--json``, ``--plots``) that exists, without ``--overwrite``."""
+    if overwrite:
+        return
+    for path in paths:
+        if path.exists():
+            raise OutputExistsError(f"{option}: {str(path)!r} exists (pass --overwrite to replace it)")
 
 
 def load_factory(spec: str) -> Any:
@@ -108,7 +112,7 @@ def load_factory(spec: str) -> Any:
             loader.loader.exec_module(module)
         except Exception as err:  # whatever the user's file raises: one line, not a traceback
             del sys.modules[loader.name]
-            raise UserError(f"--drive: importing {mod_name} failed: {type(err).__name__}: {one_line(err)}") from None
+            raise UserError(f"--drive: importing {mod_name} failed: {error_text(err)}") from None
         finally:
             sys.path.remove(folder)
     else:
@@ -117,7 +121,7 @@ def load_factory(spec: str) -> Any:
         except ModuleNotFoundError as err:
             raise UserError(f"--drive: cannot import {mod_name!r} ({err}); is it on PYTHONPATH?") from None
         except Exception as err:
-            raise UserError(f"--drive: importing {mod_name} failed: {type(err).__name__}: {one_line(err)}") from None
+            raise UserError(f"--drive: importing {mod_name} failed: {error_text(err)}") from None
     factory = getattr(module, attr, None)
     if not callable(factory):
         raise UserError(f"--drive: {mod_name} has no callable {attr!r}")
@@ -151,15 +155,6 @@ def _same_limits(args: argparse.Namespace, stored: Any) -> None:
         if given is not None and not (have is not None and math.isclose(given, have, rel_tol=1e-12)):
             raise UserError(f"--resume {args.resume}: {opt} {given:g} differs from the folder's drive.json ({have}); its limits "
                             f"hold for the whole run: drop {opt}, or start a new folder with the new limits")
-
-
-def _refuse_existing_pages(folder: Path | None, names: list[str], overwrite: bool) -> None:
-    """``--plots``: refuse, before any experiment, a page that exists (without ``--overwrite``)."""
-    if folder is None or overwrite:
-        return
-    for name in names:
-        if (folder / f"{name}.png").exists():
-            raise OutputExistsError(f"--plots: {str(folder / f'{name}.png')!r} exists (pass --overwrite to replace it)")
 
 
 def _drives(args: argparse.Namespace, limits: Any) -> tuple[list[tuple[str, Any]], Any]:
@@ -197,11 +192,12 @@ def run(args: argparse.Namespace) -> int:
     config = CommissioningConfig(tune=not args.no_tune, max_map_distance_ratio=args.max_map_distance,
                                  tune_evaluations=args.tune_evaluations, fallback=not args.no_fallback,
                                  validation_mode=args.validation)
-    _refuse_existing(args.json, args.overwrite)
+    _refuse_existing("--json", [] if args.json is None else [args.json], args.overwrite)
     limits = sim.DriveLimits(w_max=DEFAULT_W_LIMIT if args.w_limit is None else args.w_limit,
                              travel=DEFAULT_TRAVEL_LIMIT if args.travel_limit is None else args.travel_limit, M_max=args.M_max)
     drives, limits = _drives(args, limits)
-    _refuse_existing_pages(args.plots, [name for name, _ in drives], args.overwrite)
+    pages = [] if args.plots is None else [args.plots / f"{name}.png" for name, _ in drives]
+    _refuse_existing("--plots", pages, args.overwrite)  # before any experiment
     if args.checkpoints is not None and not args.checkpoints.is_dir():
         raise UserError(f"--checkpoints: {args.checkpoints} is not a folder")
     identifier = Identifier.load(args.checkpoints)
@@ -228,7 +224,7 @@ def run(args: argparse.Namespace) -> int:
             except (ExperimentPending, UserError):
                 raise
             except Exception as err:  # the user's factory: one line naming it
-                raise UserError(f"--drive {args.drive}: building drive {name!r} failed: {type(err).__name__}: {one_line(err)}") from None
+                raise UserError(f"--drive {args.drive}: building drive {name!r} failed: {error_text(err)}") from None
             try:
                 rep = commission(drive, limits, identifier=identifier, config=config, writer=writer, progress=say, name=name)
             except CommissioningError as err:
@@ -258,7 +254,7 @@ def run(args: argparse.Namespace) -> int:
     if summary is not None:
         print(summary_text(summary), flush=True)
     if args.json is not None:
-        _refuse_existing(args.json, args.overwrite)  # it may have appeared while we worked
+        _refuse_existing("--json", [args.json], args.overwrite)  # it may have appeared while we worked
         text = dumps({"reports": [r.to_dict() for r in reports], "summary": summary}, indent=1)
         from som_torch import atomic_write
 

@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 
 import sim
-from training.errors import CommissioningError, ExperimentPending, UserError, one_line
+from training.errors import CommissioningError, ExperimentPending, UserError, error_text, one_line
 
 from ._bands import f1_bands, hidden_bands, widen
 from ._excitation import ExcitationResult, ExcitationRules, adapt_test_signal, guarded_limits, stop_headroom
@@ -140,7 +140,7 @@ MIN_LIMIT_QUANTA: float = 10.0
 def check_resolution(limits: sim.DriveLimits, config: sim.DriveConfig) -> None:
     """Refuse (:class:`CommissioningError`) a speed limit below :data:`MIN_LIMIT_QUANTA` speed quanta
     ``q_w`` of the drive's encoder: no run within it could show a response."""
-    q_w = sim.speed_quantum(float(config.encoder_counts), float(config.T_s))
+    q_w = config.q_w
     if not limits.w_max >= MIN_LIMIT_QUANTA * q_w:
         raise CommissioningError(f"limits: the speed limit {limits.w_max:g} rad/s is {limits.w_max / q_w:.3g} speed quanta of the "
                                  f"drive's encoder (q_w {q_w:.3g} rad/s); at least {MIN_LIMIT_QUANTA:g} are needed to resolve a test")
@@ -181,7 +181,7 @@ def _call(method: Callable[..., Any], what: str, *args: Any) -> Any:
     except (ExperimentPending, CommissioningError, UserError):
         raise
     except Exception as err:
-        raise CommissioningError(f"drive.{what} raised {type(err).__name__}: {one_line(err)}") from None
+        raise CommissioningError(f"drive.{what} raised {error_text(err)}") from None
 
 
 def limit_checks(experiments: list[tuple[str, Any]], limits: sim.DriveLimits, config: Any) -> dict[str, Any]:
@@ -255,18 +255,18 @@ def _run_candidates(run: _Run, proposal: ControllerProposal, gains: list[Gains],
     out = []
     mech = proposal.mechanics
     cap = run.limits.torque_cap(run.config)
+    model_costs = closed_loop_cost(model_response(mech, run.config, gains, proposal.notch, sc), sc, mech)[0]
     for i, g in enumerate(gains):
         law = proposal.law(run.config, Kp=g[0], Ti=g[1], T_f=g[2])
         rec = run.drive.run_closed_loop(law, sc.scenario(), run.loop_limits, f"{kind} {i}")
         stopped = bool(rec.meta.get("aborted", False))
         w = np.asarray(rec.speed, dtype=np.float64)
         cost, terms = closed_loop_cost(w, sc, mech, stopped)
-        model_cost = float(closed_loop_cost(model_response(mech, run.config, [g], proposal.notch, sc), sc, mech)[0][0])
+        model_cost = float(model_costs[i])
         verdict, why = loop_verdict(w, rec.torque_ref, sc, cap, float(cost), model_cost, stopped)
         out.append(PlantRun(gains=g, cost=float(cost), motor=float(terms["motor"]), load=float(terms["load"]),
-                            settled=verdict is None, aborted=stopped, bounded=verdict in BOUNDED_VERDICTS,
-                            figures=response_figures(w, sc, mech), speed=w, verdict=verdict, verdict_text=why,
-                            model_cost=model_cost))
+                            aborted=stopped, figures=response_figures(w, sc, mech), speed=w, verdict=verdict,
+                            verdict_text=why, model_cost=model_cost))
         if stopped:
             run.warn("run_stopped", f"the drive stopped the closed-loop run {kind} {i} at a limit")
         elif verdict not in BOUNDED_VERDICTS:

@@ -303,9 +303,9 @@ def adapt_test_signal(drive: Any, limits: sim.DriveLimits, rules: ExcitationRule
             """The largest w_max' whose predicted travel (both models) fits; <= 0: none at M_new."""
             if travel_per == 0.0:
                 return math.inf
-            # the travel at which the drive stops the run (it coasts on from there): the plan stays below it
-            stop_travel = guarded_limits(limits, headroom(M_new), config, rules).travel
-            room = rules.travel_margin * stop_travel / travel_gain(M_new)
+            # the travel at which the drive stops the run (it coasts on from there; guarded_limits' travel
+            # does not depend on the headroom, so not on M_new): the plan stays below it
+            room = rules.travel_margin * guarded.travel / travel_gain(M_new)
             return min(math.sqrt(room / travel_per), math.sqrt(room / travel_per_peak) - run_on * M_new / M_star)
 
         def cap(M_new: float) -> float:

@@ -23,7 +23,7 @@ from training._json import json_safe
 from ._excitation import ExcitationResult
 from ._permission import CommissioningWarning, IdentificationOutcome, Permission
 from ._rules import ControllerProposal
-from ._tuning import USABLE_VERDICTS, Gains, TuningResult, TuningScenario
+from ._tuning import BOUNDED_VERDICTS, UNSCORED_VERDICTS, USABLE_VERDICTS, Gains, TuningResult, TuningScenario
 from ._validation import ValidationResult
 
 __all__ = ["CommissioningReport", "PlantRun", "summarize", "summary_text"]
@@ -39,23 +39,30 @@ class PlantRun:
     (``verdict`` None: not stopped, finite, inside the settling band at the end of the first step,
     so ``figures["settling_time"]`` is finite; not saturated, no limit cycle, not far worse than
     ``model_cost``, what the identified model predicts), ``aborted`` (the drive stopped it),
-    ``bounded`` (at worst slow: ``verdict`` None or ``not_settled``), ``verdict`` (a code of
+    ``bounded`` (at worst slow: ``verdict`` None, ``slow`` or ``not_settled``), ``verdict`` (a code of
     :data:`LOOP_VERDICTS`) and ``verdict_text``, the figures (:func:`response_figures`) and the
-    measured speed ``N``."""
+    measured speed ``N``; ``settled`` and ``bounded`` follow from ``verdict``."""
 
     gains: Gains
     cost: float
     motor: float
     load: float
-    settled: bool
     aborted: bool
     figures: dict[str, float]
     speed: np.ndarray = field(repr=False)
-    bounded: bool = True
-    """At worst slow: not stopped, not diverging, not saturated, no limit cycle, not unlike its model."""
     verdict: str | None = None
     verdict_text: str = "settled"
     model_cost: float = math.nan
+
+    @property
+    def settled(self) -> bool:
+        """``verdict`` None: it settled on the drive."""
+        return self.verdict is None
+
+    @property
+    def bounded(self) -> bool:
+        """At worst slow: not stopped, not diverging, not saturated, no limit cycle, not unlike its model."""
+        return self.verdict in BOUNDED_VERDICTS
 
     @property
     def usable(self) -> bool:
@@ -237,7 +244,7 @@ class CommissioningReport:
              "   run       Kp      Ti [ms]  cost (motor+load)  rise [ms]  overshoot [%]  load overshoot [%]  settled"]
         for name, r in zip(names, runs):
             f = r.figures
-            cost = "-" if r.verdict in ("stopped", "diverging") else f"{r.cost:.4g} ({r.motor:.3g}+{r.load:.3g})"
+            cost = "-" if r.verdict in UNSCORED_VERDICTS else f"{r.cost:.4g} ({r.motor:.3g}+{r.load:.3g})"
             state = "yes" if r.settled else ("NO: stopped by the drive at a limit" if r.aborted else
                                                f"no [{r.verdict}]: slow ({r.verdict_text})" if r.bounded else
                                                f"NO [{r.verdict}]: {r.verdict_text}")

@@ -41,7 +41,7 @@ from ._rules import ControllerProposal, ControllerSpec
 __all__ = [
     "TuningScenario", "TuningResult", "plan_scenario", "closed_loop_cost", "response_figures", "load_estimate",
     "model_response", "tune_controller", "Gains", "loop_verdict", "LOOP_VERDICTS", "BOUNDED_VERDICTS",
-    "USABLE_VERDICTS",
+    "USABLE_VERDICTS", "UNSCORED_VERDICTS",
 ]
 
 #: (Kp [Nm s/rad], Ti [s], T_f [s]).
@@ -301,6 +301,8 @@ LOOP_VERDICTS: dict[str, str] = {
 USABLE_VERDICTS: frozenset[str | None] = frozenset({None, "slow"})
 #: Verdicts of a run that stayed bounded: at worst slow, not unstable (enough for the fallback F1).
 BOUNDED_VERDICTS: frozenset[str | None] = USABLE_VERDICTS | {"not_settled"}
+#: Verdicts of a run whose cost measures nothing (the drive stopped it, or it diverged): the report shows none.
+UNSCORED_VERDICTS: frozenset[str | None] = frozenset({"stopped", "diverging"})
 
 
 def loop_verdict(speed: np.ndarray, torque_ref: np.ndarray | None, sc: TuningScenario, M_cap: float, cost: float,

@@ -21,7 +21,7 @@ from sim import DriveConfig, Record, TestSignalConfig, iter_records
 from training._distributed import process_group
 from training._pool import worker_pool
 from training.config import checkpoints_folder
-from training.errors import one_line
+from training.errors import error_text
 from training.evaluation._cache import load_cached, method_config, save_cached
 from training.evaluation._iv4 import identify_iv4
 from training.evaluation._metrics import finite_or_none as _num
@@ -43,11 +43,6 @@ def _identifier(checkpoints: str, refine: bool = True) -> Any:
     return _IDENTIFIERS[checkpoints, refine]
 
 
-def _error_text(err: BaseException) -> str:
-    """``"<type>: <first line>"`` of an exception a method raised (it is reported, a miss)."""
-    return f"{type(err).__name__}: {one_line(err)}"
-
-
 def som_result(record: Record, checkpoints: str, refine: bool = True) -> dict[str, Any]:
     """SOM identification of one record (``refine=False``: the maps' answer alone), reduced to
     what the evaluation needs (JSON-able).
@@ -62,7 +57,7 @@ def som_result(record: Record, checkpoints: str, refine: bool = True) -> dict[st
     try:
         outcome = _identifier(checkpoints, refine).identify_records([record])[0]
     except Exception as err:  # noqa: BLE001 - one bad record must not end a long run; it is reported
-        out["error"] = _error_text(err)
+        out["error"] = error_text(err)
         return out
     if not outcome.ok:
         out["error"] = outcome.error
@@ -85,7 +80,7 @@ def iv4_result(record: Any) -> dict[str, Any]:
     try:
         res = identify_iv4(record.motor_torque, record.speed, record.T_s, T_Ei=float(record.meta["T_Ei"]))
     except Exception as err:  # noqa: BLE001 - reported as an invalid result (a miss)
-        out["reason"] = _error_text(err)
+        out["reason"] = error_text(err)
         return out
     out.update({k: _num(res.get(k)) for k in METHOD_PARAMS["iv4"]})
     out.update(valid=bool(res.get("valid", False)), reason=str(res.get("reason", "")),

@@ -17,7 +17,7 @@ sim = pytest.importorskip("sim")
 
 from training.cli import main  # noqa: E402
 from training.commissioning import CommissioningConfig, FileDrive, adapt_test_signal, commission  # noqa: E402
-from training.commissioning._tuning import TuningScenario, response_figures  # noqa: E402
+from training.commissioning._tuning import TuningScenario, loop_verdict, response_figures  # noqa: E402
 from training.errors import CommissioningError, ExperimentPending  # noqa: E402
 
 HERE = Path(__file__).parent
@@ -30,7 +30,7 @@ DRIVES = HERE / "faulty_drives.py"
 
 
 def _scenario() -> TuningScenario:
-    return TuningScenario(T_s=2.5e-4, w_step=1.0, M_dist=1.0, n_segment=400, T_ref=0.01, dip_ref=1.0, **{"q_w": 0.024})
+    return TuningScenario(T_s=2.5e-4, w_step=1.0, M_dist=1.0, n_segment=400, T_ref=0.01, dip_ref=1.0, q_w=0.024)
 
 
 def _healthy(sc: TuningScenario) -> np.ndarray:
@@ -40,8 +40,6 @@ def _healthy(sc: TuningScenario) -> np.ndarray:
 
 
 def test_loop_verdict_names_saturation_limit_cycle_and_model_mismatch():
-    from training.commissioning._tuning import loop_verdict
-
     sc = _scenario()
     w = _healthy(sc)
     assert loop_verdict(w, np.zeros_like(w), sc, 20.0, 5.0, 5.0, False) == (None, "settled")
