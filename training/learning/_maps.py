@@ -16,9 +16,8 @@ import som_torch as st
 from training._distributed import CallRecorder, Group, process_group
 from training.errors import OutputExistsError
 from training.figures import log_map_figures
-from training.identification import (FEATURE_NAMES, FEATURE_VERSION, MAP_SPECS, SUBSETS, TARGETS, MapSpec, TrainedMap,
-                                     load_map, recall_targets, trained_envelope)
-from training.identification._envelope import FILE_NAME as ENVELOPE_FILE
+from training.identification import (ENVELOPE_FILE, FEATURE_NAMES, FEATURE_VERSION, MAP_SPECS, SUBSETS, TARGETS, MapSpec,
+                                     TrainedMap, load_map, recall_targets, trained_envelope)
 from training.learning._dataset import Dataset
 
 
