@@ -8,8 +8,9 @@ Figures per drive: structure accuracy over systems at least 20 % from every clas
 ``E_30`` and ``E_10`` over ``elastic`` + ``elastic_backlash``, ``J_sigma`` within 5 %, backlash
 width within 30 % for ``s_N >= 0.3``, and the **silent-wrong rate**: the share of systems whose
 answer is wrong (class wrong, or an elastic answer outside ``E_30``, or ``J_sigma`` off by 30 %)
-with no warning at all. Beside the structure and the backlash figures, the same over the gaps
-the record can show: those whose motor lead (:func:`training.identification.motor_lead`, the
+with no warning at all. Beside ``E_30``, the same over the oscillations the encoder's speed shows
+(``r_osc >= 1``, SPEC 1's visibility); beside the structure and the backlash figures, the same
+over the gaps the record can show: those whose motor lead (:func:`training.identification.motor_lead`, the
 backlash resolution's angle path) reaches :data:`~training.identification.BACKLASH_VISIBLE_COUNTS`
 encoder counts (for the structure: every system but those whose backlash counts in the class rule,
 ``s_N >= 0.1``, and stays below that lead).
@@ -25,8 +26,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from sim import (S_N_ELASTIC, DriveConfig, EnvelopeRanges, PopulationRanges, TestSignalConfig, TwoMassParams,
-                 inertia_of_time_scale, iter_records, sample_envelope, sample_population, time_scale)
+from sim import (R_OSC_VISIBLE, S_N_ELASTIC, DriveConfig, EnvelopeRanges, PopulationRanges, TestSignalConfig,
+                 TwoMassParams, inertia_of_time_scale, iter_records, sample_envelope, sample_population, time_scale)
 from training.evaluation._metrics import recognized, relative_error, threshold_margin
 from training.evaluation._report import markdown_table
 from training.identification import BACKLASH_VISIBLE_COUNTS, motor_lead
@@ -138,6 +139,7 @@ def drive_figures(rows: Sequence[dict[str, Any]]) -> dict[str, Any]:
     cls_som = np.array([str(r["som"]["structure"]) for r in rows])
     correct = cls_true == cls_som
     elastic = np.isin(cls_true, _ELASTIC)
+    elastic_visible = elastic & (truth["r_osc"] >= R_OSC_VISIBLE)  # an oscillation the encoder's speed shows
     err = {k: relative_error(_values(rows, "som", k), _values(rows, "truth", k)) for k in ("f_e", "V_J", "J_sigma")}
     e30, e10 = recognized(err, 30), recognized(err, 10)
     j_err = np.nan_to_num(err["J_sigma"], nan=np.inf)
@@ -157,6 +159,7 @@ def drive_figures(rows: Sequence[dict[str, Any]]) -> dict[str, Any]:
             "structure": pct(correct, far), "n_structure": int(far.sum()),
             "structure_visible": pct(correct, far_visible), "n_structure_visible": int(far_visible.sum()),
             "E_30": pct(e30, elastic), "E_10": pct(e10, elastic), "n_elastic": int(elastic.sum()),
+            "E_30_visible": pct(e30, elastic_visible), "n_elastic_visible": int(elastic_visible.sum()),
             "J_sigma_5": pct(j_err <= 0.05, every), "backlash_30": pct(bl, wide), "n_backlash": int(wide.sum()),
             "backlash_30_visible": pct(bl, visible), "n_backlash_visible": int(visible.sum()),
             "silent_wrong": pct(silent, every), "warned": pct(np.array([r["som"]["n_warnings"] > 0 for r in rows]), every)}
@@ -168,16 +171,19 @@ def drives_markdown(figures: dict[str, dict[str, Any]], command: str, descriptio
     name -> the drive in words, default those of :data:`DRIVES`)."""
     fmt = lambda v: "n/a" if v is None else f"{v:.1f}"  # noqa: E731
     descriptions = {name: case.description for name, case in DRIVES.items()} if descriptions is None else descriptions
-    header = ["drive", "n", "failed", "structure (n)", "of them visible (n)", "E_30", "E_10 (n elastic)", "J_sigma 5 %",
+    header = ["drive", "n", "failed", "structure (n)", "of them visible (n)", "E_30", "E_10 (n elastic)",
+              "E_30 visible (n)", "J_sigma 5 %",
               "backlash 30 % (n)", "of them visible (n)", "silent wrong", "warned"]
     rows = [[f"{name}: {descriptions.get(name, '')}", str(f["n"]), str(f["failed"]),
              f"{fmt(f['structure'])} ({f['n_structure']})", f"{fmt(f['structure_visible'])} ({f['n_structure_visible']})",
-             fmt(f["E_30"]), f"{fmt(f['E_10'])} ({f['n_elastic']})", fmt(f["J_sigma_5"]),
+             fmt(f["E_30"]), f"{fmt(f['E_10'])} ({f['n_elastic']})",
+             f"{fmt(f['E_30_visible'])} ({f['n_elastic_visible']})", fmt(f["J_sigma_5"]),
              f"{fmt(f['backlash_30'])} ({f['n_backlash']})", f"{fmt(f['backlash_30_visible'])} ({f['n_backlash_visible']})",
              fmt(f["silent_wrong"]), fmt(f["warned"])] for name, f in figures.items()]
     lines = [f"# {title}", "", f"Made by `{command}`.", "", *markdown_table(header, rows)]
     lines += ["", "Figures in %. Structure over systems >= 20 % from every class threshold; E_x over elastic + "
-              "elastic_backlash; backlash over s_N >= 0.3; visible: of those the gaps whose motor lead "
+              f"elastic_backlash, E_30 visible over those whose r_osc reaches {R_OSC_VISIBLE:g} (the oscillation "
+              "shows in the encoder's speed); backlash over s_N >= 0.3; visible: of those the gaps whose motor lead "
               f"2s V_J / (1 + V_J) reaches {BACKLASH_VISIBLE_COUNTS:g} encoder counts (for the structure: all but the "
               f"systems with s_N >= {S_N_ELASTIC:g} whose lead stays below that); silent wrong: class wrong, or an "
               "elastic answer outside E_30, or J_sigma off by 30 %, with no warning.", ""]

@@ -66,6 +66,17 @@ def test_visible_figures_leave_out_only_the_gaps_the_record_cannot_show():
     assert f["n_backlash"] == 3 and f["n_backlash_visible"] == 2
 
 
+def test_E_30_visible_leaves_out_only_the_oscillations_below_the_resolution():
+    rows = [_row("elastic", 30.0, 1.0, 0.1, som=dict(f_e=45.0), warnings=1),  # visible (r_osc 100), missed
+            _row("elastic", 30.0, 1.0, 0.1),
+            _row("elastic_backlash", 30.0, 1.0, 0.1, s_N=0.5, som=dict(structure="stiff", f_e=None), warnings=1)]
+    rows[2]["truth"]["r_osc"] = 0.2  # below the resolution: out of the visible figure
+    f = drive_figures(rows)
+    assert f["E_30"] == pytest.approx(100.0 / 3) and f["n_elastic"] == 3
+    assert f["E_30_visible"] == pytest.approx(50.0) and f["n_elastic_visible"] == 2
+    assert "| 50.0 (2) |" in drives_markdown({"x": f}, "cmd")
+
+
 def test_drives_drawn_over_the_envelope(tmp_path):
     """``--envelope-drives``: drives of the maps' own training distribution, none of them the reference
     drive, each inside the envelope, identified and scored; the table has a row per drive and one for all."""
