@@ -44,7 +44,7 @@ CONFIG_KEYS: tuple[str, ...] = ("T_s", "K_M", "T_Ei", "encoder_counts", "M_N", "
 #: Identification warning codes that make the elastic parameters uncertain (rule R7c widens the spread).
 UNCERTAIN_CODES: frozenset[str] = frozenset({"unlike_training_data", "oscillation_below_quantum", "refine_partial_fit",
                                              "implausible_output", "drive_outside_training", "outside_envelope",
-                                             "class_undecided"})
+                                             "class_undecided", "backlash_from_angle"})
 #: Identification warning codes that say the oscillation is not determined at all (rule R7b as for ``stiff``).
 UNDETERMINED_CODES: frozenset[str] = frozenset({"refine_partial_fit", "oscillation_below_quantum"})
 

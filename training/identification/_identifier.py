@@ -27,6 +27,7 @@ from sim import CLASS_THRESHOLDS, STRUCTURE_CLASSES, Record, class_index, two_ma
 from training.config import blas_threads, checkpoints_folder
 from training.errors import one_line
 from training.identification._analysis import FEATURE_NAMES, Analysis, analyze
+from training.identification._angle import HiddenGap, find_hidden_gap
 from training.identification._batch import analysis_outcome, answered_files
 from training.identification._envelope import Envelope, Finding, envelope_warnings, trained_envelope
 from training.identification._limits import (BACKLASH_NEGLIGIBLE, backlash_resolution, implausible, impossible,
@@ -201,8 +202,17 @@ class Identifier:
             problems = [self._problem(analyses[i], answers[i]) for i in todo]
             for i, r in zip(todo, refine(problems, self.refine)):
                 refined[i] = r
-        return [self._result(a, m, r, f, name)
-                for a, m, r, f, name in zip(analyses, answers, refined, drive_findings, names)]
+        results = [self._result(a, m, r, f, name)
+                   for a, m, r, f, name in zip(analyses, answers, refined, drive_findings, names)]
+        if self.refine is not None:
+            # a stiff answer on a record whose resolution could hide a backlash: the angle may show it
+            hidden = [i for i, (a, res) in enumerate(zip(analyses, results))
+                      if res.structure == "stiff" and _hides_backlash(a) and not a.fit.warnings]
+            for i in hidden:
+                gap = find_hidden_gap(self._problem(analyses[i], answers[i]), self.refine)
+                if gap is not None:
+                    results[i] = self._result(analyses[i], answers[i], refined[i], drive_findings[i], names[i], gap)
+        return results
 
     def _recall(self, analyses: Sequence[Analysis]) -> list[_MapsAnswer]:
         """The maps' answer per analysis (one batched recall per map)."""
@@ -246,12 +256,19 @@ class Identifier:
 
     # -- the result, assembled once ---------------------------------------------------------------
     def _result(self, a: Analysis, m: _MapsAnswer, r: Refined | None, drive_findings: list[Finding],
-                name: str | None) -> IdentificationResult:
+                name: str | None, gap: HiddenGap | None = None) -> IdentificationResult:
+        """The result of one record from the maps' answer ``m``, the refinement's ``r`` and, where
+        the angle showed a gap the speed hides, that ``gap`` (it decides the answer)."""
         warnings = list(a.warnings) + self._maps_warnings(a, m)
         structure, parameters = m.structure, self._maps_parameters(a, m)
         maps_model = (a.fit.J_sigma, m.V_J, m.f_e, m.d, m.s_N)  # of which the class rule speaks
         models = [(maps_model, "")]
-        if r is not None:
+        if gap is not None:
+            structure, parameters = self._refined_parameters(a, gap)
+            angle_model = (parameters.J_sigma, gap.V_J, gap.f_e, gap.d, gap.s_N)
+            models = [(angle_model, ""), (maps_model, " (the maps' estimate)")]
+            warnings.append(_from_angle(gap))
+        elif r is not None:
             refined_structure, refined_parameters = self._refined_parameters(a, r)
             if refined_structure == m.structure or r.evidence >= CLASS_EVIDENCE or r.J_sigma is not None:
                 structure, parameters = refined_structure, refined_parameters
@@ -267,7 +284,7 @@ class Identifier:
         parameters, impossible_warnings = impossible(parameters)
         warnings += impossible_warnings + implausible(parameters, T_s=a.T_s, T_Ei=a.T_Ei, travel=travel(a.fit.speed, a.T_s),
                                                       J_sigma_one_mass=a.fit.J_sigma)
-        parameters, bound, bound_warnings = _backlash_bound(a, parameters)
+        parameters, bound, bound_warnings = _backlash_bound(a, parameters, structure)
         warnings += bound_warnings + _near_threshold(a, models, parameters)
         quality = Quality(
             structure_probabilities=m.probabilities, map_distance_ratio=m.distance_ratio, osc_quanta=a.osc_quanta,
@@ -275,8 +292,10 @@ class Identifier:
             outside_training=m.outside_training or any("trained" in f.outside for f in drive_findings),
             section_flags=a.section_flags, maps_estimate={"f_e": m.f_e, "V_J": m.V_J, "d": m.d, "s_N": m.s_N},
             outside_envelope={f.quantity: f.to_dict() for f in findings}, backlash_upper_bound=bound,
-            **({} if r is None else dict(maps_structure=m.structure, refine_residual=r.residual,
-                                         refine_start_residual=r.start_residual, refined_s_N=r.s_N)))
+            **({} if r is None else dict(refine_residual=r.residual, refine_start_residual=r.start_residual,
+                                         refined_s_N=r.s_N)),
+            **({} if r is None and gap is None else dict(maps_structure=m.structure)),
+            **({} if gap is None else dict(angle_ratio=gap.angle_ratio)))
         return IdentificationResult(structure, parameters, quality, tuple(warnings), name)
 
     def _maps_parameters(self, a: Analysis, m: _MapsAnswer) -> Parameters:
@@ -290,7 +309,7 @@ class Identifier:
             one_mass["backlash"] = 2.0 * m.s_N_backlash * a.M_N / dv.C_F
         return Parameters(**one_mass, f_e=m.f_e, V_J=m.V_J, d=m.d, J_M=dv.J_M, J_L=dv.J_L, C_F=dv.C_F)
 
-    def _refined_parameters(self, a: Analysis, r: Refined) -> tuple[str, Parameters]:
+    def _refined_parameters(self, a: Analysis, r: Refined | HiddenGap) -> tuple[str, Parameters]:
         """The refined elastic parameters and backlash width; the structure follows SPEC's class
         rule on the refined values (the maps' class and estimate stay in ``quality``). A ``stiff``
         result keeps the one-mass answer. ``J_sigma``, ``M_FC``: the whole-record fit's where STEP
@@ -320,6 +339,13 @@ def _undecided(maps: str, refined: str, evidence: float) -> IdentWarning:
     return IdentWarning("class_undecided", f"the record does not decide between {maps} (the maps' answer, kept) and "
                                            f"{refined} (the refinement's: the evidence of its better fit is "
                                            f"{evidence:.3g}, below {CLASS_EVIDENCE:g})")
+
+
+def _from_angle(gap: HiddenGap) -> IdentWarning:
+    return IdentWarning("backlash_from_angle", f"the backlash shows in the motor's angle only (its angle error is "
+                                               f"{gap.angle_ratio:.2f} x that of the best model without a gap); the "
+                                               "speed's quantization hides it: structure and width rest on a few "
+                                               "encoder counts")
 
 
 def _below_quantum(a: Analysis) -> IdentWarning:
@@ -356,18 +382,26 @@ def _mechanics_quantities(a: Analysis, p: Parameters) -> dict[str, float | None]
             "M_FC_over_M_star": None if p.M_FC is None else p.M_FC / a.M_star}
 
 
-def _backlash_bound(a: Analysis, p: Parameters) -> tuple[Parameters, float | None, list[IdentWarning]]:
-    """Where the record cannot show a backlash of the width that matters (:mod:`._limits`): ``p``
-    without a width (``None`` instead of 0 or an unresolved value), the upper bound and a warning."""
+def _backlash_bound(a: Analysis, p: Parameters, structure: str) -> tuple[Parameters, float | None, list[IdentWarning]]:
+    """Where the record cannot show a backlash of the width that matters (:mod:`._limits`): the
+    upper bound and a warning; ``p`` without a width (``None`` instead of 0 or a width the class
+    calls negligible), unless ``structure`` has a backlash: its width stands, with the warning that
+    it is uncertain (of 28 such widths on the drive matrix and 40 envelope drives, 23 came out
+    within 30 %)."""
     if p.J_sigma is None:
         return p, None, []
     bound = backlash_resolution(a.q_w, a.drive.q_phi, p.J_sigma, a.M_star, p.V_J)
     if bound <= BACKLASH_NEGLIGIBLE or (p.backlash is not None and p.backlash >= bound):
         return p, None, []
+    where = f"in this record (encoder {a.encoder_counts} counts, T_s {a.T_s:.3g} s)"
+    if structure in _BACKLASH_CLASSES and p.backlash:
+        return p, bound, [IdentWarning(
+            "backlash_below_resolution", f"the backlash of {p.backlash:.3g} rad ({math.degrees(p.backlash):.3g} deg) "
+                                         f"is narrower than what shows reliably {where}, {bound:.3g} rad "
+                                         f"({math.degrees(bound):.3g} deg): its width is uncertain")]
     return replace(p, backlash=None), bound, [IdentWarning(
         "backlash_below_resolution", f"a backlash up to {bound:.3g} rad ({math.degrees(bound):.3g} deg) would not show "
-                                     f"in this record (encoder {a.encoder_counts} counts, T_s {a.T_s:.3g} s): backlash "
-                                     "not identified, at most that wide")]
+                                     f"{where}: backlash not identified, at most that wide")]
 
 
 def _refine_warnings(r: Refined, structure: str) -> list[IdentWarning]:

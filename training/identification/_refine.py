@@ -114,7 +114,11 @@ class RefineConfig:
     softer than it looks), ``V_J`` and ``M_FC`` around the chosen model and around the maps'
     answer, then ``free_rounds`` rounds (``free_spread``: the first spread of the two new
     coordinates). The free model replaces the chosen one only when its plain squared error is
-    below ``free_win`` times the chosen one's (with STEP 2's ``J_sigma`` and ``M_FC``)."""
+    below ``free_win`` times the chosen one's (with STEP 2's ``J_sigma`` and ``M_FC``).
+
+    Angle (:mod:`training.identification._angle`, run by the identifier where the answer is
+    ``stiff`` on a record whose resolution could hide a backlash): models with and without a gap
+    compete on the whole record's angle error, ``angle_rounds`` cross-entropy rounds on each side."""
 
     grid_f_e: int = 11  # explore: eigenfrequencies of the first grid
     grid_s_N: tuple[float, ...] = (0.0, 0.05, 0.3, 1.0, 3.0)  # explore: s_N of the first grid (0: the start's)
@@ -144,6 +148,7 @@ class RefineConfig:
     free_rounds: int = 5  # free one-mass part: cross-entropy rounds
     free_spread: tuple[float, float] = (0.1, 0.1)  # free one-mass part: first spread of log10 J_sigma, M_FC
     free_win: float = 0.25  # free one-mass part: error ratio it must beat
+    angle_rounds: int = 4  # angle: cross-entropy rounds on each side of the class threshold
     seed: int = 0  # every search starts from this seed
 
 
@@ -498,9 +503,9 @@ def refine(problems: list[RefineProblem], config: RefineConfig | None = None) ->
     replay)."""
     config = config or RefineConfig()
     if (config.elites < 2 or config.candidates < config.elites or config.rounds < 0 or config.window_periods <= 0
-            or config.window_samples < 0 or config.polish_iterations < 0):
-        raise ValueError(f"RefineConfig: expected rounds >= 0, polish_iterations >= 0, window_periods > 0, "
-                         f"window_samples >= 0 and candidates >= elites >= 2, received {config}")
+            or config.window_samples < 0 or config.polish_iterations < 0 or config.angle_rounds < 0):
+        raise ValueError(f"RefineConfig: expected rounds >= 0, polish_iterations >= 0, angle_rounds >= 0, "
+                         f"window_periods > 0, window_samples >= 0 and candidates >= elites >= 2, received {config}")
     rngs = [np.random.default_rng(config.seed) for _ in problems]
     explored = _explore_all(problems, config, rngs)
     finalists = [f for f, _ in explored]

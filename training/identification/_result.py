@@ -44,7 +44,10 @@ WARNING_CODES: dict[str, str] = {
     "run_aborted": "the drive aborted the run at a limit (metadata aborted: true)",
     "drive_outside_training": "a drive or test value lies outside what the maps were trained on",
     "outside_envelope": "a drive, test or identified value lies outside SPEC 3.1's drive envelope",
-    "backlash_below_resolution": "a backlash narrower than the encoder resolves may hide: an upper bound is given",
+    "backlash_below_resolution": "a backlash narrower than the encoder resolves may hide, or its width is "
+                                 "uncertain: an upper bound is given",
+    "backlash_from_angle": "the backlash shows in the motor's angle only, not in its speed (a coarse encoder): "
+                           "structure and width rest on a few encoder counts",
     "class_undecided": "the refinement's class fits the record no better than the maps' one (within the record's "
                        "noise): the maps' answer stands, the other class is about as likely",
     "class_near_threshold": "a quantity of the class rule lies near its threshold: the neighbouring class is about "
@@ -99,6 +102,7 @@ class Quality:
     refine_residual: float | None = None  # refined model's detrended speed error over the oscillation
     refine_start_residual: float | None = None  # the same for the maps' answer
     refined_s_N: float | None = None  # the refined normalized backlash
+    angle_ratio: float | None = None  # where the angle showed a gap: its angle error over the best gapless model's
     backlash_upper_bound: float | None = None  # [rad] the widest backlash the record cannot show, where it matters
 
     def to_dict(self) -> dict[str, Any]:

@@ -150,6 +150,18 @@ def test_a_backlash_the_low_resolution_encoder_cannot_show_is_bounded(ident):
     assert backlash_resolution(DriveConfig().q_w, DriveConfig().q_phi, 0.05, 10.0) < math.radians(0.01)
 
 
+def test_a_backlash_the_refinement_finds_below_the_resolution_keeps_its_width(ident):
+    """2^13 counts at 1 ms: a 0.12 degree backlash leads the motor by 1.1 counts, below the 2 counts
+    the resolution asks for; the refinement still finds it (``stiff_backlash``), so its width is
+    reported, with the bound and a warning that it is uncertain (it used to be ``None``)."""
+    drive = DriveConfig(T_s=1e-3, T_Ei=1e-3, encoder_counts=2**13)
+    res = ident.identify(_record(drive, J_sigma=0.02, V_J=2.0, f_e=400.0, d=0.05, backlash=math.radians(0.12)))
+    assert res.structure == "stiff_backlash"
+    assert res.parameters.backlash == pytest.approx(math.radians(0.12), rel=0.3)
+    assert res.quality.backlash_upper_bound > res.parameters.backlash
+    assert "backlash_below_resolution" in _codes(res)
+
+
 @pytest.mark.parametrize("keep_w_max", [True, False])
 def test_sections_survive_a_current_noise_of_20_percent_of_M_star(keep_w_max):
     for seed, plant in enumerate([{}, dict(f_e=150.0, backlash=0.0, J_sigma=0.1)]):
