@@ -5,9 +5,9 @@ speed: the speed is a difference of counts, its quantization noise (``q_w / sqrt
 fills every sample, and the crossing is a pulse of a sample or two. The angle, the running sum of
 the speed, keeps it: after each torque reversal the motor runs ahead of the one-mass motion by
 ``2s V_J / (1 + V_J)`` for the whole section, hundreds of samples, while the angle's quantization
-error stays below one count. Measured on the 2^13-count 1 ms drive of the matrix: gaps the
-refinement answered ``stiff`` with a lead of 1.6-3.2 counts score 0.6-0.8 x on the angle error of
-the best model without a gap.
+error stays below one count. Measured on the 2^13-count 1 ms drive of the matrix (seed 7): the
+gaps the speed refinement answered ``stiff`` with a lead of 1.6-3.2 counts score 0.65-0.85 x the
+angle error of the best model without a gap.
 
 :func:`find_hidden_gap` lets models with and without a gap compete on the angle error, each side
 with its own search, and returns the gap model where it wins clearly. The angle error is the
