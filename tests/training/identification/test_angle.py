@@ -5,10 +5,10 @@ import math
 import numpy as np
 import pytest
 
-from sim import DriveConfig, TestSignalConfig, TwoMassParams
+from sim import DriveConfig, TestSignalConfig, TwoMassParams, responses_to_records, simulate_test
+from training.identification import Identifier
 from training.identification._angle import _angle_energy, angle_basis, find_hidden_gap
 from training.identification._refine import RefineConfig, _trend_basis
-from training.identification import Identifier
 
 from _refine_problems import refine_problem
 
@@ -65,8 +65,6 @@ def test_the_identifier_answers_a_gap_from_the_angle_with_a_warning():
     """The maps and the speed's refinement answered this shaft ``stiff``, unwarned but for the
     resolution's bound; the angle shows its gap: ``stiff_backlash`` with its width and the warning
     that it rests on a few encoder counts."""
-    from sim import responses_to_records, simulate_test
-
     ident = Identifier.load()
     signal = TestSignalConfig()
 
