@@ -26,13 +26,14 @@ from dataclasses import dataclass
 import numpy as np
 
 from sim import S_N_ELASTIC
+from training.identification._envelope import SPEC_ENVELOPE
 from training.identification._refine import (_HIGH, _LOW, RefineConfig, RefineProblem, _answer, _cem, _drive, _run,
                                              _simulate, _trend_basis)
 
 __all__ = ["HiddenGap", "angle_basis", "find_hidden_gap"]
 
 #: The first grid: eigenfrequencies from SPEC 3.1's lowest to 4 x the current loop's bandwidth
-#: (``GRID_F_E`` of them, log spaced), ``V_J`` over SPEC 3.1's range, normalized backlash values.
+#: (``GRID_F_E`` of them, log spaced), ``V_J`` over SPEC 3.1's range 0.2 .. 5, normalized backlash values.
 GRID_F_E = 12
 GRID_V_J: tuple[float, ...] = (0.2, 0.45, 1.0, 2.2, 5.0)
 GRID_S_N: tuple[float, ...] = (1e-3, 0.03, 0.1, 0.3, 1.0, 3.0, 10.0, 30.0, 100.0)
@@ -50,8 +51,8 @@ ANGLE_SAMPLES = 4000
 @dataclass(frozen=True)
 class HiddenGap:
     """The gap model found in the angle: ``f_e`` [Hz], ``V_J``, ``d``, ``s_N``, ``backlash`` = ``2s``
-    [rad]; ``angle_ratio``, its angle error over that of the best model without a gap;
-    ``n_sims`` simulated models. ``J_sigma``, ``M_FC``: None (STEP 2's stand)."""
+    [rad]; ``angle_ratio``, its angle error over that of the best model without a gap.
+    ``J_sigma``, ``M_FC``: None (STEP 2's stand)."""
 
     f_e: float
     V_J: float
@@ -59,7 +60,6 @@ class HiddenGap:
     s_N: float
     backlash: float
     angle_ratio: float
-    n_sims: int
     J_sigma: None = None
     M_FC: None = None
 
@@ -109,7 +109,7 @@ def find_hidden_gap(p: RefineProblem, config: RefineConfig) -> HiddenGap | None:
                                for k in chunks]), theta
 
     bandwidth = 1.0 / (2.0 * math.pi * p.T_Ei)
-    f_e = np.geomspace(5.0, min(4.0 * bandwidth, 10.0 ** _HIGH[0]), GRID_F_E)
+    f_e = np.geomspace(SPEC_ENVELOPE["f_e"][0], min(4.0 * bandwidth, 10.0 ** _HIGH[0]), GRID_F_E)
     grid = np.array([[math.log10(f), math.log10(v), GRID_D, math.log10(s)]
                      for f, v, s in itertools.product(f_e, GRID_V_J, GRID_S_N)])  # G x 4
     cost, _ = score(grid)
@@ -129,5 +129,4 @@ def find_hidden_gap(p: RefineProblem, config: RefineConfig) -> HiddenGap | None:
     s_N = float(10.0 ** theta[3])
     if ratio >= ANGLE_WIN or s_N < S_N_CLEAR * S_N_ELASTIC:
         return None
-    return HiddenGap(**_answer(p, theta, s_N), angle_ratio=ratio,
-                     n_sims=len(grid) + 2 * config.angle_rounds * config.candidates)
+    return HiddenGap(**_answer(p, theta, s_N), angle_ratio=ratio)

@@ -292,10 +292,9 @@ class Identifier:
             outside_training=m.outside_training or any("trained" in f.outside for f in drive_findings),
             section_flags=a.section_flags, maps_estimate={"f_e": m.f_e, "V_J": m.V_J, "d": m.d, "s_N": m.s_N},
             outside_envelope={f.quantity: f.to_dict() for f in findings}, backlash_upper_bound=bound,
-            **({} if r is None else dict(refine_residual=r.residual, refine_start_residual=r.start_residual,
-                                         refined_s_N=r.s_N)),
-            **({} if r is None and gap is None else dict(maps_structure=m.structure)),
-            **({} if gap is None else dict(angle_ratio=gap.angle_ratio)))
+            **({} if r is None else dict(maps_structure=m.structure, refine_residual=r.residual,
+                                         refine_start_residual=r.start_residual, refined_s_N=r.s_N)),
+            **({} if gap is None else dict(angle_ratio=gap.angle_ratio)))  # only refined records are checked in the angle
         return IdentificationResult(structure, parameters, quality, tuple(warnings), name)
 
     def _maps_parameters(self, a: Analysis, m: _MapsAnswer) -> Parameters:

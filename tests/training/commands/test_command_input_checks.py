@@ -97,7 +97,6 @@ def test_an_unreadable_shard_is_named(tmp_path, capsys):
              str(tmp_path / "shard_00000.npz"))
 
 
-
 @pytest.mark.parametrize("stray", ["npy", "empty"])
 def test_a_stray_shard_that_is_no_archive_is_named(tmp_path, capsys, stray):
     from training.learning import GenerateConfig
@@ -109,6 +108,7 @@ def test_a_stray_shard_that_is_no_archive_is_named(tmp_path, capsys, stray):
             np.save(f, np.zeros(3))
     _refused(["train", "--data", str(tmp_path), "--out", str(tmp_path / "ck"), "--no-progress"], capsys,
              str(tmp_path / "shard_00000.npz"), "not a readable dataset shard")
+
 
 def test_a_failed_generate_leaves_no_dataset_json(tmp_path, capsys, monkeypatch):
     import training.learning._dataset as dataset
