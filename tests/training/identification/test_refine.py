@@ -79,3 +79,7 @@ def test_bad_config_is_rejected():
         refine([], RefineConfig(candidates=4, elites=8))
     with pytest.raises(ValueError, match="window_samples >= 0"):
         refine([], RefineConfig(window_samples=-1))
+    with pytest.raises(ValueError, match="rescue_grid_f_e >= 1"):
+        refine([], RefineConfig(rescue_grid_f_e=0))
+    with pytest.raises(ValueError, match="far_rounds"):
+        refine([], RefineConfig(far_rounds=-1))

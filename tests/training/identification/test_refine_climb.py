@@ -31,6 +31,18 @@ def test_a_stiff_shaft_with_a_wide_gap_gets_its_width_from_a_start_4x_too_soft()
     assert abs(refine([p])[0].backlash / 3.31e-3 - 1) < 0.2  # both
 
 
+def test_the_climb_replaces_the_soft_narrow_exploration_when_it_wins():
+    # f_e 497 Hz, V_J 0.72, s_N 11 (large axis, seed 11, held out); the maps' answer f_e 108 Hz.
+    # Where the climb's best models only joined the first exploration's as finalists, the
+    # whole-record choice, needle-sharp for a lightly damped shaft rattling in its gap, kept the
+    # first's soft, narrow model: f_e 174 Hz, the width 0.56 x
+    true = TwoMassParams(J_sigma=0.860, V_J=0.719, f_e=497.3, d=0.0154, backlash=2.24e-3, M_FC=7.74, mu_F=0.054)
+    p = _problem(true, [math.log10(108.5), math.log10(0.57), 0.0471, -2.925])
+    out, without = refine([p])[0], refine([p], NO_CLIMB)[0]
+    assert abs(out.backlash / 2.24e-3 - 1) < 0.3 < abs(without.backlash / 2.24e-3 - 1)
+    assert out.f_e > 2.0 * without.f_e
+
+
 def test_no_climb_where_the_start_lies_far_below_the_current_loops_bandwidth():
     # f_e 40 Hz on a 106 Hz current loop, the start 20 % off: below climb_above x the bandwidth
     true = TwoMassParams(J_sigma=0.5, V_J=2.0, f_e=40.0, d=0.03, backlash=4e-3, M_FC=2.0, mu_F=0.0)
