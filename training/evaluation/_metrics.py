@@ -27,12 +27,14 @@ def finite_or_none(x: Any) -> float | None:
 
 
 def relative_error(estimate: np.ndarray, truth: np.ndarray) -> np.ndarray:
-    """``|estimate - truth| / |truth|`` (``N``); NaN where the estimate is missing."""
+    """``|estimate - truth| / |truth|`` (``N``); NaN where the estimate is missing, inf or NaN where
+    the truth is 0 (a system without the quantity: the figures leave it out)."""
     estimate = np.asarray(estimate, dtype=float)
     truth = np.asarray(truth, dtype=float)
     if estimate.shape != truth.shape:
         raise ValueError(f"relative_error: shapes differ, estimate {estimate.shape} vs truth {truth.shape}")
-    return np.abs(estimate - truth) / np.abs(truth)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.abs(estimate - truth) / np.abs(truth)
 
 
 def recognized(errors: Mapping[str, np.ndarray], x_percent: float,

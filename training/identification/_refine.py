@@ -81,7 +81,8 @@ class RefineConfig:
     ridge from the first's best up to 10 x its ``f_e``), then ``far_rounds`` rounds. Where its
     exploring error is below ``switch_win`` x the first's (a clear win only: a narrow one added
     false gaps on stiff shafts of a coarse drive), it replaces the first exploration: its elites
-    become the finalists, and the rattle starts from its best. (Its best models joining the first's
+    become the finalists, and the rattle starts from its best; where it loses, the answer is the one
+    without it (it draws from a random stream of its own). (Its best models joining the first's
     elites as finalists was not enough: the whole-record error of a lightly damped shaft rattling
     in its gap is needle-sharp, +-5 % in ``f_e`` scores like no fit at all, and the near-true
     models of the climb lost the choice to the first's soft, narrow ones; large axis, held-out
@@ -531,9 +532,9 @@ def refine(problems: list[RefineProblem], config: RefineConfig | None = None) ->
     if (config.elites < 2 or config.candidates < config.elites or config.rounds < 0 or config.window_periods <= 0
             or config.window_samples < 0 or config.polish_iterations < 0 or config.angle_rounds < 0
             or config.far_rounds < 0 or min(config.grid_f_e, config.climb_grid_f_e, config.rescue_grid_f_e) < 1):
-        raise ValueError(f"RefineConfig: expected rounds, far_rounds, polish_iterations, angle_rounds >= 0, "
-                         f"grid_f_e, climb_grid_f_e, rescue_grid_f_e >= 1, window_periods > 0, window_samples >= 0 "
-                         f"and candidates >= elites >= 2, received {config}")
+        raise ValueError(f"RefineConfig: expected rounds >= 0, far_rounds >= 0, polish_iterations >= 0, "
+                         f"angle_rounds >= 0, grid_f_e >= 1, climb_grid_f_e >= 1, rescue_grid_f_e >= 1, "
+                         f"window_periods > 0, window_samples >= 0 and candidates >= elites >= 2, received {config}")
     rngs = [np.random.default_rng(config.seed) for _ in problems]
     explored = _explore_all(problems, config, rngs)
     finalists = [f for f, _ in explored]
@@ -618,8 +619,7 @@ def _explore(p: RefineProblem, windows: _ScoreWindows, config: RefineConfig,
     explored = len(cost)
     finalists = [theta0[None]]
     if _rescues(p, windows, float(cost.min()), config):
-        own = np.random.default_rng([config.seed, 1])  # where it loses, the searches after it run as without it
-        theta_g, cost_g = yield from _tagged(_survey(p, theta0, config, own), False)
+        theta_g, cost_g = yield from _tagged(_survey(p, theta0, config, _own_rng(config, 1)), False)
         explored += len(cost_g)
         if cost_g.min() < config.switch_win * cost.min():
             finalists.append(theta[np.argsort(cost)[: config.elites]])
@@ -630,7 +630,7 @@ def _explore(p: RefineProblem, windows: _ScoreWindows, config: RefineConfig,
         up[0] += config.climb
         up[3] += math.log10(float(p.C_F(up) / p.C_F(best)))  # the same width 2s = 2 s_N M_N / C_F
         far = replace(config, grid_f_e=config.climb_grid_f_e, grid_span=config.climb_span, rounds=config.far_rounds)
-        theta_up, cost_up = yield from _tagged(_search(np.clip(up, _LOW, _HIGH), far, rng), False)
+        theta_up, cost_up = yield from _tagged(_search(np.clip(up, _LOW, _HIGH), far, _own_rng(config, 2)), False)
         explored += len(cost_up)
         if cost_up.min() < config.switch_win * cost.min():
             theta, cost = theta_up, cost_up
@@ -646,6 +646,12 @@ def _explore(p: RefineProblem, windows: _ScoreWindows, config: RefineConfig,
         explored += len(cost_r)
         finalists.append(theta_r[np.argsort(cost_r)[: config.rattle_finalists]])
     return np.concatenate(finalists), explored
+
+
+def _own_rng(config: RefineConfig, stage: int) -> np.random.Generator:
+    """The random stream of an optional stage (1: rescue, 2: climb), apart from the exploration's:
+    where the stage loses, the searches after it draw what they would have drawn without it."""
+    return np.random.default_rng([config.seed, stage])
 
 
 def _tagged(search: Search, led: bool) -> TaggedSearch:
