@@ -19,7 +19,6 @@ for a whole section is not.
 
 from __future__ import annotations
 
-import itertools
 import math
 from dataclasses import dataclass
 
@@ -27,8 +26,8 @@ import numpy as np
 
 from sim import S_N_ELASTIC
 from training.identification._envelope import SPEC_ENVELOPE
-from training.identification._refine import (_HIGH, _LOW, RefineConfig, RefineProblem, _answer, _cem, _drive, _run,
-                                             _simulate, _trend_basis)
+from training.identification._refine import (_HIGH, _LOW, RefineConfig, RefineProblem, _answer, _cem, _drive,
+                                             _product_grid, _run, _simulate, _trend_basis)
 
 __all__ = ["HiddenGap", "angle_basis", "find_hidden_gap"]
 
@@ -110,8 +109,7 @@ def find_hidden_gap(p: RefineProblem, config: RefineConfig) -> HiddenGap | None:
 
     bandwidth = 1.0 / (2.0 * math.pi * p.T_Ei)
     f_e = np.geomspace(SPEC_ENVELOPE["f_e"][0], min(4.0 * bandwidth, 10.0 ** _HIGH[0]), GRID_F_E)
-    grid = np.array([[math.log10(f), math.log10(v), GRID_D, math.log10(s)]
-                     for f, v, s in itertools.product(f_e, GRID_V_J, GRID_S_N)])  # G x 4
+    grid = _product_grid(f_e, GRID_V_J, GRID_D, [math.log10(s) for s in GRID_S_N])  # G x 4, ordered by f_e
     cost, _ = score(grid)
     threshold = math.log10(S_N_ELASTIC)
     best: list[tuple[np.ndarray, float]] = []

@@ -190,6 +190,7 @@ class Identifier:
         answers = self._recall(analyses)
         drive_findings = [self.envelope.check(_drive_quantities(a)) for a in analyses]
         refined: list[Refined | None] = [None] * len(analyses)
+        problems: dict[int, RefineProblem] = {}  # the refined records' problems, by index
         if self.refine is not None:
             # stiff answers are refined too where the oscillation shows above the quantization
             # (near the w_e T_Ei = 1 threshold the maps' f_e decides the class), where the drive
@@ -199,17 +200,18 @@ class Identifier:
             todo = [i for i, (a, m, f) in enumerate(zip(analyses, answers, drive_findings))
                     if m.structure != "stiff" or a.osc_quanta >= 1.0 or f or _hides_backlash(a)
                     or m.probabilities["stiff"] < STIFF_SURE]
-            problems = [self._problem(analyses[i], answers[i]) for i in todo]
-            for i, r in zip(todo, refine(problems, self.refine)):
+            problems = {i: self._problem(analyses[i], answers[i]) for i in todo}
+            for i, r in zip(problems, refine(list(problems.values()), self.refine)):
                 refined[i] = r
         results = [self._result(a, m, r, f, name)
                    for a, m, r, f, name in zip(analyses, answers, refined, drive_findings, names)]
         if self.refine is not None:
-            # a stiff answer on a record whose resolution could hide a backlash: the angle may show it
-            hidden = [i for i, (a, res) in enumerate(zip(analyses, results))
-                      if res.structure == "stiff" and _hides_backlash(a) and not a.fit.warnings]
+            # a stiff answer on a record whose resolution could hide a backlash (so it was refined):
+            # the angle may show it
+            hidden = [i for i in problems
+                      if results[i].structure == "stiff" and _hides_backlash(analyses[i]) and not analyses[i].fit.warnings]
             for i in hidden:
-                gap = find_hidden_gap(self._problem(analyses[i], answers[i]), self.refine)
+                gap = find_hidden_gap(problems[i], self.refine)
                 if gap is not None:
                     results[i] = self._result(analyses[i], answers[i], refined[i], drive_findings[i], names[i], gap)
         return results

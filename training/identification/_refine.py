@@ -21,7 +21,7 @@ from __future__ import annotations
 import functools
 import itertools
 import math
-from collections.abc import Callable, Generator, Iterator
+from collections.abc import Callable, Generator, Iterator, Sequence
 from dataclasses import dataclass, replace
 from typing import Any
 
@@ -674,6 +674,12 @@ def _search(theta0: np.ndarray, config: RefineConfig, rng: np.random.Generator) 
     return (yield from _cem(theta, cost, config.rounds, np.asarray(config.spread, dtype=np.float64), config, rng))
 
 
+def _product_grid(f_e: Sequence[float], V_J: Sequence[float], d: float, log10_s_N: Sequence[float]) -> np.ndarray:
+    """Every combination of the eigenfrequencies ``f_e`` [Hz], inertia ratios ``V_J`` and
+    ``log10_s_N`` at damping ``d``, as models over :data:`COORDINATES` ``G x 4`` (``f_e`` slowest)."""
+    return np.array([[math.log10(f), math.log10(v), d, s] for f, v, s in itertools.product(f_e, V_J, log10_s_N)])
+
+
 def _grid_s_N(theta0: np.ndarray, config: RefineConfig) -> list[float]:
     """log10 ``s_N`` of the grids: ``config.grid_s_N``, its 0 standing for the start's (``theta0``)."""
     return [math.log10(v) if v > 0 else float(theta0[3]) for v in config.grid_s_N]
@@ -690,9 +696,8 @@ def _survey(p: RefineProblem, theta0: np.ndarray, config: RefineConfig, rng: np.
     """The rescue's search over the whole range (see :class:`RefineConfig`), ``d`` and the
     start's ``s_N`` from ``theta0`` (4); returns every scored model and its cost."""
     f_e = np.geomspace(SPEC_ENVELOPE["f_e"][0], min(10.0 ** _HIGH[0], 0.5 / p.T_s), config.rescue_grid_f_e)
-    grid = np.array([[math.log10(f), math.log10(v), theta0[2], s]
-                     for f, v, s in itertools.product(f_e, config.rescue_V_J, _grid_s_N(theta0, config))])  # G x 4
-    cost, theta = yield np.clip(grid, _LOW, _HIGH)
+    cost, theta = yield np.clip(_product_grid(f_e, config.rescue_V_J, float(theta0[2]), _grid_s_N(theta0, config)),
+                                _LOW, _HIGH)
     return (yield from _cem(theta, cost, config.far_rounds, np.asarray(config.spread, dtype=np.float64), config, rng))
 
 
