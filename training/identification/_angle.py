@@ -51,7 +51,7 @@ ANGLE_SAMPLES = 4000
 class HiddenGap:
     """The gap model found in the angle: ``f_e`` [Hz], ``V_J``, ``d``, ``s_N``, ``backlash`` = ``2s``
     [rad]; ``angle_ratio``, its angle error over that of the best model without a gap.
-    ``J_sigma``, ``M_FC``: None (STEP 2's stand)."""
+    ``J_sigma``, ``M_FC``, ``mu_F``: None (STEP 2's stand)."""
 
     f_e: float
     V_J: float
@@ -61,6 +61,7 @@ class HiddenGap:
     angle_ratio: float
     J_sigma: None = None
     M_FC: None = None
+    mu_F: None = None
 
 
 def angle_basis(segments: np.ndarray, N: int, stride: int = 1) -> np.ndarray:

@@ -313,13 +313,14 @@ class Identifier:
     def _refined_parameters(self, a: Analysis, r: Refined | HiddenGap) -> tuple[str, Parameters]:
         """The refined elastic parameters and backlash width; the structure follows SPEC's class
         rule on the refined values (the maps' class and estimate stay in ``quality``). A ``stiff``
-        result keeps the one-mass answer. ``J_sigma``, ``M_FC``: the whole-record fit's where STEP
-        2's was not trusted."""
+        result keeps the one-mass answer. ``J_sigma``, ``M_FC``, ``mu_F``: the whole-record fit's
+        where STEP 2's was not trusted."""
         fit = a.fit
-        J_sigma, M_FC = (fit.J_sigma, max(fit.M_FC, 0.0)) if r.J_sigma is None else (r.J_sigma, r.M_FC)
+        J_sigma, M_FC, mu_F = ((fit.J_sigma, max(fit.M_FC, 0.0), max(fit.mu_F, 0.0)) if r.J_sigma is None
+                               else (r.J_sigma, r.M_FC, r.mu_F))
         dv = two_mass_derived(J_sigma, r.V_J, r.f_e, r.d)
         structure = _spec_class(a, J_sigma, r.V_J, r.f_e, r.d, 0.5 * r.backlash * dv.C_F / a.M_N)
-        one_mass = dict(J_sigma=J_sigma, M_FC=M_FC, mu_F=max(fit.mu_F, 0.0))
+        one_mass = dict(J_sigma=J_sigma, M_FC=M_FC, mu_F=mu_F)
         if structure == "stiff":
             return structure, Parameters(**one_mass, backlash=0.0)
         # the backlash is measured even where the class calls it negligible (elastic)
@@ -408,8 +409,8 @@ def _backlash_bound(a: Analysis, p: Parameters, structure: str) -> tuple[Paramet
 def _refine_warnings(r: Refined, structure: str) -> list[IdentWarning]:
     out = []
     if r.J_sigma is not None:
-        out.append(IdentWarning("one_mass_fit_replaced", "J_sigma and M_FC from the two-mass fit of the whole record "
-                                                         "(the one-mass fit of STEP 2 was not trusted)"))
+        out.append(IdentWarning("one_mass_fit_replaced", "J_sigma, M_FC and mu_F from the two-mass fit of the whole "
+                                                         "record (the one-mass fit of STEP 2 was not trusted)"))
     if r.residual > 0.7 and structure != "stiff":
         out.append(IdentWarning("refine_partial_fit", f"the refined model reproduces only part of the measured "
                                                       f"oscillation (residual {r.residual:.2f} of its rms)"))

@@ -2,9 +2,9 @@
 
 The maps give the structure and a first estimate of ``f_e``, ``V_J``, ``d`` and the normalized
 backlash ``s_N``. This module polishes them on the record itself: candidate two-mass models
-(``J_sigma``, ``M_FC``, ``mu_F`` from STEP 2, unless STEP 2 flags its own fit: see
-:class:`RefineConfig`) are simulated open loop under the record's own
-torque reference (:func:`sim.replay.replay_speed`, many candidates in one batch) and scored by
+(``J_sigma``, ``M_FC``, ``mu_F`` from STEP 2, unless STEP 2 flags its own fit or the test's
+sections are short for the oscillation found: see :class:`RefineConfig`) are simulated open loop
+under the record's own torque reference (:func:`sim.replay.replay_speed`, many candidates in one batch) and scored by
 how well they reproduce the measured motor speed. Before scoring, a quadratic trend per section
 is removed from the speed error: it absorbs the small one-mass errors of STEP 2 (a friction or
 inertia error tilts a section's speed), so the score measures what the maps are about: the
@@ -39,10 +39,10 @@ __all__ = ["RefineConfig", "RefineProblem", "Refined", "torque_reference", "refi
 COORDINATES: tuple[str, ...] = ("log10_f_e", "log10_V_J", "d", "log10_s_N")
 _LOW = np.array([0.0, math.log10(0.05), 0.001, -3.0])
 _HIGH = np.array([math.log10(3000.0), math.log10(20.0), 0.5, 2.0])
-#: With a one-mass fit that STEP 2 flags, two more: log10 J_sigma [kg m^2] and M_FC [Nm].
-FREE_COORDINATES: tuple[str, ...] = COORDINATES + ("log10_J_sigma", "M_FC")
-_LOW_FREE = np.concatenate([_LOW, [-4.0, 0.0]])
-_HIGH_FREE = np.concatenate([_HIGH, [1.0, 5.0]])
+#: Where STEP 2's one-mass part is not trusted, three more: log10 J_sigma [kg m^2], M_FC [Nm] and
+#: mu_F [Nm s/rad], bounded by the record's own scales (:func:`_free_bounds`).
+FREE_COORDINATES: tuple[str, ...] = COORDINATES + ("log10_J_sigma", "M_FC", "mu_F")
+_FREE_J_SIGMA = 2.0  # the free J_sigma within this many decades of STEP 2's
 _NO_GAP = math.log10(2e-3)  # log10 s_N at or below which a model has no gap (the search's floor is 1e-3)
 
 
@@ -125,17 +125,29 @@ class RefineConfig:
     models that were wrong in another way, 1.0-1.7 x). The error is scored on every ``k``-th sample
     only, ``polish_samples_per_period`` per period at the chosen ``f_e`` (a slow mechanic's record
     holds hundreds per period; the replay still runs over every sample). ``s_N`` moves only where
-    the chosen model has a gap; the free stage's models are left alone.
+    the chosen model has a gap. A free stage's model moves over all seven
+    :data:`FREE_COORDINATES` (``polish_free_steps``, relative to the coordinates' scales, see below)
+    on the plain error, as its stage scored it (measured on the fast spindle: without the polish,
+    free models came out with ``V_J`` 10-45 % off where the chosen model's was within 3 %).
 
     Free one-mass part (problems with ``free_one_mass``: STEP 2 flagged its fit, as for very soft
-    mechanics whose test sections are shorter than an oscillation period): ``J_sigma`` and
-    ``M_FC`` join the search (:data:`FREE_COORDINATES`), scored by the plain error over the
-    whole record (an exact replay from rest; nothing to detrend once the one-mass part is
-    fitted): a grid over ``J_sigma`` (x 1/4 .. 4), ``f_e`` (x 1/16 .. 2: such a mechanic is
-    softer than it looks), ``V_J`` and ``M_FC`` around the chosen model and around the maps'
-    answer, then ``free_rounds`` rounds (``free_spread``: the first spread of the two new
-    coordinates). The free model replaces the chosen one only when its plain squared error is
-    below ``free_win`` times the chosen one's (with STEP 2's ``J_sigma`` and ``M_FC``).
+    mechanics whose test sections are shorter than an oscillation period; and wherever the
+    shortest section holds fewer than ``free_periods`` periods of the chosen model: a test whose
+    time scale ``J_sigma w_max / M*`` is a fraction of the period ends before the load follows,
+    and STEP 2's fit, unflagged, reads about the motor's inertia, 0.15-0.2 x ``J_sigma`` on the
+    servo of the drive matrix): ``J_sigma``, ``M_FC`` and ``mu_F`` join the search
+    (:data:`FREE_COORDINATES`), scored by the plain error over the whole record (an exact
+    replay from rest; nothing to detrend once the one-mass part is fitted). Their bounds and
+    steps follow the record's own scales: ``J_sigma`` within 2 decades of STEP 2's, ``M_FC``
+    up to ``M*``, ``mu_F`` up to ``M* / w_max`` (``w_max``: the record's top speed). A grid over
+    ``J_sigma`` (x 1/4 .. 4 in steps of 2^0.5: the whole-record error is needle-sharp, and at
+    steps of 2 the search missed the truth on 1 in 3 such records), ``f_e`` (x 1/16 .. 2: such a
+    mechanic is softer than it looks), ``V_J`` and the friction (STEP 2's, clipped to 10 % of its
+    bound; or 2.5 % of ``M*`` and 1 % of ``M* / w_max``) around the chosen model and around the
+    maps' answer, then ``free_rounds`` rounds (``free_spread``: the first spread of the three new
+    coordinates, in units of their scales 1, ``M*``, ``M* / w_max``). The free model replaces the
+    chosen one only when its plain squared error is below ``free_win`` times the chosen one's
+    (with STEP 2's one-mass values).
 
     Angle (:mod:`training.identification._angle`, run by the identifier where the answer is
     ``stiff`` on a record whose resolution could hide a backlash): models with and without a gap
@@ -172,9 +184,12 @@ class RefineConfig:
     polish_damping: tuple[float, ...] = (1e-2, 1e-1)  # polish: the lambdas tried per iteration
     polish_win: float = 0.5  # polish: replaces the chosen model only below this error ratio
     polish_samples_per_period: float = 16.0  # polish: the error scored on this many samples per period
+    polish_free_steps: tuple[float, float, float] = (1e-3, 1e-3, 1e-3)  # polish: the free stage's three, in scales
     free_rounds: int = 5  # free one-mass part: cross-entropy rounds
-    free_spread: tuple[float, float] = (0.1, 0.1)  # free one-mass part: first spread of log10 J_sigma, M_FC
+    free_spread: tuple[float, float, float] = (0.1, 0.01, 0.01)  # free part: first spread, log10 J_sigma, M_FC / M*,
+    # mu_F w_max / M*
     free_win: float = 0.25  # free one-mass part: error ratio it must beat
+    free_periods: float = 2.0  # free one-mass part: also where a section holds fewer periods of the chosen model
     angle_rounds: int = 4  # angle: cross-entropy rounds on each side of the class threshold
     seed: int = 0  # every search starts from this seed
 
@@ -202,11 +217,11 @@ class RefineProblem:
     free_one_mass: bool = False
 
     def J_sigma_of(self, theta: np.ndarray) -> np.ndarray:
-        """``J_sigma`` [kg m^2] of ``theta`` ``*batch x 4`` (STEP 2's) or ``x 6`` (its own)."""
-        return 10.0 ** theta[..., 4] if theta.shape[-1] == 6 else np.full(theta.shape[:-1], self.J_sigma)
+        """``J_sigma`` [kg m^2] of ``theta`` ``*batch x 4`` (STEP 2's) or ``x 7`` (its own)."""
+        return 10.0 ** theta[..., 4] if theta.shape[-1] > 4 else np.full(theta.shape[:-1], self.J_sigma)
 
     def C_F(self, theta: np.ndarray) -> np.ndarray:
-        """Shaft stiffness [Nm/rad] of ``theta`` ``*batch x 4`` (or ``x 6``)."""
+        """Shaft stiffness [Nm/rad] of ``theta`` ``*batch x 4`` (or ``x 7``)."""
         return sim.two_mass_derived(self.J_sigma_of(theta), 10.0 ** theta[..., 1], 10.0 ** theta[..., 0],
                                     theta[..., 2]).C_F
 
@@ -217,8 +232,8 @@ class Refined:
     ``residual`` and ``start_residual``: the detrended speed error of the refined model and of
     the maps' answer over the measured oscillation (both detrended the same way; about the
     quantization noise over the oscillation for a perfect model), ``dof`` the samples they are
-    taken over less the trends removed; ``n_sims`` simulated models; ``J_sigma``, ``M_FC``:
-    refined one-mass values where the free stage won (else None: STEP 2's stand)."""
+    taken over less the trends removed; ``n_sims`` simulated models; ``J_sigma``, ``M_FC``,
+    ``mu_F``: refined one-mass values where the free stage won (else None: STEP 2's stand)."""
 
     f_e: float
     V_J: float
@@ -231,6 +246,7 @@ class Refined:
     n_sims: int
     J_sigma: float | None = None
     M_FC: float | None = None
+    mu_F: float | None = None
 
     @property
     def evidence(self) -> float:
@@ -292,13 +308,13 @@ def _finite(E: np.ndarray) -> np.ndarray:
 
 
 def _model_values(p: RefineProblem, theta: np.ndarray) -> dict[str, np.ndarray]:
-    """The :data:`sim.PARAM_NAMES` values ``C`` of the candidates ``theta`` ``C x 4`` or ``C x 6``
+    """The :data:`sim.PARAM_NAMES` values ``C`` of the candidates ``theta`` ``C x 4`` or ``C x 7``
     (backlash ``2s = 2 s_N M_N / C_F``)."""
     C = theta.shape[0]
     return {"J_sigma": p.J_sigma_of(theta), "V_J": 10.0 ** theta[:, 1], "f_e": 10.0 ** theta[:, 0], "d": theta[:, 2],
             "backlash": 2.0 * 10.0 ** theta[:, 3] * p.M_N / p.C_F(theta),
-            "M_FC": theta[:, 5] if theta.shape[1] == 6 else np.full(C, max(p.M_FC, 0.0)),
-            "mu_F": np.full(C, max(p.mu_F, 0.0))}
+            "M_FC": theta[:, 5] if theta.shape[1] > 4 else np.full(C, max(p.M_FC, 0.0)),
+            "mu_F": theta[:, 6] if theta.shape[1] > 4 else np.full(C, max(p.mu_F, 0.0))}
 
 
 def _params(values: dict[str, np.ndarray]) -> sim.TwoMassParams:
@@ -745,42 +761,67 @@ def _finish(p: RefineProblem, theta: np.ndarray, cost: np.ndarray, full: list, m
     ``explored`` models before), after the free stage where the problem asks for it."""
     n_sims = explored + len(cost)
     best, best_cost = theta[int(np.argmin(cost))], float(cost.min())
-    if p.free_one_mass:
+    if p.free_one_mass or _short_sections(p, best, config):
         best, n_free = _free_one_mass(p, best, config, rng, _drive(p))
         n_sims += n_free
         best_cost = float(_score(p, best[None], full, _drive(p))[0])
-    free = len(best) == 6
+    free = len(best) > 4
     return Refined(**_answer(p, best, float(10.0 ** best[3])), residual=_relative(best_cost, measured),
                    start_residual=_relative(float(cost[0]), measured), dof=sum(b - a - Q.shape[1] for a, b, Q in full),
                    n_sims=n_sims,
-                   J_sigma=float(10.0 ** best[4]) if free else None, M_FC=float(best[5]) if free else None)
+                   **(_one_mass(best) if free else {}))
+
+
+def _short_sections(p: RefineProblem, theta: np.ndarray, config: RefineConfig) -> bool:
+    """Whether the shortest test section of ``p`` holds fewer than ``config.free_periods`` periods
+    of the model ``theta``'s oscillation (STEP 2's one-mass fit then sees the motor's inertia)."""
+    sections = np.diff(p.start[1:])  # the six sections' lengths [samples]
+    return bool(sections.size and sections.min() * p.T_s * 10.0 ** theta[0] < config.free_periods)
 
 
 def _free_one_mass(p: RefineProblem, best: np.ndarray, config: RefineConfig, rng: np.random.Generator,
                    drive: sim.DriveConfig) -> tuple[np.ndarray, int]:
     """The free stage (see :class:`RefineConfig`): ``best`` (4) or the winner over
-    :data:`FREE_COORDINATES` (6), and the number of simulated models."""
+    :data:`FREE_COORDINATES` (7), and the number of simulated models."""
     plain = lambda th: ((_simulate(p, th, drive) ** 2).sum(0), th)  # noqa: E731
-    one_mass = [math.log10(p.J_sigma), min(max(p.M_FC, 0.0), 1.0)]
+    low, high, scale = _free_bounds(p)
+    one_mass = np.array([math.log10(p.J_sigma), *np.clip([p.M_FC, p.mu_F], 0.0, 0.1 * high[5:])])  # STEP 2's
     start = np.concatenate([best, one_mass])
-    J_f, f_f, V_f, M_v = np.meshgrid(np.log10([1 / 4, 1 / 2, 1.0, 2.0, 4.0]),
-                                     np.log10([1 / 16, 1 / 8, 1 / 4, 1 / 2, 1.0, 2.0]),
-                                     np.log10([0.5, 1.0, 2.0]), [one_mass[1], 0.25], indexing="ij")
+    J_f, f_f, V_f, k = np.meshgrid(np.linspace(-0.6, 0.6, 9),  # J_sigma x 1/4 .. 4 in steps of 2^0.5
+                                   np.log10([1 / 16, 1 / 8, 1 / 4, 1 / 2, 1.0, 2.0]),
+                                   np.log10([0.5, 1.0, 2.0]), [0, 1], indexing="ij")
+    friction = np.array([one_mass[1:], [0.025 * high[5], 0.01 * high[6]]])[k.reshape(-1)]  # STEP 2's; 2.5 %, 1 %
     grids = []
     for center in (start, np.concatenate([np.clip(p.theta, _LOW, _HIGH), one_mass])):  # chosen model, maps' answer
-        grid = np.repeat(center[None], J_f.size, axis=0)  # G x 6
+        grid = np.repeat(center[None], J_f.size, axis=0)  # G x 7
         grid[:, 4] += J_f.reshape(-1)
         grid[:, 0] += f_f.reshape(-1)
         grid[:, 1] += V_f.reshape(-1)
-        grid[:, 5] = M_v.reshape(-1)
+        grid[:, 5:] = friction
         grids.append(grid)
-    theta = np.clip(np.concatenate([start[None], *grids]), _LOW_FREE, _HIGH_FREE)
+    theta = np.clip(np.concatenate([start[None], *grids]), low, high)
     cost, theta = plain(theta)
-    spread = np.concatenate([config.spread, config.free_spread])
-    theta, cost = _run(_cem(theta, cost, config.free_rounds, spread, config, rng, _LOW_FREE, _HIGH_FREE), plain)
+    spread = np.concatenate([config.spread, np.asarray(config.free_spread) * scale])
+    theta, cost = _run(_cem(theta, cost, config.free_rounds, spread, config, rng, low, high), plain)
     k = int(np.argmin(cost))
     # a clear win only (measured: 10-60 x lower on soft mechanics; a narrow one was a wrong mode)
     return (theta[k] if cost[k] < config.free_win * cost[0] else best), len(cost)
+
+
+def _free_bounds(p: RefineProblem) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The free stage's bounds over :data:`FREE_COORDINATES` (``J_sigma`` within
+    :data:`_FREE_J_SIGMA` decades of STEP 2's, ``M_FC`` from 0 to the test's ``M*``, ``mu_F`` from 0
+    to ``M* / w_max``) and the scales of its three coordinates (1, ``M*``, ``M* / w_max``)."""
+    M_star, w_max = float(np.abs(p.level).max()), float(np.abs(p.speed).max())
+    J = math.log10(p.J_sigma)
+    scale = np.array([1.0, M_star, M_star / w_max])
+    return (np.concatenate([_LOW, [J - _FREE_J_SIGMA, 0.0, 0.0]]),
+            np.concatenate([_HIGH, [J + _FREE_J_SIGMA, M_star, M_star / w_max]]), scale)
+
+
+def _one_mass(theta: np.ndarray) -> dict[str, float]:
+    """The :class:`Refined` one-mass values of the free stage's model ``theta`` (7)."""
+    return {"J_sigma": float(10.0 ** theta[4]), "M_FC": float(theta[5]), "mu_F": float(theta[6])}
 
 
 def _detrended(E: np.ndarray, basis: list[tuple[int, int, np.ndarray]]) -> np.ndarray:
@@ -812,11 +853,19 @@ def _polish(problems: list[RefineProblem], chosen: list[Refined], measured: list
     the measured speed's own detrended energy), the searches side by side: one replay per
     iteration and step kind for the problems on one drive and substep count; ``residual`` and
     ``n_sims`` updated."""
-    h = np.asarray(config.polish_steps, dtype=np.float64)
-    theta = {i: np.array([math.log10(r.f_e), math.log10(r.V_J), r.d, math.log10(max(r.s_N, 10.0 ** _LOW[3]))])
-             for i, r in enumerate(chosen) if r.J_sigma is None}
-    free = {i: [k for k in range(4) if k < 3 or t[3] > _NO_GAP] for i, t in theta.items()}
-    scored = {i: _scored(problems[i], chosen[i].f_e, config) for i in theta}
+    theta, free, scored, low, high, h = {}, {}, {}, {}, {}, {}
+    for i, (p, r) in enumerate(zip(problems, chosen)):
+        t = [math.log10(r.f_e), math.log10(r.V_J), r.d, math.log10(max(r.s_N, 10.0 ** _LOW[3]))]
+        rows, basis = _scored(p, r.f_e, config)
+        if r.J_sigma is None:  # STEP 2's one-mass part: the detrended error
+            low[i], high[i], h[i] = _LOW, _HIGH, np.asarray(config.polish_steps, dtype=np.float64)
+        else:  # the free stage's: its three coordinates too, on the plain error (nothing to detrend)
+            low[i], high[i], scale = _free_bounds(p)
+            t += [math.log10(r.J_sigma), float(r.M_FC), float(r.mu_F)]
+            h[i] = np.concatenate([config.polish_steps, np.asarray(config.polish_free_steps) * scale])
+            basis = [(a, b, Q[:, :0]) for a, b, Q in basis]
+        theta[i], scored[i] = np.array(t), (rows, basis)
+        free[i] = [k for k in range(len(t)) if k != 3 or t[3] > _NO_GAP]
     n_sims = dict.fromkeys(theta, 0)
     cost: dict[int, float] = {}
     start: dict[int, float] = {}
@@ -825,8 +874,8 @@ def _polish(problems: list[RefineProblem], chosen: list[Refined], measured: list
         if not active:
             break
         # the error r and its forward-difference Jacobian J (M x F) at each model, one replay for all
-        asked = {i: np.clip(np.vstack([theta[i]] + [theta[i] + h[k] * np.eye(4)[k] for k in free[i]]), _LOW, _HIGH)
-                 for i in active}
+        asked = {i: np.clip(np.vstack([theta[i]] + [theta[i] + h[i][k] * np.eye(len(theta[i]))[k] for k in free[i]]),
+                            low[i], high[i]) for i in active}
         trials = {}
         for i, R in _errors(problems, asked, scored).items():
             n_sims[i] += R.shape[1]
@@ -837,10 +886,10 @@ def _polish(problems: list[RefineProblem], chosen: list[Refined], measured: list
             J = (R[:, 1:] - r[:, None]) / np.where(step != 0, step, 1.0)  # M x F
             A, g = J.T @ J, J.T @ r
             D = np.diag(np.maximum(np.diag(A), 1e-12 * max(float(np.diag(A).max()), 1e-300)))
-            moves = np.repeat(theta[i][None], len(config.polish_damping), axis=0)  # L x 4
+            moves = np.repeat(theta[i][None], len(config.polish_damping), axis=0)  # L x D
             for row, lam in zip(moves, config.polish_damping):
                 row[free[i]] += np.linalg.solve(A + lam * D, -g)
-            trials[i] = np.clip(moves, _LOW, _HIGH)
+            trials[i] = np.clip(moves, low[i], high[i])
         for i, R in _errors(problems, trials, scored).items():
             n_sims[i] += R.shape[1]
             c = (R * R).sum(0)
@@ -856,6 +905,7 @@ def _polish(problems: list[RefineProblem], chosen: list[Refined], measured: list
     for i, E in _packed_errors(problems, {i: theta[i][None] for i in won}):  # the winners' whole-record error
         t, total = theta[i], float(_detrended_energy(E, _detrend_basis(problems[i].segments))[0])
         s_N = float(10.0 ** t[3]) if t[3] > _NO_GAP else chosen[i].s_N
-        out[i] = replace(out[i], **_answer(problems[i], t, s_N), residual=_relative(total, measured[i]),
+        one_mass = {} if len(t) == 4 else _one_mass(t)
+        out[i] = replace(out[i], **_answer(problems[i], t, s_N), **one_mass, residual=_relative(total, measured[i]),
                          n_sims=out[i].n_sims + 1)
     return out

@@ -26,7 +26,8 @@ WARNING_CODES: dict[str, str] = {
     "unlike_training_data": "a map's recall distance lies above the 99 % quantile of held-out training records",
     "oscillation_below_quantum": "the oscillation is below one speed quantum rms: elastic parameters uncertain",
     "refine_partial_fit": "the refined model reproduces only part of the measured oscillation",
-    "one_mass_fit_replaced": "STEP 2's one-mass fit was not trusted; J_sigma and M_FC come from the whole-record fit",
+    "one_mass_fit_replaced": "STEP 2's one-mass fit was not trusted; J_sigma, M_FC and mu_F come from the whole-record "
+                             "fit",
     "one_mass_fit_residual": "STEP 2's one-mass fit leaves a residual above 5 % of the speed: not one mass",
     "one_mass_fit_short_sections": "a test section holds fewer than two periods of the oscillation (STEP 2 unsure)",
     "one_mass_fit_uninformative": "the one-mass model explains little of the data (residual near its rms): its values "
