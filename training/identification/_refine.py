@@ -145,9 +145,12 @@ class RefineConfig:
     mechanic is softer than it looks), ``V_J`` and the friction (STEP 2's, clipped to 10 % of its
     bound; or 2.5 % of ``M*`` and 1 % of ``M* / w_max``) around the chosen model and around the
     maps' answer, then ``free_rounds`` rounds (``free_spread``: the first spread of the three new
-    coordinates, in units of their scales 1, ``M*``, ``M* / w_max``). The free model replaces the
-    chosen one only when its plain squared error is below ``free_win`` times the chosen one's
-    (with STEP 2's one-mass values).
+    coordinates, in units of their scales 1, ``M*``, ``M* / w_max``). Beside it a second grid and
+    search (a random stream of its own) for a STEP 2 that read the motor alone: 5 ``V_J`` over SPEC
+    3.1's range with ``J_sigma`` = STEP 2's ``x (1 + V_J)``, the same ``f_e`` and friction (the
+    first grid's ``J_sigma`` x 4 and ``V_J`` x 2 fall short of a load 3-5 x the motor). The free
+    model replaces the chosen one only when its plain squared error is below ``free_win`` times the
+    chosen one's (with STEP 2's one-mass values).
 
     Angle (:mod:`training.identification._angle`, run by the identifier where the answer is
     ``stiff`` on a record whose resolution could hide a backlash): models with and without a gap
@@ -665,8 +668,9 @@ def _explore(p: RefineProblem, windows: _ScoreWindows, config: RefineConfig,
 
 
 def _own_rng(config: RefineConfig, stage: int) -> np.random.Generator:
-    """The random stream of an optional stage (1: rescue, 2: climb), apart from the exploration's:
-    where the stage loses, the searches after it draw what they would have drawn without it."""
+    """The random stream of an optional stage (1: rescue, 2: climb, 3: the free stage's second
+    search), apart from the exploration's: where the stage loses, the searches after it draw what
+    they would have drawn without it."""
     return np.random.default_rng([config.seed, stage])
 
 
@@ -790,19 +794,30 @@ def _free_one_mass(p: RefineProblem, best: np.ndarray, config: RefineConfig, rng
     J_f, f_f, V_f, k = np.meshgrid(np.linspace(-0.6, 0.6, 9),  # J_sigma x 1/4 .. 4 in steps of 2^0.5
                                    np.log10([1 / 16, 1 / 8, 1 / 4, 1 / 2, 1.0, 2.0]),
                                    np.log10([0.5, 1.0, 2.0]), [0, 1], indexing="ij")
-    friction = np.array([one_mass[1:], [0.025 * high[5], 0.01 * high[6]]])[k.reshape(-1)]  # STEP 2's; 2.5 %, 1 %
-    grids = []
+    pairs = np.array([one_mass[1:], [0.025 * high[5], 0.01 * high[6]]])  # friction: STEP 2's; 2.5 %, 1 %
+    # STEP 2 read the motor alone (a test shorter than the period): J_sigma = its J (1 + V_J) over V_J's range
+    V_m, f_m, k_m = np.meshgrid(np.log10(np.geomspace(*SPEC_ENVELOPE["V_J"], 5)), f_f[0, :, 0, 0], [0, 1],
+                                indexing="ij")
+    around, held = [start[None]], []
     for center in (start, np.concatenate([np.clip(p.theta, _LOW, _HIGH), one_mass])):  # chosen model, maps' answer
         grid = np.repeat(center[None], J_f.size, axis=0)  # G x 7
         grid[:, 4] += J_f.reshape(-1)
         grid[:, 0] += f_f.reshape(-1)
         grid[:, 1] += V_f.reshape(-1)
-        grid[:, 5:] = friction
-        grids.append(grid)
-    theta = np.clip(np.concatenate([start[None], *grids]), low, high)
-    cost, theta = plain(theta)
+        grid[:, 5:] = pairs[k.reshape(-1)]
+        motor = np.repeat(center[None], V_m.size, axis=0)  # G_m x 7
+        motor[:, 0] += f_m.reshape(-1)
+        motor[:, 1] = V_m.reshape(-1)
+        motor[:, 4] = np.log10(p.J_sigma * (1.0 + 10.0 ** V_m.reshape(-1)))
+        motor[:, 5:] = pairs[k_m.reshape(-1)]
+        around.append(grid)
+        held.append(motor)
     spread = np.concatenate([config.spread, np.asarray(config.free_spread) * scale])
-    theta, cost = _run(_cem(theta, cost, config.free_rounds, spread, config, rng, low, high), plain)
+    found = []  # each grid with its own search: one best model does not cover both kinds of start
+    for grid, stream in ((around, rng), (held, _own_rng(config, 3))):
+        cost, theta = plain(np.clip(np.concatenate(grid), low, high))
+        found.append(_run(_cem(theta, cost, config.free_rounds, spread, config, stream, low, high), plain))
+    theta, cost = (np.concatenate(v) for v in zip(*found))  # row 0: the chosen model with STEP 2's values
     k = int(np.argmin(cost))
     # a clear win only (measured: 10-60 x lower on soft mechanics; a narrow one was a wrong mode)
     return (theta[k] if cost[k] < config.free_win * cost[0] else best), len(cost)
