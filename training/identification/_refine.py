@@ -827,7 +827,7 @@ def _free_bounds(p: RefineProblem) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The free stage's bounds over :data:`FREE_COORDINATES` (``J_sigma`` within
     :data:`_FREE_J_SIGMA` decades of STEP 2's, ``M_FC`` from 0 to the test's ``M*``, ``mu_F`` from 0
     to ``M* / w_max``) and the scales of its three coordinates (1, ``M*``, ``M* / w_max``)."""
-    M_star, w_max = float(np.abs(p.level).max()), float(np.abs(p.speed).max())
+    M_star, w_max = float(np.abs(p.level).max()), max(float(np.abs(p.speed).max()), 1e-9)  # (a record at rest)
     J = math.log10(p.J_sigma)
     scale = np.array([1.0, M_star, M_star / w_max])
     return (np.concatenate([_LOW, [J - _FREE_J_SIGMA, 0.0, 0.0]]),
