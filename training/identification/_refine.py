@@ -4,8 +4,8 @@ The maps give the structure and a first estimate of ``f_e``, ``V_J``, ``d`` and 
 backlash ``s_N``. This module polishes them on the record itself: candidate two-mass models
 (``J_sigma``, ``M_FC``, ``mu_F`` from STEP 2, unless STEP 2 flags its own fit or the test's
 sections are short for the oscillation found: see :class:`RefineConfig`) are simulated open loop
-under the record's own torque reference (:func:`sim.replay.replay_speed`, many candidates in one batch) and scored by
-how well they reproduce the measured motor speed. Before scoring, a quadratic trend per section
+under the record's own torque reference (:func:`sim.replay.replay_speed`, many candidates in one
+batch) and scored by how well they reproduce the measured motor speed. Before scoring, a quadratic trend per section
 is removed from the speed error: it absorbs the small one-mass errors of STEP 2 (a friction or
 inertia error tilts a section's speed), so the score measures what the maps are about: the
 oscillation after each torque step and the motor's excursions while it crosses the backlash.
@@ -189,8 +189,8 @@ class RefineConfig:
     polish_samples_per_period: float = 16.0  # polish: the error scored on this many samples per period
     polish_free_steps: tuple[float, float, float] = (1e-3, 1e-3, 1e-3)  # polish: the free stage's three, in scales
     free_rounds: int = 5  # free one-mass part: cross-entropy rounds
-    free_spread: tuple[float, float, float] = (0.1, 0.01, 0.01)  # free part: first spread, log10 J_sigma, M_FC / M*,
-    # mu_F w_max / M*
+    # free one-mass part: first spread of log10 J_sigma, M_FC / M*, mu_F w_max / M*
+    free_spread: tuple[float, float, float] = (0.1, 0.01, 0.01)
     free_win: float = 0.25  # free one-mass part: error ratio it must beat
     free_periods: float = 2.0  # free one-mass part: also where a section holds fewer periods of the chosen model
     angle_rounds: int = 4  # angle: cross-entropy rounds on each side of the class threshold
@@ -570,8 +570,9 @@ def refine(problems: list[RefineProblem], config: RefineConfig | None = None) ->
 def _packed_errors(problems: list[RefineProblem], asked: dict[int, np.ndarray],
                    rows: dict[int, np.ndarray] | None = None) -> Iterator[tuple[int, np.ndarray]]:
     """``(i, E)``: the speed error ``N_i x C_i`` (or over the samples ``rows[i]`` only) of the
-    candidates ``asked[i]`` ``C_i x 4`` of each problem ``i``, a pack at a time (:func:`_packs`: one
-    drive and substep count per replay call; a result does not depend on its pack)."""
+    candidates ``asked[i]`` ``C_i x 4`` (or ``x 7``) of each problem ``i``, a pack at a time
+    (:func:`_packs`: one drive and substep count per replay call; a result does not depend on its
+    pack)."""
     todo = sorted(asked)
     substeps = [_problem_substeps(problems[i], asked[i]) for i in todo]
     for pack in _packs([problems[i] for i in todo], [len(asked[i]) for i in todo], substeps):
@@ -791,25 +792,25 @@ def _free_one_mass(p: RefineProblem, best: np.ndarray, config: RefineConfig, rng
     low, high, scale = _free_bounds(p)
     one_mass = np.array([math.log10(p.J_sigma), *np.clip([p.M_FC, p.mu_F], 0.0, 0.1 * high[5:])])  # STEP 2's
     start = np.concatenate([best, one_mass])
-    J_f, f_f, V_f, k = np.meshgrid(np.linspace(-0.6, 0.6, 9),  # J_sigma x 1/4 .. 4 in steps of 2^0.5
-                                   np.log10([1 / 16, 1 / 8, 1 / 4, 1 / 2, 1.0, 2.0]),
-                                   np.log10([0.5, 1.0, 2.0]), [0, 1], indexing="ij")
+    J_f, f_f, V_f, pick = np.meshgrid(np.linspace(-0.6, 0.6, 9),  # J_sigma x 1/4 .. 4 in steps of 2^0.5
+                                      np.log10([1 / 16, 1 / 8, 1 / 4, 1 / 2, 1.0, 2.0]),
+                                      np.log10([0.5, 1.0, 2.0]), [0, 1], indexing="ij")
     pairs = np.array([one_mass[1:], [0.025 * high[5], 0.01 * high[6]]])  # friction: STEP 2's; 2.5 %, 1 %
     # STEP 2 read the motor alone (a test shorter than the period): J_sigma = its J (1 + V_J) over V_J's range
-    V_m, f_m, k_m = np.meshgrid(np.log10(np.geomspace(*SPEC_ENVELOPE["V_J"], 5)), f_f[0, :, 0, 0], [0, 1],
-                                indexing="ij")
+    V_m, f_m, pick_m = np.meshgrid(np.log10(np.geomspace(*SPEC_ENVELOPE["V_J"], 5)), f_f[0, :, 0, 0], [0, 1],
+                                   indexing="ij")
     around, held = [start[None]], []
     for center in (start, np.concatenate([np.clip(p.theta, _LOW, _HIGH), one_mass])):  # chosen model, maps' answer
         grid = np.repeat(center[None], J_f.size, axis=0)  # G x 7
         grid[:, 4] += J_f.reshape(-1)
         grid[:, 0] += f_f.reshape(-1)
         grid[:, 1] += V_f.reshape(-1)
-        grid[:, 5:] = pairs[k.reshape(-1)]
+        grid[:, 5:] = pairs[pick.reshape(-1)]
         motor = np.repeat(center[None], V_m.size, axis=0)  # G_m x 7
         motor[:, 0] += f_m.reshape(-1)
         motor[:, 1] = V_m.reshape(-1)
         motor[:, 4] = np.log10(p.J_sigma * (1.0 + 10.0 ** V_m.reshape(-1)))
-        motor[:, 5:] = pairs[k_m.reshape(-1)]
+        motor[:, 5:] = pairs[pick_m.reshape(-1)]
         around.append(grid)
         held.append(motor)
     spread = np.concatenate([config.spread, np.asarray(config.free_spread) * scale])
@@ -857,7 +858,7 @@ def _scored(p: RefineProblem, f_e: float, config: RefineConfig) -> tuple[np.ndar
 def _errors(problems: list[RefineProblem], asked: dict[int, np.ndarray],
             scored: dict[int, tuple[np.ndarray, list[tuple[int, int, np.ndarray]]]]) -> dict[int, np.ndarray]:
     """The detrended errors ``M_i x C_i`` over the samples ``scored[i]`` of the candidates
-    ``asked[i]`` ``C_i x 4`` of each problem ``i``."""
+    ``asked[i]`` ``C_i x 4`` (or ``x 7``) of each problem ``i``."""
     return {i: _detrended(E, scored[i][1])
             for i, E in _packed_errors(problems, asked, {i: rows for i, (rows, _) in scored.items()})}
 
