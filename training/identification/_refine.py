@@ -142,7 +142,7 @@ class RefineConfig:
     up to ``M*``, ``mu_F`` up to ``M* / w_max`` (``w_max``: the record's top speed). A grid over
     ``J_sigma`` (x 1/4 .. 4 in steps of 2^0.5: the whole-record error is needle-sharp, and at
     steps of 2 the search missed the truth on 1 in 3 such records), ``f_e`` (x 1/16 .. 2: such a
-    mechanic is softer than it looks), ``V_J`` and the friction (STEP 2's, clipped to 10 % of its
+    mechanic is softer than it looks), ``V_J`` and the friction (STEP 2's, capped at a tenth of its
     bound; or 2.5 % of ``M*`` and 1 % of ``M* / w_max``) around the chosen model and around the
     maps' answer, then ``free_rounds`` rounds (``free_spread``: the first spread of the three new
     coordinates, in units of their scales 1, ``M*``, ``M* / w_max``). Beside it a second grid and
@@ -150,7 +150,8 @@ class RefineConfig:
     3.1's range with ``J_sigma`` = STEP 2's ``x (1 + V_J)``, the same ``f_e`` and friction (the
     first grid's ``J_sigma`` x 4 and ``V_J`` x 2 fall short of a load 3-5 x the motor). The free
     model replaces the chosen one only when its plain squared error is below ``free_win`` times the
-    chosen one's (with STEP 2's one-mass values).
+    chosen one's with STEP 2's own one-mass values, uncapped (against the capped friction, a 2 Hz
+    model 3 x worse than the chosen 37 Hz one had won on a commissioning plant with motor friction).
 
     Angle (:mod:`training.identification._angle`, run by the identifier where the answer is
     ``stiff`` on a record whose resolution could hide a backlash): models with and without a gap
@@ -790,7 +791,10 @@ def _free_one_mass(p: RefineProblem, best: np.ndarray, config: RefineConfig, rng
     :data:`FREE_COORDINATES` (7), and the number of simulated models."""
     plain = lambda th: ((_simulate(p, th, drive) ** 2).sum(0), th)  # noqa: E731
     low, high, scale = _free_bounds(p)
-    one_mass = np.array([math.log10(p.J_sigma), *np.clip([p.M_FC, p.mu_F], 0.0, 0.1 * high[5:])])  # STEP 2's
+    friction = np.clip([p.M_FC, p.mu_F], 0.0, high[5:])  # STEP 2's
+    chosen = np.concatenate([best, [math.log10(p.J_sigma)], friction])  # what the free model must beat
+    # the grids start from STEP 2's friction capped at a tenth of its bounds (a short test's can be 10-50 x off)
+    one_mass = np.array([math.log10(p.J_sigma), *np.minimum(friction, 0.1 * high[5:])])
     start = np.concatenate([best, one_mass])
     J_f, f_f, V_f, pick = np.meshgrid(np.linspace(-0.6, 0.6, 9),  # J_sigma x 1/4 .. 4 in steps of 2^0.5
                                       np.log10([1 / 16, 1 / 8, 1 / 4, 1 / 2, 1.0, 2.0]),
@@ -799,7 +803,7 @@ def _free_one_mass(p: RefineProblem, best: np.ndarray, config: RefineConfig, rng
     # STEP 2 read the motor alone (a test shorter than the period): J_sigma = its J (1 + V_J) over V_J's range
     V_m, f_m, pick_m = np.meshgrid(np.log10(np.geomspace(*SPEC_ENVELOPE["V_J"], 5)), f_f[0, :, 0, 0], [0, 1],
                                    indexing="ij")
-    around, held = [start[None]], []
+    around, held = [chosen[None], start[None]], []
     for center in (start, np.concatenate([np.clip(p.theta, _LOW, _HIGH), one_mass])):  # chosen model, maps' answer
         grid = np.repeat(center[None], J_f.size, axis=0)  # G x 7
         grid[:, 4] += J_f.reshape(-1)
