@@ -209,7 +209,8 @@ class Identifier:
             # a stiff answer on a record whose resolution could hide a backlash (so it was refined):
             # the angle may show it
             hidden = [i for i in problems
-                      if results[i].structure == "stiff" and _hides_backlash(analyses[i]) and not analyses[i].fit.warnings]
+                      if results[i].structure == "stiff" and _hides_backlash(analyses[i])
+                      and not analyses[i].fit.warnings]
             for i in hidden:
                 gap = find_hidden_gap(problems[i], self.refine)
                 if gap is not None:

@@ -5,10 +5,11 @@ backlash ``s_N``. This module polishes them on the record itself: candidate two-
 (``J_sigma``, ``M_FC``, ``mu_F`` from STEP 2, unless STEP 2 flags its own fit or the test's
 sections are short for the oscillation found: see :class:`RefineConfig`) are simulated open loop
 under the record's own torque reference (:func:`sim.replay.replay_speed`, many candidates in one
-batch) and scored by how well they reproduce the measured motor speed. Before scoring, a quadratic trend per section
-is removed from the speed error: it absorbs the small one-mass errors of STEP 2 (a friction or
-inertia error tilts a section's speed), so the score measures what the maps are about: the
-oscillation after each torque step and the motor's excursions while it crosses the backlash.
+batch) and scored by how well they reproduce the measured motor speed. Before scoring, a quadratic
+trend per section is removed from the speed error: it absorbs the small one-mass errors of STEP 2
+(a friction or inertia error tilts a section's speed), so the score measures what the maps are
+about: the oscillation after each torque step and the motor's excursions while it crosses the
+backlash.
 
 The search is a cross-entropy method (sample around the best models so far, keep the elites,
 shrink), started from the maps' answer, which stays a candidate: the refined model never
