@@ -552,10 +552,13 @@ def refine(problems: list[RefineProblem], config: RefineConfig | None = None) ->
     config = config or RefineConfig()
     if (config.elites < 2 or config.candidates < config.elites or config.rounds < 0 or config.window_periods <= 0
             or config.window_samples < 0 or config.polish_iterations < 0 or config.angle_rounds < 0
-            or config.far_rounds < 0 or min(config.grid_f_e, config.climb_grid_f_e, config.rescue_grid_f_e) < 1):
-        raise ValueError(f"RefineConfig: expected rounds >= 0, far_rounds >= 0, polish_iterations >= 0, "
-                         f"angle_rounds >= 0, grid_f_e >= 1, climb_grid_f_e >= 1, rescue_grid_f_e >= 1, "
-                         f"window_periods > 0, window_samples >= 0 and candidates >= elites >= 2, received {config}")
+            or config.far_rounds < 0 or min(config.grid_f_e, config.climb_grid_f_e, config.rescue_grid_f_e) < 1
+            or len(config.free_spread) != 3 or len(config.polish_free_steps) != 3 or config.free_rounds < 0):
+        raise ValueError(f"RefineConfig: expected rounds >= 0, far_rounds >= 0, free_rounds >= 0, "
+                         f"polish_iterations >= 0, angle_rounds >= 0, grid_f_e >= 1, climb_grid_f_e >= 1, "
+                         f"rescue_grid_f_e >= 1, window_periods > 0, window_samples >= 0, candidates >= elites >= 2 "
+                         f"and three values each in free_spread and polish_free_steps (log10 J_sigma, M_FC, mu_F), "
+                         f"received {config}")
     rngs = [np.random.default_rng(config.seed) for _ in problems]
     explored = _explore_all(problems, config, rngs)
     finalists = [f for f, _ in explored]

@@ -83,3 +83,5 @@ def test_bad_config_is_rejected():
         refine([], RefineConfig(rescue_grid_f_e=0))
     with pytest.raises(ValueError, match="far_rounds"):
         refine([], RefineConfig(far_rounds=-1))
+    with pytest.raises(ValueError, match="three values each in free_spread"):
+        refine([], RefineConfig(free_spread=(0.1, 0.1)))  # the two-coordinate free stage's
