@@ -9,7 +9,8 @@ import numpy as np
 from _refine_problems import refine_problem
 
 from sim import DriveConfig, TestSignalConfig, TwoMassParams
-from training.identification._refine import RefineConfig, _drive, _free_one_mass, _simulate, refine
+from training.identification._refine import (RefineConfig, _drive, _free_bounds, _free_one_mass, _scaled_fit, _simulate,
+                                             refine)
 
 # the 200 W servo of the drive matrix (125 us, 2^17 counts, M* 0.64 Nm, w_max 300 rad/s)
 SERVO = DriveConfig(M_N=0.64, M_max=1.9, K_M=0.4, T_Ei=2e-4, T_s=1.25e-4, encoder_counts=2**17, current_noise_std=0.008)
@@ -44,12 +45,12 @@ def test_the_free_stage_answers_the_same_at_any_torque_scale():
         p = dataclasses.replace(refine_problem(scaled, theta, drive, signal), free_one_mass=True)
         out = refine([p])[0]
         assert out.J_sigma is not None
-        answers.append((out.J_sigma / k, out.f_e, out.V_J, out.M_FC / k))
+        answers.append((out.J_sigma / k, out.f_e, out.V_J, (out.M_FC + out.mu_F * SIGNAL.w_max) / k))
     J_1, f_1, V_1, M_1 = answers[0]
     assert abs(J_1 / 1.23e-4 - 1) < 0.05 and abs(f_1 / 8.31 - 1) < 0.05 and abs(V_1 / 0.972 - 1) < 0.1
     for J_k, f_k, V_k, M_k in answers[1:]:
         assert abs(J_k / J_1 - 1) < 0.01 and abs(f_k / f_1 - 1) < 0.01 and abs(V_k / V_1 - 1) < 0.01
-        assert abs(M_k - M_1) < 1e-3 * SIGNAL.M_star
+        assert abs(M_k - M_1) < 1e-3 * SIGNAL.M_star  # the friction at w_max (M_FC and mu_F: near-collinear)
 
 
 def test_the_free_stage_never_trades_the_answer_for_a_worse_one():
@@ -67,3 +68,20 @@ def test_the_free_stage_never_trades_the_answer_for_a_worse_one():
     answer = np.concatenate([out, chosen[4:]]) if len(out) == 4 else out  # the chosen model where it lost
     err = (_simulate(p, np.stack([chosen, answer]), drive) ** 2).sum(0)
     assert err[1] <= err[0]
+
+
+def test_the_free_models_come_at_their_exact_best_scale():
+    # J_sigma / k and mu_F / k (f_e, V_J, d, s_N, M_FC held) turn the replayed speed into k times
+    # itself, gap included: a model with the plant's mechanics at 2.5 x its inertia and viscous
+    # friction scores, after the scaling, what the plant itself scores, at the plant's J_sigma
+    true = TwoMassParams(J_sigma=1.12e-4, V_J=1.8, f_e=30.0, d=0.04, backlash=0.0, M_FC=0.02, mu_F=4e-5)
+    true = dataclasses.replace(true, backlash=2.0 * 0.5 * SERVO.M_N / float(true.C_F))  # s_N 0.5
+    p = refine_problem(true, [math.log10(30.0), math.log10(1.8), 0.04, math.log10(0.5)], SERVO, SIGNAL)
+    low, high, _ = _free_bounds(p)
+    plant = np.array([math.log10(30.0), math.log10(1.8), 0.04, math.log10(0.5), math.log10(1.12e-4), 0.02, 4e-5])
+    off = plant + [0.0, 0.0, 0.0, 0.0, math.log10(2.5), 0.0, 1.5 * 4e-5]
+    cost, scaled = _scaled_fit(p, _drive(p), low, high, np.stack([plant, off]))
+    assert abs(cost[1] / cost[0] - 1) < 1e-5 and np.allclose(scaled[1], scaled[0], rtol=1e-5, atol=0.0)
+    assert abs(10.0 ** scaled[0, 4] / 1.12e-4 - 1) < 0.01 and abs(scaled[0, 6] / 4e-5 - 1) < 0.01
+    unscaled = (_simulate(p, off[None], _drive(p)) ** 2).sum()
+    assert cost[1] < 1e-3 * unscaled
