@@ -156,7 +156,8 @@ class RefineConfig:
     a STEP 2 that read the motor alone (a load 3-5 x the motor lies beyond the first). Measured on
     the envelope's tests shorter than one period (seeds 5 and 6, 199 records), against the previous
     grids over ``J_sigma`` (x 1/4 .. 4), ``f_e`` (in steps of 2) and ``V_J`` without the scale: the
-    scale alone took ``J_sigma`` within 5 % from 65 to 71 % and ``E_30`` from 74 to 81 %. The free
+    scale alone took ``J_sigma`` within 5 % from 65 to 71 % and ``E_30`` from 74 to 81 %, with the
+    finer ``f_e`` grid and the polish's damped steps to 75 and 85 %. The free
     model replaces the chosen one only when its plain squared error is below ``free_win`` times the
     chosen one's with STEP 2's own one-mass values, uncapped (against the capped friction, a 2 Hz
     model 3 x worse than the chosen 37 Hz one had won on a commissioning plant with motor friction).
