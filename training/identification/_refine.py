@@ -808,11 +808,9 @@ def _free_one_mass(p: RefineProblem, best: np.ndarray, config: RefineConfig, rng
     # the grids start from STEP 2's friction capped at a tenth of its bounds (a short test's can be 10-50 x off)
     one_mass = np.array([math.log10(p.J_sigma), *np.minimum(friction, 0.1 * high[5:])])
     start = np.concatenate([best, one_mass])
-    # each model is scored at its best J_sigma (_scaled_fit): the grids span f_e (x 1/16 .. 2 in steps of
-    # 2^0.25: such a mechanic is softer than it looks, and the error is needle-sharp in f_e), V_J around the
-    # centre's (x 0.5, 1, 2) or, for a STEP 2 that read the motor alone, over SPEC 3.1's range, and the friction
+    # grids over f_e, V_J (the centre's x 0.5, 1, 2; SPEC 3.1's range) and friction; J_sigma: _scaled_fit
     pairs = np.array([one_mass[1:], [0.025 * high[5], 0.01 * high[6]]])  # friction: STEP 2's; 2.5 %, 1 %
-    f_f = np.log10(2.0) * np.arange(-16, 5) / 4.0
+    f_f = np.log10(2.0) * np.arange(-16, 5) / 4.0  # f_e x 1/16 .. 2 in steps of 2^0.25
     around, held = [chosen[None], start[None]], []
     for center in (start, np.concatenate([np.clip(p.theta, _LOW, _HIGH), one_mass])):  # chosen model, maps' answer
         for out, V_J in ((around, center[1] + np.log10([0.5, 1.0, 2.0])),
