@@ -85,3 +85,5 @@ def test_bad_config_is_rejected():
         refine([], RefineConfig(far_rounds=-1))
     with pytest.raises(ValueError, match="three values each in free_spread"):
         refine([], RefineConfig(free_spread=(0.1, 0.1)))  # the two-coordinate free stage's
+    with pytest.raises(ValueError, match="polish_gap_seeds above 0.002"):
+        refine([], RefineConfig(polish_gap_seeds=(0.001, 0.01)))  # no gap at all by the search's floor
