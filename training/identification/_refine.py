@@ -133,10 +133,11 @@ class RefineConfig:
     the chosen model has a gap, or where one of ``polish_gap_seeds`` scores better than the chosen
     model without it: the polish then starts from the best of them (a gap of ``s_N`` 0.02 on a
     lightly damped shaft is a needle in ``s_N`` that the searches miss; measured on the large axis,
-    they answered without it and bent ``V_J`` 30 % instead, once unwarned). A free stage's model moves over all seven
-    :data:`FREE_COORDINATES` (``polish_free_steps``, relative to the coordinates' scales, see below)
-    on the plain error, as its stage scored it (measured on the fast spindle: without the polish,
-    free models came out with ``V_J`` 10-45 % off where the chosen model's was within 3 %).
+    they answered without it and bent ``V_J`` 30 % instead, once unwarned). A free stage's model
+    moves over all seven :data:`FREE_COORDINATES` (``polish_free_steps``, relative to the
+    coordinates' scales, see below) on the plain error, as its stage scored it (measured on the
+    fast spindle: without the polish, free models came out with ``V_J`` 10-45 % off where the
+    chosen model's was within 3 %).
 
     Free one-mass part (problems with ``free_one_mass``: STEP 2 flagged its fit, as for very soft
     mechanics whose test sections are shorter than an oscillation period; and wherever the
