@@ -27,15 +27,15 @@ from sim import CLASS_THRESHOLDS, STRUCTURE_CLASSES, Record, class_index, two_ma
 from training.config import blas_threads, checkpoints_folder
 from training.errors import one_line
 from training.identification._analysis import FEATURE_NAMES, Analysis, analyze
-from training.identification._angle import HiddenGap, find_hidden_gap
 from training.identification._batch import analysis_outcome, answered_files
 from training.identification._envelope import Envelope, Finding, envelope_warnings, trained_envelope
 from training.identification._limits import (BACKLASH_NEGLIGIBLE, backlash_resolution, implausible, impossible,
                                              travel)
 from training.identification._maps import MAP_SPECS, TrainedMap, from_correction, load_map, recall_targets
-from training.identification._refine import RefineConfig, RefineProblem, Refined, refine, torque_reference
+from training.identification._refine import (HiddenGap, RefineConfig, RefineProblem, Refined, find_hidden_gap,
+                                             refine, torque_reference)
 from training.identification._result import (IdentificationFailure, IdentificationResult, IdentWarning, Outcome,
-                                              Parameters, Quality)
+                                             Parameters, Quality)
 
 _BACKLASH_CLASSES = ("elastic_backlash", "stiff_backlash")
 #: Relative distance to a class threshold within which an answer gets ``class_near_threshold``.

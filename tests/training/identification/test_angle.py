@@ -7,8 +7,9 @@ import pytest
 
 from sim import DriveConfig, TestSignalConfig, TwoMassParams, responses_to_records, simulate_test
 from training.identification import Identifier
-from training.identification._angle import _angle_energy, angle_basis, find_hidden_gap
-from training.identification._refine import RefineConfig, _trend_basis
+from training.identification._refine import RefineConfig, find_hidden_gap
+from training.identification._refine._angle import _angle_energy, angle_basis
+from training.identification._refine._replay import trend_basis
 
 from _refine_problems import refine_problem
 
@@ -27,7 +28,7 @@ def test_the_angle_basis_holds_the_integrated_trends_but_not_an_offset_held_for_
     trend[120:] = trend[119]
     x = 0.3 + trend
     assert np.allclose(Q @ (Q.T @ x), x, atol=1e-9)
-    assert np.allclose(_trend_basis(70).T @ _trend_basis(70), np.eye(3))
+    assert np.allclose(trend_basis(70).T @ trend_basis(70), np.eye(3))
     # what a gap leaves: the motor ahead of the one-mass motion for one section
     step = np.zeros(200)
     step[50:120] = 1.0

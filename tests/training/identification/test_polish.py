@@ -10,13 +10,15 @@ import pytest
 from _refine_problems import refine_problem
 
 from sim import DriveConfig, TestSignalConfig, TwoMassParams
-from training.identification._refine import RefineConfig, Refined, _detrend_basis, _detrended_energy, _polish, refine
+from training.identification._refine import RefineConfig, Refined, refine
+from training.identification._refine._polish import polish as polish_chosen
+from training.identification._refine._replay import detrend_basis, detrended_energy
 
 
 def polish(problems, chosen, config=RefineConfig()):
     """The polish of ``chosen`` on ``problems`` (the measured speeds' detrended energies as refine has them)."""
-    measured = [float(_detrended_energy(p.speed[:, None], _detrend_basis(p.segments))[0]) for p in problems]
-    return _polish(problems, chosen, measured, config)
+    measured = [float(detrended_energy(p.speed[:, None], detrend_basis(p.segments))[0]) for p in problems]
+    return polish_chosen(problems, chosen, measured, config)
 
 
 def _refined(f_e: float, V_J: float, d: float, s_N: float = 1e-3, J_sigma: float | None = None) -> Refined:

@@ -9,7 +9,8 @@ from _refine_problems import DRIVE, refine_problem
 
 from sim import TwoMassParams
 from training.evaluation import DRIVES
-from training.identification._refine import RefineConfig, RefineProblem, _explore_windows, refine, torque_reference
+from training.identification._refine import RefineConfig, RefineProblem, refine, torque_reference
+from training.identification._refine._explore import explore_windows
 
 
 def test_torque_reference_of_the_six_sections():
@@ -54,7 +55,7 @@ def test_exploring_windows_hold_4_periods_up_to_0_1_s_or_400_samples(T_s: float,
     p = RefineProblem(speed=np.zeros(4100), start=np.array([0, 0, 2000, 4000]), level=np.array([0.0, 1.0, 0.0, -1.0]),
                       segments=seg, J_sigma=0.04, M_FC=0.1, mu_F=0.0, T_s=T_s, T_Ei=1e-3, encoder_counts=2**13,
                       M_N=10.0, theta=np.array([math.log10(f_e), 0.0, 0.03, -3.0]))
-    w = _explore_windows(p, RefineConfig())
+    w = explore_windows(p, RefineConfig())
     assert (w.inside.sum(1)).tolist() == [expected, expected, 10]  # the third segment is shorter
 
 

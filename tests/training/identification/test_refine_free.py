@@ -9,8 +9,9 @@ import numpy as np
 from _refine_problems import refine_problem
 
 from sim import DriveConfig, TestSignalConfig, TwoMassParams
-from training.identification._refine import (RefineConfig, _drive, _free_bounds, _free_one_mass, _scaled_fit, _simulate,
-                                             refine)
+from training.identification._refine import RefineConfig, refine
+from training.identification._refine._free import free_bounds, free_one_mass, scaled_fit
+from training.identification._refine._replay import replay_drive, simulate
 
 # the 200 W servo of the drive matrix (125 us, 2^17 counts, M* 0.64 Nm, w_max 300 rad/s)
 SERVO = DriveConfig(M_N=0.64, M_max=1.9, K_M=0.4, T_Ei=2e-4, T_s=1.25e-4, encoder_counts=2**17, current_noise_std=0.008)
@@ -62,11 +63,11 @@ def test_the_free_stage_never_trades_the_answer_for_a_worse_one():
     theta = np.array([math.log10(12.0), 0.0, 0.05, -3.0])
     p = dataclasses.replace(refine_problem(true, theta, SERVO, SIGNAL), free_one_mass=True)
     config = RefineConfig()
-    drive = _drive(p)
-    out, _ = _free_one_mass(p, theta, config, np.random.default_rng(0), drive)
+    drive = replay_drive(p)
+    out, _ = free_one_mass(p, theta, config, np.random.default_rng(0), drive)
     chosen = np.concatenate([theta, [math.log10(p.J_sigma), max(p.M_FC, 0.0), max(p.mu_F, 0.0)]])
     answer = np.concatenate([out, chosen[4:]]) if len(out) == 4 else out  # the chosen model where it lost
-    err = (_simulate(p, np.stack([chosen, answer]), drive) ** 2).sum(0)
+    err = (simulate(p, np.stack([chosen, answer]), drive) ** 2).sum(0)
     assert err[1] <= err[0]
 
 
@@ -77,11 +78,11 @@ def test_the_free_models_come_at_their_exact_best_scale():
     true = TwoMassParams(J_sigma=1.12e-4, V_J=1.8, f_e=30.0, d=0.04, backlash=0.0, M_FC=0.02, mu_F=4e-5)
     true = dataclasses.replace(true, backlash=2.0 * 0.5 * SERVO.M_N / float(true.C_F))  # s_N 0.5
     p = refine_problem(true, [math.log10(30.0), math.log10(1.8), 0.04, math.log10(0.5)], SERVO, SIGNAL)
-    low, high, _ = _free_bounds(p)
+    low, high, _ = free_bounds(p)
     plant = np.array([math.log10(30.0), math.log10(1.8), 0.04, math.log10(0.5), math.log10(1.12e-4), 0.02, 4e-5])
     off = plant + [0.0, 0.0, 0.0, 0.0, math.log10(2.5), 0.0, 1.5 * 4e-5]
-    cost, scaled = _scaled_fit(p, _drive(p), low, high, np.stack([plant, off]))
+    cost, scaled = scaled_fit(p, replay_drive(p), low, high, np.stack([plant, off]))
     assert abs(cost[1] / cost[0] - 1) < 1e-5 and np.allclose(scaled[1], scaled[0], rtol=1e-5, atol=0.0)
     assert abs(10.0 ** scaled[0, 4] / 1.12e-4 - 1) < 0.01 and abs(scaled[0, 6] / 4e-5 - 1) < 0.01
-    unscaled = (_simulate(p, off[None], _drive(p)) ** 2).sum()
+    unscaled = (simulate(p, off[None], replay_drive(p)) ** 2).sum()
     assert cost[1] < 1e-3 * unscaled

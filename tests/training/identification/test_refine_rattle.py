@@ -8,8 +8,9 @@ import numpy as np
 from _refine_problems import refine_problem
 
 from sim import DriveConfig, TestSignalConfig, TwoMassParams
-from training.identification._refine import (RefineConfig, _drive, _explore_windows, _problem_substeps, _simulate,
-                                             _window_speeds, refine)
+from training.identification._refine import RefineConfig, refine
+from training.identification._refine._explore import explore_windows, window_speeds
+from training.identification._refine._replay import problem_substeps, replay_drive, simulate
 
 # a large industrial axis (500 us, 2^16 counts, current loop 1.5 ms)
 AXIS = DriveConfig(M_N=200.0, M_max=600.0, K_M=2.0, T_s=5e-4, T_Ei=1.5e-3, encoder_counts=2**16, current_noise_std=0.1)
@@ -22,13 +23,13 @@ NO_RATTLE = RefineConfig(rattle_s_N=math.inf)
 
 def test_a_window_after_a_zero_torque_section_started_at_that_section_replays_the_whole_record():
     p = refine_problem(TRUE, THETA, AXIS, SIGNAL)
-    w = _explore_windows(p, RefineConfig())
+    w = explore_windows(p, RefineConfig())
     after = np.flatnonzero(w.lead)
     assert len(after) == 2  # the windows after sections II and V
     theta = np.array([THETA])
-    whole = _simulate(p, theta, _drive(p))[:, 0] + p.speed  # N
-    S = _problem_substeps(p, theta)
-    led, plain = (_window_speeds([(p, theta, w, tag)], _drive(p), S)[0][0] for tag in (True, False))  # J x L
+    whole = simulate(p, theta, replay_drive(p))[:, 0] + p.speed  # N
+    S = problem_substeps(p, theta)
+    led, plain = (window_speeds([(p, theta, w, tag)], replay_drive(p), S)[0][0] for tag in (True, False))  # J x L
     for j in after:  # up to the quadratic trend the score removes (the one-mass part's drift)
         n, Q = int(w.inside[j].sum()), w.Q[j]
         ref = whole[w.at[j]:w.at[j] + n]
@@ -56,14 +57,14 @@ def test_no_rattle_without_a_gap():
 
 
 def test_led_windows_replayed_in_chunks_give_the_same_speeds(monkeypatch):
-    import training.identification._refine as refine_module
+    import training.identification._refine._explore as explore_module
 
     p = refine_problem(TRUE, THETA, AXIS, SIGNAL)
-    w = _explore_windows(p, RefineConfig())
+    w = explore_windows(p, RefineConfig())
     rng = np.random.default_rng(0)
     theta = np.clip(np.array(THETA) + rng.normal(0.0, 0.05, (100, 4)), [-9, -9, 0.01, -9], 9)  # C x 4
-    drive = _drive(p)
-    S = _problem_substeps(p, theta)
-    whole = _window_speeds([(p, theta, w, True)], drive, S)[0]
-    monkeypatch.setattr(refine_module, "_LED_SAMPLES", 1000)  # 64 lanes per replay: 4 replays
-    np.testing.assert_array_equal(_window_speeds([(p, theta, w, True)], drive, S)[0], whole)
+    drive = replay_drive(p)
+    S = problem_substeps(p, theta)
+    whole = window_speeds([(p, theta, w, True)], drive, S)[0]
+    monkeypatch.setattr(explore_module, "_LED_SAMPLES", 1000)  # 64 lanes per replay: 4 replays
+    np.testing.assert_array_equal(window_speeds([(p, theta, w, True)], drive, S)[0], whole)

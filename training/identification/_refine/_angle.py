@@ -26,8 +26,10 @@ import numpy as np
 
 from sim import S_N_ELASTIC
 from training.identification._envelope import SPEC_ENVELOPE
-from training.identification._refine import (_HIGH, _LOW, RefineConfig, RefineProblem, _answer, _cem, _drive,
-                                             _product_grid, _run, _simulate, _trend_basis)
+from training.identification._refine._config import HIGH, LOW, RefineConfig
+from training.identification._refine._problem import RefineProblem
+from training.identification._refine._replay import replay_drive, simulate, trend_basis
+from training.identification._refine._search import cem, product_grid, run
 
 __all__ = ["HiddenGap", "angle_basis", "find_hidden_gap"]
 
@@ -72,7 +74,7 @@ def angle_basis(segments: np.ndarray, N: int, stride: int = 1) -> np.ndarray:
     for a, b in np.asarray(segments, dtype=np.int64).tolist():
         if b <= a:
             continue
-        Q = _trend_basis(b - a)  # (b - a) x 3
+        Q = trend_basis(b - a)  # (b - a) x 3
         for j in range(Q.shape[1]):
             c = np.zeros(N)
             c[a:b] = np.cumsum(Q[:, j])
@@ -99,28 +101,28 @@ def find_hidden_gap(p: RefineProblem, config: RefineConfig) -> HiddenGap | None:
     ``config.angle_rounds`` cross-entropy rounds on each side of the class threshold ``s_N = 0.1``
     from its best models, all scored on the whole record's angle error."""
     stride = max(1, len(p.speed) // ANGLE_SAMPLES)
-    drive, Q = _drive(p), angle_basis(p.segments, len(p.speed), stride)
+    drive, Q = replay_drive(p), angle_basis(p.segments, len(p.speed), stride)
 
     def score(theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         # a chunk at a time: the grid is ordered by f_e, so a chunk's substeps suit its models,
         # and the errors of a long record stay small
         chunks = range(0, len(theta), config.candidates)
-        return np.concatenate([_angle_energy(_simulate(p, theta[k:k + config.candidates], drive), p.T_s, Q, stride)
+        return np.concatenate([_angle_energy(simulate(p, theta[k:k + config.candidates], drive), p.T_s, Q, stride)
                                for k in chunks]), theta
 
     bandwidth = 1.0 / (2.0 * math.pi * p.T_Ei)
-    f_e = np.geomspace(SPEC_ENVELOPE["f_e"][0], min(4.0 * bandwidth, 10.0 ** _HIGH[0]), GRID_F_E)
-    grid = _product_grid(f_e, GRID_V_J, GRID_D, [math.log10(s) for s in GRID_S_N])  # G x 4, ordered by f_e
+    f_e = np.geomspace(SPEC_ENVELOPE["f_e"][0], min(4.0 * bandwidth, 10.0 ** HIGH[0]), GRID_F_E)
+    grid = product_grid(f_e, GRID_V_J, GRID_D, [math.log10(s) for s in GRID_S_N])  # G x 4, ordered by f_e
     cost, _ = score(grid)
     threshold = math.log10(S_N_ELASTIC)
     best: list[tuple[np.ndarray, float]] = []
     rng = np.random.default_rng(config.seed)
-    for gap, low_s, high_s in ((False, _LOW[3], threshold - 1e-9), (True, threshold, _HIGH[3])):
+    for gap, low_s, high_s in ((False, LOW[3], threshold - 1e-9), (True, threshold, HIGH[3])):
         side = (grid[:, 3] >= threshold) == gap
-        low, high = _LOW.copy(), _HIGH.copy()
+        low, high = LOW.copy(), HIGH.copy()
         low[3], high[3] = low_s, high_s
-        theta, c = _run(_cem(grid[side], cost[side], config.angle_rounds, np.asarray(config.spread), config, rng,
-                             low, high), score)
+        theta, c = run(cem(grid[side], cost[side], config.angle_rounds, np.asarray(config.spread), config, rng,
+                           low, high), score)
         k = int(np.argmin(c))
         best.append((theta[k], float(c[k])))
     (_, no_gap), (theta, with_gap) = best
@@ -128,4 +130,4 @@ def find_hidden_gap(p: RefineProblem, config: RefineConfig) -> HiddenGap | None:
     s_N = float(10.0 ** theta[3])
     if ratio >= ANGLE_WIN or s_N < S_N_CLEAR * S_N_ELASTIC:
         return None
-    return HiddenGap(**_answer(p, theta, s_N), angle_ratio=ratio)
+    return HiddenGap(**p.answer(theta, s_N), angle_ratio=ratio)

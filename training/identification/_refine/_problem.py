@@ -1,0 +1,93 @@
+"""One record to refine (:class:`RefineProblem`), the refined model (:class:`Refined`) and the
+switching test's torque reference the models are replayed under."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+import sim
+
+
+@dataclass
+class RefineProblem:
+    """One record to refine: measured ``speed`` ``N`` [rad/s]; torque reference segments
+    (``start`` int ``K``, ``level`` ``K`` [Nm]); scored ``segments`` ``(L, 2)`` half-open sample
+    ranges; STEP 2's ``J_sigma``, ``M_FC``, ``mu_F``; the drive (``T_s``, ``T_Ei``,
+    ``encoder_counts``, ``M_N`` for ``s_N``); the start ``theta`` over :data:`COORDINATES`
+    (``s_N`` of 1e-3 or less stands for no backlash)."""
+
+    speed: np.ndarray
+    start: np.ndarray
+    level: np.ndarray
+    segments: np.ndarray
+    J_sigma: float
+    M_FC: float
+    mu_F: float
+    T_s: float
+    T_Ei: float
+    encoder_counts: int
+    M_N: float
+    theta: np.ndarray
+    free_one_mass: bool = False
+
+    def J_sigma_of(self, theta: np.ndarray) -> np.ndarray:
+        """``J_sigma`` [kg m^2] of ``theta`` ``*batch x 4`` (STEP 2's) or ``x 7`` (its own)."""
+        return 10.0 ** theta[..., 4] if theta.shape[-1] > 4 else np.full(theta.shape[:-1], self.J_sigma)
+
+    def C_F(self, theta: np.ndarray) -> np.ndarray:
+        """Shaft stiffness [Nm/rad] of ``theta`` ``*batch x 4`` (or ``x 7``)."""
+        return sim.two_mass_derived(self.J_sigma_of(theta), 10.0 ** theta[..., 1], 10.0 ** theta[..., 0],
+                                    theta[..., 2]).C_F
+
+    def answer(self, theta: np.ndarray, s_N: float) -> dict[str, float]:
+        """The :class:`Refined` model values of ``theta`` (4 or 7) with the normalized backlash ``s_N``."""
+        return {"f_e": float(10.0 ** theta[0]), "V_J": float(10.0 ** theta[1]), "d": float(theta[2]), "s_N": s_N,
+                "backlash": 2.0 * s_N * self.M_N / float(self.C_F(theta))}
+
+
+@dataclass
+class Refined:
+    """The refined model: ``f_e`` [Hz], ``V_J``, ``d``, ``s_N``, ``backlash`` = ``2s`` [rad];
+    ``residual`` and ``start_residual``: the detrended speed error of the refined model and of
+    the maps' answer over the measured oscillation (both detrended the same way; about the
+    quantization noise over the oscillation for a perfect model), ``dof`` the samples they are
+    taken over less the trends removed; ``n_sims`` simulated models; ``J_sigma``, ``M_FC``,
+    ``mu_F``: refined one-mass values where the free stage won (else None: STEP 2's stand)."""
+
+    f_e: float
+    V_J: float
+    d: float
+    s_N: float
+    backlash: float
+    residual: float
+    start_residual: float
+    dof: int
+    n_sims: int
+    J_sigma: float | None = None
+    M_FC: float | None = None
+    mu_F: float | None = None
+
+    @property
+    def evidence(self) -> float:
+        """How much better the refined model explains the record than the maps' answer: the drop of
+        the squared error in units of the refined model's own error per degree of freedom (an F
+        statistic of the added model; 0 where it is no better, inf where it fits exactly)."""
+        gain = self.start_residual ** 2 - self.residual ** 2
+        if gain <= 0.0:
+            return 0.0
+        return math.inf if self.residual == 0.0 else gain * self.dof / self.residual ** 2
+
+
+def torque_reference(bounds: np.ndarray, M_star: float) -> tuple[np.ndarray, np.ndarray]:
+    """The switching test's torque reference (SPEC 2) from its six section ``bounds`` ``(6, 2)``:
+    0 before section I, :data:`sim.SECTION_LEVELS` ``x M*`` over the sections, 0 in the tail.
+    Returns ``start`` (int ``8``) and ``level`` (``8`` [Nm]) for :func:`sim.replay.replay_speed`."""
+    bounds = np.asarray(bounds, dtype=np.int64)
+    if bounds.shape != (6, 2):
+        raise ValueError(f"bounds: expected shape (6, 2), received {bounds.shape}")
+    start = np.concatenate([[0], bounds[:, 0], [bounds[5, 1]]])
+    level = M_star * np.array([0.0, *sim.SECTION_LEVELS, 0.0])
+    return start, level

@@ -1,0 +1,166 @@
+"""The whole-record error of candidate models: the record's torque reference replayed through
+each (:func:`sim.replay.replay_speed`, many records and models per call), less the measured speed,
+with each section's quadratic trend removed."""
+
+from __future__ import annotations
+
+import functools
+import math
+from collections.abc import Iterator
+
+import numpy as np
+import torch
+
+import sim
+from sim.replay import replay_speed
+from training.identification._refine._problem import RefineProblem
+
+
+def detrend_basis(segments: np.ndarray) -> list[tuple[int, int, np.ndarray]]:
+    """Per segment ``(a, b, Q)``: orthonormal ``L x 3`` basis of the quadratic trends on it."""
+    return [(a, b, trend_basis(b - a)) for a, b in np.asarray(segments, dtype=np.int64).tolist() if b > a]
+
+
+@functools.lru_cache(maxsize=4096)
+def trend_basis(L: int) -> np.ndarray:
+    """Orthonormal ``L x min(3, L)`` basis of the polynomials of degree < 3 on ``L`` samples (read-only)."""
+    tau = np.linspace(-1.0, 1.0, L)
+    V = np.stack([np.ones(L), tau, tau * tau], axis=1)[:, : min(3, L)]  # L x 3
+    Q = np.linalg.qr(V)[0]
+    Q.flags.writeable = False  # shared by every caller through the cache
+    return Q
+
+
+def detrended_energy(E: np.ndarray, basis: list[tuple[int, int, np.ndarray]]) -> np.ndarray:
+    """``sum ||e - Q Q^T e||^2`` over the segments for each column of ``E`` (``N x C``) -> ``C``,
+    summed over the detrended errors themselves (``||e||^2 - ||Q^T e||^2`` loses the digits of a
+    small residual under a large trend: the measured speed's own, 6e-7 of its root measured)."""
+    total = np.zeros(E.shape[1])
+    for a, b, Q in basis:
+        r = _detrend(E[a:b], Q)  # L x C
+        total += (r * r).sum(0)
+    return total
+
+
+def _detrend(e: np.ndarray, Q: np.ndarray) -> np.ndarray:
+    """``e`` (``L x C``) less its projection on the orthonormal trend basis ``Q`` (``L x 3``)."""
+    return e - Q @ (Q.T @ e)
+
+
+def finite(E: np.ndarray) -> np.ndarray:
+    """``E`` with a diverged model's errors (NaN, +-inf) read as +-1e6 rad/s (a finite sum: none)."""
+    return E if np.isfinite(E.sum()) else np.nan_to_num(E, nan=1e6, posinf=1e6, neginf=-1e6)
+
+
+def model_values(p: RefineProblem, theta: np.ndarray) -> dict[str, np.ndarray]:
+    """The :data:`sim.PARAM_NAMES` values ``C`` of the candidates ``theta`` ``C x 4`` or ``C x 7``
+    (backlash ``2s = 2 s_N M_N / C_F``)."""
+    C = theta.shape[0]
+    return {"J_sigma": p.J_sigma_of(theta), "V_J": 10.0 ** theta[:, 1], "f_e": 10.0 ** theta[:, 0], "d": theta[:, 2],
+            "backlash": 2.0 * 10.0 ** theta[:, 3] * p.M_N / p.C_F(theta),
+            "M_FC": theta[:, 5] if theta.shape[1] > 4 else np.full(C, max(p.M_FC, 0.0)),
+            "mu_F": theta[:, 6] if theta.shape[1] > 4 else np.full(C, max(p.mu_F, 0.0))}
+
+
+def sim_params(values: dict[str, np.ndarray]) -> sim.TwoMassParams:
+    """:func:`model_values` (or several concatenated) as the simulator's parameters."""
+    return sim.TwoMassParams(**{n: torch.from_numpy(np.ascontiguousarray(values[n], dtype=np.float64))
+                                for n in sim.PARAM_NAMES})
+
+
+def simulate(p: RefineProblem, theta: np.ndarray, drive: sim.DriveConfig) -> np.ndarray:
+    """Speed error ``N x C`` [rad/s] (model minus measurement; time-major, as the kernel writes it)
+    of each candidate ``theta`` ``C x 4``."""
+    return simulate_packed([(p, theta)], drive)[0]
+
+
+def simulate_packed(items: list[tuple[RefineProblem, np.ndarray]], drive: sim.DriveConfig,
+                    rows: list[np.ndarray] | None = None) -> list[np.ndarray]:
+    """:func:`simulate` for several records on one drive in one replay call (the kernel's blocks
+    of 32 models fill up and run on all cores): one ``N_i x C_i`` error per item (``rows``: only
+    these samples of each item's record, ``R_i x C_i``)."""
+    values = [model_values(p, th) for p, th in items]
+    flat = {n: np.concatenate([v[n] for v in values]) for n in sim.PARAM_NAMES}
+    N = max(len(p.speed) for p, _ in items)
+    K = max(len(p.start) for p, _ in items)
+    start = np.concatenate([np.broadcast_to(np.pad(p.start, (0, K - len(p.start)), constant_values=2**30),
+                                            (len(th), K)) for p, th in items])  # n x K
+    level = np.concatenate([np.broadcast_to(np.pad(p.level, (0, K - len(p.level)), mode="edge"),
+                                            (len(th), K)) for p, th in items])
+    w = replay_speed(sim_params(flat), drive, torch.from_numpy(start), torch.from_numpy(level), N, quantize=False,
+                     substeps=_substeps(flat, drive.T_s, drive.T_Ei)).numpy().T  # N x n
+    out, i = [], 0
+    for k, (p, th) in enumerate(items):
+        at = slice(0, len(p.speed)) if rows is None else rows[k]
+        out.append(finite(w[at, i:i + len(th)] - p.speed[at, None]))
+        i += len(th)
+    return out
+
+
+def problem_substeps(p: RefineProblem, theta: np.ndarray) -> int:
+    """:func:`_substeps` of the candidates ``theta`` of ``p`` on its drive."""
+    return _substeps(model_values(p, theta), p.T_s, p.T_Ei)
+
+
+def _substeps(values: dict[str, np.ndarray], T_s: float, T_Ei: float) -> int:
+    """RK4 substeps per sample: ``w_0 dt <= 0.5`` for the stiffest model of
+    :func:`model_values` (frequency error < 0.1 %), ``dt <= T_Ei/2`` (:func:`sim.rk4_substeps`)."""
+    w_0 = sim.two_mass_derived(values["J_sigma"], values["V_J"], values["f_e"], values["d"]).w_0
+    return sim.rk4_substeps(float(w_0.max()), T_s, T_Ei, w_0_dt=0.5, minimum=1)
+
+
+def replay_drive(p: RefineProblem) -> sim.DriveConfig:
+    """The drive the candidates of ``p`` run on (no torque limit: the levels are what was applied)."""
+    return sim.DriveConfig(M_max=1e9, T_Ei=p.T_Ei, T_s=p.T_s, encoder_counts=p.encoder_counts)
+
+
+def detrended_cost(p: RefineProblem, theta: np.ndarray, basis: list, drive: sim.DriveConfig) -> np.ndarray:
+    """Detrended squared speed error of each candidate ``theta`` ``C x 4`` -> ``C``."""
+    return detrended_energy(simulate(p, theta, drive), basis)
+
+
+def packed_errors(problems: list[RefineProblem], asked: dict[int, np.ndarray],
+                  rows: dict[int, np.ndarray] | None = None) -> Iterator[tuple[int, np.ndarray]]:
+    """``(i, E)``: the speed error ``N_i x C_i`` (or over the samples ``rows[i]`` only) of the
+    candidates ``asked[i]`` ``C_i x 4`` (or ``x 7``) of each problem ``i``, a pack at a time
+    (:func:`pack_indices`: one drive and substep count per replay call; a result does not depend on its
+    pack)."""
+    todo = sorted(asked)
+    substeps = [problem_substeps(problems[i], asked[i]) for i in todo]
+    for pack in pack_indices([problems[i] for i in todo], [len(asked[i]) for i in todo], substeps):
+        ids = [todo[k] for k in pack]
+        yield from zip(ids, simulate_packed([(problems[i], asked[i]) for i in ids], replay_drive(problems[ids[0]]),
+                                            None if rows is None else [rows[i] for i in ids]))
+
+
+def relative_rms(cost: float, measured: float) -> float:
+    """A detrended error's rms over that of the detrended measured speed (``measured``: its energy)."""
+    return math.sqrt(cost / measured) if measured > 0 else math.sqrt(cost)
+
+
+def pack_indices(problems: list[RefineProblem], sizes: list[int], substeps: list[int], lengths: list[int] | None = None,
+                 max_models: int = 256, min_length_ratio: float = 0.6) -> list[list[int]]:
+    """Indices of ``problems`` in packs of one drive and one substep count (so that a result does
+    not depend on its pack), simulated lengths (default: the records') within
+    ``min_length_ratio`` of the pack's longest (the shorter ones idle while it runs) and at most
+    ``max_models`` simulated models (``sizes``)."""
+    lengths = [len(p.speed) for p in problems] if lengths is None else lengths
+    key = lambda i: (problems[i].T_s, problems[i].T_Ei, problems[i].encoder_counts, substeps[i])  # noqa: E731
+    order = sorted(range(len(problems)), key=lambda i: (key(i), -lengths[i]))
+    packs: list[list[int]] = []
+    for i in order:
+        last = packs[-1] if packs else None
+        fits = (last and key(last[0]) == key(i)
+                and lengths[i] >= min_length_ratio * lengths[last[0]]
+                and sum(sizes[j] for j in last) + sizes[i] <= max_models)
+        if fits:
+            last.append(i)
+        else:
+            packs.append([i])
+    return packs
+
+
+def detrended(E: np.ndarray, basis: list[tuple[int, int, np.ndarray]]) -> np.ndarray:
+    """The errors ``E`` (``N x C``) with each segment's quadratic trend removed, segments end to
+    end: ``M x C`` (their squared sum is the refinement's detrended energy)."""
+    return np.concatenate([_detrend(E[a:b], Q) for a, b, Q in basis], axis=0)
