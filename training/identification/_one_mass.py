@@ -319,6 +319,9 @@ COLLINEAR_INFLATION = 1e4
 #: Relative residual above which the one-mass model explains too little to be trusted (the
 #: trajectory fit of a test run: below 0.05; the integral form on EMPS: 0.07).
 UNINFORMATIVE_RESIDUAL = 0.5
+#: Periods of the oscillation the shortest test section must hold for the trajectory fit to be
+#: trusted (shorter, and the fit reads about the motor's inertia: the load has not followed yet).
+SECTION_PERIODS = 2.0
 _PARAMETERS = ("J_sigma", "mu_F", "M_FC", "M_0")
 
 
@@ -485,7 +488,7 @@ def _trajectory_warnings(rel: float, f_osc: float, bounds: list[tuple[int, int]]
                                   "signal: the record is not well described by one mass (oscillation too large?)"))
     if f_osc > 0 and rel > 0.01:
         shortest = min(b - a for a, b in bounds) * T_s
-        if shortest * f_osc < 2.0:
+        if shortest * f_osc < SECTION_PERIODS:
             warns.append(IdentWarning("one_mass_fit_short_sections",
                                       f"shortest section ({1e3 * shortest:.0f} ms) holds fewer than two periods of "
                                       f"the {f_osc:.3g} Hz oscillation: lower M* or raise w_max"))

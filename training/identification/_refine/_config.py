@@ -7,6 +7,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from training.identification._one_mass import SECTION_PERIODS
+
 #: Search coordinates and their bounds: log10 f_e [Hz], log10 V_J, d, log10 s_N (normalized
 #: backlash; measured better than searching the width itself: 86 vs 66 % of the widths within 30 %).
 COORDINATES: tuple[str, ...] = ("log10_f_e", "log10_V_J", "d", "log10_s_N")
@@ -178,7 +180,8 @@ class RefineConfig:
     # free one-mass part: first spread of log10 J_sigma, M_FC / M*, mu_F w_max / M*
     free_spread: tuple[float, float, float] = (0.1, 0.01, 0.01)
     free_win: float = 0.25  # free one-mass part: error ratio it must beat
-    free_periods: float = 2.0  # free one-mass part: also where a section holds fewer periods of the chosen model
+    # free one-mass part: also where a section holds fewer periods of the chosen model (STEP 2's own rule)
+    free_periods: float = SECTION_PERIODS
     angle_rounds: int = 4  # angle: cross-entropy rounds on each side of the class threshold
     seed: int = 0  # every search starts from this seed
 
