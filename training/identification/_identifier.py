@@ -29,7 +29,7 @@ from training.errors import one_line
 from training.identification._analysis import FEATURE_NAMES, Analysis, analyze
 from training.identification._batch import analysis_outcome, answered_files
 from training.identification._envelope import Envelope, Finding, envelope_warnings, trained_envelope
-from training.identification._limits import (BACKLASH_NEGLIGIBLE, backlash_resolution, implausible, impossible,
+from training.identification._limits import (backlash_negligible, backlash_resolution, implausible, impossible,
                                              travel)
 from training.identification._maps import MAP_SPECS, TrainedMap, from_correction, load_map, recall_targets
 from training.identification._refine import (HiddenGap, RefineConfig, RefineProblem, Refined, find_hidden_gap,
@@ -363,8 +363,10 @@ def _s_N(a: Analysis, log10_s_star: float) -> float:
 
 
 def _hides_backlash(a: Analysis) -> bool:
-    """Whether the record's resolution could hide a backlash that matters (:func:`._limits.backlash_resolution`)."""
-    return backlash_resolution(a.q_w, a.drive.q_phi, abs(a.fit.J_sigma), a.M_star) > BACKLASH_NEGLIGIBLE
+    """Whether the record's resolution could hide a backlash that matters on a stiff shaft
+    (:func:`._limits.backlash_resolution`, :func:`._limits.backlash_negligible`)."""
+    J_sigma = abs(a.fit.J_sigma)
+    return backlash_resolution(a.q_w, a.drive.q_phi, J_sigma, a.M_star) > backlash_negligible(a.M_N, a.T_Ei, J_sigma)
 
 
 def _drive_quantities(a: Analysis) -> dict[str, float | None]:
@@ -394,7 +396,8 @@ def _backlash_bound(a: Analysis, p: Parameters, structure: str) -> tuple[Paramet
     if p.J_sigma is None:
         return p, None, []
     bound = backlash_resolution(a.q_w, a.drive.q_phi, p.J_sigma, a.M_star, p.V_J)
-    if bound <= BACKLASH_NEGLIGIBLE or (p.backlash is not None and p.backlash >= bound):
+    shown = p.backlash is not None and p.backlash >= bound
+    if shown or bound <= backlash_negligible(a.M_N, a.T_Ei, p.J_sigma, p.C_F):
         return p, None, []
     where = f"in this record (encoder {a.encoder_counts} counts, T_s {a.T_s:.3g} s)"
     if structure in _BACKLASH_CLASSES and p.backlash:

@@ -9,8 +9,11 @@
   :data:`BACKLASH_VISIBLE_COUNTS` encoder counts on: ``2s_angle = k_phi q_phi (1 + V_J) / V_J``
   (``V_J`` the answer's, else SPEC 3.1's smallest). The record cannot show a gap below
   ``2s_res = max(q_phi, min(2s_speed, 2s_angle))``. A stiff answer (or a backlash below that
-  width) then reports no width but this upper bound, with a warning, where the bound exceeds
-  :data:`BACKLASH_NEGLIGIBLE` (precision gearboxes: about 1 arcmin).
+  width) then reports no width but this upper bound, with a warning, where the bound exceeds the
+  width that matters (:func:`backlash_negligible`): :data:`BACKLASH_NEGLIGIBLE` (precision
+  gearboxes: about 1 arcmin), or less where a narrower gap already gives the mechanic a backlash
+  class (``s_N = 2s C_F / (2 M_N)`` reaches ``S_N_ELASTIC``: on a small drive's stiff shaft a few
+  thousandths of a degree).
 - **Implausible outputs** (kept, warned): ``f_e`` above Nyquist ``0.5/T_s`` or above the current
   loop's bandwidth ``1/(2 pi T_Ei)`` (the test does not excite it), a backlash wider than the
   motor's travel in the test, a two-mass ``J_sigma`` off STEP 2's one-mass fit by more than
@@ -26,7 +29,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from sim import SECTION_LEVELS
+from sim import S_N_ELASTIC, SECTION_LEVELS, W_E_T_EI_STIFF
 
 from training.identification._envelope import SPEC_ENVELOPE
 from training.identification._result import IdentWarning, Parameters
@@ -54,6 +57,18 @@ def backlash_resolution(q_w: float, q_phi: float, J_sigma: float, M_star: float,
     v = V_J if V_J is not None and V_J > 0 else V_J_SMALLEST
     by_angle = BACKLASH_VISIBLE_COUNTS * q_phi / motor_lead(1.0, v)
     return max(q_phi, min(by_speed, by_angle))
+
+
+def backlash_negligible(M_N: float, T_Ei: float, J_sigma: float, C_F: float | None = None) -> float:
+    """The widest backlash ``2s`` [rad] not worth a warning: :data:`BACKLASH_NEGLIGIBLE`, or the
+    width from which the class rule counts the gap (``s_N >= S_N_ELASTIC``: ``2s = 2 S_N_ELASTIC M_N
+    / C_F``) where that is narrower. ``C_F`` [Nm/rad] the answer's; without one (a stiff answer) that
+    of the softest stiff shaft, ``w_e T_Ei = 1`` at SPEC 3.1's extreme ``V_J`` (``J_M J_L / J_sigma
+    = J_sigma V_J / (1 + V_J)^2`` is smallest there): the widest gap that can still count."""
+    if C_F is None or not C_F > 0:
+        ratio = min(v / (1.0 + v) ** 2 for v in SPEC_ENVELOPE["V_J"])  # J_M J_L / J_sigma^2
+        C_F = ratio * J_sigma * (W_E_T_EI_STIFF / T_Ei) ** 2
+    return min(BACKLASH_NEGLIGIBLE, 2.0 * S_N_ELASTIC * M_N / C_F)
 
 
 def travel(speed: np.ndarray, T_s: float) -> float:

@@ -17,7 +17,7 @@ from training.identification import (SPEC_ENVELOPE, Envelope, Identifier, Parame
                                      trained_envelope)
 from training.identification._analysis import analyze, applied_torque
 from training.identification._drive import estimated_encoder_counts
-from training.identification._limits import backlash_resolution, implausible, impossible
+from training.identification._limits import backlash_negligible, backlash_resolution, implausible, impossible
 
 CHECKPOINTS = Path(__file__).resolve().parents[3] / "checkpoints"
 #: An elastic plant with backlash (s_N ~ 0.2 on the reference drive).
@@ -301,6 +301,30 @@ def test_a_stiff_shaft_with_backlash_on_a_large_axis_is_not_called_stiff_unwarne
                                  f_e=203.15304, d=0.07233, backlash=width, M_FC=6.61608, mu_F=0.00047))
     assert res.quality.structure_probabilities["stiff"] < 0.6
     assert res.structure == "stiff_backlash" and res.parameters.backlash == pytest.approx(width, rel=0.3)
+
+
+def test_the_backlash_that_matters_follows_the_class_rule():
+    """Hand-computed: 0.01 degree, or the width at ``s_N = 0.1`` where narrower: 2 * 0.1 * 0.2 Nm /
+    1000 Nm/rad = 4e-5 rad. A stiff answer (no ``C_F``) takes the softest stiff shaft: ``w_e T_Ei =
+    1`` at ``V_J`` 0.2 or 5 (``V_J / (1 + V_J)^2 = 5/36``): 0.002 * 5/36 / (5e-4)^2 = 1111 Nm/rad."""
+    assert backlash_negligible(10.0, 5e-4, 0.05, 1000.0) == math.radians(0.01)
+    assert backlash_negligible(0.2, 5e-4, 0.002, 1000.0) == pytest.approx(4e-5, rel=1e-12)
+    assert backlash_negligible(0.2, 5e-4, 0.002) == pytest.approx(0.04 / (0.002 * 5 / 36 / 25e-8), rel=1e-12)
+
+
+def test_a_small_drive_backlash_below_a_hundredth_of_a_degree_is_not_called_stiff_unwarned(ident):
+    """A 0.2 Nm drive (2^19 counts, 85 us), a shaft near the current loop's reach (``w_e T_Ei``
+    0.75) with a gap of 2.5e-4 rad (0.014 degree, a motor lead of 4.6 counts; ``s_N`` 0.5:
+    ``elastic_backlash``). Every gap below 0.01 degree counted as negligible: no angle search, and
+    the answer came out ``stiff``, backlash 0, no warning (envelope seed 6, #291). On this drive a
+    gap of 4e-5 rad already makes a stiff shaft a backlash class: the gap is found (in the angle), or
+    a stiff answer says how wide a gap it could miss."""
+    drive = DriveConfig(M_N=0.2219, M_max=0.5238, K_M=1.0, T_Ei=4.749e-4, T_s=8.472e-5, encoder_counts=2**19,
+                        current_noise_std=7.6e-4)
+    width = 2.474e-4
+    res = ident.identify(_record(drive, TestSignalConfig(M_star=0.05265, w_max=12.51), J_sigma=0.002045,
+                                 V_J=0.2896, f_e=251.09, d=0.0603, backlash=width, M_FC=4.22e-4, mu_F=1.17e-4))
+    assert res.structure == "elastic_backlash" or "backlash_below_resolution" in _codes(res)
 
 
 def test_a_current_loop_faster_than_the_sample_time_keeps_the_refinement_stable(ident):
