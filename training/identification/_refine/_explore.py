@@ -15,7 +15,7 @@ from training.identification._envelope import SPEC_ENVELOPE
 from training.identification._refine._config import HIGH, LOW, RefineConfig
 from training.identification._refine._problem import RefineProblem
 from training.identification._refine._replay import (finite, model_values, pack_indices, problem_substeps,
-                                                     replay_drive, sim_params, trend_basis)
+                                                     quantization_energy, replay_drive, sim_params, trend_basis)
 from training.identification._refine._search import Search, TaggedSearch, cem, own_rng, product_grid, tagged
 
 
@@ -226,7 +226,7 @@ def _grid_s_N(theta0: np.ndarray, config: RefineConfig) -> list[float]:
 def _rescues(p: RefineProblem, windows: ScoreWindows, cost: float, config: RefineConfig) -> bool:
     """Whether the exploration of ``p``, whose best model left ``cost`` of the energy over its
     ``windows``, is followed by the rescue's survey (see :class:`RefineConfig`)."""
-    noise = float(windows.inside.sum()) * sim.speed_quantum(p.encoder_counts, p.T_s) ** 2 / 6.0
+    noise = quantization_energy(p, int(windows.inside.sum()))
     return cost > config.rescue_above * windows.yy and windows.yy >= config.rescue_signal * noise
 
 

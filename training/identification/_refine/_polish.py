@@ -4,7 +4,7 @@
 from __future__ import annotations
 
 import math
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -12,7 +12,7 @@ from training.identification._refine._config import HIGH, LOW, NO_GAP, RefineCon
 from training.identification._refine._free import free_bounds, one_mass_values
 from training.identification._refine._problem import RefineProblem, Refined
 from training.identification._refine._replay import (detrend_basis, detrended, detrended_energy, packed_errors,
-                                                     relative_rms)
+                                                     quantization_energy, relative_rms)
 
 
 def _scored(p: RefineProblem, f_e: float, config: RefineConfig) -> tuple[np.ndarray, list[tuple[int, int, np.ndarray]]]:
@@ -32,77 +32,123 @@ def _errors(problems: list[RefineProblem], asked: dict[int, np.ndarray],
             for i, E in packed_errors(problems, asked, {i: rows for i, (rows, _) in scored.items()})}
 
 
+@dataclass
+class _Lane:
+    """One problem's polish: its model ``theta`` over :data:`COORDINATES` (4) or
+    :data:`FREE_COORDINATES` (7), the coordinates it moves (``free``), their bounds and difference
+    steps ``h``, and whether an iteration has moved it."""
+
+    theta: np.ndarray
+    free: list[int]
+    low: np.ndarray
+    high: np.ndarray
+    h: np.ndarray
+    moved: bool = False
+
+
 def polish(problems: list[RefineProblem], chosen: list[Refined], measured: list[float],
            config: RefineConfig) -> list[Refined]:
     """Each ``chosen[i]`` polished on the whole record (see :class:`RefineConfig`; ``measured[i]``
     the measured speed's own detrended energy), the searches side by side: one replay per
     iteration and step kind for the problems on one drive and substep count; ``residual`` and
     ``n_sims`` updated."""
-    theta, free, scored, low, high, h = {}, {}, {}, {}, {}, {}
+    if not config.polish_iterations:
+        return list(chosen)
+    lanes, scored = {}, {}
     for i, (p, r) in enumerate(zip(problems, chosen)):
         t = [math.log10(r.f_e), math.log10(r.V_J), r.d, math.log10(max(r.s_N, 10.0 ** LOW[3]))]
         rows, basis = _scored(p, r.f_e, config)
         if r.J_sigma is None:  # STEP 2's one-mass part: the detrended error
-            low[i], high[i], h[i] = LOW, HIGH, np.asarray(config.polish_steps, dtype=np.float64)
+            low, high, h = LOW, HIGH, np.asarray(config.polish_steps, dtype=np.float64)
         else:  # the free stage's: its three coordinates too, on the plain error (nothing to detrend)
-            low[i], high[i], scale = free_bounds(p)
+            low, high, scale = free_bounds(p)
             t += [math.log10(r.J_sigma), float(r.M_FC), float(r.mu_F)]
-            h[i] = np.concatenate([config.polish_steps, np.asarray(config.polish_free_steps) * scale])
+            h = np.concatenate([config.polish_steps, np.asarray(config.polish_free_steps) * scale])
             basis = [(a, b, Q[:, :0]) for a, b, Q in basis]
-        theta[i], scored[i] = np.array(t), (rows, basis)
-        free[i] = [k for k in range(len(t)) if k != 3 or t[3] > NO_GAP]
-    n_sims = dict.fromkeys(theta, 0)
-    cost: dict[int, float] = {}
-    start: dict[int, float] = {}
-    active, moved = set(theta), set()
+        lanes[i], scored[i] = _Lane(np.array(t), [k for k in range(len(t)) if k != 3 or t[3] > NO_GAP], low, high,
+                                    h), (rows, basis)
+    n_sims = dict.fromkeys(lanes, 0)
+    start: dict[int, float] = {}  # the chosen models' errors: what the polished ones must beat
     # a model without a gap: the best of a few small gaps starts the polish, with s_N free, where it beats it
     seeds = np.log10(np.asarray(config.polish_gap_seeds, dtype=np.float64))
-    asked = {i: np.vstack([t] + [np.concatenate([t[:3], [g], t[4:]]) for g in seeds])
-             for i, t in theta.items() if t[3] <= NO_GAP and seeds.size and config.polish_iterations}
+    asked = {i: np.vstack([lane.theta] + [np.concatenate([lane.theta[:3], [g], lane.theta[4:]]) for g in seeds])
+             for i, lane in lanes.items() if lane.theta[3] <= NO_GAP and seeds.size}
     for i, R in _errors(problems, asked, scored).items():
         n_sims[i] += R.shape[1]
         c = (R * R).sum(0)
-        start[i] = float(c[0])  # the chosen model's: what the polished one must beat
+        start[i] = float(c[0])
         k = int(np.argmin(c))
         if k > 0:
-            theta[i], free[i], cost[i] = asked[i][k], list(range(len(theta[i]))), float(c[k])
-            moved.add(i)
+            lanes[i].theta, lanes[i].free, lanes[i].moved = asked[i][k], list(range(len(asked[i][k]))), True
+    cost = _descend(problems, lanes, scored, config, n_sims, start)
+    # a poor fit, well above the speed's quantization noise: once more from a lighter damping
+    again = {i: replace(lane, theta=lane.theta.copy(), moved=False) for i, lane in lanes.items()
+             if cost[i] > max(config.polish_retry_above * quantization_energy(problems[i], len(scored[i][0])),
+                              config.polish_retry_residual ** 2 * _measured(problems[i], scored[i]))}
+    for lane in again.values():
+        lane.theta[2] = max(lane.theta[2] * config.polish_retry_damping, float(lane.low[2]))
+    for i, c in _descend(problems, again, scored, config, n_sims, start).items():
+        if c < cost[i]:
+            lanes[i], cost[i] = replace(again[i], moved=True), c
+    won = sorted(i for i, lane in lanes.items() if lane.moved and cost[i] < config.polish_win * start[i])
+    out = [replace(r, n_sims=r.n_sims + n_sims.get(i, 0)) for i, r in enumerate(chosen)]
+    for i, E in packed_errors(problems, {i: lanes[i].theta[None] for i in won}):  # the winners' whole-record error
+        t, total = lanes[i].theta, float(detrended_energy(E, detrend_basis(problems[i].segments))[0])
+        s_N = float(10.0 ** t[3]) if t[3] > NO_GAP else chosen[i].s_N
+        one_mass = {} if len(t) == 4 else one_mass_values(t)
+        out[i] = replace(out[i], **problems[i].answer(t, s_N), **one_mass, residual=relative_rms(total, measured[i]),
+                         n_sims=out[i].n_sims + 1)
+    return out
+
+
+def _measured(p: RefineProblem, scored: tuple[np.ndarray, list[tuple[int, int, np.ndarray]]]) -> float:
+    """The measured speed's own energy over the polish's samples (detrended as its errors are)."""
+    rows, basis = scored
+    return float((detrended(p.speed[rows, None], basis) ** 2).sum())
+
+
+def _with_steps(lane: _Lane) -> np.ndarray:
+    """The lane's model and the model stepped by ``h`` in each of its free coordinates, clipped: ``(1 + F) x D``."""
+    stepped = lane.theta + lane.h[lane.free, None] * np.eye(len(lane.theta))[lane.free]  # F x D
+    return np.clip(np.vstack([lane.theta, stepped]), lane.low, lane.high)
+
+
+def _descend(problems: list[RefineProblem], lanes: dict[int, _Lane],
+             scored: dict[int, tuple[np.ndarray, list[tuple[int, int, np.ndarray]]]], config: RefineConfig,
+             n_sims: dict[int, int], start: dict[int, float]) -> dict[int, float]:
+    """Up to ``config.polish_iterations`` Levenberg-Marquardt iterations of each lane (``theta`` and
+    ``moved`` updated in place; a lane stops once an iteration gains less than ``polish_tolerance``),
+    the lanes side by side; returns each lane's error at its final model (``start`` gets the error
+    of a lane's first model where it has none, ``n_sims`` the models simulated)."""
+    cost: dict[int, float] = {}
+    active = set(lanes)
     for _ in range(config.polish_iterations):
         if not active:
             break
         # the error r and its forward-difference Jacobian J (M x F) at each model, one replay for all
-        asked = {i: np.clip(np.vstack([theta[i]] + [theta[i] + h[i][k] * np.eye(len(theta[i]))[k] for k in free[i]]),
-                            low[i], high[i]) for i in active}
+        asked = {i: _with_steps(lanes[i]) for i in active}
         trials = {}
         for i, R in _errors(problems, asked, scored).items():
+            lane = lanes[i]
             n_sims[i] += R.shape[1]
             r = R[:, 0]
             cost[i] = float(r @ r)
             start.setdefault(i, cost[i])
-            step = asked[i][1:, free[i]].diagonal() - theta[i][free[i]]  # the steps as clipped
+            step = asked[i][1:, lane.free].diagonal() - lane.theta[lane.free]  # the steps as clipped
             J = (R[:, 1:] - r[:, None]) / np.where(step != 0, step, 1.0)  # M x F
             A, g = J.T @ J, J.T @ r
             D = np.diag(np.maximum(np.diag(A), 1e-12 * max(float(np.diag(A).max()), 1e-300)))
-            moves = np.repeat(theta[i][None], len(config.polish_damping), axis=0)  # L x D
+            moves = np.repeat(lane.theta[None], len(config.polish_damping), axis=0)  # L x D
             for row, lam in zip(moves, config.polish_damping):
-                row[free[i]] += np.linalg.solve(A + lam * D, -g)
-            trials[i] = np.clip(moves, low[i], high[i])
+                row[lane.free] += np.linalg.solve(A + lam * D, -g)
+            trials[i] = np.clip(moves, lane.low, lane.high)
         for i, R in _errors(problems, trials, scored).items():
             n_sims[i] += R.shape[1]
             c = (R * R).sum(0)
             k = int(np.argmin(c))
             ratio = float(c[k]) / cost[i] if cost[i] > 0 else 1.0
             if ratio < 1.0:
-                theta[i], cost[i] = trials[i][k], float(c[k])
-                moved.add(i)
+                lanes[i].theta, cost[i], lanes[i].moved = trials[i][k], float(c[k]), True
             if ratio > 1.0 - config.polish_tolerance:  # no better, or hardly: done
                 active.discard(i)
-    won = sorted(i for i in moved if cost[i] < config.polish_win * start[i])
-    out = [replace(r, n_sims=r.n_sims + n_sims.get(i, 0)) for i, r in enumerate(chosen)]
-    for i, E in packed_errors(problems, {i: theta[i][None] for i in won}):  # the winners' whole-record error
-        t, total = theta[i], float(detrended_energy(E, detrend_basis(problems[i].segments))[0])
-        s_N = float(10.0 ** t[3]) if t[3] > NO_GAP else chosen[i].s_N
-        one_mass = {} if len(t) == 4 else one_mass_values(t)
-        out[i] = replace(out[i], **problems[i].answer(t, s_N), **one_mass, residual=relative_rms(total, measured[i]),
-                         n_sims=out[i].n_sims + 1)
-    return out
+    return cost

@@ -133,6 +133,12 @@ def packed_errors(problems: list[RefineProblem], asked: dict[int, np.ndarray],
                                             None if rows is None else [rows[i] for i in ids]))
 
 
+def quantization_energy(p: RefineProblem, samples: int) -> float:
+    """The squared error [rad^2/s^2] the encoder speed's quantization leaves over ``samples`` samples
+    even for the true model: ``q_w^2 / 6`` per sample (two independent quantizations of the angle)."""
+    return samples * sim.speed_quantum(p.encoder_counts, p.T_s) ** 2 / 6.0
+
+
 def relative_rms(cost: float, measured: float) -> float:
     """A detrended error's rms over that of the detrended measured speed (``measured``: its energy)."""
     return math.sqrt(cost / measured) if measured > 0 else math.sqrt(cost)
