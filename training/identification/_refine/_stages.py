@@ -47,7 +47,7 @@ def refine(problems: list[RefineProblem], config: RefineConfig | None = None) ->
     measured = [float(detrended_energy(p.speed[:, None], b)[0]) for p, b in zip(problems, bases)]
     chosen = [_finish(p, th, c, b, m, n, config, rng)
               for p, th, c, b, m, (_, n), rng in zip(problems, finalists, costs, bases, measured, explored, rngs)]
-    return polish(problems, chosen, measured, config) if config.polish_iterations else chosen
+    return polish(problems, chosen, measured, config)
 
 
 def _finish(p: RefineProblem, theta: np.ndarray, cost: np.ndarray, full: list, measured: float, explored: int,
