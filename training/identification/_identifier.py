@@ -30,7 +30,7 @@ from training.identification._analysis import FEATURE_NAMES, Analysis, analyze
 from training.identification._batch import analysis_outcome, answered_files
 from training.identification._envelope import Envelope, Finding, envelope_warnings, trained_envelope
 from training.identification._limits import (backlash_negligible, backlash_resolution, implausible, impossible,
-                                             travel)
+                                             speed_resolution, travel)
 from training.identification._maps import MAP_SPECS, TrainedMap, from_correction, load_map, recall_targets
 from training.identification._refine import (HiddenGap, RefineConfig, RefineProblem, Refined, find_hidden_gap,
                                              refine, torque_reference)
@@ -195,7 +195,7 @@ class Identifier:
             # stiff answers are refined too where the oscillation shows above the quantization
             # (near the w_e T_Ei = 1 threshold the maps' f_e decides the class), where the drive
             # lies outside the maps' training (their stiff verdict is then unproven), where the
-            # drive's resolution could hide a backlash from the features (the replay still sees
+            # drive's speed could hide a backlash from the features (the replay still sees
             # the gap crossings), and where the structure map itself is unsure of stiff
             todo = [i for i, (a, m, f) in enumerate(zip(analyses, answers, drive_findings))
                     if m.structure != "stiff" or a.osc_quanta >= 1.0 or f or _hides_backlash(a)
@@ -206,8 +206,8 @@ class Identifier:
         results = [self._result(a, m, r, f, name)
                    for a, m, r, f, name in zip(analyses, answers, refined, drive_findings, names)]
         if self.refine is not None:
-            # a stiff answer on a record whose resolution could hide a backlash (so it was refined):
-            # the angle may show it
+            # a stiff answer on a record whose speed could hide a backlash (so it was refined): the
+            # angle may show it
             hidden = [i for i in problems
                       if results[i].structure == "stiff" and _hides_backlash(analyses[i])
                       and not analyses[i].fit.warnings]
@@ -363,10 +363,11 @@ def _s_N(a: Analysis, log10_s_star: float) -> float:
 
 
 def _hides_backlash(a: Analysis) -> bool:
-    """Whether the record's resolution could hide a backlash that matters on a stiff shaft
-    (:func:`._limits.backlash_resolution`, :func:`._limits.backlash_negligible`)."""
+    """Whether the record's speed could hide a backlash that matters on a stiff shaft
+    (:func:`._limits.speed_resolution`, :func:`._limits.backlash_negligible`): the angle may still
+    show it."""
     J_sigma = abs(a.fit.J_sigma)
-    return backlash_resolution(a.q_w, a.drive.q_phi, J_sigma, a.M_star) > backlash_negligible(a.M_N, a.T_Ei, J_sigma)
+    return speed_resolution(a.q_w, J_sigma, a.M_star) > backlash_negligible(a.M_N, a.T_Ei, J_sigma)
 
 
 def _drive_quantities(a: Analysis) -> dict[str, float | None]:

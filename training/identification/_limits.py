@@ -52,11 +52,15 @@ def motor_lead(backlash: float, V_J: float) -> float:
 
 def backlash_resolution(q_w: float, q_phi: float, J_sigma: float, M_star: float, V_J: float | None = None) -> float:
     """The widest backlash ``2s`` [rad] the record cannot show (see the module docstring)."""
-    k = BACKLASH_VISIBLE_QUANTA
-    by_speed = k * k * q_w * q_w * J_sigma / (2.0 * _LOW_LEVEL * M_star)
     v = V_J if V_J is not None and V_J > 0 else V_J_SMALLEST
     by_angle = BACKLASH_VISIBLE_COUNTS * q_phi / motor_lead(1.0, v)
-    return max(q_phi, min(by_speed, by_angle))
+    return max(q_phi, min(speed_resolution(q_w, J_sigma, M_star), by_angle))
+
+
+def speed_resolution(q_w: float, J_sigma: float, M_star: float) -> float:
+    """The widest backlash ``2s`` [rad] the motor speed alone cannot show (see the module docstring)."""
+    k = BACKLASH_VISIBLE_QUANTA
+    return k * k * q_w * q_w * J_sigma / (2.0 * _LOW_LEVEL * M_star)
 
 
 def backlash_negligible(M_N: float, T_Ei: float, J_sigma: float, C_F: float | None = None) -> float:

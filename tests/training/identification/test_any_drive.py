@@ -327,6 +327,22 @@ def test_a_small_drive_backlash_below_a_hundredth_of_a_degree_is_not_called_stif
     assert res.structure == "elastic_backlash" or "backlash_below_resolution" in _codes(res)
 
 
+def test_a_gap_the_angle_shows_but_the_speed_does_not_is_looked_for_in_the_angle(ident):
+    """A 0.26 Nm drive (2^19 counts, 230 us): a stiff shaft (``w_e T_Ei`` 3.2) with a gap of
+    5.5e-4 rad (``s_N`` 1.6, a motor lead of 8 counts; envelope seed 8, #492). Its angle shows the
+    gap, its speed (0.05 rad/s per count) does not. The angle search ran only where the record as
+    a whole (speed and angle) could hide a gap that matters, so this one came out ``stiff``,
+    backlash 0 (unwarned there; 4 of 6 noise seeds here); it runs where the speed alone could (6 of
+    6 ``stiff_backlash``, the widths within 18 %)."""
+    drive = DriveConfig(M_N=0.2620, M_max=0.6972, K_M=1.0, T_Ei=1.5356e-3, T_s=2.3007e-4, encoder_counts=2**19,
+                        current_noise_std=3.98e-5)
+    width = 5.540e-4
+    res = ident.identify(_record(drive, TestSignalConfig(M_star=0.07276, w_max=15.894), seed=1, J_sigma=0.0023323,
+                                 V_J=0.21632, f_e=331.80, d=0.09389, backlash=width, M_FC=3.436e-3, mu_F=2.173e-4))
+    assert res.structure == "stiff_backlash" and "backlash_from_angle" in _codes(res)
+    assert res.parameters.backlash == pytest.approx(width, rel=0.1)
+
+
 def test_a_current_loop_faster_than_the_sample_time_keeps_the_refinement_stable(ident):
     """T_s = 3 T_Ei (inside SPEC 3.1: 0.6 ms, 0.2 ms): a replay at one RK4 step per sample diverged
     on the current loop (stable only to dt = 2.79 T_Ei), every elastic candidate scored ~1e30, and a

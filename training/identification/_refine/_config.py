@@ -148,7 +148,7 @@ class RefineConfig:
     model 3 x worse than the chosen 37 Hz one had won on a commissioning plant with motor friction).
 
     Angle (:mod:`training.identification._refine._angle`, run by the identifier where the answer is
-    ``stiff`` on a record whose resolution could hide a backlash): models with and without a gap
+    ``stiff`` on a record whose speed could hide a backlash): models with and without a gap
     compete on the whole record's angle error, ``angle_rounds`` cross-entropy rounds on each side."""
 
     grid_f_e: int = 11  # explore: eigenfrequencies of the first grid
