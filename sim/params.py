@@ -272,7 +272,7 @@ class TwoMassParams:
 
     def s_N(self, drive: DriveConfig) -> torch.Tensor:
         """Normalized backlash ``s C_F / M_N``."""
-        return self.s * self.C_F / drive.M_N
+        return normalized_backlash(self.backlash, drive.M_N, self.C_F)
 
     def r_osc(self, drive: DriveConfig, M_star: float) -> torch.Tensor:
         """Oscillation-to-resolution ratio ``V_J M_star / (J_sigma w_0 q_w)``."""
@@ -380,6 +380,17 @@ def two_mass_derived(J_sigma: Any, V_J: Any, f_e: Any, d: Any) -> TwoMassDerived
     w_0 = w_e / (1.0 - d * d) ** 0.5
     C_F = w_0 * w_0 * J_M * J_L / J_sigma
     return TwoMassDerived(J_M, J_L, w_e, w_0, C_F, 2.0 * d * C_F / w_0)
+
+
+def gap_width(s_N: Any, M_N: Any, C_F: Any) -> Any:
+    """The backlash ``2s`` [rad] of the normalized backlash ``s_N = s C_F / M_N`` (floats, arrays or tensors)."""
+    return 2.0 * s_N * M_N / C_F
+
+
+def normalized_backlash(backlash: Any, M_N: Any, C_F: Any) -> Any:
+    """The normalized backlash ``s_N = s C_F / M_N`` of the width ``backlash = 2s`` [rad] (floats,
+    arrays or tensors)."""
+    return 0.5 * backlash * C_F / M_N
 
 
 def class_index(s_N: Any, w_e_T_Ei: Any, r_osc: Any) -> torch.Tensor:

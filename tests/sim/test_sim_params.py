@@ -1,10 +1,12 @@
 import math
 
+import numpy as np
 import pytest
 import torch
 
-from sim import (STRUCTURE_CLASSES, DriveConfig, EnvelopeRanges, PopulationRanges, TwoMassParams, inertia_of_time_scale,
-                 sample_envelope, sample_population, structure_class, time_scale)
+from sim import (STRUCTURE_CLASSES, DriveConfig, EnvelopeRanges, PopulationRanges, TwoMassParams, gap_width,
+                 inertia_of_time_scale, normalized_backlash, sample_envelope, sample_population, structure_class,
+                 time_scale)
 
 
 def test_derived_values_round_trip():
@@ -27,6 +29,14 @@ def test_dicts_round_trip_and_indexing():
     assert p[2].batch_shape == torch.Size([])
     assert p[1:3].batch_shape == torch.Size([2])
     assert p.reshape(5, 1).batch_shape == torch.Size([5, 1])
+
+
+def test_gap_width_and_normalized_backlash_are_inverse():
+    # hand-computed: s_N 0.5 at M_N 10 Nm, C_F 1000 Nm/rad -> 2s = 2 * 0.5 * 10 / 1000 = 0.01 rad
+    assert gap_width(0.5, 10.0, 1000.0) == pytest.approx(0.01, rel=1e-15)
+    assert normalized_backlash(0.01, 10.0, 1000.0) == pytest.approx(0.5, rel=1e-15)
+    s_N = np.array([0.1, 1.0, 30.0])
+    np.testing.assert_allclose(normalized_backlash(gap_width(s_N, 0.64, 250.0), 0.64, 250.0), s_N, rtol=1e-15)
 
 
 def test_s_N_and_r_osc():

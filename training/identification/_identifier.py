@@ -23,7 +23,8 @@ from pathlib import Path
 import numpy as np
 
 import som_torch as st
-from sim import CLASS_THRESHOLDS, STRUCTURE_CLASSES, Record, class_index, two_mass_derived
+from sim import (CLASS_THRESHOLDS, STRUCTURE_CLASSES, Record, class_index, gap_width, normalized_backlash,
+                 two_mass_derived)
 from training.config import blas_threads, checkpoints_folder
 from training.errors import one_line
 from training.identification._analysis import FEATURE_NAMES, Analysis, analyze
@@ -308,7 +309,7 @@ class Identifier:
             return Parameters(**one_mass)
         dv = two_mass_derived(fit.J_sigma, m.V_J, m.f_e, m.d)
         if m.structure in _BACKLASH_CLASSES:  # s_N = s C_F / M_N, backlash = 2 s
-            one_mass["backlash"] = 2.0 * m.s_N_backlash * a.M_N / dv.C_F
+            one_mass["backlash"] = gap_width(m.s_N_backlash, a.M_N, dv.C_F)
         return Parameters(**one_mass, f_e=m.f_e, V_J=m.V_J, d=m.d, J_M=dv.J_M, J_L=dv.J_L, C_F=dv.C_F)
 
     def _refined_parameters(self, a: Analysis, r: Refined | HiddenGap) -> tuple[str, Parameters]:
@@ -320,7 +321,7 @@ class Identifier:
         J_sigma, M_FC, mu_F = ((fit.J_sigma, max(fit.M_FC, 0.0), max(fit.mu_F, 0.0)) if r.J_sigma is None
                                else (r.J_sigma, r.M_FC, r.mu_F))
         dv = two_mass_derived(J_sigma, r.V_J, r.f_e, r.d)
-        structure = _spec_class(a, J_sigma, r.V_J, r.f_e, r.d, 0.5 * r.backlash * dv.C_F / a.M_N)
+        structure = _spec_class(a, J_sigma, r.V_J, r.f_e, r.d, normalized_backlash(r.backlash, a.M_N, dv.C_F))
         one_mass = dict(J_sigma=J_sigma, M_FC=M_FC, mu_F=mu_F)
         if structure == "stiff":
             return structure, Parameters(**one_mass, backlash=0.0)
@@ -383,7 +384,7 @@ def _drive_quantities(a: Analysis) -> dict[str, float | None]:
 def _mechanics_quantities(a: Analysis, p: Parameters) -> dict[str, float | None]:
     """The identified mechanics the envelope checks (``d``, the least certain, with a slack:
     :data:`._envelope.SLACK`)."""
-    s_N = (0.5 * p.backlash * p.C_F / a.M_N) if p.backlash is not None and p.C_F is not None else None
+    s_N = normalized_backlash(p.backlash, a.M_N, p.C_F) if p.backlash is not None and p.C_F is not None else None
     return {"f_e": p.f_e, "V_J": p.V_J, "d": p.d, "s_N": s_N,
             "M_FC_over_M_star": None if p.M_FC is None else p.M_FC / a.M_star}
 
@@ -444,7 +445,7 @@ def _near_threshold(a: Analysis, models: list[tuple[tuple[float, float, float, f
     stands; a record that shows little leaves both uncertain)."""
     if p.f_e is not None and p.V_J is not None and p.d is not None and p.J_sigma is not None:
         bounded = p.backlash is None or p.C_F is None  # a backlash bounded, not measured: its s_N unknown
-        q = _class_quantities(a, p.J_sigma, p.V_J, p.f_e, p.d, 0.0 if bounded else 0.5 * p.backlash * p.C_F / a.M_N)
+        q = _class_quantities(a, p.J_sigma, p.V_J, p.f_e, p.d, 0.0 if bounded else normalized_backlash(p.backlash, a.M_N, p.C_F))
         if bounded:
             del q["s_N"]
         sources = [(q, "")]

@@ -29,7 +29,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from sim import S_N_ELASTIC, SECTION_LEVELS, W_E_T_EI_STIFF
+from sim import S_N_ELASTIC, SECTION_LEVELS, W_E_T_EI_STIFF, gap_width
 
 from training.identification._envelope import SPEC_ENVELOPE
 from training.identification._result import IdentWarning, Parameters
@@ -72,7 +72,7 @@ def backlash_negligible(M_N: float, T_Ei: float, J_sigma: float, C_F: float | No
     if C_F is None or not C_F > 0:
         ratio = min(v / (1.0 + v) ** 2 for v in SPEC_ENVELOPE["V_J"])  # J_M J_L / J_sigma^2
         C_F = ratio * J_sigma * (W_E_T_EI_STIFF / T_Ei) ** 2
-    return min(BACKLASH_NEGLIGIBLE, 2.0 * S_N_ELASTIC * M_N / C_F)
+    return min(BACKLASH_NEGLIGIBLE, gap_width(S_N_ELASTIC, M_N, C_F))
 
 
 def travel(speed: np.ndarray, T_s: float) -> float:

@@ -45,7 +45,7 @@ class RefineProblem:
     def answer(self, theta: np.ndarray, s_N: float) -> dict[str, float]:
         """The :class:`Refined` model values of ``theta`` (4 or 7) with the normalized backlash ``s_N``."""
         return {"f_e": float(10.0 ** theta[0]), "V_J": float(10.0 ** theta[1]), "d": float(theta[2]), "s_N": s_N,
-                "backlash": 2.0 * s_N * self.M_N / float(self.C_F(theta))}
+                "backlash": sim.gap_width(s_N, self.M_N, float(self.C_F(theta)))}
 
 
 @dataclass

@@ -57,7 +57,7 @@ def model_values(p: RefineProblem, theta: np.ndarray) -> dict[str, np.ndarray]:
     (backlash ``2s = 2 s_N M_N / C_F``)."""
     C = theta.shape[0]
     return {"J_sigma": p.J_sigma_of(theta), "V_J": 10.0 ** theta[:, 1], "f_e": 10.0 ** theta[:, 0], "d": theta[:, 2],
-            "backlash": 2.0 * 10.0 ** theta[:, 3] * p.M_N / p.C_F(theta),
+            "backlash": sim.gap_width(10.0 ** theta[:, 3], p.M_N, p.C_F(theta)),
             "M_FC": theta[:, 5] if theta.shape[1] > 4 else np.full(C, max(p.M_FC, 0.0)),
             "mu_F": theta[:, 6] if theta.shape[1] > 4 else np.full(C, max(p.mu_F, 0.0))}
 
