@@ -83,8 +83,8 @@ def polish(problems: list[RefineProblem], chosen: list[Refined], measured: list[
     cost = _descend(problems, lanes, scored, config, n_sims, start)
     # a poor fit, well above the speed's quantization noise: once more from a lighter damping
     again = {i: replace(lane, theta=lane.theta.copy(), moved=False) for i, lane in lanes.items()
-             if cost[i] > max(config.polish_retry_above * quantization_energy(problems[i], len(scored[i][0])),
-                              config.polish_retry_residual ** 2 * _measured(problems[i], scored[i]))}
+             if cost[i] > config.polish_retry_above * quantization_energy(problems[i], len(scored[i][0]))
+             and cost[i] > config.polish_retry_residual ** 2 * _measured(problems[i], scored[i])}
     for lane in again.values():
         lane.theta[2] = max(lane.theta[2] * config.polish_retry_damping, float(lane.low[2]))
     for i, c in _descend(problems, again, scored, config, n_sims, start).items():
