@@ -207,11 +207,11 @@ class Identifier:
         results = [self._result(a, m, r, f, name)
                    for a, m, r, f, name in zip(analyses, answers, refined, drive_findings, names)]
         if self.refine is not None:
-            # a stiff answer on a record whose speed could hide a backlash (so it was refined): the
-            # angle may show it
+            # a stiff answer on a record whose speed could hide a backlash (so it was refined), or
+            # whose refinement dropped the maps' gap: the angle may show it
             hidden = [i for i in problems
-                      if results[i].structure == "stiff" and _hides_backlash(analyses[i])
-                      and not analyses[i].fit.warnings]
+                      if results[i].structure == "stiff" and not analyses[i].fit.warnings
+                      and (_hides_backlash(analyses[i]) or answers[i].structure in _BACKLASH_CLASSES)]
             for i in hidden:
                 gap = find_hidden_gap(problems[i], self.refine)
                 if gap is not None:
@@ -346,10 +346,9 @@ def _undecided(maps: str, refined: str, evidence: float) -> IdentWarning:
 
 
 def _from_angle(gap: HiddenGap) -> IdentWarning:
-    return IdentWarning("backlash_from_angle", f"the backlash shows in the motor's angle only (its angle error is "
-                                               f"{gap.angle_ratio:.2f} x that of the best model without a gap); the "
-                                               "speed's quantization hides it: structure and width rest on a few "
-                                               "encoder counts")
+    return IdentWarning("backlash_from_angle", f"the backlash shows in the motor's angle (its angle error is "
+                                               f"{gap.angle_ratio:.2f} x that of the best model without a gap), not "
+                                               "in the fit of its speed: structure and width rest on the angle")
 
 
 def _below_quantum(a: Analysis) -> IdentWarning:

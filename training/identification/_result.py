@@ -47,8 +47,8 @@ WARNING_CODES: dict[str, str] = {
     "outside_envelope": "a drive, test or identified value lies outside SPEC 3.1's drive envelope",
     "backlash_below_resolution": "a backlash narrower than the encoder resolves may hide, or its width is "
                                  "uncertain: an upper bound is given",
-    "backlash_from_angle": "the backlash shows in the motor's angle only, not in its speed (a coarse encoder): "
-                           "structure and width rest on a few encoder counts",
+    "backlash_from_angle": "the backlash shows in the motor's angle, not in the fit of its speed (a coarse "
+                           "encoder, or a gap crossed in a sample or two): structure and width rest on the angle",
     "class_undecided": "the refinement's class fits the record no better than the maps' one (within the record's "
                        "noise): the maps' answer stands, the other class is about as likely",
     "class_near_threshold": "a quantity of the class rule lies near its threshold: the neighbouring class is about "

@@ -148,8 +148,9 @@ class RefineConfig:
     model 3 x worse than the chosen 37 Hz one had won on a commissioning plant with motor friction).
 
     Angle (:mod:`training.identification._refine._angle`, run by the identifier where the answer is
-    ``stiff`` on a record whose speed could hide a backlash): models with and without a gap
-    compete on the whole record's angle error, ``angle_rounds`` cross-entropy rounds on each side."""
+    ``stiff`` on a record whose speed could hide a backlash, or where the refinement dropped the
+    maps' gap): models with and without a gap compete on the whole record's angle error,
+    ``angle_rounds`` cross-entropy rounds on each side."""
 
     grid_f_e: int = 11  # explore: eigenfrequencies of the first grid
     grid_s_N: tuple[float, ...] = (0.0, 0.05, 0.3, 1.0, 3.0)  # explore: s_N of the first grid (0: the start's)
