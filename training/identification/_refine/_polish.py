@@ -36,13 +36,15 @@ def _errors(problems: list[RefineProblem], asked: dict[int, np.ndarray],
 class _Lane:
     """One problem's polish: its model ``theta`` over :data:`COORDINATES` (4) or
     :data:`FREE_COORDINATES` (7), the coordinates it moves (``free``), their bounds and difference
-    steps ``h``, and whether an iteration has moved it."""
+    steps ``h``, the ``s_N`` it reports where its model ends without a gap (the model it started
+    from has its own, below the search's floor), and whether an iteration has moved it."""
 
     theta: np.ndarray
     free: list[int]
     low: np.ndarray
     high: np.ndarray
     h: np.ndarray
+    no_gap_s_N: float
     moved: bool = False
 
 
@@ -65,40 +67,67 @@ def polish(problems: list[RefineProblem], chosen: list[Refined], measured: list[
             t += [math.log10(r.J_sigma), float(r.M_FC), float(r.mu_F)]
             h = np.concatenate([config.polish_steps, np.asarray(config.polish_free_steps) * scale])
             basis = [(a, b, Q[:, :0]) for a, b, Q in basis]
-        lanes[i], scored[i] = _Lane(np.array(t), [k for k in range(len(t)) if k != 3 or t[3] > NO_GAP], low, high,
-                                    h), (rows, basis)
+        lanes[i], scored[i] = _Lane(np.array(t), _moving(t), low, high, h, r.s_N), (rows, basis)
     n_sims = dict.fromkeys(lanes, 0)
-    start: dict[int, float] = {}  # the chosen models' errors: what the polished ones must beat
-    # a model without a gap: the best of a few small gaps starts the polish, with s_N free, where it beats it
-    seeds = np.log10(np.asarray(config.polish_gap_seeds, dtype=np.float64))
-    asked = {i: np.vstack([lane.theta] + [np.concatenate([lane.theta[:3], [g], lane.theta[4:]]) for g in seeds])
-             for i, lane in lanes.items() if lane.theta[3] <= NO_GAP and seeds.size}
-    for i, R in _errors(problems, asked, scored).items():
-        n_sims[i] += R.shape[1]
-        c = (R * R).sum(0)
-        start[i] = float(c[0])
-        k = int(np.argmin(c))
-        if k > 0:
-            lanes[i].theta, lanes[i].free, lanes[i].moved = asked[i][k], list(range(len(asked[i][k]))), True
+    # the chosen models' errors, what the polished ones must beat (the gap-seeded lanes' here, the others' in _descend)
+    start = _gap_seeded(problems, lanes, scored, config, n_sims)
     cost = _descend(problems, lanes, scored, config, n_sims, start)
-    # a poor fit, well above the speed's quantization noise: once more from a lighter damping
-    again = {i: replace(lane, theta=lane.theta.copy(), moved=False) for i, lane in lanes.items()
+    # a poor fit, well above the speed's quantization noise: once more from a lighter damping, and
+    # once from the maps' answer
+    retry = [i for i, lane in lanes.items()
              if cost[i] > config.polish_retry_above * quantization_energy(problems[i], len(scored[i][0]))
-             and cost[i] > config.polish_retry_residual ** 2 * _measured(problems[i], scored[i])}
-    for lane in again.values():
+             and cost[i] > config.polish_retry_residual ** 2 * _measured(problems[i], scored[i])]
+    lighter = {i: replace(lanes[i], theta=lanes[i].theta.copy(), moved=False) for i in retry}
+    for lane in lighter.values():
         lane.theta[2] = max(lane.theta[2] * config.polish_retry_damping, float(lane.low[2]))
-    for i, c in _descend(problems, again, scored, config, n_sims, start).items():
-        if c < cost[i]:
-            lanes[i], cost[i] = replace(again[i], moved=True), c
+    maps = {i: _maps_lane(problems[i], lanes[i]) for i in retry}
+    _gap_seeded(problems, maps, scored, config, n_sims)
+    for again in (lighter, maps):
+        for i, c in _descend(problems, again, scored, config, n_sims, start).items():
+            if c < cost[i]:
+                lanes[i], cost[i] = replace(again[i], moved=True), c
     won = sorted(i for i, lane in lanes.items() if lane.moved and cost[i] < config.polish_win * start[i])
     out = [replace(r, n_sims=r.n_sims + n_sims.get(i, 0)) for i, r in enumerate(chosen)]
     for i, E in packed_errors(problems, {i: lanes[i].theta[None] for i in won}):  # the winners' whole-record error
         t, total = lanes[i].theta, float(detrended_energy(E, detrend_basis(problems[i].segments))[0])
-        s_N = float(10.0 ** t[3]) if t[3] > NO_GAP else chosen[i].s_N
+        s_N = float(10.0 ** t[3]) if t[3] > NO_GAP else lanes[i].no_gap_s_N
         one_mass = {} if len(t) == 4 else one_mass_values(t)
         out[i] = replace(out[i], **problems[i].answer(t, s_N), **one_mass, residual=relative_rms(total, measured[i]),
                          n_sims=out[i].n_sims + 1)
     return out
+
+
+def _maps_lane(p: RefineProblem, lane: _Lane) -> _Lane:
+    """A lane like ``lane`` from the maps' answer ``p.theta`` (with ``lane``'s one-mass part, if it
+    moves one); ``s_N`` moves only where the maps' answer has a gap, and is reported as theirs where
+    the lane ends without one."""
+    t = np.concatenate([np.clip(p.theta, LOW, HIGH), lane.theta[4:]])
+    return replace(lane, theta=t, free=_moving(t), no_gap_s_N=float(10.0 ** t[3]), moved=False)
+
+
+def _moving(theta: np.ndarray | list[float]) -> list[int]:
+    """The coordinates a lane at ``theta`` moves: all, but ``s_N`` only where the model has a gap."""
+    return [k for k in range(len(theta)) if k != 3 or theta[3] > NO_GAP]
+
+
+def _gap_seeded(problems: list[RefineProblem], lanes: dict[int, _Lane],
+                scored: dict[int, tuple[np.ndarray, list[tuple[int, int, np.ndarray]]]], config: RefineConfig,
+                n_sims: dict[int, int]) -> dict[int, float]:
+    """Each lane whose model has no gap moved to the best of its models with the gaps of
+    ``config.polish_gap_seeds`` where one beats it, with ``s_N`` free then (``theta``, ``free`` and
+    ``moved`` updated in place); returns those lanes' errors at their models as they were."""
+    seeds = np.log10(np.asarray(config.polish_gap_seeds, dtype=np.float64))
+    asked = {i: np.vstack([lane.theta] + [np.concatenate([lane.theta[:3], [g], lane.theta[4:]]) for g in seeds])
+             for i, lane in lanes.items() if lane.theta[3] <= NO_GAP and seeds.size}
+    before = {}
+    for i, R in _errors(problems, asked, scored).items():
+        n_sims[i] += R.shape[1]
+        c = (R * R).sum(0)
+        before[i] = float(c[0])
+        k = int(np.argmin(c))
+        if k > 0:
+            lanes[i].theta, lanes[i].free, lanes[i].moved = asked[i][k], list(range(len(asked[i][k]))), True
+    return before
 
 
 def _measured(p: RefineProblem, scored: tuple[np.ndarray, list[tuple[int, int, np.ndarray]]]) -> float:
