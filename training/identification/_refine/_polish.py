@@ -36,15 +36,15 @@ def _errors(problems: list[RefineProblem], asked: dict[int, np.ndarray],
 class _Lane:
     """One problem's polish: its model ``theta`` over :data:`COORDINATES` (4) or
     :data:`FREE_COORDINATES` (7), the coordinates it moves (``free``), their bounds and difference
-    steps ``h``, the ``s_N`` it reports where its model ends without a gap (the model it started
-    from has its own, below the search's floor), and whether an iteration has moved it."""
+    steps ``h``, the ``s_N`` of the model it started from (``start_s_N``: the coordinate stops at
+    the search's floor), and whether an iteration has moved it."""
 
     theta: np.ndarray
     free: list[int]
     low: np.ndarray
     high: np.ndarray
     h: np.ndarray
-    no_gap_s_N: float
+    start_s_N: float
     moved: bool = False
 
 
@@ -90,7 +90,8 @@ def polish(problems: list[RefineProblem], chosen: list[Refined], measured: list[
     out = [replace(r, n_sims=r.n_sims + n_sims.get(i, 0)) for i, r in enumerate(chosen)]
     for i, E in packed_errors(problems, {i: lanes[i].theta[None] for i in won}):  # the winners' whole-record error
         t, total = lanes[i].theta, float(detrended_energy(E, detrend_basis(problems[i].segments))[0])
-        s_N = float(10.0 ** t[3]) if t[3] > NO_GAP else lanes[i].no_gap_s_N
+        # a model without a gap: its own s_N, or its start's where that lay below the search's floor
+        s_N = float(10.0 ** t[3]) if t[3] > NO_GAP else min(float(10.0 ** t[3]), lanes[i].start_s_N)
         one_mass = {} if len(t) == 4 else one_mass_values(t)
         out[i] = replace(out[i], **problems[i].answer(t, s_N), **one_mass, residual=relative_rms(total, measured[i]),
                          n_sims=out[i].n_sims + 1)
@@ -99,10 +100,9 @@ def polish(problems: list[RefineProblem], chosen: list[Refined], measured: list[
 
 def _maps_lane(p: RefineProblem, lane: _Lane) -> _Lane:
     """A lane like ``lane`` from the maps' answer ``p.theta`` (with ``lane``'s one-mass part, if it
-    moves one); ``s_N`` moves only where the maps' answer has a gap, and is reported as theirs where
-    the lane ends without one."""
+    moves one); ``s_N`` moves only where the maps' answer has a gap."""
     t = np.concatenate([np.clip(p.theta, LOW, HIGH), lane.theta[4:]])
-    return replace(lane, theta=t, free=_moving(t), no_gap_s_N=float(10.0 ** t[3]), moved=False)
+    return replace(lane, theta=t, free=_moving(t), start_s_N=float(10.0 ** t[3]), moved=False)
 
 
 def _moving(theta: np.ndarray | list[float]) -> list[int]:
@@ -126,7 +126,7 @@ def _gap_seeded(problems: list[RefineProblem], lanes: dict[int, _Lane],
         before[i] = float(c[0])
         k = int(np.argmin(c))
         if k > 0:
-            lanes[i].theta, lanes[i].free, lanes[i].moved = asked[i][k], list(range(len(asked[i][k]))), True
+            lanes[i].theta, lanes[i].free, lanes[i].moved = asked[i][k], _moving(asked[i][k]), True
     return before
 
 
