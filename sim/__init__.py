@@ -2,8 +2,8 @@
 
 from sim.measurement import encoder_count, speed_from_angle
 from sim.params import (CLASS_THRESHOLDS, DERIVED_NAMES, PARAM_NAMES, R_OSC_VISIBLE, S_N_ELASTIC, S_N_STIFF_BACKLASH, STRUCTURE_CLASSES,
-                        W_E_T_EI_STIFF, DriveConfig, TwoMassDerived, TwoMassParams, class_index, gap_width, normalized_backlash,
-                        one_mass_stand_in, speed_quantum, structure_class, two_mass_derived)
+                        W_E_T_EI_STIFF, DriveConfig, TwoMassDerived, TwoMassParams, class_index, gap_width,
+                        normalized_backlash, one_mass_stand_in, speed_quantum, structure_class, two_mass_derived)
 from sim._config import load_c_kernel
 from sim._integrate_fast import default_substeps, rk4_substeps
 from sim.plant import Controller, Plant, Response, SimulatedPlant, simulate, simulate_test
@@ -16,7 +16,8 @@ from sim._signal import (SECTION_LEVELS, SECTION_NAMES, SPEED_RETURN, SwitchingC
 
 __all__ = [
     "CLASS_THRESHOLDS", "STRUCTURE_CLASSES", "SECTION_NAMES", "SECTION_LEVELS", "SPEED_RETURN", "PARAM_NAMES", "DERIVED_NAMES",
-    "TwoMassDerived", "two_mass_derived", "class_index", "gap_width", "normalized_backlash", "one_mass_stand_in", "speed_quantum", "S_N_ELASTIC", "S_N_STIFF_BACKLASH", "W_E_T_EI_STIFF",
+    "TwoMassDerived", "two_mass_derived", "class_index", "gap_width", "normalized_backlash", "one_mass_stand_in",
+    "speed_quantum", "S_N_ELASTIC", "S_N_STIFF_BACKLASH", "W_E_T_EI_STIFF",
     "R_OSC_VISIBLE", "Controller", "DriveConfig", "Plant", "PopulationRanges", "Record",
     "RecordError", "Response", "SimulatedPlant", "SwitchingController", "TestSignalConfig", "TwoMassParams",
     "default_substeps", "rk4_substeps", "load_c_kernel", "encoder_count", "iter_records", "read_record", "replay_speed",

@@ -444,7 +444,8 @@ def _near_threshold(a: Analysis, models: list[tuple[tuple[float, float, float, f
     stands; a record that shows little leaves both uncertain)."""
     if p.f_e is not None and p.V_J is not None and p.d is not None and p.J_sigma is not None:
         bounded = p.backlash is None or p.C_F is None  # a backlash bounded, not measured: its s_N unknown
-        q = _class_quantities(a, p.J_sigma, p.V_J, p.f_e, p.d, 0.0 if bounded else normalized_backlash(p.backlash, a.M_N, p.C_F))
+        s_N = 0.0 if bounded else normalized_backlash(p.backlash, a.M_N, p.C_F)
+        q = _class_quantities(a, p.J_sigma, p.V_J, p.f_e, p.d, s_N)
         if bounded:
             del q["s_N"]
         sources = [(q, "")]

@@ -38,6 +38,8 @@ BACKLASH_VISIBLE_QUANTA = 2.0  # speed quanta the motor's gap crossing must reac
 BACKLASH_VISIBLE_COUNTS = 2.0  # encoder counts the motor's lead over the one-mass motion must reach
 V_J_SMALLEST = SPEC_ENVELOPE["V_J"][0]  # the inertia ratio assumed where the answer has none
 BACKLASH_NEGLIGIBLE = math.radians(0.01)  # [rad] a bound below this is not worth a warning
+#: ``J_M J_L / J_sigma^2 = V_J / (1 + V_J)^2`` at its smallest over SPEC 3.1's ``V_J`` (at either end)
+_MASS_PRODUCT_SMALLEST = min(v / (1.0 + v) ** 2 for v in SPEC_ENVELOPE["V_J"])
 J_SIGMA_RATIO = 2.0  # two-mass J_sigma over STEP 2's beyond this (either way): warned
 _LOW_LEVEL = SECTION_LEVELS[5]  # the torque of sections III and VI over M*
 
@@ -70,8 +72,7 @@ def backlash_negligible(M_N: float, T_Ei: float, J_sigma: float, C_F: float | No
     of the softest stiff shaft, ``w_e T_Ei = 1`` at SPEC 3.1's extreme ``V_J`` (``J_M J_L / J_sigma
     = J_sigma V_J / (1 + V_J)^2`` is smallest there): the widest gap that can still count."""
     if C_F is None or not C_F > 0:
-        ratio = min(v / (1.0 + v) ** 2 for v in SPEC_ENVELOPE["V_J"])  # J_M J_L / J_sigma^2
-        C_F = ratio * J_sigma * (W_E_T_EI_STIFF / T_Ei) ** 2
+        C_F = _MASS_PRODUCT_SMALLEST * J_sigma * (W_E_T_EI_STIFF / T_Ei) ** 2
     return min(BACKLASH_NEGLIGIBLE, gap_width(S_N_ELASTIC, M_N, C_F))
 
 

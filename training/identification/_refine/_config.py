@@ -214,7 +214,8 @@ class RefineConfig:
                 or self.far_rounds < 0 or min(self.grid_f_e, self.climb_grid_f_e, self.rescue_grid_f_e) < 1
                 or len(self.free_spread) != 3 or len(self.polish_free_steps) != 3 or self.free_rounds < 0
                 or any(not g > 10.0 ** NO_GAP for g in self.polish_gap_seeds)
-                or not 0.0 < self.polish_retry_damping <= 1.0 or self.polish_retry_above < 0 or self.polish_retry_residual < 0):
+                or not 0.0 < self.polish_retry_damping <= 1.0 or self.polish_retry_above < 0
+                or self.polish_retry_residual < 0):
             raise ValueError(f"RefineConfig: expected rounds >= 0, far_rounds >= 0, free_rounds >= 0, "
                              f"polish_iterations >= 0, angle_rounds >= 0, grid_f_e >= 1, climb_grid_f_e >= 1, "
                              f"rescue_grid_f_e >= 1, window_periods > 0, window_samples >= 0, "

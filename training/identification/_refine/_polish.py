@@ -69,6 +69,7 @@ def polish(problems: list[RefineProblem], chosen: list[Refined], measured: list[
             basis = [(a, b, Q[:, :0]) for a, b, Q in basis]
         lanes[i], scored[i] = _Lane(np.array(t), _moving(t), low, high, h, r.s_N), (rows, basis)
     n_sims = dict.fromkeys(lanes, 0)
+    first = {i: lane.theta.copy() for i, lane in lanes.items()}  # the chosen models
     # the chosen models' errors, what the polished ones must beat (the gap-seeded lanes' here, the others' in _descend)
     start = _gap_seeded(problems, lanes, scored, config, n_sims)
     cost = _descend(problems, lanes, scored, config, n_sims, start)
@@ -81,6 +82,8 @@ def polish(problems: list[RefineProblem], chosen: list[Refined], measured: list[
     for lane in lighter.values():
         lane.theta[2] = max(lane.theta[2] * config.polish_retry_damping, float(lane.low[2]))
     maps = {i: _maps_lane(problems[i], lanes[i]) for i in retry}
+    # (not where the chosen model is the maps' answer: its descent would repeat the first)
+    maps = {i: lane for i, lane in maps.items() if not np.allclose(lane.theta, first[i], rtol=0.0, atol=1e-12)}
     _gap_seeded(problems, maps, scored, config, n_sims)
     for again in (lighter, maps):
         for i, c in _descend(problems, again, scored, config, n_sims, start).items():
