@@ -91,7 +91,7 @@ static int fast_decimal(const char *p, const char **end, double *value) {
 /* Parse up to `rows` rows of `ncols` numbers from text[0..n) into out (row-major). A row ends with
    '\n' (a '\r' before it and blanks around fields are allowed; empty lines are skipped). Returns the
    rows parsed, or -1 - r at the first row r that is not `ncols` numbers (the caller then reads the
-   text with its reference parser, which names the problem). */
+   text with its reference parser, which names the problem by its line). */
 int64_t parse_rows(int64_t n, const int8_t *text, int32_t ncols, int64_t rows, double *out) {
     const char *p = (const char *)text, *end = p + n;
     int64_t r = 0;
@@ -101,7 +101,8 @@ int64_t parse_rows(int64_t n, const int8_t *text, int32_t ncols, int64_t rows, d
         if (r >= rows) return -1 - r;
         for (int32_t c = 0; c < ncols; ++c) {
             while (p < end && (*p == ' ' || *p == '\t')) ++p;
-            if (p >= end || *p == '\n' || *p == ',') return -1 - r;
+            /* an empty field, or a line break strtod would skip: a row never continues on the next line */
+            if (p >= end || *p == '\n' || *p == '\r' || *p == '\v' || *p == '\f' || *p == ',') return -1 - r;
             const char *q;
             double v;
             if (!fast_decimal(p, &q, &v)) {  /* both stop at the terminating NUL the caller appends */

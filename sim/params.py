@@ -16,6 +16,8 @@ from typing import Any, NamedTuple
 
 import torch
 
+from sim._values import MAX_INT, shown
+
 #: What each derived value is, with its formula (SPEC 1); the docstrings of the attributes.
 DERIVED_DOCS: dict[str, str] = {
     "J_M": "Motor inertia [kg m^2]: ``J_sigma / (1 + V_J)``.",
@@ -48,12 +50,18 @@ CLASS_THRESHOLDS: dict[str, tuple[float, ...]] = {
 def check_real(where: str, value: Any) -> int | float:
     """``value`` if it is a finite real number (Python, numpy or other ``numbers.Real``; not a bool),
     as a Python ``int`` or ``float`` (builtin values unchanged); else a one-line ``TypeError`` naming
-    ``where``. The one check of the scalar settings of ``sim`` (drive, test signal, limits)."""
-    if isinstance(value, bool) or not isinstance(value, numbers.Real) or not math.isfinite(value):
-        raise TypeError(f"{where}: expected a finite number, received {value!r}")
-    if type(value) in (int, float):
-        return value
-    return int(value) if isinstance(value, numbers.Integral) else float(value)
+    ``where`` (integers beyond a float's range too). The one check of the scalar settings of ``sim``
+    (drive, test signal, limits) and of the numbers of a record's metadata."""
+    if not isinstance(value, bool) and isinstance(value, numbers.Integral) and abs(int(value)) <= MAX_INT:
+        return value if type(value) is int else int(value)
+    if not isinstance(value, (bool, numbers.Integral)) and isinstance(value, numbers.Real):
+        try:
+            x = float(value)
+        except OverflowError:  # a huge Fraction, say
+            x = math.inf
+        if math.isfinite(x):
+            return value if type(value) is float else x
+    raise TypeError(f"{where}: expected a finite number, received {shown(value)}")
 
 
 def check_int(where: str, value: Any, low: int | None = None) -> int:
@@ -138,13 +146,15 @@ def _as_tensor(name: str, value: Any, check_finite: bool = True) -> torch.Tensor
         raise TypeError(f"TwoMassParams.{name}: expected a number or tensor, received a bool {value!r}")
     if isinstance(value, torch.Tensor):
         t = value.detach().to(torch.float64)
-    elif isinstance(value, (int, float)):
-        t = torch.tensor(float(value), dtype=torch.float64)
     else:
-        try:
-            t = torch.as_tensor(value, dtype=torch.float64)
+        try:  # a Python number, a sequence, an array
+            t = torch.as_tensor(float(value) if isinstance(value, (int, float)) else value, dtype=torch.float64)
+        except OverflowError:  # an integer beyond a float's range
+            raise TypeError(f"TwoMassParams.{name}: expected numbers a float can hold, received "
+                            f"{shown(value)}") from None
         except (TypeError, ValueError, RuntimeError) as err:
-            raise TypeError(f"TwoMassParams.{name}: expected a number or tensor, received {type(value).__name__}") from err
+            raise TypeError(f"TwoMassParams.{name}: expected a number or tensor, received "
+                            f"{type(value).__name__}") from err
     if check_finite and not bool(torch.isfinite(t).all()):
         raise ValueError(f"TwoMassParams.{name}: expected finite values, received {t}")
     return t

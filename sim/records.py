@@ -1,22 +1,37 @@
 """Records in the SPEC section 3 format: ``NAME.csv`` (uniform samples) + ``NAME.json`` (metadata).
 
-CSV header: ``t, speed`` and ``current`` or ``torque``; optional ``torque_ref``, ``section``.
-A header cell may carry its unit as ``name [unit]``; it must then be the SI unit of the column.
-JSON keys: ``K_M`` (required when only ``current`` is given), ``T_Ei`` (required), optional
-``T_s`` (else from ``t``; must agree with it), ``encoder_counts``, ``M_star``, ``w_max``,
-``M_max``, ``M_N``, ``current_noise_std``, ``timed_out``, ``aborted``, ``units``, ``format``, ``notes``,
-``truth`` (simulated records: the true parameters, derived values and the class name).
-Every problem raises :class:`RecordError` with a one-line message naming the file.
+CSV: a header row ``t, speed`` and ``current`` or ``torque``; optional ``torque_ref``, ``section``
+(integers 0..6); one row of numbers per line, ``,`` between them and ``.`` as decimal mark. A header
+cell may carry its unit as ``name [unit]``; it must then be the SI unit of the column.
+
+JSON metadata (one object; numbers are finite, Python or numpy numbers for in-memory records):
+
+* ``T_Ei`` [s] current-loop time constant, > 0 (required);
+* ``K_M`` [Nm/A] torque constant, > 0 (required when only ``current`` is given);
+* ``T_s`` [s] sample time, > 0 (optional; else from ``t``, with which it must agree);
+* ``encoder_counts`` counts per revolution, an integer 1..2^53; ``M_star``, ``M_N``, ``M_max`` [Nm]
+  test, rated and maximum torque, ``w_max`` [rad/s] the test's speed limit: each > 0, optional;
+* ``current_noise_std`` [A] >= 0; ``aborted``: true/false, the drive stopped the run at a limit;
+* ``timed_out``: true/false (a section of the run ended by its safety timeout) or a list of
+  true/false, one per section (at most 6);
+* ``units``: an object of column -> its SI unit; ``format``: ``"twomass-record/1"``;
+* ``notes``: any JSON; ``truth`` (simulated records): an object of the true parameters, derived
+  values and the class name.
+
+Objects and lists nest at most :data:`sim._values.MAX_DEPTH` levels. A record file holds at most
+:data:`MAX_ROWS` lines and :data:`MAX_BYTES` bytes, its metadata :data:`MAX_META_BYTES`: larger files
+are refused before they are read. Every problem raises :class:`RecordError` with a one-line message
+naming the file; a place in the CSV is its line number (the header is line 1, the first row line 2),
+a sample of an in-memory record its index (from 0).
 """
 
 from __future__ import annotations
 
 import dataclasses
-import io
 import json
-import math
 import os
-from collections.abc import Iterator
+import re
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -27,8 +42,9 @@ import torch
 from som_torch import atomic_write
 
 from sim._csv import format_numbers, parse_numbers
-from sim.params import DriveConfig, TwoMassParams, speed_quantum
 from sim._signal import TestSignalConfig
+from sim._values import loads, plain, printable, shown
+from sim.params import DriveConfig, TwoMassParams, check_real, speed_quantum
 
 FORMAT = "twomass-record/1"
 UNITS: dict[str, str] = {"t": "s", "speed": "rad/s", "current": "A", "torque": "Nm", "torque_ref": "Nm", "section": "1"}
@@ -41,6 +57,16 @@ MIN_SAMPLES = 32
 #: sample off; a time column printed to 1 us at 62.5 us is up to 0.016 off.
 UNIFORM_TOL = 0.05
 MAX_ENCODER_COUNTS = 2 ** 53  # counts per revolution a float64 angle still resolves
+MAX_TIMED_OUT = 6  # flags of metadata 'timed_out': one per section
+#: The longest test run inside SPEC 3.1's envelope has 960 801 rows (six sections each ended by the
+#: default 10 s safety timeout, and the 50 ms tail, at the shortest sample time, 62.5 us); a record
+#: file may hold about four times as many lines after its header (MAX_ROWS) and MAX_BYTES bytes
+#: (128 per row; the toolkit writes 45 to 70 per row of its five columns), its metadata MAX_META_BYTES.
+#: Larger files are refused from their size before they are read, or from their lines before
+#: they are parsed.
+MAX_ROWS = 4_000_000
+MAX_BYTES = 512 * 2**20
+MAX_META_BYTES = 2**20
 
 
 class RecordError(ValueError):
@@ -90,6 +116,11 @@ class Record:
         counts = self.encoder_counts
         return None if counts is None else speed_quantum(counts, self.T_s)
 
+    @property
+    def timed_out(self) -> bool:
+        """Whether a section of the run ended by its safety timeout (metadata ``timed_out``)."""
+        return any_timed_out(self.meta)
+
     def __len__(self) -> int:
         return int(self.t.shape[0])
 
@@ -97,16 +128,34 @@ class Record:
         return {c: getattr(self, c) for c in COLUMNS if getattr(self, c) is not None}
 
 
+def any_timed_out(meta: Mapping[str, Any]) -> bool:
+    """Whether metadata ``timed_out`` (``true``/``false`` or a list of them per section; absent:
+    ``false``) says that a section of the run ended by its safety timeout."""
+    flags = meta.get("timed_out", False)
+    return any(flags) if isinstance(flags, (list, tuple)) else bool(flags)
+
+
 def _err(where: Path | str, msg: str) -> RecordError:
-    return RecordError(f"{where}: {msg}")
+    return RecordError(printable(f"{where}: {msg}"))
 
 
-def validate(rec: Record, where: Path | str = "record", meta_where: Path | str | None = None) -> Record:
+#: ``line_of(i)``: the file line of sample ``i`` of a record being read (None: an in-memory record).
+LineOf = Callable[[int], int]
+
+
+def _at(line_of: LineOf | None, i: int) -> str:
+    """Where sample ``i`` is: ``line N`` of the file, or ``index i`` of an in-memory record."""
+    return f"index {i}" if line_of is None else f"line {line_of(i)}"
+
+
+def validate(rec: Record, where: Path | str = "record", meta_where: Path | str | None = None, *,
+             line_of: LineOf | None = None) -> Record:
     """Check a record (arrays, time grid, metadata); returns a copy of it (the same arrays) with
-    its own ``meta``, ``meta['T_s']`` filled in; ``rec`` stays as it was. Errors name ``where``,
-    those of the metadata ``meta_where`` (default ``where``)."""
+    its own ``meta`` (plain JSON values: numpy numbers as Python numbers; ``T_s`` filled in);
+    ``rec`` stays as it was. Errors name ``where``, those of the metadata ``meta_where`` (default
+    ``where``), and a sample by its file line (``line_of``) or else its index."""
     with np.errstate(all="ignore"):  # independent of a caller's np.seterr
-        T_s_t = _validate_columns(rec, where)
+        T_s_t = _validate_columns(rec, where, line_of)
         return dataclasses.replace(rec, meta=_validated_meta(rec, T_s_t, where if meta_where is None else meta_where))
 
 
@@ -133,23 +182,36 @@ def _column(where: str, name: str, values: Any) -> np.ndarray:
     numbers only)."""
     if hasattr(values, "detach"):  # a torch tensor, on any device, with or without grad
         values = values.detach().cpu().numpy()
+    _refuse_lossy(where, name, values)
     try:
         arr = np.asarray(values, dtype=np.float64)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         raise _err(where, f"column '{name}': expected numbers, received {type(values).__name__}") from None
     return arr if name != "section" else _section(where, arr)
 
 
-def _section(where: Path | str, values: np.ndarray) -> np.ndarray:
+def _refuse_lossy(where: Path | str, name: str, values: Any) -> None:
+    """A :class:`RecordError` for a column whose conversion to float64 would lose something: a
+    masked array (its mask) or complex numbers (their imaginary part)."""
+    if np.ma.isMaskedArray(values):
+        raise _err(where, f"column '{name}': a masked array (fill or drop its masked samples first: "
+                          "the mask would be lost)")
+    if np.iscomplexobj(values):
+        raise _err(where, f"column '{name}': expected real numbers, received complex ones (the imaginary part "
+                          "would be lost)")
+
+
+def _section(where: Path | str, values: np.ndarray, line_of: LineOf | None = None) -> np.ndarray:
     """The ``section`` column's float ``values`` as int64, each a whole number 0..6."""
     bad = ~np.isin(values, np.arange(7.0))
     if bad.any():
-        raise _err(where, f"column 'section': expected integers 0..6, received {float(values[np.argmax(bad)])!r} at row "
-                          f"{int(np.argmax(bad)) + 2}")
+        i = int(np.argmax(bad))
+        raise _err(where, f"column 'section': expected integers 0..6, received {float(values[i])!r} at "
+                          f"{_at(line_of, i)}")
     return values.astype(np.int64)
 
 
-def _validate_columns(rec: Record, where: Path | str) -> float:
+def _validate_columns(rec: Record, where: Path | str, line_of: LineOf | None) -> float:
     """Check the columns and their time grid; returns the sample time of the time column [s]."""
     cols = rec.columns()
     for c in ("t", "speed"):
@@ -161,54 +223,77 @@ def _validate_columns(rec: Record, where: Path | str) -> float:
     for c, v in cols.items():
         if not isinstance(v, np.ndarray) or v.ndim != 1:
             raise _err(where, f"column '{c}': expected a 1-D numpy array")
+        _refuse_lossy(where, c, v)
+        if v.dtype.kind not in "biuf":
+            raise _err(where, f"column '{c}': expected numbers, received an array of {v.dtype}")
         if len(v) != n:
             raise _err(where, f"column '{c}' has {len(v)} samples, 't' has {n}")
         bad = ~np.isfinite(v.astype(np.float64))
         if bad.any():
-            raise _err(where, f"column '{c}' has NaN/inf at row {int(np.argmax(bad)) + 1}")
+            raise _err(where, f"column '{c}' has NaN/inf at {_at(line_of, int(np.argmax(bad)))}")
     if n < MIN_SAMPLES:
         raise _err(where, f"too few samples: {n} (expected >= {MIN_SAMPLES})")
     dt = np.diff(rec.t)
     if (dt <= 0).any():
         i = int(np.argmax(dt <= 0))
-        raise _err(where, f"time is not increasing at row {i + 2} (t={float(rec.t[i + 1]):.9g} s after {float(rec.t[i]):.9g} s)")
+        raise _err(where, f"time is not increasing at {_at(line_of, i + 1)} (t={float(rec.t[i + 1]):.9g} s after "
+                          f"{float(rec.t[i]):.9g} s)")
     T_s_t = float((rec.t[-1] - rec.t[0]) / (n - 1))
     dev = np.abs(rec.t - (rec.t[0] + np.arange(n) * T_s_t))  # against the ideal uniform grid
     if dev.max() > UNIFORM_TOL * T_s_t:
         i = int(np.argmax(dev))
         hint = "" if dev.max() >= 0.5 * T_s_t else " (a time column printed with too few digits?)"
-        raise _err(where, f"non-uniform time step near row {i + 2}: t={float(rec.t[i])!r} s is "
+        raise _err(where, f"non-uniform time step near {_at(line_of, i)}: t={float(rec.t[i])!r} s is "
                           f"{float(dev[i]) / T_s_t:.3g} samples off the uniform grid (T_s={T_s_t!r} s){hint}")
     if rec.section is not None:
-        s = rec.section
-        if not np.all(np.isin(s, np.arange(0, 7))):
-            raise _err(where, f"column 'section': expected integers 0..6, received {sorted(set(np.unique(s).tolist()) - set(range(7)))[:5]}")
+        _section(where, rec.section.astype(np.float64), line_of)
     return T_s_t
 
 
+def _meta_number(where: Path | str, key: str, value: Any, positive: bool = True) -> int | float:
+    """Metadata ``key``'s ``value`` as a Python number if finite and > 0 (``positive``) or >= 0."""
+    try:
+        v = check_real(f"metadata '{key}'", value)
+    except TypeError:
+        v = None
+    if v is None or (v <= 0 if positive else v < 0):
+        raise _err(where, f"metadata '{key}': expected a finite number {'> 0' if positive else '>= 0'}, "
+                          f"received {shown(value)}")
+    return v
+
+
 def _validated_meta(rec: Record, T_s_t: float, where: Path | str) -> dict[str, Any]:
-    """The checked metadata of ``rec`` (``T_s`` filled in from the time column's ``T_s_t``)."""
-    n = len(rec.t)
-    meta = dict(rec.meta)
-    unknown = sorted(set(meta) - META_KEYS)
+    """The checked metadata of ``rec`` (plain JSON values; ``T_s`` filled in from the time column's ``T_s_t``)."""
+    if not isinstance(rec.meta, Mapping):
+        raise _err(where, f"metadata: expected a dict (the JSON object of SPEC 3), received {shown(rec.meta)}")
+    bad_key = next((k for k in rec.meta if not isinstance(k, str)), None)
+    if bad_key is not None:
+        raise _err(where, f"metadata: expected text keys, received {shown(bad_key)}")
+    unknown = sorted(set(rec.meta) - META_KEYS)
     if unknown:
-        raise _err(where, f"unknown metadata key(s) {unknown}; expected some of {sorted(META_KEYS)}")
-    for k in _POSITIVE_META:
-        if k in meta:
-            v = meta[k]
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
-                raise _err(where, f"metadata '{k}': expected a finite number > 0, received {v!r}")
+        more = f" and {len(unknown) - 5} more" if len(unknown) > 5 else ""
+        raise _err(where, f"unknown metadata key(s) {', '.join(shown(k) for k in unknown[:5])}{more}; expected some "
+                          f"of {sorted(META_KEYS)}")
+    meta: dict[str, Any] = {}
+    for k, v in rec.meta.items():  # plain JSON values (numpy numbers as Python numbers), numbers checked
+        if k in _POSITIVE_META or k == "current_noise_std":
+            meta[k] = _meta_number(where, k, v, positive=k != "current_noise_std")
+        else:
+            try:
+                meta[k] = plain(v, f"metadata {shown(k)}")
+            except ValueError as err:
+                raise _err(where, str(err)) from None
+    n = len(rec.t)
     counts = meta.get("encoder_counts")
     if counts is not None and (counts > MAX_ENCODER_COUNTS or int(counts) != counts):
-        raise _err(where, f"metadata 'encoder_counts': expected an integer up to 2^53, received {counts!r}")
+        raise _err(where, f"metadata 'encoder_counts': expected an integer up to 2^53, received {shown(counts)}")
     if "aborted" in meta and not isinstance(meta["aborted"], bool):
-        raise _err(where, f"metadata 'aborted': expected true or false, received {meta['aborted']!r}")
-    tmo = meta.get("timed_out", [])
-    if not isinstance(tmo, list) or not all(isinstance(x, bool) for x in tmo):
-        raise _err(where, f"metadata 'timed_out': expected a list of true/false per section, received {tmo!r}")
-    noise = meta.get("current_noise_std", 0.0)
-    if isinstance(noise, bool) or not isinstance(noise, (int, float)) or not math.isfinite(noise) or noise < 0:
-        raise _err(where, f"metadata 'current_noise_std': expected a finite number >= 0, received {noise!r}")
+        raise _err(where, f"metadata 'aborted': expected true or false, received {shown(meta['aborted'])}")
+    tmo = meta.get("timed_out", False)
+    if not (isinstance(tmo, bool) or isinstance(tmo, list) and len(tmo) <= MAX_TIMED_OUT
+            and all(isinstance(x, bool) for x in tmo)):
+        raise _err(where, f"metadata 'timed_out': expected a list of true/false per section (at most "
+                          f"{MAX_TIMED_OUT}) or one true/false for the run, received {shown(tmo)}")
     if "T_Ei" not in meta:
         raise _err(where, "metadata 'T_Ei' (current-loop time constant) is missing")
     if rec.torque is None and "K_M" not in meta:
@@ -220,14 +305,16 @@ def _validated_meta(rec: Record, T_s_t: float, where: Path | str) -> dict[str, A
         meta["T_s"] = T_s_t
     units = meta.get("units", {})
     if not isinstance(units, dict):
-        raise _err(where, f"metadata 'units': expected an object, received {type(units).__name__}")
+        raise _err(where, f"metadata 'units': expected an object, received {shown(units)}")
     for c, u in units.items():
         if c not in UNITS:
-            raise _err(where, f"metadata 'units': unknown column '{c}'")
+            raise _err(where, f"metadata 'units': unknown column {shown(c)}")
         if u != UNITS[c]:
-            raise _err(where, f"unknown unit '{u}' for column '{c}' (expected '{UNITS[c]}')")
+            raise _err(where, f"unknown unit {shown(u)} for column '{c}' (expected '{UNITS[c]}')")
+    if meta.get("format", FORMAT) != FORMAT:
+        raise _err(where, f"metadata 'format': expected {FORMAT!r}, received {shown(meta['format'])}")
     if "truth" in meta and not isinstance(meta["truth"], dict):
-        raise _err(where, "metadata 'truth': expected an object")
+        raise _err(where, f"metadata 'truth': expected an object, received {shown(meta['truth'])}")
     return meta
 
 
@@ -241,67 +328,170 @@ def _paths(path: str | os.PathLike[str]) -> tuple[Path, Path, str]:
     return p.with_name(p.name + ".csv"), p.with_name(p.name + ".json"), p.name
 
 
-def _parse_header(cells: list[str], where: Path) -> list[str]:
+def _limit(n_bytes: int) -> str:
+    return f"{n_bytes} bytes" if n_bytes < 2**20 else f"{n_bytes / 2**20:g} MiB ({n_bytes} bytes)"
+
+
+def _read_text(path: Path, limit: int, what: str) -> str:
+    """The UTF-8 text of ``path`` (a byte-order mark dropped: spreadsheets' "CSV UTF-8" writes one),
+    refused from its size, before it is read, where it is larger than ``limit`` bytes."""
+    try:
+        size = path.stat().st_size
+        if size > limit:
+            raise _err(path, f"{size} bytes: larger than the {_limit(limit)} {what} may have")
+        with open(path, "rb") as f:
+            raw = f.read(limit + 1)  # a device or a file still growing: no more than the limit
+    except FileNotFoundError:
+        raise _err(path, "file not found") from None
+    except OSError as err:
+        raise _err(path, f"cannot read ({err.__class__.__name__})") from None
+    if len(raw) > limit:
+        raise _err(path, f"more than the {_limit(limit)} {what} may have")
+    try:
+        return raw.decode("utf-8-sig")
+    except UnicodeDecodeError:
+        what = "a gzip file (decompress it first)" if raw[:2] == b"\x1f\x8b" else "not UTF-8 text"
+        raise _err(path, f"cannot read: {what}") from None
+
+
+_SEPARATOR_HINT = "export with ',' as separator and '.' as decimal mark"
+
+
+def _separator_hint(line: str) -> str:
+    """A hint where ``line`` looks written with another separator than ``,``: ``;`` (a decimal-comma
+    export) or tabs; else ``""``."""
+    if ";" in line:
+        return f"the file uses ';' as separator (a decimal-comma export?); {_SEPARATOR_HINT}"
+    if "\t" in line.strip() and "," not in line:
+        return f"the file uses tabs as separator; {_SEPARATOR_HINT}"
+    return ""
+
+
+def _parse_header(header: str, where: Path) -> list[str]:
+    hint = _separator_hint(header)
+    if hint:
+        raise _err(where, f"line 1 (the header): {hint}")
     names = []
-    for cell in cells:
+    for cell in header.split(","):
         c = cell.strip()
         unit = None
         if c.endswith("]") and "[" in c:
             c, unit = c[: c.index("[")].strip(), c[c.index("[") + 1: -1].strip()
         if c not in UNITS:
-            raise _err(where, f"unknown column '{c}'; expected some of {list(COLUMNS)}")
+            raise _err(where, f"unknown column {shown(c)}; expected some of {list(COLUMNS)}")
         if unit is not None and unit != UNITS[c]:
-            raise _err(where, f"unknown unit '{unit}' for column '{c}' (expected '{UNITS[c]}')")
+            raise _err(where, f"unknown unit {shown(unit)} for column '{c}' (expected '{UNITS[c]}')")
         if c in names:
             raise _err(where, f"duplicate column '{c}'")
         names.append(c)
     return names
 
 
-def read_record(path: str | os.PathLike[str]) -> Record:
-    """Read ``NAME.csv`` + ``NAME.json`` (path with or without suffix), validated."""
-    csv_path, json_path, name = _paths(path)
+#: A number as numpy and ``strtod`` read it (decimal, exponent, nan, inf).
+_NUMBER = re.compile(r"[+-]?(?:(?:\d+\.?\d*|\.\d+)(?:e[+-]?\d+)?|nan|inf(?:inity)?)", re.IGNORECASE | re.ASCII)
+
+
+def _bad_row(rows: Iterator[tuple[int, str]], names: list[str]) -> str:
+    """What is wrong with the first of ``rows`` (``(line number, text)``) that is not a number per
+    column of ``names``, with its line number; a hint where a separator other than ``,`` shows."""
+    for line, text in rows:
+        fields = text.split("#", 1)[0].split(",")
+        hint = _separator_hint(text)
+        if len(fields) != len(names):
+            if not hint and len(fields) > len(names) and "." not in text:
+                hint = f"a decimal-comma export?; {_SEPARATOR_HINT}"
+            return (f"line {line} has {len(fields)} field{'s' * (len(fields) != 1)}, the header has {len(names)}"
+                    + (f" ({hint})" if hint else ""))
+        for name, field in zip(names, fields):
+            if not _NUMBER.fullmatch(field.strip()):
+                return (f"line {line}, column '{name}': expected a number, received {shown(field.strip())}"
+                        + (f" ({hint})" if hint else ""))
+    return "unreadable rows"
+
+
+def _lines(body: str) -> Iterator[tuple[int, str]]:
+    """The rows of ``body`` (the CSV after its header line) with their file line numbers: the lines
+    that hold more than blanks or a ``#`` comment."""
+    for line, text in enumerate(body.split("\n"), 2):
+        if text.split("#", 1)[0].strip(" \t\r"):
+            yield line, text
+
+
+def _line_of_row(body: bytes, row: int) -> int:
+    """The file line of row ``row`` (from 0) of ``body`` (the CSV after its header line), whose rows
+    are its lines that hold more than blanks (as the number parser reads them)."""
+    k, start, line = -1, 0, 2
+    while True:
+        end = body.find(b"\n", start)
+        if body[start: len(body) if end < 0 else end].strip(b" \t\r"):
+            k += 1
+            if k == row:
+                return line
+        if end < 0:
+            return line
+        start, line = end + 1, line + 1
+
+
+def _rows(body: str, n_lines: int, names: list[str], where: Path) -> tuple[np.ndarray, LineOf]:
+    """The numbers of ``body`` (the CSV after its header line, ``n_lines`` lines) as
+    ``rows x len(names)`` float64 and the file line of each row. The C parser reads plain rows;
+    otherwise numpy reads them (``#`` comments too) and a bad row is named by its line."""
+    raw = body.encode()
+    data = parse_numbers(raw, len(names))
+    if data is not None:  # one row per line unless blank lines lie between them
+        return data, (lambda i: i + 2) if data.shape[0] == n_lines else (lambda i: _line_of_row(raw, i))
+    del raw
+    rows = list(_lines(body))
     try:
-        text = csv_path.read_text(encoding="utf-8-sig")  # a byte-order mark (spreadsheets' "CSV UTF-8") is no column
-    except FileNotFoundError:
-        raise _err(csv_path, "file not found") from None
-    except OSError as err:
-        raise _err(csv_path, f"cannot read ({err.__class__.__name__})") from None
-    except UnicodeDecodeError:
-        with open(csv_path, "rb") as f:
-            what = "a gzip file (decompress it first)" if f.read(2) == b"\x1f\x8b" else "not UTF-8 text"
-        raise _err(csv_path, f"cannot read: {what}") from None
-    # the header row: the first of text.splitlines(), without splitting the whole file
-    header = text[: text.find("\n")] if "\n" in text else text
-    header = header.splitlines()[0] if header else header
-    if not header.strip():
-        raise _err(csv_path, "empty file (expected a header row)")
-    names = _parse_header(header.split(","), csv_path)
-    data = parse_numbers(text[len(header):].lstrip("\r\n").encode(), len(names))
-    if data is None:  # no parser, or rows that are not plain numbers: numpy reads them and words the error
-        rows = [ln for ln in text.splitlines()[1:] if ln.strip()]
-        try:
-            data = np.loadtxt(io.StringIO("\n".join(rows)), delimiter=",", dtype=np.float64, ndmin=2) if rows \
-                else np.zeros((0, len(names)))
-        except ValueError as err:
-            raise _err(csv_path, f"unreadable data ({str(err).splitlines()[0]})") from None
+        data = np.loadtxt([text for _, text in rows], delimiter=",", dtype=np.float64, ndmin=2) if rows \
+            else np.zeros((0, len(names)))
+    except ValueError:
+        raise _err(where, _bad_row(iter(rows), names)) from None
     if data.shape[1] != len(names):
-        raise _err(csv_path, f"rows have {data.shape[1]} fields, header has {len(names)}")
+        raise _err(where, _bad_row(iter(rows), names))
+    line_numbers = [line for line, _ in rows]
+    return data, line_numbers.__getitem__
+
+
+def read_record(path: str | os.PathLike[str], meta_defaults: Mapping[str, Any] | None = None) -> Record:
+    """Read ``NAME.csv`` + ``NAME.json`` (path with or without suffix), validated. Files larger than
+    :data:`MAX_BYTES` (metadata: :data:`MAX_META_BYTES`) or holding more than :data:`MAX_ROWS` lines
+    are refused before they are read or parsed. ``meta_defaults``: metadata the JSON may leave out
+    (e.g. a drive's own ``K_M`` and ``T_Ei``), taken where it lacks the key, before validation."""
+    csv_path, json_path, name = _paths(path)
+    text = _read_text(csv_path, MAX_BYTES, "a record file")
+    if "\n" not in text:  # classic Mac line ends
+        text = text.replace("\r", "\n")
+    end = text.find("\n")
+    header, body = (text, "") if end < 0 else (text[:end], text[end + 1:])
+    del text
+    if not header.strip():
+        raise _err(csv_path, "empty file (expected a header row)" if not body.strip() else
+                   "line 1 is empty (expected the header row: t, speed, current or torque, ...)")
+    names = _parse_header(header, csv_path)
+    n_lines = body.count("\n") + (bool(body) and not body.endswith("\n"))
+    if n_lines > MAX_ROWS:
+        raise _err(csv_path, f"{n_lines} lines: more than the {MAX_ROWS} rows a record may have (one test run "
+                             "has at most about a million; split the file into its test runs)")
+    data, line_of = _rows(body, n_lines, names, csv_path)
+    del body
     cols = {c: data[:, i].copy() for i, c in enumerate(names)}
     if not json_path.exists():
         raise _err(json_path, "metadata file not found (expected beside the CSV)")
+    meta_text = _read_text(json_path, MAX_META_BYTES, "record metadata")
     try:
-        meta = json.loads(json_path.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
-        raise _err(json_path, f"invalid JSON ({str(err).splitlines()[0]})") from None
+        meta = loads(meta_text)
+    except ValueError as err:
+        raise _err(json_path, str(err)) from None
     if not isinstance(meta, dict):
-        raise _err(json_path, "expected a JSON object")
+        raise _err(json_path, f"expected a JSON object, received {shown(meta)}")
+    meta = {**(meta_defaults or {}), **meta}
     section = cols.pop("section", None)
     if section is not None:
-        section = _section(csv_path, section)
+        section = _section(csv_path, section, line_of)
     rec = Record(t=cols.pop("t", None), speed=cols.pop("speed", None), meta=meta, current=cols.pop("current", None),
                  torque=cols.pop("torque", None), torque_ref=cols.pop("torque_ref", None), section=section, name=name)
-    return validate(rec, csv_path, json_path)
+    return validate(rec, csv_path, json_path, line_of=line_of)
 
 
 #: Significant digits written per column (``%.Ng``; 0: an integer, ``%d``).

@@ -73,7 +73,7 @@ def _csv(rows: int = 50, cols: str = "t,speed,current", fn=None) -> str:
 @pytest.mark.parametrize("csv_text, meta, message", [
     (_csv(cols="t,current"), META, "missing column 'speed'"),
     (_csv(cols="t,speed"), META, "missing column 'current' or 'torque'"),
-    (_csv(fn=lambda k, v: [v[0], float("nan") if k == 7 else v[1], v[2]]), META, "NaN/inf at row 8"),
+    (_csv(fn=lambda k, v: [v[0], float("nan") if k == 7 else v[1], v[2]]), META, "NaN/inf at line 9"),
     (_csv(fn=lambda k, v: [v[0], float("inf") if k == 3 else v[1], v[2]]), META, "NaN/inf"),
     (_csv(fn=lambda k, v: [v[0] + (0.3e-4 if k == 10 else 0.0), v[1], v[2]]), META, "non-uniform time step"),
     (_csv(fn=lambda k, v: [(k + (k >= 20)) * 2.5e-4, v[1], v[2]]), META, "non-uniform time step"),

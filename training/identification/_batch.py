@@ -40,6 +40,9 @@ def file_outcome(path: str) -> Analysis | IdentificationFailure:
             record = read_record(path)
         except (ValueError, OSError) as err:  # RecordError, missing files
             return IdentificationFailure(one_line(err), path)
+        except Exception as err:  # noqa: BLE001 - a bug in the reader must not cost the other records their answer
+            return IdentificationFailure(f"{path}: unexpected {type(err).__name__} reading the record: "
+                                         f"{one_line(err)}", path)
         return analysis_outcome(record, path)
 
 

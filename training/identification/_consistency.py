@@ -55,7 +55,7 @@ def consistency_warnings(record: Record, split: SectionSplit, drive: DriveValues
                                                       "step is missing)"))
     # the law's durations and thresholds hold for a whole run that no limit or timeout cut short
     law = _law_mismatch(speed, split, w_max, math.ceil(2.0 * T_Ei / record.T_s) + 2) \
-        if not out and not any(record.meta.get("timed_out") or []) else []
+        if not out and not record.timed_out else []
     return out + (law or _clipped(speed, split, q_w)) + _torque_scale(record, split, torque, T_Ei)
 
 

@@ -62,10 +62,10 @@ def _random_torque(rec: Record) -> dict[str, np.ndarray]:
 #: name -> expected one-line error (regex); "good" must be answered.
 CASES: dict[str, str] = {
     "missing_column": r"missing column 'speed'",
-    "nan": r"column 'speed' has NaN/inf at row 1[01]",
-    "non_uniform": r"non-uniform time step near row",
+    "nan": r"column 'speed' has NaN/inf at line 11",  # sample 9: the header is line 1
+    "non_uniform": r"non-uniform time step near line",
     "random_torque": r"no recognisable test-signal sections",
-    "ramp": r"no recognisable test-signal sections",
+    "ramp": r"incomplete test run: the record ends in section I at t = .*sections II, III, IV, V, VI",
     "saturated": r"saturated at 60 rad/s",
     "constant": r"constant speed",
     "current_in_mA": r"current looks like wrong units \(.*M_star",
@@ -302,7 +302,7 @@ def test_time_error_prints_plain_numbers(good, tmp_path, capsys):
     _write_raw(tmp_path, "backwards", {**good.columns(), "t": t}, _meta(good))
     assert main(["identify", str(tmp_path / "backwards.csv"), "--no-progress"]) == 1
     err = _strict_loads(capsys.readouterr().out)["error"]
-    assert "time is not increasing at row 101 (t=0.015 s after 0.02475 s)" in err and "np." not in err
+    assert "time is not increasing at line 102 (t=0.015 s after 0.02475 s)" in err and "np." not in err  # sample 100
 
 
 def test_map_saved_under_another_name_is_refused(records, tmp_path, capsys):
