@@ -22,7 +22,7 @@ from training.identification._features import (EIG_NAMES, EXTRA_NAMES, STRUCT_NA
                                                extra_features, structure_and_peaks)
 from training.identification._one_mass import OneMassFit, fit_one_mass
 from training.identification._oscillation import fit_oscillation
-from training.identification._plausibility import check_record, resolution_hint
+from training.identification._plausibility import check_record, resolution_hint, unit_warnings
 from training.identification._result import IdentWarning
 from training.identification._sections import SectionSplit, detect_sections
 
@@ -102,7 +102,8 @@ def analyze(record: Record) -> Analysis:
     Raises:
         TypeError: ``record`` is no ``sim.Record``.
         IdentificationError: one line, when the record cannot be analysed (implausible units,
-            no recognisable test run, an uninformative one-mass fit, a missing ``K_M``).
+            no recognisable test run, more than one run or an incomplete one, an uninformative
+            one-mass fit, a missing ``K_M``).
     """
     try:
         return _analyze(as_record(record))
@@ -177,7 +178,7 @@ def _analyze(record: Record) -> Analysis:
             raise
         raise ValueError(f"{err}; {hint}") from err
     drive, drive_warnings = drive_values(record, split, torque)
-    drive_warnings += consistency_warnings(record, split, drive, torque)
+    drive_warnings += consistency_warnings(record, split, drive, torque) + unit_warnings(record)
     try:
         fit = fit_one_mass(torque, record.speed, T_s, sections=split.bounds)
     except ValueError as err:

@@ -24,6 +24,16 @@ signal produces on the default population, measured on 800 simulated systems):
   simulated: 0.8..1.02 x the true ``J_sigma``) must be positive (else speed and current have
   opposite signs) and within 1e-7..1e4 kg m^2.
 
+The motor torque (``current * K_M``) must be representable: a ``K_M`` that takes a finite current
+beyond the float range, or to zero, is refused here, naming ``K_M`` (the section detection would
+otherwise misread the result). A peak speed below the lower bound on a record that stops in
+section I, before the speed reached ``w_max``, is called an incomplete run, not wrong units
+(:func:`._sections.incomplete_run`).
+
+:func:`unit_warnings` says where none of these checks could test a signal's units (coded
+``units_unchecked``): the speed without ``w_max`` and without an ``encoder_counts`` whose speed
+quantum it steps in, the torque without ``M_star`` and ``M_max``.
+
 A record whose speed is constant passes here (the section detection reports it with a more
 specific message); a torque that is zero throughout while the speed moves is refused here (a
 ``torque_ref`` would still show the sections, and the one-mass fit would fail on it obscurely).
@@ -39,8 +49,12 @@ from typing import Any
 import numpy as np
 
 from sim import Record, speed_quantum
+from sim.records import any_timed_out
+from training.identification._result import IdentWarning
+from training.identification._sections import incomplete_run
 
-__all__ = ["check_record", "T_S_MAX", "T_EI_MAX", "T_S_OVER_T_EI_MAX", "TORQUE_RATIO", "SPEED_RATIO", "J_RANGE"]
+__all__ = ["check_record", "unit_warnings", "T_S_MAX", "T_EI_MAX", "T_S_OVER_T_EI_MAX", "TORQUE_RATIO", "SPEED_RATIO",
+           "J_RANGE"]
 
 T_S_MAX = 0.02  # largest plausible sample time of a speed loop [s]
 T_EI_MAX = 0.05  # largest plausible current-loop time constant [s]
@@ -53,6 +67,7 @@ _GLITCH_SAMPLES = 3  # at most this many samples above the plausible peak: glitc
 J_RANGE = (1e-7, 1e4)  # plausible one-mass inertia [kg m^2]
 _MIN_CORRELATION = 0.5  # |correlation| of torque integral and speed change needed to judge the inertia
 QUANTIZED_SHARE = 0.99  # share of nonzero speed samples on a quantum grid to call the speed quantized
+_ON_GRID = 0.9  # share of nonzero speed samples on the encoder's rad/s grid that confirms the speed's units
 RESOLUTION = 0.5  # speed quantum over w_max from which a failed section detection names the encoder
 
 
@@ -67,7 +82,11 @@ def check_record(record: Record) -> None:
     speed = np.asarray(record.speed, dtype=np.float64)
     if record.torque is None and (record.current is None or meta.get("K_M") is None):
         return  # no torque to check: the analysis reports what is missing
-    torque, name = record.motor_torque, "torque" if record.torque is not None else "current"
+    name = "torque" if record.torque is not None else "current"
+    with np.errstate(over="ignore", under="ignore"):
+        torque = record.motor_torque
+    if name == "current":
+        _check_torque_constant(np.asarray(record.current, dtype=np.float64), torque, float(meta["K_M"]))
     if speed.size < 2 or not (np.all(np.isfinite(speed)) and np.all(np.isfinite(torque))):
         return  # format problems: sim.records / the analysis report them
     T_s = record.T_s
@@ -79,9 +98,41 @@ def check_record(record: Record) -> None:
     if not moves:
         return  # constant speed: the section detection says so
     _check_torque_scale(torque, name, meta)
-    _check_speed_scale(speed, T_s, meta)
+    _check_speed_scale(speed, T_s, meta, record)
     _check_speed_quantum(speed, T_s, meta)
     _check_inertia(torque, speed, T_s, name)
+
+
+def _check_torque_constant(current: np.ndarray, torque: np.ndarray, K_M: float) -> None:
+    """``current * K_M`` must stay a number: finite where the current is, and not zero throughout
+    where the current is not (``K_M`` beyond the float range either way)."""
+    finite = np.isfinite(current)
+    peak = float(np.max(np.abs(current[finite]))) if finite.any() else 0.0
+    if not np.all(np.isfinite(torque[finite])):
+        raise ValueError(f"metadata K_M looks implausible (K_M = {K_M:.4g} Nm/A times |current| up to {peak:.4g} A "
+                         f"overflows to an infinite torque; expected the torque constant in Nm/A)")
+    if peak > 0 and not np.any(torque[finite]):
+        raise ValueError(f"metadata K_M looks implausible (K_M = {K_M:.4g} Nm/A times |current| up to {peak:.4g} A "
+                         f"underflows to a zero torque; expected the torque constant in Nm/A)")
+
+
+def unit_warnings(record: Record) -> list[IdentWarning]:
+    """``units_unchecked`` for each signal whose units none of :func:`check_record`'s checks could
+    test: the speed without ``w_max`` and without an ``encoder_counts`` on whose speed quantum (in
+    rad/s) it lies, the torque without ``M_star`` and ``M_max``; else none."""
+    meta, out = record.meta, []
+    counts = meta.get("encoder_counts")
+    speed = np.asarray(record.speed, dtype=np.float64)
+    if meta.get("w_max") is None and (counts is None or not _on_encoder_grid(speed, record.T_s, counts)):
+        given = ("neither w_max nor encoder_counts" if counts is None
+                 else "no w_max, and its speed does not step in the quantum of its encoder_counts")
+        out.append(IdentWarning("units_unchecked", f"the speed's units could not be checked: the record gives {given} "
+                                                   "(a speed in rpm would read 9.55 x too fast); give w_max"))
+    if meta.get("M_star") is None and meta.get("M_max") is None:
+        what, wrong = ("current", "a current in mA") if record.torque is None else ("torque", "a torque in Nmm")
+        out.append(IdentWarning("units_unchecked", f"the {what}'s units could not be checked: the record gives neither "
+                                                   f"M_star nor M_max ({wrong} would read 1000 x); give one"))
+    return out
 
 
 def _check_timing(T_s: float, T_Ei: Any) -> None:
@@ -146,7 +197,7 @@ def overshoot_allowance(speed: np.ndarray, T_s: float, T_Ei: float | None) -> fl
     return float(np.percentile(accel, 99)) * (2.0 * float(T_Ei) + 3.0 * T_s)
 
 
-def _check_speed_scale(speed: np.ndarray, T_s: float, meta: dict[str, Any]) -> None:
+def _check_speed_scale(speed: np.ndarray, T_s: float, meta: dict[str, Any], record: Record) -> None:
     w_max = meta.get("w_max")
     if w_max is None:
         return
@@ -154,7 +205,7 @@ def _check_speed_scale(speed: np.ndarray, T_s: float, meta: dict[str, Any]) -> N
     peak = float(np.max(abs_speed))
     ratio = peak / float(w_max)
     lo, hi = SPEED_RATIO
-    timed_out = any(bool(x) for x in (meta.get("timed_out") or []))
+    timed_out = any_timed_out(meta)
     counts = meta.get("encoder_counts")
     quantum = speed_quantum(float(counts), T_s) if counts else 0.0  # an encoder's speed reads up to one count high
     allowed = hi * float(w_max) + overshoot_allowance(speed, T_s, meta.get("T_Ei")) + quantum
@@ -164,6 +215,10 @@ def _check_speed_scale(speed: np.ndarray, T_s: float, meta: dict[str, Any]) -> N
         raise ValueError(f"speed has {above.size} sample(s) far above the rest (peak |speed| {peak:.4g} rad/s at row "
                          f"{int(above[np.argmax(abs_speed[above])]) + 2}, the others at most {rest:.4g}; metadata "
                          f"w_max = {float(w_max):.4g} rad/s): glitches in the recording?")
+    if ratio < lo and not timed_out and peak <= allowed:
+        incomplete = incomplete_run(record, upto=1)  # cut in I, before the speed reached w_max: not its units
+        if incomplete is not None:
+            raise ValueError(incomplete)
     if peak > allowed or (ratio < lo and not timed_out):
         guess = _guess(ratio, _speed_units(meta, meta.get("T_s")))
         raise ValueError(f"speed looks like wrong units (peak |speed| {peak:.4g} is {ratio:.3g} x metadata "
@@ -181,17 +236,25 @@ def _check_speed_quantum(speed: np.ndarray, T_s: float, meta: dict[str, Any]) ->
     counts = meta.get("encoder_counts")
     if counts is None:
         return
+    if _on_encoder_grid(speed, T_s, counts):
+        return  # quantized in rad/s: its units are right
     x = speed[speed != 0]
     if x.size < 32:
-        return
+        return  # too few moving samples to judge
     q_w = speed_quantum(float(counts), T_s)
-    if on_grid(x, q_w) >= 0.9:
-        return  # quantized in rad/s, or not quantized at all (filtered speed): nothing to say
     for unit, factor in _speed_units(meta, T_s).items():
         if on_grid(x, q_w * factor) >= QUANTIZED_SHARE:
             raise ValueError(f"speed looks like wrong units (its values are multiples of {q_w * factor:.6g}, the "
                              f"encoder's speed quantum 2*pi/(encoder_counts*T_s) = {q_w:.6g} rad/s in {unit}; "
                              f"expected rad/s)")
+
+
+def _on_encoder_grid(speed: np.ndarray, T_s: float, counts: float) -> bool:
+    """Whether ``speed`` steps in the speed quantum of ``counts`` in rad/s (:data:`_ON_GRID` of its
+    nonzero samples, at least 32 of them): the encoder then confirms its units. A speed not
+    quantized at all (filtered) is not judged by the encoder."""
+    x = speed[speed != 0]
+    return x.size >= 32 and on_grid(x, speed_quantum(float(counts), T_s)) >= _ON_GRID
 
 
 def resolution_hint(record: Record) -> str | None:

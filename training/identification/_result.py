@@ -43,6 +43,9 @@ WARNING_CODES: dict[str, str] = {
                              "the current's units wrong): inertias and friction scale with it",
     "record_starts_late": "the record starts inside section I, not at rest: the test's first torque step is missing",
     "run_aborted": "the drive aborted the run at a limit (metadata aborted: true)",
+    "units_unchecked": "the record gives no value to check a signal's units against (the speed: neither w_max nor an "
+                       "encoder_counts it steps in; the torque: neither M_star nor M_max): a unit error would go "
+                       "unnoticed",
     "drive_outside_training": "a drive or test value lies outside what the maps were trained on",
     "outside_envelope": "a drive, test or identified value lies outside SPEC 3.1's drive envelope",
     "backlash_below_resolution": "a backlash narrower than the encoder resolves may hide, or its width is "

@@ -17,6 +17,15 @@ duration or at ``0.2 w_max``, III at the zero crossing, ...), from the start of 
 the heavily smoothed torque first reaches ``M*/2``) and ``w_max`` (metadata, else the speed where
 the smoothed torque drops after I). The torque only has to confirm the levels on average over
 each section. Records with ``torque_ref`` need none of this: record it where the drive can.
+
+A record is ONE test run: I..VI, then the tail at rest. Only section I holds ``+M*``, and a run
+starts from rest, so each stretch at ``+M*`` that follows rest (zero torque, or the record's
+start, with the speed near zero; the torque's rise through ``+0.7 M*`` in between) starts a run
+of its own: a record with two or more is refused, naming where the runs start
+(:func:`_check_one_run`). A record whose levels stop
+part-way through the sequence, with the torque still applied or the speed not yet where the
+switching law ends that section, is called an incomplete run, naming the sections it lacks
+(:func:`incomplete_run`).
 """
 
 from __future__ import annotations
@@ -33,12 +42,17 @@ from scipy.ndimage import median_filter
 from sim import SECTION_LEVELS, SECTION_NAMES, SPEED_RETURN, Record
 from training._checks import as_signal
 
-__all__ = ["SectionSplit", "detect_sections", "sections_from_column", "diff_noise", "law_end", "torque_amplitude"]
+__all__ = ["SectionSplit", "detect_sections", "sections_from_column", "diff_noise", "law_end", "torque_amplitude",
+           "incomplete_run"]
 
 #: The distinct torque levels of the test signal over ``M*``, highest first: ``(1, 0.7, 0, -0.7, -1)``.
 _CLASS_LEVELS = np.array(sorted(set(SECTION_LEVELS), reverse=True))
 _PATTERN = [int(np.flatnonzero(_CLASS_LEVELS == v)[0]) for v in SECTION_LEVELS]  # sections I..VI
 _ZERO = int(np.flatnonzero(_CLASS_LEVELS == 0.0)[0])
+_TOP = int(np.flatnonzero(_CLASS_LEVELS == 1.0)[0])  # +M*: section I only
+_RISE = int(np.flatnonzero(_CLASS_LEVELS == 0.7)[0])  # +0.7 M*: VI, or the torque's rise into I
+#: Runs of one torque level shorter than this [s] are transitions (spikes, ringing), not sections.
+MIN_RUN = 2e-3
 #: Torque noise (std over ``M*``) above which the sections come from the switching law on the speed.
 NOISY = 0.03
 #: A section's mean torque may miss its level by this much of ``M*`` (plus its noise) on the speed path.
@@ -79,9 +93,10 @@ class SectionSplit:
 
 def _from_record(record: Record) -> dict[str, Any]:
     """What :func:`detect_sections` reads from a record."""
-    return {"speed": record.speed, "torque": record.motor_torque, "T_s": record.T_s,
+    return {"t": record.t, "speed": record.speed, "torque": record.motor_torque, "T_s": record.T_s,
             "torque_ref": record.torque_ref, "M_star": record.meta.get("M_star"),
-            "T_Ei": record.meta.get("T_Ei"), "section": record.section, "w_max": record.meta.get("w_max")}
+            "T_Ei": record.meta.get("T_Ei"), "section": record.section, "w_max": record.meta.get("w_max"),
+            "aborted": record.meta.get("aborted")}
 
 
 def sections_from_column(section: Any, torque: Any = None, M_star: float | None = None) -> SectionSplit:
@@ -142,7 +157,7 @@ def detect_sections(
     T_Ei: float | None = None,
     torque_ref: Any = None,
     use_column: bool = False,
-    min_run: float = 2e-3,
+    min_run: float = MIN_RUN,
     w_max: float | None = None,
 ) -> SectionSplit:
     """Find sections I..VI of a test run.
@@ -182,9 +197,11 @@ def detect_sections(
     noise = diff_noise(y) if source == "torque" else 0.0  # the reference is noiseless
     if noise > NOISY * Ms:
         return _switching_law(w, y, info, Ts, noise)
-    runs = _level_runs(ys, Ms, max(3, int(round(min_run / Ts))))
+    keep = max(3, int(round(min_run / Ts)))
+    runs = _level_runs(ys, Ms, keep)
+    _check_one_run(runs, w, info, Ts)
     try:
-        hit = _pattern_start(runs, Ms)
+        hit = _test_start(runs, Ms, w, info, Ts, keep)
     except ValueError:
         if source == "torque":  # the switching law may still find it; else the levels' error stands
             with contextlib.suppress(ValueError):
@@ -192,7 +209,7 @@ def detect_sections(
         if source != "torque_ref":
             raise
         runs = _level_runs(ys, Ms, 1)  # the reference is exact: a section shorter than min_run is one too
-        hit = _pattern_start(runs, Ms)
+        hit = _test_start(runs, Ms, w, info, Ts, 1)
     step = _StepLocator(y, Ms, lag, exact=source == "torque_ref")
     bounds, tail, flags = _boundaries(runs, hit, step, Ts)
     _check_speed_follows(w, bounds)
@@ -308,10 +325,11 @@ def _switching_law(w: np.ndarray, y: np.ndarray, info: dict[str, Any], Ts: float
     ``w_max``, each speed near the fall of the smoothed torque after I is tried and the one whose
     sections best fit the torque levels wins."""
     n = y.size
-    a_rough = float(np.percentile(np.abs(y), 99.0))
-    smooth_len = max(5, 2 * int(math.ceil((2.5 * noise / max(0.05 * a_rough, 1e-300)) ** 2 / 2)) + 1)
-    ys = median_filter(y, size=min(smooth_len, max(5, n // 20) | 1), mode="nearest")
+    ys, smooth_len = _smoothed(y, noise)
     M_rough = float(np.percentile(np.abs(ys), 99.0))
+    keep = max(3, int(round(MIN_RUN / Ts)))
+    runs = _level_runs(ys, _amplitude(ys, None)[0], keep) if M_rough > 0 else []
+    _check_one_run(runs, w, info, Ts)
     lag = float(info.get("T_Ei") or 0.0) * math.log(2.0) / Ts  # [samples] of the torque behind its reference
     expected = ",".join(_level_text(v) for v in SECTION_LEVELS)
     fail = (f"no recognisable test-signal sections: expected torque levels {expected} x M* and the speed to follow "
@@ -321,9 +339,9 @@ def _switching_law(w: np.ndarray, y: np.ndarray, info: dict[str, Any], Ts: float
         rise = _crossing(ys, 0.5 * M_rough, 0, True)
         fall = _crossing(ys, 0.5 * M_rough, int(rise) + 1, False)
     except ValueError:
-        raise ValueError(fail) from None
+        raise ValueError(_incomplete(runs, w, info, Ts, keep) or fail) from None
     k0 = int(round(rise - lag))
-    k0 = 0 if k0 < max(3, int(round(2e-3 / Ts))) else k0  # no run before I: the record starts in I
+    k0 = 0 if k0 < max(3, int(round(MIN_RUN / Ts))) else k0  # no run before I: the record starts in I
     if info.get("w_max") is not None:
         candidates = [float(info["w_max"])]
     else:  # the controller saw w_max one sample before the fall; the smoothed fall is a few samples unsure
@@ -341,7 +359,7 @@ def _switching_law(w: np.ndarray, y: np.ndarray, info: dict[str, Any], Ts: float
             if best is None or cost < best[2]:
                 best = (bounds, Ms, cost)
     if best is None:
-        raise ValueError(fail)
+        raise ValueError(_incomplete(runs, w, info, Ts, keep) or fail)
     bounds, Ms, _ = best
     levels = np.array([y[a:b].mean() for a, b in bounds.tolist()])
     miss = np.abs(levels - np.asarray(SECTION_LEVELS) * Ms)
@@ -362,6 +380,106 @@ def _switching_law(w: np.ndarray, y: np.ndarray, info: dict[str, Any], Ts: float
     return SectionSplit(bounds, (b6, int(n)), Ms, info.get("M_star") is None, levels, tuple(flags), "speed", n)
 
 
+def _smoothed(y: np.ndarray, noise: float) -> tuple[np.ndarray, int]:
+    """A noisy torque ``y`` through a median filter long enough to bring its ``noise`` [Nm] well
+    below the levels' spacing, and the filter's length [samples]."""
+    n = y.size
+    a_rough = float(np.percentile(np.abs(y), 99.0))
+    smooth_len = max(5, 2 * int(math.ceil((2.5 * noise / max(0.05 * a_rough, 1e-300)) ** 2 / 2)) + 1)
+    return median_filter(y, size=min(smooth_len, max(5, n // 20) | 1), mode="nearest"), smooth_len
+
+
+def _time_at(info: dict[str, Any], Ts: float, k: int) -> float:
+    """The instant [s] of sample ``k``: the record's ``t`` where known, else ``k T_s``."""
+    t = info.get("t")
+    return float(t[min(k, len(t) - 1)]) if t is not None and len(t) else k * Ts
+
+
+def _run_starts(runs: list[list[int]], w: np.ndarray) -> list[int]:
+    """The first samples of the runs of ``+M*`` that start a test run: section I, the only section
+    at that level, from rest: after a zero run (or the record's start; runs of ``+0.7 M*`` between
+    are the torque's rise through that level, or the VI of a run without a tail) with the speed
+    ``w`` within ``0.2`` of its peak of zero (SPEC 2: a run starts from rest and ends there). A dip
+    inside section I does not count (the speed is moving, or the run before the dip is at ``+M*``)."""
+    at_rest = SPEED_RETURN * float(np.max(np.abs(w))) if w.size else 0.0
+    starts = []
+    for i, (a, _, level) in enumerate(runs):
+        j = i - 1
+        while j >= 0 and runs[j][2] == _RISE:
+            j -= 1
+        if level == _TOP and (j < 0 or runs[j][2] == _ZERO) and abs(w[a]) <= at_rest:
+            starts.append(int(a))
+    return starts
+
+
+def _check_one_run(runs: list[list[int]], w: np.ndarray, info: dict[str, Any], Ts: float) -> None:
+    """Raise ValueError (one line) when the level ``runs`` hold more than one test run (SPEC 2:
+    one run is I..VI, then the 50 ms tail at rest; :func:`_run_starts` on the speed ``w``)."""
+    starts = _run_starts(runs, w)
+    if len(starts) < 2:
+        return
+    again = ", ".join(f"{_time_at(info, Ts, k):.6g}" for k in starts[1:4]) + (", ..." if len(starts) > 4 else "")
+    raise ValueError(f"the record holds {len(starts)} test runs (section I starts again from rest at t = {again} s); "
+                     "expected one run (sections I-VI, then a 50 ms tail): cut the record to one run")
+
+
+def _incomplete(runs: list[list[int]], w: np.ndarray, info: dict[str, Any], Ts: float, keep: int,
+                upto: int = 6) -> str | None:
+    """Why the sections do not show where the record stops part-way through one test run: its
+    level ``runs`` from section I on are the start of I..VI, it ends in the last of them (within
+    ``keep`` samples), and its speed ``w`` meets that section's end of SPEC 2's switching law (I:
+    ``w_max``, II: ``0.2 w_max``, III: 0, IV: ``-w_max``, V: ``-0.2 w_max``, VI: 0; ``w_max`` from the
+    metadata, else the speed at the end of I) late or never: too close to the record's end for the
+    next torque step to show; else None (a complete run whose short section hides, a record of
+    one torque level whose ``w_max`` is unknown; a record that ends after section ``upto``)."""
+    codes = [r[2] for r in runs]
+    if _TOP not in codes:
+        return None
+    first = codes.index(_TOP)
+    got = codes[first:]
+    n = w.size
+    if not 0 < len(got) <= upto or got != _PATTERN[:len(got)] or runs[-1][1] < n - keep:
+        return None
+    k = len(got) - 1  # the section the record ends in (0..5 for I..VI)
+    w_max = info.get("w_max")
+    if w_max is None and k == 0:
+        return None
+    w_max = float(w_max) if w_max is not None else abs(float(w[max(runs[first][1] - 1, 0)]))
+    rising, level = {0: (True, w_max), 1: (False, SPEED_RETURN * w_max), 2: (False, 0.0), 3: (False, -w_max),
+                     4: (True, -SPEED_RETURN * w_max), 5: (True, 0.0)}[k]
+    tail = w[runs[-1][0]:]
+    ended = np.flatnonzero(tail >= level if rising else tail <= level)
+    settle = keep + int(math.ceil(3.0 * float(info.get("T_Ei") or 0.0) / Ts)) + 2  # before the next step shows
+    if ended.size and runs[-1][0] + int(ended[0]) < n - settle:
+        return None  # the law ended that section well before the record ends: not simply cut short
+    missing = f"sections {', '.join(SECTION_NAMES[k + 1:])} and the 50 ms tail are" if k < 5 else "the 50 ms tail is"
+    why = ("the drive aborted it at a limit (metadata aborted: true)" if info.get("aborted")
+           else "was the recording cut short? record the whole test run")
+    state = "the torque still applied" if got[-1] != _ZERO else "the speed still moving"
+    return (f"incomplete test run: the record ends in section {SECTION_NAMES[k]} at "
+            f"t = {_time_at(info, Ts, n - 1):.6g} s ({state}); {missing} missing: {why}")
+
+
+def incomplete_run(record: Record, upto: int = 6) -> str | None:
+    """Why ``record`` is no whole test run where it stops part-way through one, in one of the
+    sections 1..``upto`` (:func:`_incomplete`), classified as :func:`detect_sections` classifies
+    it; else None (also where its signals cannot be classified at all: the section detection
+    reports those)."""
+    try:
+        info = _from_record(record)
+        w, y, Ts = _checked_signals(info)
+        ys, source, _ = _classified_signal(y, info, Ts)
+        Ms = _amplitude(ys, info.get("M_star"))[0]
+        noise = diff_noise(y) if source == "torque" else 0.0
+        if noise > NOISY * Ms:  # as the switching law classifies it
+            ys = _smoothed(y, noise)[0]
+            Ms = _amplitude(ys, None)[0]
+    except ValueError:
+        return None
+    keep = max(3, int(round(MIN_RUN / Ts)))
+    return _incomplete(_level_runs(ys, Ms, keep), w, info, Ts, keep, upto)
+
+
 def torque_amplitude(torque: np.ndarray) -> float:
     """The largest level [Nm] of a measured ``torque``: ``M*`` as the section detection estimates it."""
     return _amplitude(_despiked(torque), None)[0]
@@ -377,6 +495,9 @@ def _amplitude(ys: np.ndarray, M_star: float | None) -> tuple[float, bool]:
     estimated = M_star is None
     if estimated:
         a = float(np.percentile(np.abs(ys), 99.0))
+        if not math.isfinite(a):
+            raise ValueError("torque: expected finite values, received inf or NaN (current * K_M beyond the float "
+                             "range?)")
         if not a > 0:
             raise ValueError("torque: expected steps between +-M*, +-0.7M* and 0, received a zero torque")
         M_star = float(np.median(np.abs(ys)[np.abs(ys) > 0.85 * a]))
@@ -406,6 +527,18 @@ def _level_runs(ys: np.ndarray, Ms: float, keep_len: int) -> list[list[int]]:
 
 def _level_text(level: float) -> str:
     return f"{level:+.1f}".rstrip("0").rstrip(".") if level else "0"
+
+
+def _test_start(runs: list[list[int]], Ms: float, w: np.ndarray, info: dict[str, Any], Ts: float, keep: int) -> int:
+    """:func:`_pattern_start`, its error worded as an incomplete run where the record stops
+    part-way through one (:func:`_incomplete`)."""
+    try:
+        return _pattern_start(runs, Ms)
+    except ValueError as err:
+        why = _incomplete(runs, w, info, Ts, keep)
+        if why is None:
+            raise
+        raise ValueError(why) from err
 
 
 def _pattern_start(runs: list[list[int]], Ms: float) -> int:
