@@ -4,12 +4,16 @@ SHA-256 content hash, atomic writes; and a folder manifest of SHA-256 per file."
 from __future__ import annotations
 
 import hashlib
+import io
 import json
 import os
 import pickle
+import pickletools
+import re
+import warnings
 import zipfile
-from pathlib import Path
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
+from pathlib import Path, PurePosixPath
 from typing import Any
 
 import torch
@@ -58,21 +62,91 @@ def save_checkpoint(path: str | os.PathLike, som: SOM, extra_metadata: dict[str,
     return digest
 
 
-def _first_line(err: BaseException) -> str:
-    """The first line of ``err``'s message (at most 200 characters; its class name when empty)."""
-    lines = str(err).strip().splitlines()
-    return lines[0][:200] if lines else type(err).__name__
+def _detail(err: BaseException) -> str:
+    """The first sentence of ``err``'s message that says what is wrong (at most 200 characters): the
+    lines of torch's advice and documentation are left out (its advice for a refused pickle is to
+    load it in a way that runs code from the file); the class name when nothing else is left."""
+    advice = ("weights_only", "weights only", "torch.load", "https://")
+    lines = [ln.split("Unpickler error:", 1)[-1].strip() for ln in str(err).splitlines()]
+    kept = [ln.split(". ", 1)[0] for ln in lines if ln and not any(a in ln.lower() for a in advice)]
+    return kept[0][:200] if kept else type(err).__name__
 
 
-def _refusal(path: Path, torch_message: str) -> str:
-    """One line for a file that ``torch.load(weights_only=True)`` refused: what it holds, and why it
-    is not loaded anyway (torch's own advice would run code from the file)."""
-    detail = next((ln.split("error:", 1)[1].strip() for ln in torch_message.splitlines() if "Unpickler error:" in ln),
-                  torch_message.strip().splitlines()[0] if torch_message.strip() else "unreadable pickle")
-    detail = detail.split(". ", 1)[0].rstrip(".")
-    return (f"{path}: refused: not a plain-tensor checkpoint ({detail[:200]}); loading it with "
-            "torch.load(weights_only=False) would execute code from the file, so do that only for a file from a "
-            "source you trust")
+#: String-pushing opcodes (their argument is the string) and the memo's opcodes, for naming the
+#: globals of a pickle's ``STACK_GLOBAL`` (protocol 4: module and name are the two strings before it).
+_STRINGS = {"STRING", "BINSTRING", "SHORT_BINSTRING", "UNICODE", "SHORT_BINUNICODE", "BINUNICODE", "BINUNICODE8"}
+_PUTS = {"PUT", "BINPUT", "LONG_BINPUT"}
+_GETS = {"GET", "BINGET", "LONG_BINGET"}
+
+
+def _pickle_globals(data: bytes) -> list[str]:
+    """``module.name`` of each global that the pickle stream ``data`` would import, read opcode by
+    opcode with :func:`pickletools.genops` (nothing is unpickled, no code runs); successive pickles
+    (the legacy torch format) are read until the first byte that is not one."""
+    found: list[str] = []
+    stream = io.BytesIO(data)
+    while stream.tell() < len(data):
+        pushed: list[str | None] = []  # what the opcodes pushed, strings by value
+        memo: dict[int, str | None] = {}
+        try:
+            for op, arg, _ in pickletools.genops(stream):
+                if op.name == "GLOBAL" or op.name == "INST":
+                    found.append(".".join(str(arg).split(" ", 1)))
+                elif op.name == "STACK_GLOBAL":
+                    module, name = ([None, None] + pushed)[-2:]
+                    found.append(f"{module or '?'}.{name or '?'}")
+                elif op.name == "MEMOIZE":
+                    memo[len(memo)] = pushed[-1] if pushed else None
+                elif op.name in _PUTS:
+                    memo[int(arg)] = pushed[-1] if pushed else None
+                elif op.name in _GETS:
+                    pushed.append(memo.get(int(arg)))
+                elif op.name in _STRINGS:
+                    pushed.append(arg if isinstance(arg, str) else arg.decode("latin-1"))
+                elif op.stack_after:
+                    pushed.append(None)
+        except Exception:  # noqa: BLE001 - the rest is no pickle (the legacy format's raw storages)
+            break
+    return found
+
+
+def _file_globals(path: Path) -> list[str]:
+    """The globals that the pickle(s) of the torch file ``path`` would import (:func:`_pickle_globals`
+    of a zip archive's ``*.pkl`` members, else of the whole file); empty where it cannot be read."""
+    try:
+        if zipfile.is_zipfile(path):
+            with zipfile.ZipFile(path) as z:
+                return [g for n in z.namelist() if n.endswith(".pkl") for g in _pickle_globals(z.read(n))]
+        return _pickle_globals(path.read_bytes())
+    except (OSError, zipfile.BadZipFile, RuntimeError, ValueError):
+        return []
+
+
+def _plain(ref: str) -> bool:
+    """Whether the global ``ref`` is one a plain-tensor checkpoint names (torch's tensor rebuild,
+    a storage class, the ordered dict of a tensor's hooks)."""
+    module, _, name = ref.rpartition(".")
+    return ((module == "torch" and name.endswith("Storage"))
+            or (module == "torch._utils" and name.startswith("_rebuild_")) or ref == "collections.OrderedDict")
+
+
+def _unreadable(path: Path, err: Exception) -> str:
+    """One line for a file that ``torch.load(weights_only=True)`` did not load: the globals it would
+    have imported beyond a plain-tensor checkpoint's, named (``GLOBAL posix.system``), else what
+    torch found wrong; never advice to load the file some other way."""
+    if isinstance(err, pickle.UnpicklingError):  # torch refused the pickle (or could not parse it)
+        refs = list(dict.fromkeys(g for g in _file_globals(path) if not _plain(g)))
+        if refs:
+            shown = ", ".join(f"GLOBAL {g}" for g in refs[:4]) + (f" and {len(refs) - 4} more" if len(refs) > 4 else "")
+            return (f"{path}: refused: not a plain-tensor checkpoint: its pickle names {shown}, which unpickling "
+                    "would import and call; nothing from the file was run")
+        if zipfile.is_zipfile(path):
+            return f"{path}: refused: not a plain-tensor checkpoint ({_detail(err)}); nothing from the file was run"
+    return f"{path}: corrupt or truncated checkpoint, cannot be read safely ({_detail(err)})"
+
+
+#: Tensors whose values must all be finite: a NaN or inf weight would fail every recall, late.
+_FINITE = ("weights", "offset", "scale")
 
 
 def load_checkpoint(path: str | os.PathLike, *, expected_sha256: str | None = None) -> tuple[SOM, dict[str, Any]]:
@@ -84,13 +158,11 @@ def load_checkpoint(path: str | os.PathLike, *, expected_sha256: str | None = No
     if not path.is_file():
         raise FileNotFoundError(f"{path}: checkpoint not found")
     try:
-        payload = torch.load(path, map_location="cpu", weights_only=True)
-    except pickle.UnpicklingError as err:
-        if zipfile.is_zipfile(path):  # a whole torch.save file holding objects beyond plain tensors
-            raise CheckpointError(_refusal(path, str(err))) from None
-        raise CheckpointError(f"{path}: corrupt or truncated checkpoint, cannot be read safely ({_first_line(err)})") from None
-    except Exception as err:  # noqa: BLE001 - any zip/read failure means an unreadable file
-        raise CheckpointError(f"{path}: corrupt or truncated checkpoint, cannot be read safely ({_first_line(err)})") from None
+        with warnings.catch_warnings():  # torch's warnings about a foreign pickle: the error says what matters
+            warnings.simplefilter("ignore")
+            payload = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as err:  # noqa: BLE001 - a refused pickle, or any zip/read failure: an unreadable file
+        raise CheckpointError(_unreadable(path, err)) from None
     if not isinstance(payload, dict) or payload.get("format") != FORMAT:
         got = payload.get("format") if isinstance(payload, dict) else type(payload).__name__
         raise CheckpointError(f"{path}: not a {FORMAT} file (format {got!r})")
@@ -110,13 +182,21 @@ def load_checkpoint(path: str | os.PathLike, *, expected_sha256: str | None = No
         raise CheckpointError(f"{path}: content hash mismatch (stored {stored[:12]}..., computed {computed[:12]}...): file was modified or damaged")
     if expected_sha256 is not None and expected_sha256 != stored:
         raise CheckpointError(f"{path}: content hash {stored[:12]}... differs from the expected {expected_sha256[:12]}...")
+    for name in _FINITE:
+        t = tensors[name]
+        if t.is_floating_point() and not bool(torch.isfinite(t).all()):
+            bad = int((~torch.isfinite(t)).sum())
+            raise CheckpointError(f"{path}: {name}: {bad} of {t.numel()} values are NaN or infinite; the maps cannot "
+                                  "be used")
     try:
         som = SOM(Grid.from_dict(header["grid"]), header["component_names"], tensors["active"],
                   weights=tensors["weights"], offset=tensors["offset"], scale=tensors["scale"],
                   dtype=tensors["weights"].dtype)
         metadata = json.loads(header["metadata_json"])
-    except (ValueError, TypeError, KeyError) as err:
-        raise CheckpointError(f"{path}: inconsistent checkpoint ({err})") from None
+    except (ValueError, TypeError, KeyError, AttributeError, RecursionError) as err:
+        raise CheckpointError(f"{path}: inconsistent checkpoint ({_detail(err)})") from None
+    if not isinstance(metadata, dict):
+        raise CheckpointError(f"{path}: metadata: expected a JSON object, received {type(metadata).__name__}")
     return som, metadata
 
 
@@ -129,13 +209,16 @@ def file_sha256(path: str | os.PathLike) -> str:
 
 
 def write_manifest(folder: str | os.PathLike, name: str = "manifest.json", files: Sequence[str] | None = None) -> Path:
-    """Write ``folder/name``: ``{"files": {relative path: sha256}}`` for the relative paths ``files``,
-    else for every regular file in ``folder`` (recursively, hidden files and the manifest itself
-    excluded); atomic."""
+    """Write ``folder/name``: ``{"algorithm": "sha256", "files": {relative path: sha256}}`` for the
+    relative paths ``files``, else for every regular file in ``folder`` (recursively, hidden files
+    and the manifest itself excluded); atomic. A manifest that would list no file is refused
+    (``ValueError``): it would check nothing."""
     folder = Path(folder)
     if files is None:
         files = [p.relative_to(folder).as_posix() for p in folder.rglob("*")
                  if p.is_file() and p.name != name and not any(part.startswith(".") for part in p.relative_to(folder).parts)]
+    if not files:
+        raise ValueError(f"{folder / name}: no file to list; a manifest that lists nothing checks nothing")
     files = {f: file_sha256(folder / f) for f in sorted(files)}
     text = json.dumps({"algorithm": "sha256", "files": files}, indent=2, sort_keys=True) + "\n"
     out = folder / name
@@ -143,16 +226,61 @@ def write_manifest(folder: str | os.PathLike, name: str = "manifest.json", files
     return out
 
 
-def verify_manifest(folder: str | os.PathLike, name: str = "manifest.json") -> dict[str, str]:
-    """Check every file listed in ``folder/name`` against its SHA-256; return the listing.
-    Raises :class:`CheckpointError` naming each missing or changed file."""
-    folder = Path(folder)
+#: A SHA-256 as the manifest lists it: 64 lower-case hex digits.
+_SHA256 = re.compile(r"[0-9a-f]{64}")
+
+
+def _shown(value: Any) -> str:
+    """``value`` for an error line: its repr, at most 60 characters."""
+    text = repr(value)
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
+def _read_manifest(path: str | os.PathLike) -> dict[str, str]:
+    """The listing of the manifest ``path``: relative path -> SHA-256. The file must be the JSON
+    object that :func:`write_manifest` writes, ``{"algorithm": "sha256", "files": {path: digest}}``,
+    listing at least one file, each a relative path inside the folder with a 64-hex-digit digest.
+    Raises :class:`CheckpointError` (one line naming the manifest and what is wrong)."""
+    path = Path(path)
     try:
-        files = json.loads((folder / name).read_text())["files"]
+        data = json.loads(path.read_bytes())
     except FileNotFoundError:
-        raise CheckpointError(f"{folder / name}: manifest not found") from None
-    except (ValueError, KeyError, TypeError) as err:
-        raise CheckpointError(f"{folder / name}: unreadable manifest ({err})") from None
+        raise CheckpointError(f"{path}: manifest not found") from None
+    except (OSError, ValueError, RecursionError) as err:  # unreadable, not UTF-8, not JSON, nested too deep
+        raise CheckpointError(f"{path}: unreadable manifest ({_detail(err)})") from None
+    if not isinstance(data, dict):
+        raise CheckpointError(f'{path}: expected a JSON object {{"algorithm": "sha256", "files": {{...}}}}, '
+                              f"received {_shown(data)}")
+    if data.get("algorithm") != "sha256":
+        raise CheckpointError(f"{path}: algorithm: expected 'sha256', received {_shown(data.get('algorithm'))}")
+    files = data.get("files")
+    if not isinstance(files, dict):
+        raise CheckpointError(f"{path}: files: expected an object of relative path -> SHA-256, received "
+                              f"{_shown(files)}")
+    if not files:
+        raise CheckpointError(f"{path}: files: lists no file, so it checks nothing")
+    for rel, digest in files.items():
+        parts = PurePosixPath(rel).parts
+        if not rel or rel.startswith("/") or "\\" in rel or ".." in parts:
+            raise CheckpointError(f"{path}: files: {_shown(rel)}: expected a relative path inside the folder")
+        if not isinstance(digest, str) or not _SHA256.fullmatch(digest):
+            raise CheckpointError(f"{path}: files: {_shown(rel)}: expected a SHA-256 of 64 lower-case hex digits, "
+                                  f"received {_shown(digest)}")
+    return dict(files)
+
+
+def verify_manifest(folder: str | os.PathLike, name: str = "manifest.json",
+                    required: Iterable[str] = ()) -> dict[str, str]:
+    """Check every file listed in ``folder/name`` (:func:`_read_manifest`) against its SHA-256;
+    return the listing. ``required``: the relative paths the caller will read, each of which the
+    manifest must list (a file left off the listing would be read unchecked).
+    Raises :class:`CheckpointError` naming each unlisted, missing or changed file."""
+    folder = Path(folder)
+    files = _read_manifest(folder / name)
+    unlisted = [rel for rel in required if rel not in files]
+    if unlisted:
+        raise CheckpointError(f"{folder / name}: does not list {', '.join(unlisted)}; every file that is loaded "
+                              "must be listed with its SHA-256")
     problems = []
     for rel, digest in files.items():
         p = folder / rel
@@ -162,4 +290,4 @@ def verify_manifest(folder: str | os.PathLike, name: str = "manifest.json") -> d
             problems.append(f"{rel}: SHA-256 mismatch")
     if problems:
         raise CheckpointError(f"{folder / name}: " + "; ".join(problems))
-    return dict(files)
+    return files

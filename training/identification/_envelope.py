@@ -34,8 +34,9 @@ from pathlib import Path
 from typing import Any
 
 from sim import EnvelopeRanges, PopulationRanges, time_scale
-from som_torch import atomic_write
+from som_torch import CheckpointError, atomic_write
 from training._json import dumps
+from training.errors import error_text
 from training.identification._result import IdentWarning
 
 FORMAT = "twomass-envelope/1"
@@ -70,6 +71,13 @@ _SPEC_RANGES = {**_sampled(asdict(_SPEC), noise_spread=1.0), "f_e": _SPEC.f_e, "
 #: SPEC 3.1's envelope: what a record may come from (the test's M* down to 0, any noise below the
 #: envelope's, any normalized backlash up to 10), in the order of :data:`UNITS`.
 SPEC_ENVELOPE: dict[str, tuple[float, float]] = {k: _SPEC_RANGES[k] for k in UNITS}
+
+#: The quantities every ``trained`` part holds: the drive and test values that fix the features
+#: (:func:`trained_envelope` gives them for any training data; data drawn over the envelope adds
+#: ``M_N``, ``M_max_over_M_N``, ``M_star_over_M_max``, which the ``envelope`` part checks too).
+#: The ``envelope`` part holds every quantity of :data:`UNITS`. A file without one is refused: a
+#: quantity left out would be a check silently off.
+TRAINED_QUANTITIES = ("T_s", "encoder_counts", "T_Ei", "time_scale", "current_noise")
 
 #: Relative tolerance of every range (a drive's T_s read from its time column, rounding of metadata).
 REL_TOL = 0.01
@@ -141,32 +149,55 @@ class Envelope:
 
     @classmethod
     def from_dict(cls, data: Mapping[str, Any], where: str = FILE_NAME) -> "Envelope":
+        """The envelope of :meth:`to_dict`'s form. Each part must hold its quantities
+        (``envelope``: every one of :data:`UNITS`; ``trained``: at least :data:`TRAINED_QUANTITIES`),
+        each as ``[low, high]``, two finite numbers with ``low <= high``. Raises
+        :class:`som_torch.CheckpointError` (a ``ValueError``) naming ``where`` and the quantity."""
         if not isinstance(data, Mapping) or data.get("format") != FORMAT:
-            raise ValueError(f"{where}: expected format {FORMAT!r}, received "
-                             f"{data.get('format') if isinstance(data, Mapping) else type(data).__name__!r}")
+            raise CheckpointError(f"{where}: expected format {FORMAT!r}, received "
+                                  f"{data.get('format') if isinstance(data, Mapping) else type(data).__name__!r}")
         parts = {}
-        for part in ("envelope", "trained"):
+        for part, required in (("envelope", tuple(UNITS)), ("trained", TRAINED_QUANTITIES)):
             ranges = data.get(part)
             if not isinstance(ranges, Mapping):
-                raise ValueError(f"{where}: expected an object {part!r} of quantity -> [low, high]")
+                raise CheckpointError(f"{where}: expected an object {part!r} of quantity -> [low, high]")
             unknown = sorted(set(ranges) - set(UNITS))
             if unknown:
-                raise ValueError(f"{where}: unknown quantities {unknown} in {part!r}; valid: {sorted(UNITS)}")
-            parts[part] = {k: (float(v[0]), float(v[1])) for k, v in ranges.items()}
+                raise CheckpointError(f"{where}: unknown quantities {unknown} in {part!r}; valid: {sorted(UNITS)}")
+            missing = [k for k in required if k not in ranges]
+            if missing:
+                raise CheckpointError(f"{where}: {part!r} lacks {missing}; every one is required (a quantity left "
+                                      "out would not be checked)")
+            parts[part] = {k: _range(v, f"{where}: {part}.{k}") for k, v in ranges.items()}
         return cls(trained=parts["trained"], envelope=parts["envelope"])
 
     @classmethod
-    def load(cls, folder: str | os.PathLike[str], maps_metadata: Mapping[str, Any]) -> "Envelope":
-        """``folder/envelope.json`` where it exists, else :func:`trained_envelope` of the maps'
-        metadata (maps trained by ``twomass train`` record their drive and test there)."""
+    def load(cls, folder: str | os.PathLike[str]) -> "Envelope":
+        """``folder/envelope.json`` (:meth:`from_dict`), which a checkpoint folder must hold:
+        without it no record's drive would be checked against what the maps were trained on."""
         path = Path(folder) / FILE_NAME
-        if not path.is_file():
-            return trained_envelope(maps_metadata)
         try:
-            data = json.loads(path.read_text())
-        except (OSError, ValueError) as err:
-            raise ValueError(f"{path}: unreadable ({err})") from None
+            data = json.loads(path.read_bytes())
+        except FileNotFoundError:
+            raise CheckpointError(f"{path}: not found; `twomass train` writes it beside the maps") from None
+        except (OSError, ValueError, RecursionError) as err:  # unreadable, not UTF-8, not JSON, nested too deep
+            raise CheckpointError(f"{path}: unreadable ({error_text(err)})") from None
         return cls.from_dict(data, str(path))
+
+
+def _range(value: Any, entry: str) -> tuple[float, float]:
+    """``value`` (``[low, high]``, two finite numbers, ``low <= high``) as a pair of floats;
+    :class:`som_torch.CheckpointError` naming ``entry`` otherwise."""
+    pair = value if isinstance(value, list) and len(value) == 2 else None
+    numbers = pair is not None and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in pair)
+    try:
+        lo, hi = (float(pair[0]), float(pair[1])) if numbers else (math.nan, math.nan)
+    except OverflowError:  # an integer beyond float's range
+        lo = hi = math.nan
+    if not (math.isfinite(lo) and math.isfinite(hi) and lo <= hi):
+        shown = repr(value) if len(repr(value)) <= 60 else repr(value)[:57] + "..."
+        raise CheckpointError(f"{entry}: expected [low, high], two finite numbers with low <= high, received {shown}")
+    return lo, hi
 
 
 def trained_envelope(metadata: Mapping[str, Any]) -> Envelope:

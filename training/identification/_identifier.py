@@ -32,7 +32,8 @@ from training.identification._batch import analysis_outcome, answered_files
 from training.identification._envelope import Envelope, Finding, envelope_warnings, trained_envelope
 from training.identification._limits import (backlash_negligible, backlash_resolution, implausible, impossible,
                                              speed_resolution, travel)
-from training.identification._maps import MAP_SPECS, TrainedMap, from_correction, load_map, recall_targets
+from training.identification._maps import (CHECKPOINT_FILES, MAP_SPECS, TrainedMap, from_correction, load_map,
+                                            recall_targets)
 from training.identification._refine import (HiddenGap, RefineConfig, RefineProblem, Refined, find_hidden_gap,
                                              refine, torque_reference)
 from training.identification._result import (IdentificationFailure, IdentificationResult, IdentWarning, Outcome,
@@ -104,11 +105,11 @@ class Identifier:
              refine: RefineConfig | None = RefineConfig()) -> "Identifier":
         """Load every map of ``folder`` (default: :func:`training.config.checkpoints_folder`, the
         shipped maps unless ``$TWOMASS_CHECKPOINTS`` names others) after checking the manifest's
-        SHA-256 of each file."""
+        SHA-256 of each file; the manifest must list every file read (:data:`CHECKPOINT_FILES`)."""
         folder = Path(folder) if folder is not None else checkpoints_folder()
-        st.verify_manifest(folder)
+        st.verify_manifest(folder, required=CHECKPOINT_FILES)
         maps = {name: load_map(folder / f"{name}.pt") for name in MAP_SPECS}
-        return cls(maps, refine, Envelope.load(folder, maps["structure"].metadata))
+        return cls(maps, refine, Envelope.load(folder))
 
     # -- public entries ---------------------------------------------------------------------
     def identify(self, record: Record) -> IdentificationResult:

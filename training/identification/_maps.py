@@ -9,7 +9,8 @@ of the members' interpolated read-outs, which is smoother than one map's quantiz
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import math
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -20,6 +21,7 @@ import torch
 import som_torch as st
 from sim import STRUCTURE_CLASSES
 from training.identification._analysis import FEATURE_NAMES, FEATURE_VERSION, GAP_NAMES
+from training.identification._envelope import FILE_NAME as ENVELOPE_FILE
 
 _HARM = tuple(n for n in FEATURE_NAMES if n.startswith("harm_"))
 
@@ -112,6 +114,107 @@ MAP_SPECS: dict[str, MapSpec] = {
 }
 
 
+#: Every file of a checkpoint folder that :meth:`training.identification.Identifier.load` reads: the
+#: maps, then the drive envelope. Its ``manifest.json`` must list each with its SHA-256 (``twomass
+#: train`` writes it so); a folder whose manifest leaves one out is refused.
+CHECKPOINT_FILES: tuple[str, ...] = tuple(f"{name}.pt" for name in MAP_SPECS) + (ENVELOPE_FILE,)
+
+#: The quantiles of held-out training rows' recall distances that a map's metadata holds; the last
+#: is the unit of the distance ratio that flags a record unlike the training data.
+DISTANCE_QUANTILES = ("0.5", "0.95", "0.99")
+
+
+def _shown(value: Any) -> str:
+    """``value``'s repr for an error line, at most 40 characters."""
+    text = repr(value)
+    return text if len(text) <= 40 else text[:37] + "..."
+
+
+def _json_kind(value: Any) -> str:
+    """``value`` named as JSON names it, for an error line (``string 'x'``, ``null``, ``array [1, 2]``)."""
+    if value is None:
+        return "null"
+    kind = {bool: "boolean", int: "number", float: "number", str: "string", list: "array", dict: "object"}.get(
+        type(value), type(value).__name__)
+    return f"{kind} {_shown(value)}"
+
+
+def _number(value: Any) -> float:
+    """A JSON number as a float; NaN for anything else (a boolean too), inf beyond float's range."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        return math.nan
+    try:
+        return float(value)
+    except OverflowError:
+        return math.inf
+
+
+@dataclass(frozen=True)
+class MapMetadata:
+    """What identification reads from a map checkpoint's metadata (``twomass train`` writes it),
+    checked in one place when the map is loaded: ``spec`` (``map`` and ``spec``: the map's name,
+    features, targets, subset), ``interpolate`` (``train_config``'s: the units averaged at recall,
+    1 .. the map's units) and ``distance_quantiles`` (:data:`DISTANCE_QUANTILES`, finite and
+    positive); ``feature_version`` must be this toolkit's :data:`FEATURE_VERSION`, ``dataset`` and
+    ``quality`` (the training data and the maps' quality, shown by ``twomass inspect`` and
+    ``train``) objects. A wrong entry is a :class:`som_torch.CheckpointError` naming the file and
+    the entry."""
+
+    spec: MapSpec
+    interpolate: int
+    distance_quantiles: dict[str, float]
+
+    @classmethod
+    def from_dict(cls, meta: Mapping[str, Any], where: str | Path, n_units: int) -> "MapMetadata":
+        """Check ``meta`` (a map checkpoint's metadata; ``where``: its file; ``n_units``: its map's)."""
+        def bad(entry: str, expected: str, value: Any) -> st.CheckpointError:
+            return st.CheckpointError(f"{where}: metadata {entry}: expected {expected}, received {_json_kind(value)}")
+
+        def get(obj: Mapping[str, Any], key: str, entry: str) -> Any:
+            if key not in obj:
+                raise st.CheckpointError(f"{where}: metadata {entry}: missing (`twomass train` writes it)")
+            return obj[key]
+
+        def obj(value: Any, entry: str) -> Mapping[str, Any]:
+            if not isinstance(value, dict):
+                raise bad(entry, "an object", value)
+            return value
+
+        def names(value: Any, entry: str) -> tuple[str, ...]:
+            if not isinstance(value, list) or not all(isinstance(v, str) for v in value):
+                raise bad(entry, "an array of names", value)
+            return tuple(value)
+
+        if meta.get("feature_version") != FEATURE_VERSION:
+            raise st.CheckpointError(f"{where}: trained on features {meta.get('feature_version')!r}, "
+                                     f"this toolkit computes {FEATURE_VERSION!r}; retrain with `twomass train`")
+        name = get(meta, "map", "map")
+        if not isinstance(name, str):
+            raise bad("map", "a map name", name)
+        spec = obj(get(meta, "spec", "spec"), "spec")
+        features = names(get(spec, "features", "spec.features"), "spec.features")
+        targets = names(get(spec, "targets", "spec.targets"), "spec.targets")
+        subset = get(spec, "subset", "spec.subset")
+        if not isinstance(subset, str):
+            raise bad("spec.subset", "a subset name", subset)
+        try:
+            map_spec = MapSpec(name, features, targets, subset)
+        except ValueError as err:  # unknown features, targets or subset
+            raise st.CheckpointError(f"{where}: metadata spec: {err}") from None
+        train_config = obj(get(meta, "train_config", "train_config"), "train_config")
+        k = get(train_config, "interpolate", "train_config.interpolate")
+        if isinstance(k, bool) or not isinstance(k, int) or not 1 <= k <= n_units:
+            raise bad("train_config.interpolate", f"a whole number of units 1 .. {n_units}", k)
+        quantiles = obj(get(meta, "distance_quantiles", "distance_quantiles"), "distance_quantiles")
+        distances = {q: _number(get(quantiles, q, f"distance_quantiles.{q}")) for q in DISTANCE_QUANTILES}
+        for q, v in distances.items():
+            if not (math.isfinite(v) and v > 0):
+                raise bad(f"distance_quantiles.{q}", "a finite positive distance", quantiles[q])
+        for entry in ("dataset", "quality"):
+            obj(get(meta, entry, entry), entry)
+        return cls(map_spec, k, distances)
+
+
 @dataclass
 class TrainedMap:
     """A trained ensemble with the metadata that makes its checkpoint self-contained."""
@@ -133,18 +236,19 @@ def recall_targets(trained: TrainedMap, features: np.ndarray, interpolate: int) 
 
 
 def load_map(path: Path) -> TrainedMap:
-    """Load one map checkpoint (safe loading; version, hash and feature version checked). The file
-    ``<name>.pt`` must hold the map ``name`` of :data:`MAP_SPECS` with its features and targets:
-    a map saved under another map's name is refused here, not at its first recall."""
+    """Load one map checkpoint (safe loading; version, hash, finite weights and :class:`MapMetadata`
+    checked). The file ``<name>.pt`` must hold the map ``name`` of :data:`MAP_SPECS` with its
+    features and targets, as the map's components: a map saved under another map's name is
+    refused here, not at its first recall."""
     som, meta = st.load_checkpoint(path)
-    if meta.get("feature_version") != FEATURE_VERSION:
-        raise st.CheckpointError(f"{path}: trained on features {meta.get('feature_version')!r}, "
-                                 f"this toolkit computes {FEATURE_VERSION!r}; retrain with `twomass train`")
-    spec = MapSpec(meta["map"], tuple(meta["spec"]["features"]), tuple(meta["spec"]["targets"]),
-                   meta["spec"]["subset"])
+    spec = MapMetadata.from_dict(meta, path, som.grid.n_units).spec
     expected = MAP_SPECS.get(Path(path).stem)
     if expected is None or spec.name != expected.name or spec.components != expected.components:
         raise st.CheckpointError(f"{path}: holds the map {spec.name!r} ({len(spec.features)} features, targets "
                                  f"{list(spec.targets)}), expected the map {Path(path).stem!r} of {sorted(MAP_SPECS)} "
                                  "with its own features and targets; retrain with `twomass train`")
+    active = [True] * len(spec.features) + [False] * len(spec.targets)
+    if tuple(som.component_names) != spec.components or not bool((som.active == torch.tensor(active)).all()):
+        raise st.CheckpointError(f"{path}: the map's components {som.component_names} are not its metadata's "
+                                 f"features (active) and targets {list(spec.components)}")
     return TrainedMap(spec, som, meta)

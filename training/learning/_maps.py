@@ -16,8 +16,9 @@ import som_torch as st
 from training._distributed import CallRecorder, Group, process_group
 from training.errors import OutputExistsError
 from training.figures import log_map_figures
-from training.identification import (ENVELOPE_FILE, FEATURE_NAMES, FEATURE_VERSION, MAP_SPECS, SUBSETS, TARGETS, MapSpec,
-                                     TrainedMap, load_map, recall_targets, trained_envelope)
+from training.identification import (CHECKPOINT_FILES, DISTANCE_QUANTILES, ENVELOPE_FILE, FEATURE_NAMES,
+                                     FEATURE_VERSION, MAP_SPECS, SUBSETS, TARGETS, MapSpec, TrainedMap, load_map,
+                                     recall_targets, trained_envelope)
 from training.learning._dataset import Dataset
 
 
@@ -185,7 +186,7 @@ def train_map(spec: MapSpec, dataset: Dataset, config: TrainConfig, *, progress:
                     "drive": dataset.config["drive"], "signal": dataset.config["signal"],
                     "ranges": dataset.config["ranges"], "envelope": dataset.config.get("envelope")},
         "quality": st.quality_report(som, data), "train_seconds": seconds,
-        "distance_quantiles": {q: float(np.quantile(distance, float(q))) for q in ("0.5", "0.95", "0.99")},
+        "distance_quantiles": {q: float(np.quantile(distance, float(q))) for q in DISTANCE_QUANTILES},
     }
     if writer is not None and group.main:  # the finished map's figures (the epochs log scalars only)
         log_map_figures(writer, trained, data, config.epochs)
@@ -269,6 +270,6 @@ def train_maps(dataset: Dataset, folder: Path, config: TrainConfig, *, logdir: P
             writer.close()
     if group.main:  # what the maps were trained on, beside them (checked against every record)
         trained_envelope(trained["structure"].metadata).write(folder / ENVELOPE_FILE)
-        # only what training wrote: files the user keeps in the folder are not the maps'
-        st.write_manifest(folder, files=[f"{name}.pt" for name in MAP_SPECS] + [ENVELOPE_FILE])
+        # every file the maps are loaded from, and only those: files the user keeps in the folder are not the maps'
+        st.write_manifest(folder, files=CHECKPOINT_FILES)
     return trained

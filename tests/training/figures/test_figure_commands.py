@@ -42,7 +42,7 @@ def records(good, tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def tiny_checkpoints(tmp_path_factory):
-    """Four 3 x 4 hexagonal maps (2 members) with the shipped maps' metadata, and a manifest."""
+    """Four 3 x 4 hexagonal maps (2 members) with the shipped maps' metadata, their envelope, and a manifest."""
     folder = tmp_path_factory.mktemp("ck")
     for name, spec in MAP_SPECS.items():
         _, meta = st.load_checkpoint(checkpoints_folder() / f"{name}.pt")
@@ -51,6 +51,7 @@ def tiny_checkpoints(tmp_path_factory):
         st.initialize(som, torch.randn(30, len(spec.components), generator=torch.Generator().manual_seed(1)),
                       "random", 0)
         save_map(folder, TrainedMap(spec, som, meta))
+    (folder / "envelope.json").write_bytes((checkpoints_folder() / "envelope.json").read_bytes())
     st.write_manifest(folder)
     return folder
 
