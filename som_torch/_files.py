@@ -1,4 +1,5 @@
-"""Atomic file writes: a reader never sees a half-written file, and a failed write leaves none."""
+"""Atomic file writes: a reader never sees a half-written file, and a failed or interrupted write
+leaves none (its temporary file is removed on any exception, ``KeyboardInterrupt`` included)."""
 
 from __future__ import annotations
 
@@ -20,14 +21,26 @@ def _create_temp(path: Path) -> tuple[int, Path]:
             return os.open(tmp, flags, 0o666), tmp
         except FileExistsError:
             continue
+        except OSError as err:  # a read-only folder: the user's path, not our temporary name
+            raise _naming(err, path, tmp) from None
     raise FileExistsError(f"{path}: no free temporary name beside it")
+
+
+def _naming(err: OSError, path: Path, tmp: Path) -> OSError:
+    """``err`` as the user sees it: a system error about the temporary file ``tmp`` (or about no file:
+    a full disk) names ``path`` instead, the temporary name being ours, not the user's; any other
+    ``err`` (one with no errno, about another file) as it is."""
+    if err.errno is None or (err.filename is not None and os.fspath(err.filename) != os.fspath(tmp)):
+        return err
+    return type(err)(err.errno, err.strerror or os.strerror(err.errno), os.fspath(path))
 
 
 def atomic_write(path: str | os.PathLike[str], write: Callable[[IO[Any]], object], *, text: bool = False) -> None:
     """Call ``write(fileobj)`` on a temporary file beside ``path`` (binary, or text with
-    ``text=True``), fsync, then ``os.replace`` it onto ``path``; on any failure the temporary file
-    is removed and ``path`` is left as it was. Creates missing parent folders. A new file gets the
-    usual permissions (``0o666`` less the umask); a replaced file keeps its mode."""
+    ``text=True``), fsync, then ``os.replace`` it onto ``path``; on any failure or interruption the
+    temporary file is removed and ``path`` is left as it was. Creates missing parent folders. A new
+    file gets the usual permissions (``0o666`` less the umask); a replaced file keeps its mode. An
+    ``OSError`` of the temporary file (a read-only folder, a full disk) names ``path``."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     try:
@@ -43,6 +56,9 @@ def atomic_write(path: str | os.PathLike[str], write: Callable[[IO[Any]], object
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)
+    except OSError as err:
+        tmp.unlink(missing_ok=True)
+        raise _naming(err, path, tmp) from None
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import math
 import os
+import shutil
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -46,10 +48,13 @@ def seed(option: str, value: int) -> int:
 
 
 def record_name(source: str, name: str) -> str:
-    """``name`` if it names a file inside the output folder (no path separator, not ``.``/``..``)."""
-    if name in ("", ".", "..") or any(sep in name for sep in ("/", "\\", "\0")):
-        raise UserError(f"{source}: record name {name!r}: expected a plain file name (no path separators, "
-                        "not '.' or '..')")
+    """``name`` if it names a file inside the output folder (no path separator, no control character
+    such as NUL or a line break, not ``.``/``..``)."""
+    if name in ("", ".", "..") or any(sep in name for sep in ("/", "\\")) or not name.isprintable():
+        from sim._values import shown
+
+        raise UserError(f"{source}: record name {shown(name)}: expected a plain file name (no path separators "
+                        "or control characters, not '.' or '..')")
     return name
 
 
@@ -59,12 +64,36 @@ def record_name(source: str, name: str) -> str:
 BYTES_PER_SYSTEM = 1024
 
 
-def machine_memory() -> int | None:
-    """This machine's physical memory [bytes]; ``None`` where the platform does not say."""
+#: Where Linux says how much memory a new allocation can get now: ``MemAvailable`` (free memory plus
+#: the caches the kernel can drop), in kB.
+MEMINFO = Path("/proc/meminfo")
+
+
+def available_memory() -> int | None:
+    """Memory this process can allocate now [bytes]: ``MemAvailable`` of :data:`MEMINFO`; where
+    that is missing (not Linux, a kernel before 3.14), the machine's physical memory, the best bound
+    known; ``None`` where neither is known (no check). A container's own limit (cgroup) is not seen."""
+    try:
+        with open(MEMINFO, encoding="ascii") as f:
+            for line in f:
+                key, _, value = line.partition(":")
+                if key == "MemAvailable":
+                    return int(value.split()[0]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
     try:
         return int(os.sysconf("SC_PAGE_SIZE")) * int(os.sysconf("SC_PHYS_PAGES"))
     except (AttributeError, ValueError, OSError):
         return None
+
+
+def free_disk(folder: str | os.PathLike[str]) -> int:
+    """Bytes free to an unprivileged user on the file system of ``folder`` (of its nearest existing
+    parent where it does not exist yet)."""
+    where = Path(folder).absolute()
+    while not where.exists() and where != where.parent:
+        where = where.parent
+    return shutil.disk_usage(where).free
 
 
 def _size(n_bytes: float) -> str:
@@ -76,12 +105,20 @@ def _size(n_bytes: float) -> str:
 
 
 def check_memory(what: str, n_bytes: float) -> None:
-    """A :class:`UserError` where ``what`` needs more memory (an estimate, ``n_bytes``) than the
-    machine has (:func:`machine_memory`)."""
-    have = machine_memory()
+    """A :class:`UserError` where ``what`` needs more memory (an estimate, ``n_bytes``) than is
+    available now (:func:`available_memory`), before any of it is allocated."""
+    have = available_memory()
     if have is not None and n_bytes > have:
-        raise UserError(f"{what}: needs about {_size(n_bytes)} of memory, this machine has {_size(have)}; "
-                        "ask for less")
+        raise UserError(f"{what}: needs about {_size(n_bytes)} of memory, {_size(have)} is available; ask for less")
+
+
+def check_disk(what: str, folder: str | os.PathLike[str], n_bytes: float) -> None:
+    """A :class:`UserError` where ``what`` would write more (an estimate, ``n_bytes``) into ``folder``
+    than its file system has free (:func:`free_disk`), before anything is written."""
+    free = free_disk(folder)
+    if n_bytes > free:
+        raise UserError(f"{what}: writes about {_size(n_bytes)} into {folder}, {_size(free)} is free there; "
+                        "ask for less or free space")
 
 
 def check_sim_cost(source: str, params: Any, drive: Any) -> None:

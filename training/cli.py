@@ -11,17 +11,30 @@ The modules import torch, numpy and the rooms inside ``run``, so that ``twomass 
 Errors: the library raises its domain exceptions (:mod:`training.errors`, ``sim.RecordError``,
 ``som_torch.CheckpointError``: all ``ValueError``) and ``OSError``; :func:`main` alone turns them
 into ``twomass <command>: error: <one line>`` on stderr and exit code 2. Anything else (a
-``TypeError`` from a bug, an ``ImportError`` of a command module) is a traceback. Ctrl-C prints one
-line and exits with 130, also during start-up.
+``TypeError`` from a bug, an ``ImportError`` of a command module) is a traceback.
+
+Signals: Ctrl-C (SIGINT) and SIGTERM (``kill``, ``timeout``, systemd, ``docker stop``) interrupt the
+command the same way, also during start-up: SIGTERM raises :class:`Terminated`, a
+``KeyboardInterrupt``, so every cleanup of Ctrl-C runs (temporary files removed, worker pools
+ended); one line on stderr and exit code 130 (SIGINT) or 143 (SIGTERM). A signal ignored when
+``twomass`` starts (``nohup``, a background job of a script) stays ignored; a second signal does not
+cut the cleanup of the first short (SIGKILL does, leaving what it leaves). Processes forked while a
+command runs (the pool workers of ``identify``) leave both signals to the command: SIGINT ignored,
+SIGTERM (what ending a pool sends) its default action, so they end at once and quietly.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
+import os
+import signal
 import sys
-from collections.abc import Sequence
-from types import ModuleType
+import threading
+from collections.abc import Iterator, Sequence
+from types import FrameType, ModuleType
+from typing import Any
 
 from training.config import apply_process_defaults
 from training.errors import one_line
@@ -38,8 +51,64 @@ COMMANDS: dict[str, str] = {
     "inspect": "training.commands.inspect",
 }
 
-#: Exit codes of :func:`main` besides a command's own: bad input, and Ctrl-C (128 + SIGINT).
-EXIT_USAGE, EXIT_INTERRUPTED = 2, 130
+#: Exit codes of :func:`main` besides a command's own: bad input, Ctrl-C (128 + SIGINT) and
+#: SIGTERM (128 + SIGTERM).
+EXIT_USAGE, EXIT_INTERRUPTED, EXIT_TERMINATED = 2, 128 + signal.SIGINT, 128 + signal.SIGTERM
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM received: an interruption like Ctrl-C (a ``KeyboardInterrupt``, so that the same
+    cleanup runs), told apart by its exit code :data:`EXIT_TERMINATED`."""
+
+
+#: The process whose signals :func:`_interruptions` turns into exceptions (None: none is), and
+#: whether one did: the signals after the first are ignored, so that they cannot cut its cleanup short
+#: (``timeout`` sends SIGTERM to the command and again to its process group).
+_handling_pid: int | None = None
+_interrupted = False
+
+
+def _raise_interruption(signum: int, frame: FrameType | None) -> None:
+    global _interrupted
+    if _interrupted:
+        return
+    _interrupted = True
+    raise Terminated("SIGTERM") if signum == signal.SIGTERM else KeyboardInterrupt
+
+
+def _forked_child_signals() -> None:
+    """In a process forked while a command runs (a pool worker): SIGINT ignored (Ctrl-C reaches the
+    whole process group; the command ends its workers itself), SIGTERM back to its default action
+    (a worker ends at once when its pool is ended, without running Python cleanup or a traceback)."""
+    if _handling_pid is not None and os.getpid() != _handling_pid:
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        signal.signal(signal.SIGTERM, signal.SIG_DFL)
+
+
+if hasattr(os, "register_at_fork"):  # POSIX; it acts only while a command runs
+    os.register_at_fork(after_in_child=_forked_child_signals)
+
+
+@contextlib.contextmanager
+def _interruptions() -> Iterator[None]:
+    """Inside the block SIGINT raises ``KeyboardInterrupt`` and SIGTERM :class:`Terminated` (each
+    unless ignored when the block starts); the previous handlers come back after it. Outside the
+    main thread (where Python cannot set handlers) nothing changes."""
+    global _handling_pid, _interrupted
+    if threading.current_thread() is not threading.main_thread() or _handling_pid is not None:
+        yield
+        return
+    previous: dict[int, Any] = {}
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        if signal.getsignal(signum) is not signal.SIG_IGN:
+            previous[signum] = signal.signal(signum, _raise_interruption)
+    _handling_pid, _interrupted = os.getpid(), False
+    try:
+        yield
+    finally:
+        _handling_pid, _interrupted = None, False
+        for signum, handler in previous.items():
+            signal.signal(signum, signal.SIG_DFL if handler is None else handler)  # None: set outside Python
 
 
 def _command_modules() -> dict[str, ModuleType]:
@@ -70,8 +139,13 @@ def _run_command(args: argparse.Namespace) -> int:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    with _interruptions():  # until the last line is printed: a second signal cannot cut it short
+        return _main(argv)
+
+
+def _main(argv: Sequence[str] | None) -> int:
     prog = "twomass"
-    try:  # all of it: Ctrl-C while torch loads is an interruption too
+    try:  # all of it: Ctrl-C or SIGTERM while torch loads is an interruption too
         apply_process_defaults()  # before the commands import numpy and torch
         parser = build_parser()
         args = parser.parse_args(argv)
@@ -80,6 +154,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             return EXIT_USAGE
         prog = f"twomass {args.command}"
         return _run_command(args)
+    except Terminated:
+        print(f"{prog}: terminated (SIGTERM)", file=sys.stderr)
+        return EXIT_TERMINATED
     except KeyboardInterrupt:
         print(f"{prog}: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED

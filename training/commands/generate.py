@@ -12,6 +12,9 @@ HELP = "make training data: population responses and their features, sharded to 
 #: Default sharding: at least this many shards where N allows, of at most this many systems.
 MIN_SHARDS, MAX_SHARD_SIZE = 10, 500
 
+#: Bytes of a shard file besides its numbers (the .npz's headers: about 1000 measured), for the disk check.
+SHARD_OVERHEAD = 2048
+
 def default_shard_size(n: int) -> int:
     """Systems per shard for ``n`` systems when ``--shard-size`` is not given."""
     return max(1, min(MAX_SHARD_SIZE, -(-n // MIN_SHARDS)))
@@ -37,7 +40,8 @@ def run(args: argparse.Namespace) -> int:
     from sim import EnvelopeRanges
     from training.learning import ESTIMATE_NAMES, TRUTH_NAMES, GenerateConfig, generate, load_dataset
 
-    from training._checks import BYTES_PER_SYSTEM, check_memory, seed
+    from training._checks import BYTES_PER_SYSTEM, check_disk, check_memory, seed
+    from training._pool import WORKER_MEMORY
     from training.identification import FEATURE_NAMES
 
     shard_size = default_shard_size(args.n) if args.shard_size is None else args.shard_size
@@ -47,13 +51,17 @@ def run(args: argparse.Namespace) -> int:
     if args.workers is not None and args.workers < 1:
         raise ValueError(f"--workers: expected >= 1, received {args.workers}")
     columns = len(FEATURE_NAMES) + len(TRUTH_NAMES) + len(ESTIMATE_NAMES) + 1
-    check_memory(f"--n {args.n}", args.n * (BYTES_PER_SYSTEM + 3 * 8 * columns))  # drawn, shards, loaded
+    group = process_group()  # under torchrun: the ranks share the shards, rank 0 writes and prints
+    workers = args.workers or group.cpus()
+    check_memory(f"--n {args.n} with {workers} worker(s)",  # drawn, shards, loaded; each worker
+                 args.n * (BYTES_PER_SYSTEM + 3 * 8 * columns) + workers * WORKER_MEMORY)
+    n_shards = -(-args.n // shard_size)
+    check_disk(f"--n {args.n}", args.out, args.n * 8 * columns + n_shards * SHARD_OVERHEAD)
     config = GenerateConfig(n=args.n, seed=args.seed, shard_size=shard_size,
                             envelope=EnvelopeRanges() if args.envelope else None)
-    group = process_group()  # under torchrun: the ranks share the shards, rank 0 writes and prints
     with _progress.bar(args, show=_progress.wanted(args) and group.main, total=args.n, unit="sys",
                        desc="generate") as bar:
-        generate(args.out, config, workers=args.workers, progress=bar.update)
+        generate(args.out, config, workers=workers, progress=bar.update)
     if not group.main:
         return 0
     ds = load_dataset(args.out)

@@ -14,6 +14,7 @@ answered); 2 bad usage (no files, unusable checkpoints, ``--out`` exists, ...).
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import sys
 from collections.abc import Iterable, Iterator
@@ -162,7 +163,8 @@ def run(args: argparse.Namespace) -> int:
 
     def write(f: TextIO) -> None:
         nonlocal counts
-        counts = _write_lines(outcomes() if pages is None else map(pages, outcomes()), f)
+        with contextlib.closing(outcomes()) as answers:  # closed on an interruption too: its worker pool ends now
+            counts = _write_lines(answers if pages is None else map(pages, answers), f)
         _refuse_existing(args.out, args.overwrite)  # it may have appeared while we worked
 
     try:

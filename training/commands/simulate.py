@@ -57,6 +57,19 @@ def _memory_estimate(params: Any, drive: Any, signal: Any, method: str, itemsize
     return n * BYTES_PER_SYSTEM + at_once * samples * per_sample + 48 * samples  # + one record in float64
 
 
+#: Bytes of a record's CSV row (t 17 digits, speed 12, current and torque_ref 7, section; 46 measured
+#: on the default population) and of its JSON metadata (about 900 measured), for :func:`_disk_estimate`.
+CSV_ROW_BYTES, META_BYTES = 48, 1024
+
+
+def _disk_estimate(params: Any, drive: Any, signal: Any) -> float:
+    """Bytes the records of ``params`` take on disk: each record's samples (1.5 x the duration
+    ``sim`` expects: 1.47 measured; at most every section timing out) in CSV rows, and its metadata."""
+    expected = signal.expected_duration(params.J_sigma.reshape(-1)) / drive.T_s
+    samples = (1.5 * expected).clamp(max=signal.max_samples(drive))
+    return float(samples.sum()) * CSV_ROW_BYTES + params.J_sigma.numel() * META_BYTES
+
+
 def _signal(args: argparse.Namespace, drive: Any) -> Any:
     """The test signal of the options: finite levels, ``M*`` within the drive's ``M_max`` (SPEC 3.1)."""
     from sim import TestSignalConfig
@@ -81,7 +94,7 @@ def run(args: argparse.Namespace) -> int:
     import torch
 
     from sim import DriveConfig, RecordError, iter_records, sample_population, write_record
-    from training._checks import BYTES_PER_SYSTEM, check_memory, check_sim_cost, record_name, seed
+    from training._checks import BYTES_PER_SYSTEM, check_disk, check_memory, check_sim_cost, record_name, seed
 
     drive = DriveConfig()
     signal = _signal(args, drive)
@@ -97,8 +110,9 @@ def run(args: argparse.Namespace) -> int:
         params, names = sample_population(args.population, args.seed), None
     n = params.J_sigma.numel()
     check_sim_cost(f"--params {args.params}" if args.params is not None else "--population", params, drive)
-    check_memory(f"simulate ({n} systems, --timeout {args.timeout:g}, --w-max {args.w_max:g})",
-                 _memory_estimate(params, drive, signal, args.method, 8 if args.float64 else 4))
+    what = f"simulate ({n} systems, --timeout {args.timeout:g}, --w-max {args.w_max:g})"
+    check_memory(what, _memory_estimate(params, drive, signal, args.method, 8 if args.float64 else 4))
+    check_disk(what, args.out, _disk_estimate(params, drive, signal))
     _refuse_existing(args.out, names or [f"sys{i:05d}" for i in range(n)], args.overwrite)
     dtype = torch.float64 if args.float64 else torch.float32
     bar = _progress.bar(args, total=n, desc="simulate", unit="sys")
@@ -116,6 +130,10 @@ def run(args: argparse.Namespace) -> int:
             rec.name = names[int(rec.name[3:])]
         try:
             write_record(args.out / rec.name, rec, overwrite=args.overwrite)  # refuses NaN/inf, writing nothing
+        except KeyboardInterrupt:  # Ctrl-C or SIGTERM between its CSV and its JSON: no half record stays
+            for ext in (".csv", ".json"):
+                (args.out / f"{rec.name}{ext}").unlink(missing_ok=True)
+            raise
         except RecordError:
             if np.isfinite(rec.speed).all() and np.isfinite(rec.current).all():
                 raise

@@ -144,10 +144,14 @@ def _bounds(config: GenerateConfig, k: int) -> tuple[int, int]:
 TASK_SYSTEMS = 16
 
 
-def _task(sub: TwoMassParams, drive: DriveConfig, signal: TestSignalConfig, substeps: int,
+def _task(fields: dict[str, np.ndarray], drive: DriveConfig, signal: TestSignalConfig, substeps: int,
           seed: int) -> dict[str, np.ndarray]:
-    """Features, estimates, truth and ok of the systems ``sub`` (flat ``m``) tested with ``signal``
-    on ``drive``, simulated with ``substeps`` and current noise seeded ``seed + i`` for system ``i``."""
+    """Features, estimates, truth and ok of the systems ``TwoMassParams(**fields)`` (flat ``m``)
+    tested with ``signal`` on ``drive``, simulated with ``substeps`` and current noise seeded
+    ``seed + i`` for system ``i``. The parameters come as numpy arrays: torch would hand a tensor
+    to the worker as a shared-memory file descriptor, through a thread of this process that prints
+    a traceback when the worker is ended during the hand-over (an interrupted run)."""
+    sub = TwoMassParams(**fields)
     records = sorted(iter_records(sub, drive, signal, seed=seed, substeps=substeps),
                      key=lambda r: int(r.name[3:]))  # iter_records yields duration-sorted groups
     m = len(records)
@@ -179,14 +183,16 @@ def _shard(k: int, population: EnvelopeSample, config: GenerateConfig, pool: Any
     params, case, cases = population.params, population.cell.tolist(), population.cases
     lo, hi = _bounds(config, k)
     seed = config.seed * 1_000_003 + lo
-    tasks: list[tuple[TwoMassParams, DriveConfig, TestSignalConfig, int, int]] = []
+    tasks: list[tuple[dict[str, np.ndarray], DriveConfig, TestSignalConfig, int, int]] = []
     cuts = [lo] + [i for i in range(lo + 1, hi) if case[i] != case[i - 1]] + [hi]
     for a, b in zip(cuts[:-1], cuts[1:]):  # runs of systems on one drive and test
         drive, signal = cases[case[a]]
         run = params[torch.arange(a, b)]
         substeps = default_substeps(run, drive)
         for j in range(0, b - a, TASK_SYSTEMS):
-            tasks.append((run[torch.arange(j, min(j + TASK_SYSTEMS, b - a))], drive, signal, substeps, seed + a - lo + j))
+            sub = run[torch.arange(j, min(j + TASK_SYSTEMS, b - a))]
+            fields = {k: getattr(sub, k).numpy() for k in PARAM_NAMES}
+            tasks.append((fields, drive, signal, substeps, seed + a - lo + j))
     parts = []
     for part in pool.map(_task, *zip(*tasks)):
         parts.append(part)

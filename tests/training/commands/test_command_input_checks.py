@@ -39,7 +39,7 @@ def test_simulate_refuses_m_star_above_the_drives_m_max(tmp_path, capsys):
 
 @pytest.mark.parametrize("argv", [["--timeout", "1e9", "--w-max", "1e9"], ["--population", "1000000000"]])
 def test_simulate_refuses_sizes_beyond_the_machines_memory(tmp_path, capsys, monkeypatch, argv):
-    monkeypatch.setattr(_checks, "machine_memory", lambda: 64 * 2**30)
+    monkeypatch.setattr(_checks, "available_memory", lambda: 64 * 2**30)
     base = ["simulate", "--population", "2", "--out", str(tmp_path / "o"), "--no-progress"]
     _refused(base + argv, capsys, "memory")
     assert not (tmp_path / "o").exists()
@@ -123,7 +123,7 @@ def test_a_failed_generate_leaves_no_dataset_json(tmp_path, capsys, monkeypatch)
 
 
 def test_generate_refuses_a_size_beyond_memory_and_zero_workers(tmp_path, capsys, monkeypatch):
-    monkeypatch.setattr(_checks, "machine_memory", lambda: 64 * 2**30)
+    monkeypatch.setattr(_checks, "available_memory", lambda: 64 * 2**30)
     _refused(["generate", "--n", "1000000000", "--out", str(tmp_path / "g")], capsys, "--n 1000000000", "memory")
     _refused(["generate", "--n", "4", "--workers", "0", "--out", str(tmp_path / "g")], capsys, "--workers")
     assert not (tmp_path / "g").exists()
