@@ -35,7 +35,8 @@ __all__ = ["DriveLimits", "Scenario", "SpeedLaw", "Drive", "SimulatedDrive", "li
 @dataclass(frozen=True)
 class DriveLimits:
     """The user's limits for every experiment: ``w_max`` [rad/s] on ``|speed|``, ``travel`` [rad]
-    on ``|phi_M|`` from the start position, ``M_max`` [Nm] on ``|M_ref|`` (None: the drive's own)."""
+    on ``|phi_M|`` from the start position, ``M_max`` [Nm] on ``|M_ref|`` (None: the drive's own;
+    the commissioning chain hands a drive :meth:`for_drive`'s concrete cap instead)."""
 
     w_max: float
     travel: float
@@ -58,6 +59,11 @@ class DriveLimits:
         """The torque the experiments may use [Nm]: ``min(M_max, config.M_max)``."""
         M = float(config.M_max)
         return M if self.M_max is None else min(M, float(self.M_max))
+
+    def for_drive(self, config: Any) -> DriveLimits:
+        """These limits with ``M_max`` the torque cap (:meth:`torque_cap`): concrete numbers for
+        every experiment, what a drive written from SPEC 8.1 reads (``M_max`` [Nm], never unset)."""
+        return DriveLimits(w_max=self.w_max, travel=self.travel, M_max=self.torque_cap(config))
 
 
 @dataclass(frozen=True)

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import ClassVar
+from typing import Any, ClassVar
 
 
 class UserError(ValueError):
@@ -23,6 +23,16 @@ class IdentificationError(ValueError):
 
 class CommissioningError(ValueError):
     """A commissioning step that cannot go on (a drive that does not keep the interface, ...)."""
+
+
+class LimitPassed(CommissioningError):
+    """A drive's record shows one of the user's limits passed: no further experiment may run on
+    that drive. ``breach``: what was passed, by how much, in which experiment
+    (``training.commissioning.LimitBreach``); ``commission`` turns it into its report's ``breach``."""
+
+    def __init__(self, breach: Any) -> None:
+        super().__init__(breach.text())
+        self.breach = breach
 
 
 class ExperimentPending(Exception):

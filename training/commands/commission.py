@@ -4,11 +4,19 @@ The drive: the project's simulator (``--params`` / ``--population``: one :class:
 per plant), a user's drive object (``--drive MODULE:FACTORY`` or ``--drive path/file.py:FACTORY``;
 with ``--params`` / ``--population`` the factory is called with each plant's parameters as a dict,
 for simulators and hardware-in-the-loop rigs that take one), or a folder of files for a real drive
-and its scope (``--resume DIR``: :class:`training.commissioning.FileDrive`). Exit codes: 0 when
-every drive got a controller inside the limits (a refusal answered by the fallback F1 included), and
-when an experiment waits for its recording (``--resume``); :data:`EXIT_NOT_DELIVERED` (3) when a
-drive got no controller or an experiment broke a limit (the report says why); 2 for bad input or a
-drive that fails (one line).
+and its scope (``--resume DIR``: :class:`training.commissioning.FileDrive`).
+
+Limits are the user's (SPEC 8.2): a user's drive (``--drive``) gets no default limits,
+``--w-limit`` and ``--travel-limit`` are required with it (``--resume``: the folder's
+``drive.json``); only the simulator has the documented defaults. The first record that shows a
+limit passed ends the experiments on that drive: one line on stderr says which, by how much, in
+which experiment, nothing is delivered. Every drive call is bounded by ``--drive-timeout``.
+
+Exit codes: 0 when every drive got a controller inside the limits (a refusal answered by the
+fallback F1 included), and when an experiment waits for its recording (``--resume``);
+:data:`EXIT_NOT_DELIVERED` (3) when a drive got no controller or an experiment passed a limit (the
+report says why); 2 for bad input or a drive that fails (raises, does not answer in time, returns
+a malformed record; one line).
 """
 
 from __future__ import annotations
@@ -29,7 +37,13 @@ from training.params_file import read_params_file
 
 #: Exit code when a drive got no controller, or an experiment passed a limit (the reports say which).
 EXIT_NOT_DELIVERED = 3
+#: The simulator's limits when none are given (``--params`` / ``--population`` without ``--drive``);
+#: a user's drive has none: its limits are the user's to give.
 DEFAULT_W_LIMIT, DEFAULT_TRAVEL_LIMIT = 100.0, 100.0
+#: The longest a drive call may take [s] by default (``--drive-timeout``).
+DEFAULT_DRIVE_TIMEOUT = 600.0
+#: The longest the drive's ``close()`` is waited for after a fault of the drive [s].
+CLOSE_AFTER_FAULT = 10.0
 
 HELP = "run the self-commissioning chain (test signal, identify, validate, propose, tune) through a drive"
 
@@ -41,19 +55,27 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     src.add_argument("--population", type=int, metavar="N", help="draw N plants from the SPEC default population")
     src.add_argument("--resume", type=Path, metavar="DIR",
                      help="a file-based drive: DIR/drive.json (config, limits); the chain writes each experiment it "
-                          "wants as DIR/NNN_request.json and stops; run again once DIR/NNN.csv + NNN.json are there. "
-                          "The folder's limits hold for its whole run: --w-limit, --travel-limit, --M-max must equal "
-                          "them (else exit 2), --drive is refused")
+                          "wants as DIR/NNN_request.json and stops; run again once DIR/NNN.csv + NNN.json are there "
+                          "(the JSON may leave out what drive.json's config holds). A recording must be the experiment "
+                          "requested (its torque level, its length; else exit 2); one that shows a limit passed ends "
+                          "the run (exit 3). The folder's limits hold for its whole run: --w-limit, --travel-limit, "
+                          "--M-max must equal them (else exit 2), --drive is refused")
     parser.add_argument("--drive", metavar="MODULE:FACTORY",
                         help="a SPEC 8.1 drive from FACTORY() in an importable module or a path/to/file.py (with "
-                             "--params/--population: FACTORY(plant_dict) per plant)")
+                             "--params/--population: FACTORY(plant_dict) per plant); needs --w-limit and --travel-limit")
     parser.add_argument("--seed", type=int, default=0, help="population and noise seed (default 0)")
     parser.add_argument("--w-limit", type=float, default=None,
-                        help=f"speed limit |w| [rad/s] for every experiment (default {DEFAULT_W_LIMIT:g}; at least 10 speed "
-                             f"quanta of the drive's encoder)")
+                        help=f"speed limit |w| [rad/s] for every experiment, at least 10 speed quanta of the drive's encoder; "
+                             f"required with --drive (the simulator alone: default {DEFAULT_W_LIMIT:g})")
     parser.add_argument("--travel-limit", type=float, default=None,
-                        help=f"travel limit |phi| [rad] from the start position of each experiment (default {DEFAULT_TRAVEL_LIMIT:g})")
-    parser.add_argument("--M-max", type=float, default=None, help="torque limit [Nm] (default: the drive's M_max)")
+                        help=f"travel limit |phi| [rad] from the start position of each experiment; required with --drive "
+                             f"(the simulator alone: default {DEFAULT_TRAVEL_LIMIT:g})")
+    parser.add_argument("--M-max", type=float, default=None,
+                        help="torque limit [Nm] (default: the drive's M_max); the drive is handed min(this, its M_max)")
+    parser.add_argument("--drive-timeout", type=float, default=DEFAULT_DRIVE_TIMEOUT, metavar="SECONDS",
+                        help=f"longest a drive call (one experiment) may take (default {DEFAULT_DRIVE_TIMEOUT:g} s); past it "
+                             f"the drive is a fault: one line, no further experiment, exit 2. The call cannot be killed: "
+                             f"it runs in a background thread that is abandoned")
     parser.add_argument("--no-tune", action="store_true", help="no tuning: the proposal only (still run on the drive)")
     parser.add_argument("--tune-evaluations", type=int, default=30,
                         help="Nelder-Mead evaluations on the identified model (default 30)")
@@ -73,8 +95,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--overwrite", action="store_true", help="replace an existing --json file or --plots page")
     parser.add_argument("--checkpoints", type=Path, help="folder with the maps (default: the shipped checkpoints/)")
     parser.add_argument("--quiet", action="store_true", help="print only the summary (also for one drive), not the reports")
-    parser.epilog = (f"exit codes: 0 every drive got a controller inside the limits (or an experiment waits for its recording); "
-                     f"{EXIT_NOT_DELIVERED} a drive got no controller or an experiment passed a limit; 2 bad input or a failing drive")
+    parser.epilog = (f"safety: a drive of your own (--drive) needs --w-limit and --travel-limit; every experiment is handed "
+                     f"concrete limits (M_max included); the first record that shows a limit passed (speed, travel, torque "
+                     f"above the cap) ends all experiments on that drive and nothing is delivered. "
+                     f"exit codes: 0 every drive got a controller inside the limits (or an experiment waits for its recording); "
+                     f"{EXIT_NOT_DELIVERED} a drive got no controller or an experiment passed a limit (one line says which); "
+                     f"2 bad input or a failing drive (it raises or exits, does not answer in time, returns a malformed "
+                     f"or cut record)")
     _progress.add_option(parser)
 
 
@@ -185,13 +212,19 @@ def run(args: argparse.Namespace) -> int:
     from training._checks import finite_number, seed
 
     seed("--seed", args.seed)
-    for name in ("--w-limit", "--travel-limit", "--M-max", "--max-map-distance"):
+    for name in ("--w-limit", "--travel-limit", "--M-max", "--max-map-distance", "--drive-timeout"):
         value = getattr(args, name[2:].replace("-", "_"))
         if value is not None:
             finite_number(name, value)
+    if args.drive_timeout <= 0:
+        raise UserError(f"--drive-timeout: expected seconds > 0, received {args.drive_timeout:g}")
+    missing = [opt for opt, v in (("--w-limit", args.w_limit), ("--travel-limit", args.travel_limit)) if v is None]
+    if args.drive is not None and args.resume is None and missing:  # before the user's module is even imported
+        raise UserError(f"--drive {args.drive}: {' and '.join(missing)} required: the limits of a drive of your own are yours "
+                        f"to give (no defaults); e.g. --w-limit 20 --travel-limit 5 (rad/s, rad)")
     config = CommissioningConfig(tune=not args.no_tune, max_map_distance_ratio=args.max_map_distance,
                                  tune_evaluations=args.tune_evaluations, fallback=not args.no_fallback,
-                                 validation_mode=args.validation)
+                                 validation_mode=args.validation, drive_timeout=args.drive_timeout)
     _refuse_existing("--json", [] if args.json is None else [args.json], args.overwrite)
     limits = sim.DriveLimits(w_max=DEFAULT_W_LIMIT if args.w_limit is None else args.w_limit,
                              travel=DEFAULT_TRAVEL_LIMIT if args.travel_limit is None else args.travel_limit, M_max=args.M_max)
@@ -228,12 +261,15 @@ def run(args: argparse.Namespace) -> int:
             try:
                 rep = commission(drive, limits, identifier=identifier, config=config, writer=writer, progress=say, name=name)
             except CommissioningError as err:
+                _close(drive, name, config.drive_timeout, quiet=True)  # the first fault is the story
                 raise CommissioningError(f"drive {name!r}: {one_line(err)}") from None
-            finally:
-                close = getattr(drive, "close", None)
-                if callable(close):
-                    close()
+            except BaseException:
+                _close(drive, name, config.drive_timeout, quiet=True)
+                raise
+            _close(drive, name, config.drive_timeout)
             reports.append(rep)
+            if rep.breach is not None:
+                print(f"twomass commission: drive {name!r}: {rep.breach.text()}", file=sys.stderr, flush=True)
             if writer is not None:
                 for k, v in (("improvement", rep.improvement), ("refused", float(rep.refused)),
                              ("delivered", float(rep.delivered is not None))):
@@ -259,9 +295,22 @@ def run(args: argparse.Namespace) -> int:
         from som_torch import atomic_write
 
         atomic_write(args.json, lambda f: f.write(text), text=True)
-    failed = [r.name for r in reports if r.delivered is None or not r.checks.get("within_limits", False)]
+    failed = [r.name for r in reports if r.breach is None and (r.delivered is None or not r.checks.get("within_limits", False))]
     if failed:
         print(f"twomass commission: no controller or a limit passed for: {', '.join(failed)} (exit {EXIT_NOT_DELIVERED})",
               file=sys.stderr)
         return EXIT_NOT_DELIVERED
-    return 0
+    return EXIT_NOT_DELIVERED if any(r.breach is not None for r in reports) else 0
+
+
+def _close(drive: Any, name: str, timeout: float, quiet: bool = False) -> None:
+    """The drive's ``close()``, bounded by the drive timeout; a fault of it is the drive's fault
+    (one line, exit 2). ``quiet``: an earlier fault is being reported: close within
+    :data:`CLOSE_AFTER_FAULT` seconds at most, and say nothing of its own fault."""
+    from training.commissioning import close_drive
+
+    try:
+        close_drive(drive, min(timeout, CLOSE_AFTER_FAULT) if quiet else timeout)
+    except ValueError as err:  # CommissioningError, UserError
+        if not quiet:
+            raise CommissioningError(f"drive {name!r}: {one_line(err)}") from None

@@ -7,12 +7,15 @@ Rooms: ``_chain`` (the chain and its settings), ``_excitation`` (test signal E1-
 V1-V6, warning codes), ``_law`` (the PI speed law of SPEC 8.1), ``_loop`` (linear loop analysis,
 margins, model sets), ``_rules`` (controller rules R1-R8, R7b, R7c, fallback F1), ``_tuning``
 (scenario, cost, Nelder-Mead), ``_report`` (one drive's report, the summary over many),
-``_filedrive`` (a drive that exchanges experiments as files with a person at a real drive).
+``_filedrive`` (a drive that exchanges experiments as files with a person at a real drive),
+``_guard`` (every drive call bounded in time, every record checked at once and held against the
+user's limits: a passed limit ends the experiments, :class:`LimitBreach`).
 """
 
 from ._chain import CommissioningConfig, commission, drive_config, limit_checks
 from ._excitation import ExcitationResult, ExcitationRules, adapt_test_signal, measure_response
 from ._filedrive import ExperimentPending, FileDrive
+from ._guard import MEASURED_TORQUE_ALLOWANCE, LimitBreach, PassedLimit, close_drive
 from ._law import NotchSpec, PISpeedLaw
 from ._loop import LinearPlant, Margins, Mechanics, ModelSet, bode, linear_plant, loop_figures, margins, mechanics_from, model_set
 from ._permission import (BLOCKING_WARNING_CODES, COMMISSIONING_WARNING_CODES, REFUSAL_RULES, CommissioningWarning,
@@ -25,7 +28,8 @@ from ._validation import ValidationResult, validate_model
 
 __all__ = [
     "commission", "CommissioningConfig", "CommissioningReport", "PlantRun", "limit_checks", "drive_config", "summarize",
-    "summary_text", "FileDrive", "ExperimentPending",
+    "summary_text", "FileDrive", "ExperimentPending", "LimitBreach", "PassedLimit", "MEASURED_TORQUE_ALLOWANCE",
+    "close_drive",
     "ExcitationRules", "ExcitationResult", "adapt_test_signal", "measure_response",
     "validate_model", "ValidationResult", "may_propose_controller", "Permission", "REFUSAL_RULES",
     "CommissioningWarning", "COMMISSIONING_WARNING_CODES", "BLOCKING_WARNING_CODES",

@@ -8,7 +8,10 @@ function per stage.
     (drive.run_closed_loop) -> deliver the best that is not worse than the proposal -> report
 
 The chain reaches the plant only through the drive (``config``, ``run_test``,
-``run_closed_loop``); everything it decides comes from the records these return. A drive that
+``run_closed_loop``); everything it decides comes from the records these return. Every call goes
+through :class:`training.commissioning._guard.CheckedDrive`: bounded in time, each record checked
+as it comes and held against the user's limits; the first passed limit ends the experiments (the
+report's ``breach``, nothing delivered). A drive that
 offers ``truth()`` (a simulator) gets truth-based figures in the report, apart, marked
 "simulation only"; they are never used for a decision.
 """
@@ -24,10 +27,11 @@ from typing import Any
 import numpy as np
 
 import sim
-from training.errors import CommissioningError, ExperimentPending, UserError, error_text, one_line
+from training.errors import CommissioningError, LimitPassed, one_line
 
 from ._bands import f1_bands, hidden_bands, widen
-from ._excitation import ExcitationResult, ExcitationRules, adapt_test_signal, guarded_limits, stop_headroom
+from ._excitation import ExcitationResult, ExcitationRules, adapt_test_signal, guarded_limits, measure_response, stop_headroom
+from ._guard import CONFIG_KEYS, CheckedDrive, passed_limits, record_peaks
 from ._loop import linear_plant, margins
 from ._permission import (CommissioningWarning, IdentificationFailed, IdentificationOutcome, may_propose_controller,
                           outside_training)
@@ -39,8 +43,6 @@ from ._validation import OSC_METRICS, VALIDATION_MODES, ValidationResult, valida
 
 __all__ = ["CommissioningConfig", "commission", "limit_checks", "drive_config", "check_resolution", "MIN_LIMIT_QUANTA"]
 
-#: The drive's own description (SPEC 8.1 ``config``) the chain reads.
-CONFIG_KEYS: tuple[str, ...] = ("T_s", "K_M", "T_Ei", "encoder_counts", "M_N", "M_max")
 #: Identification warning codes that make the elastic parameters uncertain (rule R7c widens the spread).
 UNCERTAIN_CODES: frozenset[str] = frozenset({"unlike_training_data", "oscillation_below_quantum", "refine_partial_fit",
                                              "implausible_output", "drive_outside_training", "outside_envelope",
@@ -77,6 +79,10 @@ class CommissioningConfig:
         hidden_resonances: rule R7b: the guarantee of a ``stiff`` answer, or of one whose
             oscillation is not determined (:data:`UNDETERMINED_CODES`), also covers the resonances
             the test could not show (:func:`training.commissioning._bands.hidden_bands`).
+        drive_timeout: the longest a drive call may take [s] (a test run of six sections of up to
+            10 s each on a real drive, with its upload, fits the default); past it the drive is a
+            fault (:func:`training.commissioning._guard.call_drive`). None: no bound, the drive is
+            called in the calling thread.
     """
 
     spec: ControllerSpec = field(default_factory=ControllerSpec)
@@ -94,8 +100,12 @@ class CommissioningConfig:
     osc_visible_ratio: float = 20.0
     uncertain_spread: float = 0.5
     hidden_resonances: bool = True
+    drive_timeout: float | None = 600.0
 
     def __post_init__(self) -> None:
+        t = self.drive_timeout
+        if t is not None and (isinstance(t, bool) or not isinstance(t, (int, float)) or not math.isfinite(t) or t <= 0):
+            raise ValueError(f"drive_timeout: expected a finite number of seconds > 0 or None, received {t!r}")
         if self.tune_evaluations < 1 or self.max_samples < 600:
             raise ValueError(f"tune_evaluations >= 1 and max_samples >= 600 expected, received "
                              f"{self.tune_evaluations}, {self.max_samples}")
@@ -146,59 +156,21 @@ def check_resolution(limits: sim.DriveLimits, config: sim.DriveConfig) -> None:
                                  f"drive's encoder (q_w {q_w:.3g} rad/s); at least {MIN_LIMIT_QUANTA:g} are needed to resolve a test")
 
 
-def _check_record(rec: Any, what: str) -> Any:
-    if not isinstance(rec, sim.Record):
-        raise CommissioningError(f"drive.{what}: expected a sim.Record, received {type(rec).__name__}")
-    if len(rec.speed) < 2 or not np.isfinite(rec.speed).all():
-        raise CommissioningError(f"drive.{what}: expected a record with a finite measured speed of >= 2 samples")
-    return rec
-
-
-class _CheckedDrive:
-    """The user's drive with each returned record checked, and every experiment kept (kind, record)."""
-
-    def __init__(self, drive: Any, config: sim.DriveConfig) -> None:
-        self.drive, self.config = drive, config
-        self.experiments: list[tuple[str, Any]] = []
-
-    def run_test(self, M_star: float, w_max: float, limits: sim.DriveLimits) -> Any:
-        rec = _check_record(_call(self.drive.run_test, "run_test", float(M_star), float(w_max), limits), "run_test")
-        self.experiments.append(("test", rec))
-        return rec
-
-    def run_closed_loop(self, law: Any, scenario: sim.Scenario, limits: sim.DriveLimits, kind: str) -> Any:
-        rec = _check_record(_call(self.drive.run_closed_loop, "run_closed_loop", law, scenario, limits), "run_closed_loop")
-        self.experiments.append((kind, rec))
-        return rec
-
-
-def _call(method: Callable[..., Any], what: str, *args: Any) -> Any:
-    """A drive method's answer; whatever it raises (a hardware fault, a bug in the user's drive)
-    becomes one :class:`CommissioningError` naming the method and the exception. The file drive's
-    :class:`ExperimentPending` and our own errors pass unchanged."""
-    try:
-        return method(*args)
-    except (ExperimentPending, CommissioningError, UserError):
-        raise
-    except Exception as err:
-        raise CommissioningError(f"drive.{what} raised {error_text(err)}") from None
-
-
 def limit_checks(experiments: list[tuple[str, Any]], limits: sim.DriveLimits, config: Any) -> dict[str, Any]:
-    """Were the limits kept in every experiment? From each measured record: peak ``|speed|``,
-    travel (largest ``|phi|`` of the integrated measured speed), peak ``|torque_ref|`` and the
-    drive's ``aborted`` flag (a stopped run passed a limit)."""
+    """Were the limits kept in every experiment? From each measured record
+    (:func:`training.commissioning._guard.record_peaks`): peak ``|speed|``, travel (largest ``|phi|``
+    of the integrated measured speed), peak ``|torque_ref|``, peak measured torque, the limits it
+    passed (``passed``: the names of :func:`training.commissioning._guard.passed_limits`) and the
+    drive's ``aborted`` flag. A run is ``within_limits`` when it passed none of the user's limits: a
+    drive that stopped a run at the tighter limit the chain handed it, and stayed inside the user's,
+    has kept them (the run is listed as stopped)."""
     runs = []
     cap = limits.torque_cap(config)
     for kind, rec in experiments:
-        w = np.asarray(rec.speed, dtype=np.float64)
-        peak_M = float(np.abs(rec.torque_ref).max()) if rec.torque_ref is not None else math.nan
+        peaks = record_peaks(rec, float(config.T_s), float(config.K_M))
         stopped = bool(rec.meta.get("aborted", False))
-        run = {"kind": kind, "peak_speed": float(np.abs(w).max()), "travel": float(np.abs(np.cumsum(w) * float(config.T_s)).max()),
-               "peak_torque_ref": peak_M, "aborted": stopped}
-        run["within_limits"] = bool(not stopped and run["peak_speed"] <= limits.w_max and run["travel"] <= limits.travel
-                                    and not peak_M > cap * (1 + 1e-9))
-        runs.append(run)
+        passed = [p.limit for p in passed_limits(peaks, limits, cap)]
+        runs.append({"kind": kind, **peaks, "aborted": stopped, "passed": passed, "within_limits": not passed})
     return {"runs": runs, "within_limits": all(r["within_limits"] for r in runs),
             "peak_speed": max(r["peak_speed"] for r in runs), "peak_travel": max(r["travel"] for r in runs)}
 
@@ -291,7 +263,7 @@ def _choose(runs: list[PlantRun]) -> int | None:
 class _Run:
     """One run of the chain: the drive, its settings, the outputs and the stage timings [s]."""
 
-    drive: _CheckedDrive
+    drive: CheckedDrive
     config: sim.DriveConfig
     limits: sim.DriveLimits
     cfg: CommissioningConfig
@@ -303,6 +275,11 @@ class _Run:
     timings: dict[str, float] = field(default_factory=dict)
     loop_limits: sim.DriveLimits | None = None
     """The limits handed to the drive for the closed-loop runs (E9: less the headroom after a stop)."""
+    test_log: list[dict[str, Any]] = field(default_factory=list)
+    """The test runs' log entries as they are decided (kept when a run passes a limit)."""
+    known: dict[str, Any] = field(default_factory=dict)
+    """The report's fields as the stages produce them (what a report of a chain stopped at a passed
+    limit can show)."""
     _start: float = field(default_factory=time.perf_counter)
     _last: float = 0.0
 
@@ -356,6 +333,7 @@ def _model_based(run: _Run, result: Any, ex: ExcitationResult) -> tuple[Controll
     if prediction["speed_quanta"] < 20:
         run.warn("scenario_small", f"the scenario's speed step is {prediction['speed_quanta']:.3g} speed quanta")
     run.say(f"{run.name}: running {len(gains)} gain set(s) on the drive")
+    run.known.update(proposal=proposal, tuning=tuning, scenario=sc, prediction=prediction)
     runs = _run_candidates(run, proposal, gains, sc, "closed loop")
     run.lap("drive_runs")
     return proposal, tuning, runs, _choose(runs), sc, prediction
@@ -391,6 +369,7 @@ def _fallback(run: _Run, result: Any, ex: ExcitationResult) -> tuple[ControllerP
         prop = replace(prop, rules=prop.rules + (f"F1 J_sigma from the test run's acceleration (M* / accel = {J:.4g} kg m^2), "
                                                  f"below the identified {float(result.parameters.J_sigma):.4g} kg m^2",))
     sc, prediction = plan_scenario(prop, [], config, run.limits, limit_use=cfg.fallback_limit_use, max_samples=cfg.max_samples)
+    run.known.update(fallback=prop, scenario=sc, prediction=prediction)
     runs = _run_candidates(run, prop, [(prop.Kp, prop.Ti, prop.T_f)], sc, "fallback F1")
     run.lap("fallback")
     return prop, runs, (0 if runs[0].bounded else None), sc, prediction
@@ -439,8 +418,14 @@ def commission(
         writer: optional TensorBoard ``SummaryWriter``; progress: optional one-line callback.
         name, tag: report name and TensorBoard tag prefix (default: the name).
 
-    Returns :class:`CommissioningReport`. A refusal is a normal outcome (the report says why); a
-    drive that breaks the interface raises :class:`training.errors.CommissioningError`.
+    Returns :class:`CommissioningReport`. A refusal is a normal outcome (the report says why); so
+    is a record that shows one of the user's limits passed: the experiments end there, nothing is
+    delivered and the report's ``breach`` says which limit, by how much, in which experiment
+    (SPEC 8.2). The drive is handed ``limits`` with ``M_max`` the torque cap
+    (:meth:`sim.DriveLimits.for_drive`), or less where a run needs headroom. A drive that breaks the
+    interface (a call that raises or passes ``config.drive_timeout``, a malformed record, one that
+    contradicts the drive's config, a closed-loop record cut short) raises
+    :class:`training.errors.CommissioningError`.
     """
     cfg = CommissioningConfig() if config is None else config
     if not isinstance(limits, sim.DriveLimits):
@@ -450,10 +435,24 @@ def commission(
     if not isinstance(cfg, CommissioningConfig):
         raise TypeError(f"config: expected CommissioningConfig or None, received {type(cfg).__name__}")
     conf = drive_config(drive)
+    limits = limits.for_drive(conf)
     check_resolution(limits, conf)
-    run = _Run(_CheckedDrive(drive, conf), conf, limits, cfg, progress or (lambda msg: None), writer, name, tag or name)
+    run = _Run(CheckedDrive(drive, conf, limits, cfg.drive_timeout), conf, limits, cfg, progress or (lambda msg: None), writer,
+               name, tag or name)
+    try:
+        return _chain(run, drive, identifier)
+    except LimitPassed:
+        if run.drive.breach is None:  # not one of ours: the drive raised it
+            raise
+        return _stopped(run, drive)
+
+
+def _chain(run: _Run, drive: Any, identifier: Any) -> CommissioningReport:
+    """The stages on ``run`` (:func:`commission`); each stage's outputs also in ``run.known``."""
+    cfg, conf, limits, name = run.cfg, run.config, run.limits, run.name
     run.say(f"{name}: adapting the test signal")
-    ex = adapt_test_signal(run.drive, limits, cfg.rules)
+    ex = adapt_test_signal(run.drive, limits, cfg.rules, log=run.test_log)
+    run.known["excitation"] = ex
     if any(e["aborted"] for e in ex.log):
         run.warn("run_stopped", "the drive stopped a test run at a limit")
     run.lap("excitation")
@@ -468,12 +467,14 @@ def commission(
     if not ex.informative:
         run.warn("test_not_informative", f"test response not informative: {ex.reason}")
     run.lap("identification_validation")
+    run.known.update(identification=result, validation=validation)
     J_loop = min(_test_J(ex), float(result.parameters.J_sigma) if result.ok and _positive(result.parameters.J_sigma) else math.inf)
     cap = limits.torque_cap(conf)
     run.loop_limits = guarded_limits(limits, stop_headroom(cap / J_loop, conf, cfg.rules) if math.isfinite(J_loop) else
                                      cfg.rules.first_headroom * limits.w_max, conf, cfg.rules)
     perm = may_propose_controller(result, validation, warnings=tuple(run.warnings), max_validation_error=cfg.max_validation_error,
                                   max_map_distance_ratio=cfg.max_map_distance_ratio)
+    run.known.update(permission=perm, outside_training=outside_training(result, cfg.max_map_distance_ratio) if result.ok else None)
     outcome = None
     if perm.allowed:
         outcome = _model_based(run, result, ex)
@@ -483,6 +484,7 @@ def commission(
     fallback: str | None = None
     if outcome is not None:
         proposal, tuning, runs, chosen, sc, prediction = outcome
+        run.known["runs"] = runs
         if chosen is None:
             run.warn("loop_not_settled", "no candidate loop settled on the drive")
             fallback = "loop_not_settled"
@@ -492,6 +494,7 @@ def commission(
     f1, f1_runs, delivered, delivered_run = None, [], None, None
     if fallback and cfg.fallback and _positive(J):
         run.say(f"{name}: fallback F1 ({fallback})")
+        run.known["fallback_reason"] = fallback
         f1, f1_runs, f1_chosen, sc, prediction = _fallback(run, result, ex)
         if f1_chosen is not None:
             delivered, delivered_run = f1, f1_runs[f1_chosen]
@@ -520,7 +523,36 @@ def commission(
     return CommissioningReport(
         config=conf, limits=limits, excitation=ex, identification=result, validation=validation, permission=perm,
         warnings=tuple(run.warnings), max_map_distance_ratio=cfg.max_map_distance_ratio,
-        outside_training=outside_training(result, cfg.max_map_distance_ratio) if result.ok else None,
+        outside_training=run.known["outside_training"],
         proposal=proposal, tuning=tuning, fallback=f1, fallback_reason=fallback, runs=runs, fallback_runs=f1_runs,
         delivered=delivered, delivered_run=delivered_run, scenario=sc, prediction=prediction or {}, checks=checks,
         truth=_truth_checks(drive, delivered, conf, float(ex.log[-1]["M_star"])), timings=run.timings, name=name)
+
+
+def _stopped(run: _Run, drive: Any) -> CommissioningReport:
+    """The report of a chain that a record ended at a passed limit (``run.drive.breach``): what the
+    stages had produced, the test runs up to the one that passed it (its log entry says so), every
+    experiment's limit check; nothing delivered."""
+    breach, known, conf = run.drive.breach, run.known, run.config
+    tests = [(rec, req) for (kind, rec), req in zip(run.drive.experiments, run.drive.requests) if kind == "test"]
+    ex = known.get("excitation")
+    if ex is None:  # a test run passed it: the adaptation's log so far, and that run
+        rec, req = tests[-1]
+        entry = {"iteration": len(run.test_log), "M_star": req["M_star"], "w_max": req["w_max"], "stop_at": req["stop_at"],
+                 **measure_response(rec, conf), "decision": "stop", "reason": breach.text()}
+        kept = [r for r, _ in tests if not r.meta.get("aborted", False)]
+        ex = ExcitationResult(record=kept[-1] if kept else rec, records=[r for r, _ in tests], log=[*run.test_log, entry],
+                              informative=False, reason=breach.text(), code="limit_passed")
+    prediction = known.get("prediction")
+    if prediction and run.loop_limits is not None:
+        prediction = {**prediction, "stop_at": run.loop_limits.w_max}
+    run.timings["total"] = time.perf_counter() - run._start
+    return CommissioningReport(
+        config=conf, limits=run.limits, excitation=ex, identification=known.get("identification"),
+        validation=known.get("validation"), permission=known.get("permission"), warnings=tuple(run.warnings),
+        max_map_distance_ratio=run.cfg.max_map_distance_ratio, outside_training=known.get("outside_training"),
+        proposal=known.get("proposal"), tuning=known.get("tuning"), fallback=known.get("fallback"),
+        fallback_reason=known.get("fallback_reason"), runs=known.get("runs", []), scenario=known.get("scenario"),
+        prediction=prediction or {}, checks=limit_checks(run.drive.experiments, run.limits, conf),
+        truth=_truth_checks(drive, None, conf, float(tests[-1][1]["M_star"])), timings=run.timings, name=run.name,
+        breach=breach)

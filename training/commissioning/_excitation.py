@@ -40,6 +40,8 @@ import numpy as np
 
 import sim
 
+from ._guard import record_peaks
+
 #: How the test-signal adaptation ended (:attr:`ExcitationResult.code`).
 EXCITATION_ENDS: dict[str, str] = {
     "informative": "the response is informative (E7)",
@@ -47,6 +49,7 @@ EXCITATION_ENDS: dict[str, str] = {
     "max_iterations": "no informative response after max_iterations runs (E7)",
     "run_repeated": "a stopped run repeated the previous stopped run's peak speed and travel (E8b)",
     "speed_against_torque": "the speed moved against the torque reference: motor or encoder sign reversed (E10)",
+    "limit_passed": "a run's record showed one of the user's limits passed: no further run (SPEC 8.2)",
 }
 
 __all__ = ["EXCITATION_ENDS", "ExcitationRules", "ExcitationResult", "measure_response", "adapt_test_signal", "stop_headroom", "guarded_limits"]
@@ -140,7 +143,6 @@ def measure_response(record: Any, config: Any) -> dict[str, Any]:
                 coef = np.polyfit(t, w[idx], 2)
                 resid.append(w[idx] - np.polyval(coef, t))
     osc = float(np.sqrt(np.mean(np.concatenate(resid) ** 2))) / q_w if resid else 0.0
-    phi = np.cumsum(w) * T_s
     accel = 0.0
     if sec is not None:
         for k in (1, 4):
@@ -148,13 +150,12 @@ def measure_response(record: Any, config: Any) -> dict[str, Any]:
             if len(idx) >= 2:
                 accel = max(accel, abs(float(w[idx[-1]] - w[idx[0]])) / ((len(idx) - 1) * T_s))
     meta = record.meta or {}
-    torque = record.torque if record.torque is not None else (
-        None if record.current is None else np.asarray(record.current) * float(config.K_M))
     along = math.nan  # speed gained in the direction of the torque reference [q_w] (negative: against it)
     if record.torque_ref is not None and len(record.torque_ref) == len(w):
         M = np.asarray(record.torque_ref, dtype=np.float64)
         on = np.abs(M[:-1]) >= 0.5 * float(np.abs(M).max()) if np.abs(M).max() > 0 else np.zeros(len(w) - 1, dtype=bool)
         along = float(np.sum(np.sign(M[:-1][on]) * np.diff(w)[on])) / q_w
+    peaks = record_peaks(record, T_s, float(config.K_M))
     return {
         "along_torque_quanta": along,
         "samples_per_section": counts,
@@ -166,10 +167,7 @@ def measure_response(record: Any, config: Any) -> dict[str, Any]:
         "f_osc": _dominant_frequency(resid, T_s),
         "longest_section": max(counts) * T_s,
         "accel": accel,
-        "peak_speed": float(np.abs(w).max()),
-        "travel": float(np.abs(phi).max()),
-        "peak_torque_ref": float(np.abs(record.torque_ref).max()) if record.torque_ref is not None else math.nan,
-        "peak_torque": float(np.abs(torque).max()) if torque is not None else math.nan,
+        **peaks,
         "duration": len(w) * T_s,
     }
 
@@ -190,13 +188,16 @@ def guarded_limits(limits: sim.DriveLimits, headroom: float, config: Any, rules:
     return sim.DriveLimits(w_max=w, travel=max(limits.travel - limits.w_max * t_stop, 0.5 * limits.travel), M_max=limits.M_max)
 
 
-def adapt_test_signal(drive: Any, limits: sim.DriveLimits, rules: ExcitationRules | None = None) -> ExcitationResult:
+def adapt_test_signal(drive: Any, limits: sim.DriveLimits, rules: ExcitationRules | None = None, *,
+                      log: list[dict[str, Any]] | None = None) -> ExcitationResult:
     """Adapt ``M_star`` and ``w_max`` until the test record is informative (rules E1-E9).
 
     Args:
         drive: a SPEC 8.1 drive (``config``, ``run_test(M_star, w_max, limits) -> Record``).
         limits: the user's limits (torque, speed, travel), handed to every run.
         rules: rule constants.
+        log: a list each run's log entry is appended to as it is decided (the result's ``log``), so
+            that a caller keeps the entries of the runs before one whose ``run_test`` raised.
 
     Returns :class:`ExcitationResult` with the last run's record (every run planned within the
     limits by prediction; the log records the measured peaks of each run and whether the drive
@@ -217,7 +218,7 @@ def adapt_test_signal(drive: Any, limits: sim.DriveLimits, rules: ExcitationRule
     M_star = rules.M_star_start * M_cap
     w_travel0 = math.sqrt(rules.travel_margin * 0.25 * travel_limit * M_star / (3.0 * rules.J_prior_max))
     w_max = min(rules.w_max_start, 0.1 * w_limit, w_travel0)
-    log: list[dict[str, Any]] = []
+    log = [] if log is None else log
     records: list[Any] = []
     w_ceiling = M_ceiling = math.inf
     informative, reason, code = False, "", ""

@@ -10,11 +10,21 @@ The folder::
                             "limits"} or {"kind": "closed_loop", "law": law.params, "scenario":
                             {"T_s", "w_ref": [...], "M_dist": [...]}, "limits"}
     001.csv + 001.json      the recording, dropped by the person (SPEC 3; ``aborted: true`` in the
-                            JSON when the drive stopped the run at a limit)
+                            JSON when the drive stopped the run at a limit; ``K_M``, ``T_Ei``,
+                            ``encoder_counts``, ``M_N``, ``M_max`` may be left out: drive.json's
+                            config holds them)
 
 The chain is deterministic: on ``--resume`` it runs again from the start, each experiment with a
 recording is answered from it (its request must be the one written before, else the folder belongs
 to another run), and the first one without a recording stops the run again.
+
+A recording must be the one requested (else :class:`CommissioningError` naming the file): a test
+recording's ``M_star`` / ``w_max`` where it states them, and its torque level (its peak
+``torque_ref``, else its peak measured torque) within :data:`TORQUE_REF_TOLERANCE` (measured:
+:data:`MEASURED_TORQUE_ALLOWANCE`) of the requested ``M_star``; a closed-loop recording has the
+scenario's length (a stopped one at most that); its drive values and ``T_s`` (stated, or from its
+time column) agree with drive.json's config. Whether it kept the limits is the chain's check of
+every record (a recording that passed one ends the run: ``CommissioningReport.breach``).
 """
 
 from __future__ import annotations
@@ -32,12 +42,28 @@ from som_torch import atomic_write
 from training._json import dumps, json_safe
 from training.errors import CommissioningError, ExperimentPending, UserError
 
-__all__ = ["FileDrive", "ExperimentPending", "read_recording"]
+from ._guard import CONFIG_KEYS, MEASURED_TORQUE_ALLOWANCE, config_conflict, record_peaks
+
+__all__ = ["FileDrive", "ExperimentPending", "read_recording", "TORQUE_REF_TOLERANCE"]
+
+#: How far a test recording's peak torque reference may be from the requested ``M_star`` (a share):
+#: a drive's own torque units rounded. (Its measured torque: :data:`MEASURED_TORQUE_ALLOWANCE`.)
+TORQUE_REF_TOLERANCE: float = 0.02
 
 
-def read_recording(path: Path) -> sim.Record:
-    """A SPEC 3 record; its metadata's ``aborted`` flag (SPEC 8.1) is a bool, False when absent."""
-    rec = sim.read_record(path)
+def read_recording(path: Path, config: dict[str, Any] | None = None) -> sim.Record:
+    """A SPEC 3 record; its metadata's ``aborted`` flag (SPEC 8.1) is a bool, False when absent.
+    ``config``: the drive's own values (drive.json's ``config``): the JSON may leave out ``K_M``,
+    ``T_Ei``, ``encoder_counts``, ``M_N``, ``M_max``; one it states otherwise (by more than
+    ``CONFIG_TOLERANCE`` of ``_guard``), or a ``T_s`` (stated, or from the time column) other than the
+    config's, is refused naming the file."""
+    config = config or {}
+    rec = sim.read_record(path, meta_defaults={k: config[k] for k in CONFIG_KEYS[1:] if config.get(k) is not None})
+    conflict = config_conflict(rec.meta, config)
+    if conflict is not None:
+        key, got, have = conflict
+        where = f"{path}.json" if key != "T_s" else f"{path}.csv + .json (its T_s, or its time column's)"
+        raise CommissioningError(f"{where}: {key} {got:.6g} disagrees with the drive's config in drive.json ({key} {have:.6g})")
     rec.meta["aborted"] = bool(rec.meta.get("aborted", False))
     return rec
 
@@ -81,12 +107,20 @@ class FileDrive:
             raise ExperimentPending(f"experiment {self.count} ({request['kind']}) written to {req_path}; run it on the drive, "
                                     f"drop the recording as {stem}.csv + {stem}.json, then: twomass commission --resume "
                                     f"{self.folder}", str(req_path))
-        rec = read_recording(stem)
+        rec = read_recording(stem, self.config)
         for key in ("M_star", "w_max"):  # a test recording names its signal: it must be the one requested
             got = rec.meta.get(key)
             if key in request and got is not None and not math.isclose(float(got), float(request[key]), rel_tol=1e-6):
                 raise CommissioningError(f"{stem}.json: {key} {float(got):.6g} is not the requested {float(request[key]):.6g} "
                                          f"({req_path}): a recording of another experiment")
+        if request["kind"] == "test":
+            _check_torque_level(rec, float(request["M_star"]), float(rec.meta["K_M"]), stem, req_path)
+        else:
+            n, N = len(rec), len(request["scenario"]["w_ref"])
+            if n > N or (n < N and not rec.meta["aborted"]):
+                raise CommissioningError(f"{stem}.csv: {n} samples, the requested scenario has {N} ({req_path})"
+                                         + ("" if n > N else " and the recording does not say the drive stopped it "
+                                                             "(aborted: true in its JSON)"))
         return rec
 
     def run_test(self, M_star: float, w_max: float, limits: sim.DriveLimits) -> sim.Record:
@@ -100,3 +134,17 @@ class FileDrive:
 
 def _limits(limits: sim.DriveLimits) -> dict[str, Any]:
     return dataclasses.asdict(limits)
+
+
+def _check_torque_level(rec: sim.Record, M_star: float, K_M: float, stem: Path, req_path: Path) -> None:
+    """A test recording's torque level (peak ``torque_ref``, else peak measured torque) must be
+    the requested ``M_star``, within :data:`TORQUE_REF_TOLERANCE` (measured:
+    :data:`MEASURED_TORQUE_ALLOWANCE`), each way."""
+    peaks = record_peaks(rec, rec.T_s, K_M)
+    if rec.torque_ref is not None:
+        level, what, tol = peaks["peak_torque_ref"], "torque_ref", TORQUE_REF_TOLERANCE
+    else:
+        level, what, tol = peaks["peak_torque"], "measured torque", MEASURED_TORQUE_ALLOWANCE
+    if not M_star / (1 + tol) <= level <= M_star * (1 + tol):
+        raise CommissioningError(f"{stem}.csv: its {what} reaches {level:.4g} Nm, the request asks for M_star {M_star:.4g} Nm "
+                                 f"({req_path}): a recording of another experiment")

@@ -21,6 +21,7 @@ import sim
 from training._json import json_safe
 
 from ._excitation import ExcitationResult
+from ._guard import LimitBreach
 from ._permission import CommissioningWarning, IdentificationOutcome, Permission
 from ._rules import ControllerProposal
 from ._tuning import BOUNDED_VERDICTS, UNSCORED_VERDICTS, USABLE_VERDICTS, Gains, TuningResult, TuningScenario
@@ -89,15 +90,18 @@ class CommissioningReport:
     ``fallback_runs``; ``delivered``: the controller to use (None: none) and ``delivered_run``;
     ``scenario`` and ``prediction`` (the model's predicted peaks); ``checks``: the limits in every
     experiment, from the measured records; ``truth``: simulation-only figures (None for a drive
-    without truth); ``timings`` [s].
+    without truth); ``timings`` [s]. ``breach``: the record that showed one of the user's limits
+    passed (SPEC 8.2; None: none did): the experiments ended there, nothing is delivered, and the
+    stages the chain had not reached are None (``identification``, ``validation``, ``permission``)
+    or empty.
     """
 
     config: sim.DriveConfig
     limits: sim.DriveLimits
     excitation: ExcitationResult
-    identification: IdentificationOutcome
+    identification: IdentificationOutcome | None
     validation: ValidationResult | None
-    permission: Permission
+    permission: Permission | None
     warnings: tuple[CommissioningWarning, ...] = ()
     max_map_distance_ratio: float | None = None
     outside_training: bool | None = None
@@ -115,6 +119,11 @@ class CommissioningReport:
     truth: dict[str, Any] | None = None
     timings: dict[str, float] = field(default_factory=dict)
     name: str = "plant"
+    breach: LimitBreach | None = None
+
+    def __post_init__(self) -> None:
+        if self.breach is not None and self.delivered is not None:
+            raise ValueError("CommissioningReport: a chain stopped at a passed limit delivers no controller")
 
     @property
     def record(self) -> Any:
@@ -123,7 +132,8 @@ class CommissioningReport:
 
     @property
     def refused(self) -> bool:
-        return not self.permission.allowed
+        """A refusal rule said no (False where the chain stopped before asking)."""
+        return self.permission is not None and not self.permission.allowed
 
     @property
     def controller(self) -> ControllerProposal | None:
@@ -140,7 +150,8 @@ class CommissioningReport:
 
     @property
     def identified_structure(self) -> str | None:
-        return self.identification.structure if self.identification.ok else None
+        ident = self.identification
+        return ident.structure if ident is not None and ident.ok else None
 
     # ------------------------------------------------------------------ output
 
@@ -152,14 +163,15 @@ class CommissioningReport:
             "drive": self.config.to_dict(),
             "limits": {"w_max": self.limits.w_max, "travel": self.limits.travel, "M_max": self.limits.M_max},
             "excitation": {"informative": ex.informative, "reason": ex.reason, "log": ex.log},
-            "identification": self.identification.to_dict(),
+            "identification": None if self.identification is None else self.identification.to_dict(),
             "validation": None if v is None else {
                 "passed": v.passed, "mode": v.mode, "nrmse": v.nrmse, "osc_nrmse": v.osc_nrmse, "threshold": v.threshold,
                 "osc_threshold": v.osc_threshold, "reason": v.reason},
             "assessment": {"outside_training": self.outside_training, "max_map_distance_ratio": self.max_map_distance_ratio,
                            "warnings": [{"code": w.code, "text": w.text} for w in self.warnings]},
-            "permission": {"allowed": self.permission.allowed, "rule": self.permission.rule,
-                           "reason": self.permission.reason, "notes": list(self.permission.notes)},
+            "permission": None if self.permission is None else {
+                "allowed": self.permission.allowed, "rule": self.permission.rule, "reason": self.permission.reason,
+                "notes": list(self.permission.notes)},
             "proposal": None if self.proposal is None else self.proposal.to_dict(),
             "tuning": None if self.tuning is None else {
                 "model_cost_proposal": self.tuning.cost_proposal, "model_cost_tuned": self.tuning.cost_tuned,
@@ -173,6 +185,7 @@ class CommissioningReport:
             "prediction": self.prediction,
             "improvement": self.improvement,
             "checks": self.checks,
+            "breach": None if self.breach is None else self.breach.to_dict(),
             "simulation_only": self.truth,
             "timings": self.timings,
         })
@@ -183,14 +196,17 @@ class CommissioningReport:
         L = [f"== commissioning {self.name} ==",
              f"limits: |w| <= {lim.w_max:g} rad/s, travel <= {lim.travel:g} rad, |M_ref| <= {lim.torque_cap(c):g} Nm "
              f"(drive M_max {c.M_max:g} Nm, T_s {c.T_s * 1e6:g} us, T_Ei {c.T_Ei * 1e3:g} ms)"]
+        if self.breach is not None:
+            L.append(f"STOPPED: {self.breach.text()}")
         L += self._excitation_lines() + self._identification_lines()
         if self.validation is not None:
             v = self.validation
             osc = "n/a (oscillation below 3 q_w)" if v.osc_nrmse is None else f"{v.osc_nrmse:.3g} (<= {v.osc_threshold:g})"
             L.append(f"3 validation ({v.mode}): speed error {v.nrmse:.3g} (<= {v.threshold:g}), oscillation error {osc}: "
                      f"{'passed' if v.passed else 'FAILED'} - {v.reason}")
-        L.append(f"4 REFUSED [{self.permission.rule}]: no controller from the identified model. {self.permission.reason}"
-                 if self.refused else f"4 permission: {self.permission.reason}")
+        if self.permission is not None:
+            L.append(f"4 REFUSED [{self.permission.rule}]: no controller from the identified model. {self.permission.reason}"
+                     if self.refused else f"4 permission: {self.permission.reason}")
         L += [f"   warning [{w.code}]: {w.text}" for w in self.warnings]
         if self.proposal is not None:
             L += self._proposal_lines()
@@ -211,6 +227,8 @@ class CommissioningReport:
 
     def _identification_lines(self) -> list[str]:
         ident = self.identification
+        if ident is None:
+            return ["2 identification: not run (the chain stopped at a passed limit)"]
         if not ident.ok:
             return [f"2 identification failed: {ident.error}"]
         L = [f"2 identification: structure {ident.structure}"]
@@ -255,7 +273,9 @@ class CommissioningReport:
     def _delivered_lines(self) -> list[str]:
         d = self.delivered
         if d is None:
-            return ["8 delivered: none" + (f" ({self.permission.rule})" if self.refused else "")]
+            why = (f" (limit passed in experiment {self.breach.experiment})" if self.breach is not None else
+                   f" ({self.permission.rule})" if self.refused else "")
+            return ["8 delivered: none" + why]
         m = d.margins
         L = [f"8 delivered: {_controller_text(d)}",
              f"   guaranteed margins (worst of {len(d.models.plants)} models: {m.model}): PM {m.phase_margin:.1f} deg, "
@@ -272,22 +292,27 @@ class CommissioningReport:
         ch = self.checks
         if not ch:
             return []
-        bad = [f"{r['kind']} (peak {r['peak_speed']:.3g} rad/s, travel {r['travel']:.3g} rad"
-               + (", stopped by the drive" if r["aborted"] else "") + ")" for r in ch["runs"] if not r["within_limits"]]
+        bad = [f"{r['kind']} (peak {r['peak_speed']:.3g} rad/s, travel {r['travel']:.3g} rad, torque ref "
+               f"{r['peak_torque_ref']:.3g} Nm, measured torque {r['peak_torque']:.3g} Nm"
+               + (f"; passed: {', '.join(r['passed'])}" if r.get("passed") else "")
+               + ")" for r in ch["runs"] if not r["within_limits"]]
+        stopped = [r["kind"] for r in ch["runs"] if r["aborted"] and r["within_limits"]]
         return [f"limits kept in every experiment ({len(ch['runs'])}, from the measured records): "
                 f"{'yes' if ch['within_limits'] else 'NO'}; peak speed {ch['peak_speed']:.4g} rad/s, peak travel {ch['peak_travel']:.4g} rad"]\
-            + [f"   outside the limits: {b}" for b in bad]
+            + [f"   outside the limits: {b}" for b in bad]\
+            + ([f"   stopped by the drive at the limit it was handed, inside yours: {', '.join(stopped)}"] if stopped else [])
 
     def _truth_lines(self) -> list[str]:
         t = self.truth
         if t is None:
             return []
         ident = self.identification
+        ok = ident is not None and ident.ok
         L = ["-- simulation only (from the drive's truth, never used by the chain) --",
-             f"   true structure {t['structure']}" + (f" (identified {ident.structure})" if ident.ok else ""),
+             f"   true structure {t['structure']}" + (f" (identified {ident.structure})" if ok else ""),
              "   parameter     identified          true"]
         for k in _SHOWN:
-            got = getattr(ident.parameters, k) if ident.ok else None
+            got = getattr(ident.parameters, k) if ok else None
             L.append(f"   {k:<10} {_fmt(got):>13} {_fmt(t['parameters'].get(k)):>13}  {_UNITS.get(k, '')}")
         if "stable" in t:
             L.append(f"   delivered loop on the true linear model: {'stable' if t['stable'] else 'UNSTABLE'}, "
@@ -325,7 +350,8 @@ def _ms(v: float) -> str:
 
 
 def summarize(reports: list[CommissioningReport], wall_s: float) -> dict[str, Any]:
-    """Figures over many drives: refusals by rule code, limits kept in every experiment, delivered
+    """Figures over many drives: refusals by rule code, limits kept in every experiment, the drives
+    whose experiments ended at a passed limit (``stopped_at_limit``, names), delivered
     loops (model-based, F1), improvement over the model-based deliveries whose proposal settled,
     the F1 crossovers; with simulated drives the truth checks (stable, margins on the true linear
     model)."""
@@ -346,6 +372,7 @@ def summarize(reports: list[CommissioningReport], wall_s: float) -> dict[str, An
         "refused": sum(by_rule.values()),
         "refused_by_rule": by_rule,
         "within_limits": sum(bool(r.checks.get("within_limits")) for r in reports),
+        "stopped_at_limit": [r.name for r in reports if r.breach is not None],
         "median_improvement": statistics.median(i for i, _ in imps) if imps else None,
         "worst_improvement": worst[0],
         "worst_plant": worst[1],
@@ -365,7 +392,8 @@ def summary_text(s: dict[str, Any]) -> str:
     rules = ", ".join(f"{k} {v}" for k, v in sorted(s["refused_by_rule"].items())) or "none"
     w_c = s["fallback_w_c"]
     L = [f"== summary over {s['plants']} drives ==",
-         f"limits kept in every experiment (test, tuning, validation): {s['within_limits']}/{s['plants']}",
+         f"limits kept in every experiment (test, tuning, validation): {s['within_limits']}/{s['plants']}"
+         + (f"; stopped at a passed limit: {', '.join(s['stopped_at_limit'])}" if s.get("stopped_at_limit") else ""),
          f"refused for a model-based controller: {s['refused']}/{s['plants']} ({rules}); delivered: {s['delivered']}/{s['plants']} "
          f"({s['model_based']} model-based, {s['fallback']} fallback F1)",
          "F1 crossovers [rad/s]: " + (", ".join(f"{v:.3g}" for v in sorted(w_c)) if w_c else "none"),

@@ -20,24 +20,10 @@ from training.errors import ExperimentPending  # noqa: E402
 
 HERE = Path(__file__).parent
 sys.path.insert(0, str(HERE))
+from setups import FAST, LIMITS, STIFF, ONE_MASS, shipped_identifier  # noqa: E402
 import remote_plant  # noqa: E402
 
-FAST = CommissioningConfig(tune_evaluations=6, max_samples=1200)
-LIMITS = sim.DriveLimits(w_max=20.0, travel=5.0)
-STIFF = dict(J_sigma=0.05, V_J=0.5, f_e=400.0, d=0.05, backlash=0.0, M_FC=0.1, mu_F=0.001)
 ELASTIC = dict(J_sigma=0.05, V_J=1.0, f_e=30.0, d=0.03, backlash=0.0, M_FC=0.2, mu_F=0.001)
-ONE_MASS = {"J_sigma": 0.05, "M_FC": 0.1, "mu_F": 0.001, "V_J": None, "f_e": None, "d": None, "backlash": 0.0}
-
-
-def _shipped_identifier():
-    """The shipped maps; skip (with the reason) while they do not match the toolkit's features."""
-    from som_torch import CheckpointError
-    from training.identification import Identifier
-
-    try:
-        return Identifier.load()
-    except CheckpointError as err:
-        pytest.skip(f"shipped maps not loadable: {err}")
 
 
 def _check_delivered(rep, spec=FAST.spec):
@@ -78,7 +64,7 @@ def test_chain_on_an_independent_plant_in_another_process():
     from sim, stepped sample by sample in a child process, with the variant's 2nd-order current
     loop, extra delay and motor friction; every experiment inside the limits on the true states."""
     try:
-        ident = _shipped_identifier()
+        ident = shipped_identifier()
     except pytest.skip.Exception:
         from conftest import StubIdentifier
         ident = StubIdentifier("elastic", ELASTIC)
@@ -205,7 +191,7 @@ def test_command_rejects_bad_input(tmp_path, capsys):
     assert "--w-limit" in err and len(err.strip().splitlines()) == 1
     for spec, words in (("nosuchmodule_xyz:make", "cannot import"), (f"{HERE / 'remote_plant.py'}:nothing", "no callable"),
                         ("no-colon", "MODULE:FACTORY")):
-        assert main(["commission", "--drive", spec]) == 2
+        assert main(["commission", "--drive", spec, "--w-limit", "20", "--travel-limit", "5"]) == 2
         err = capsys.readouterr().err
         assert words in err and len(err.strip().splitlines()) == 1
     assert main(["commission", "--resume", str(tmp_path / "none")]) == 2
@@ -213,7 +199,7 @@ def test_command_rejects_bad_input(tmp_path, capsys):
 
 
 def test_command_runs_a_drive_from_a_file_and_a_pending_folder(tmp_path, capsys):
-    _shipped_identifier()
+    shipped_identifier()
     out_json = tmp_path / "out.json"
     assert main(["commission", "--drive", f"{HERE / 'remote_plant.py'}:make_drive", "--w-limit", "20", "--travel-limit", "5",
                  "--tune-evaluations", "3", "--no-progress", "--json", str(out_json)]) == 0

@@ -22,10 +22,10 @@ from training.errors import CommissioningError, ExperimentPending  # noqa: E402
 
 HERE = Path(__file__).parent
 sys.path.insert(0, str(HERE))
+from setups import FAST, LIMITS  # noqa: E402
 import faulty_drives  # noqa: E402
 
-FAST = CommissioningConfig(tune_evaluations=6, max_samples=1200)
-LIMITS = sim.DriveLimits(w_max=20.0, travel=5.0)
+USER_LIMITS = ["--w-limit", "20", "--travel-limit", "5"]  # a drive of one's own has no default limits
 DRIVES = HERE / "faulty_drives.py"
 
 
@@ -152,7 +152,7 @@ def test_command_checks_before_any_experiment(tmp_path, capsys):
     plots = tmp_path / "plots"
     plots.mkdir()
     (plots / "drive.png").write_bytes(b"mine")
-    assert main(["commission", "--drive", f"{DRIVES}:factory_raises", "--plots", str(plots), "--no-progress"]) == 2
+    assert main(["commission", "--drive", f"{DRIVES}:factory_raises", "--plots", str(plots), *USER_LIMITS, "--no-progress"]) == 2
     _one_error_line(capsys, "--plots", "drive.png")  # before the drive is even built
     plant = tmp_path / "p.json"
     plant.write_text(json.dumps({**faulty_drives.PLANT, "name": "p"}))
@@ -161,16 +161,16 @@ def test_command_checks_before_any_experiment(tmp_path, capsys):
 
 
 def test_command_turns_drive_faults_into_one_line(tmp_path, capsys):
-    assert main(["commission", "--drive", f"{DRIVES}:factory_raises", "--no-progress"]) == 2
+    assert main(["commission", "--drive", f"{DRIVES}:factory_raises", *USER_LIMITS, "--no-progress"]) == 2
     _one_error_line(capsys, "factory_raises", "OSError", "/dev/ttyUSB0")
     bad = tmp_path / "bad_drive.py"
     bad.write_text("import numpy\nraise RuntimeError('no bus')\n")
-    assert main(["commission", "--drive", f"{bad}:make", "--no-progress"]) == 2
+    assert main(["commission", "--drive", f"{bad}:make", *USER_LIMITS, "--no-progress"]) == 2
     _one_error_line(capsys, "bad_drive.py", "RuntimeError", "no bus")
     (tmp_path / "helper_xyz.py").write_text("def make():\n    raise OSError('rig offline')\n")
     sibling = tmp_path / "sibling_drive.py"
     sibling.write_text("from helper_xyz import make\n")
-    assert main(["commission", "--drive", f"{sibling}:make", "--no-progress"]) == 2
+    assert main(["commission", "--drive", f"{sibling}:make", *USER_LIMITS, "--no-progress"]) == 2
     _one_error_line(capsys, "rig offline")  # the sibling module was imported: the factory ran
     assert str(tmp_path) not in sys.path
 
@@ -183,7 +183,7 @@ def test_command_turns_a_raising_drive_method_into_one_line(capsys):
         Identifier.load()
     except CheckpointError as err:
         pytest.skip(f"shipped maps not loadable: {err}")
-    assert main(["commission", "--drive", f"{DRIVES}:raising", "--no-progress"]) == 2
+    assert main(["commission", "--drive", f"{DRIVES}:raising", *USER_LIMITS, "--no-progress"]) == 2
     _one_error_line(capsys, "run_test", "RuntimeError", "hardware fault E42")
 
 
