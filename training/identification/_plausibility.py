@@ -212,8 +212,9 @@ def _check_speed_scale(speed: np.ndarray, T_s: float, meta: dict[str, Any], reco
     above = np.flatnonzero(abs_speed > allowed)
     if 0 < above.size <= _GLITCH_SAMPLES:  # a few samples far above the rest: no unit does that
         rest = float(np.max(np.delete(abs_speed, above)))
-        raise ValueError(f"speed has {above.size} sample(s) far above the rest (peak |speed| {peak:.4g} rad/s at row "
-                         f"{int(above[np.argmax(abs_speed[above])]) + 2}, the others at most {rest:.4g}; metadata "
+        at = float(record.t[int(above[np.argmax(abs_speed[above])])])  # a time, as the file's rows and a record's index agree on
+        raise ValueError(f"speed has {above.size} sample(s) far above the rest (peak |speed| {peak:.4g} rad/s at "
+                         f"t = {at:.9g} s, the others at most {rest:.4g}; metadata "
                          f"w_max = {float(w_max):.4g} rad/s): glitches in the recording?")
     if ratio < lo and not timed_out and peak <= allowed:
         incomplete = incomplete_run(record, upto=1)  # cut in I, before the speed reached w_max: not its units
