@@ -1,10 +1,11 @@
 """``twomass commission``: the self-commissioning chain (SPEC 8) through a SPEC 8.1 drive, with a report.
 
 The drive: the project's simulator (``--params`` / ``--population``: one :class:`sim.SimulatedDrive`
-per plant), a user's drive object (``--drive MODULE:FACTORY`` or ``--drive path/file.py:FACTORY``;
-with ``--params`` / ``--population`` the factory is called with each plant's parameters as a dict,
-for simulators and hardware-in-the-loop rigs that take one), or a folder of files for a real drive
-and its scope (``--resume DIR``: :class:`training.commissioning.FileDrive`).
+per plant, on the plant's drive keys in ``--params``, else the reference drive), a user's drive object
+(``--drive MODULE:FACTORY``, the module found in the current folder as ``python -m`` finds it, or
+``--drive path/file.py:FACTORY``; with ``--params`` / ``--population`` the factory is called with each
+plant's parameters as a dict, for simulators and hardware-in-the-loop rigs that take one), or a folder
+of files for a real drive and its scope (``--resume DIR``: :class:`training.commissioning.FileDrive`).
 
 Limits are the user's (SPEC 8.2): a user's drive (``--drive``) gets no default limits,
 ``--w-limit`` and ``--travel-limit`` are required with it (``--resume``: the folder's
@@ -25,6 +26,7 @@ import argparse
 import importlib
 import importlib.util
 import math
+import os
 import sys
 import time
 from pathlib import Path
@@ -33,7 +35,7 @@ from typing import Any
 from training._json import dumps
 from training.commands import _progress
 from training.errors import CommissioningError, ExperimentPending, OutputExistsError, UserError, error_text, one_line
-from training.params_file import read_params_file
+from training.params_file import read_plants
 
 #: Exit code when a drive got no controller, or an experiment passed a limit (the reports say which).
 EXIT_NOT_DELIVERED = 3
@@ -51,7 +53,9 @@ HELP = "run the self-commissioning chain (test signal, identify, validate, propo
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     src = parser.add_mutually_exclusive_group()
     src.add_argument("--params", type=Path, help="JSON file: one plant (object) or a list of plants; keys J_sigma, V_J, "
-                     "f_e, d, backlash [rad, total 2s], M_FC, mu_F (or J_M, J_L, C_F, D_F), optional name")
+                     "f_e, d, backlash [rad, total 2s], M_FC, mu_F (or J_M, J_L, C_F, D_F), optional name; "
+                     "optional drive keys per plant T_s, encoder_counts, T_Ei, K_M, M_N, M_max, current_noise_std "
+                     "(default: the reference drive's; checked against SPEC 3.1's envelope)")
     src.add_argument("--population", type=int, metavar="N", help="draw N plants from the SPEC default population")
     src.add_argument("--resume", type=Path, metavar="DIR",
                      help="a file-based drive: DIR/drive.json (config, limits); the chain writes each experiment it "
@@ -61,8 +65,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                           "the run (exit 3). The folder's limits hold for its whole run: --w-limit, --travel-limit, "
                           "--M-max must equal them (else exit 2), --drive is refused")
     parser.add_argument("--drive", metavar="MODULE:FACTORY",
-                        help="a SPEC 8.1 drive from FACTORY() in an importable module or a path/to/file.py (with "
-                             "--params/--population: FACTORY(plant_dict) per plant); needs --w-limit and --travel-limit")
+                        help="a SPEC 8.1 drive from FACTORY() in a module (found in the current folder, then on "
+                             "PYTHONPATH) or a path/to/file.py (with --params/--population: FACTORY(plant_dict) per "
+                             "plant); needs --w-limit and --travel-limit")
     parser.add_argument("--seed", type=int, default=0, help="population and noise seed (default 0)")
     parser.add_argument("--w-limit", type=float, default=None,
                         help=f"speed limit |w| [rad/s] for every experiment, at least 10 speed quanta of the drive's encoder; "
@@ -121,8 +126,27 @@ def _refuse_existing(option: str, paths: list[Path], overwrite: bool) -> None:
             raise OutputExistsError(f"{option}: {str(path)!r} exists (pass --overwrite to replace it)")
 
 
+def _import_module(name: str) -> Any:
+    """The module ``name``, found as ``python -m`` finds it: in the current folder first (on
+    ``sys.path`` while it imports), then on ``sys.path`` (``PYTHONPATH``, installed packages)."""
+    cwd = os.getcwd()
+    sys.path.insert(0, cwd)
+    try:
+        return importlib.import_module(name)
+    except ModuleNotFoundError as err:
+        if err.name is not None and name != err.name and not name.startswith(f"{err.name}."):
+            raise UserError(f"--drive: importing {name} failed: {error_text(err)}") from None  # one of its imports
+        raise UserError(f"--drive: cannot import {name!r}: no such module in the current folder {cwd} or on "
+                        f"PYTHONPATH; give its file instead: --drive path/to/{name.replace('.', '/')}.py:FACTORY") from None
+    except Exception as err:  # whatever the user's module raises: one line, not a traceback
+        raise UserError(f"--drive: importing {name} failed: {error_text(err)}") from None
+    finally:
+        sys.path.remove(cwd)
+
+
 def load_factory(spec: str) -> Any:
-    """``MODULE:FACTORY`` (an importable module) or ``path/to/file.py:FACTORY`` -> the callable."""
+    """``MODULE:FACTORY`` (a module in the current folder or on ``sys.path``) or
+    ``path/to/file.py:FACTORY`` -> the callable."""
     mod_name, sep, attr = spec.rpartition(":")
     if not sep or not mod_name or not attr:
         raise UserError(f"--drive: expected MODULE:FACTORY or path/to/file.py:FACTORY, received {spec!r}")
@@ -143,33 +167,32 @@ def load_factory(spec: str) -> Any:
         finally:
             sys.path.remove(folder)
     else:
-        try:
-            module = importlib.import_module(mod_name)
-        except ModuleNotFoundError as err:
-            raise UserError(f"--drive: cannot import {mod_name!r} ({err}); is it on PYTHONPATH?") from None
-        except Exception as err:
-            raise UserError(f"--drive: importing {mod_name} failed: {error_text(err)}") from None
+        module = _import_module(mod_name)
     factory = getattr(module, attr, None)
     if not callable(factory):
         raise UserError(f"--drive: {mod_name} has no callable {attr!r}")
     return factory
 
 
-def _plants(args: argparse.Namespace) -> tuple[list[dict[str, float]] | None, list[str]]:
-    """The plants' parameters and names, from ``--population`` or ``--params`` (None: no plants)."""
+def _plants(args: argparse.Namespace) -> tuple[list[dict[str, float]] | None, list[str], list[Any]]:
+    """The plants' parameters, names and simulated drives (``sim.DriveConfig``), from ``--population``
+    (the reference drive) or ``--params`` (each plant's drive keys; None: no plants)."""
     import sim
 
     if args.population is not None:
         if args.population < 1:
             raise UserError(f"--population: expected N >= 1, received {args.population}")
-        return sim.sample_population(args.population, args.seed).to_dicts(), [f"plant{i:03d}" for i in range(args.population)]
+        return (sim.sample_population(args.population, args.seed).to_dicts(),
+                [f"plant{i:03d}" for i in range(args.population)], [sim.DriveConfig()] * args.population)
     if args.params is not None:
         from training._checks import check_sim_cost
 
-        params, names = read_params_file(args.params, "plant")
-        check_sim_cost(f"--params {args.params}", params, sim.DriveConfig())  # the simulated drives are the reference drive
-        return params.reshape(-1).to_dicts(), names
-    return None, []
+        plants = read_plants(args.params, "plant")  # a drive's noise checked at its rated torque M_N
+        flat = plants.params.reshape(-1)
+        for i, drive in enumerate(plants.drives):
+            check_sim_cost(f"--params {args.params}", flat[i:i + 1], drive)
+        return flat.to_dicts(), plants.names, plants.drives
+    return None, [], []
 
 
 def _same_limits(args: argparse.Namespace, stored: Any) -> None:
@@ -193,7 +216,7 @@ def _drives(args: argparse.Namespace, limits: Any) -> tuple[list[tuple[str, Any]
         fd = FileDrive(args.resume)
         _same_limits(args, fd.limits)
         return [(fd.name, lambda: fd)], fd.limits
-    plants, names = _plants(args)
+    plants, names, configs = _plants(args)
     if args.drive is not None:
         factory = load_factory(args.drive)
         if plants is None:
@@ -201,7 +224,8 @@ def _drives(args: argparse.Namespace, limits: Any) -> tuple[list[tuple[str, Any]
         return [(n, lambda p=p: factory(p)) for n, p in zip(names, plants)], limits
     if plants is None:
         raise UserError("give --params JSON, --population N, --drive MODULE:FACTORY or --resume DIR")
-    return [(n, lambda p=p, i=i: sim.SimulatedDrive(p, seed=args.seed + 1000 * i)) for i, (n, p) in enumerate(zip(names, plants))], limits
+    return [(n, lambda p=p, c=c, i=i: sim.SimulatedDrive(p, c, seed=args.seed + 1000 * i))
+            for i, (n, p, c) in enumerate(zip(names, plants, configs))], limits
 
 
 def run(args: argparse.Namespace) -> int:
@@ -211,6 +235,10 @@ def run(args: argparse.Namespace) -> int:
 
     from training._checks import finite_number, seed
 
+    if args.plots is not None:  # before any work: pages asked for and not drawable is bad usage
+        from training.figures import require_plots
+
+        require_plots("--plots")
     seed("--seed", args.seed)
     for name in ("--w-limit", "--travel-limit", "--M-max", "--max-map-distance", "--drive-timeout"):
         value = getattr(args, name[2:].replace("-", "_"))
@@ -239,12 +267,6 @@ def run(args: argparse.Namespace) -> int:
         from torch.utils.tensorboard import SummaryWriter
 
         writer = SummaryWriter(str(args.logdir))
-    if args.plots is not None:
-        from training.figures import PLOT_HINT, plots_available
-
-        if not plots_available():  # the job still runs; the pages are what is missing
-            print(f"twomass commission: --plots: {PLOT_HINT}", file=sys.stderr)
-            args.plots = None
     n = len(drives)
     say = (lambda msg: print(msg, file=sys.stderr, flush=True)) if _progress.wanted(args) else (lambda msg: None)
     reports = []

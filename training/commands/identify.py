@@ -110,15 +110,11 @@ def _write_lines(outcomes: Iterable[Any], f: TextIO) -> tuple[int, int]:
 
 
 def _page_writer(folder: Path | None, paths: list[str], maps: Any, overwrite: bool) -> Any:
-    """The writer of ``--plot`` pages (``training.figures.PageWriter``), or None without ``--plot``
-    or without matplotlib (then one line says how to get the figures)."""
+    """The writer of ``--plot`` pages (``training.figures.PageWriter``), or None without ``--plot``."""
     if folder is None:
         return None
-    from training.figures import PLOT_HINT, PageWriter, plots_available
+    from training.figures import PageWriter
 
-    if not plots_available():
-        print(f"twomass identify: --plot: {PLOT_HINT}; identifying without pages", file=sys.stderr)
-        return None
     return PageWriter(folder, paths, maps, overwrite=overwrite,
                       report=lambda line: print(f"twomass identify: --plot: {line}", file=sys.stderr))
 
@@ -128,6 +124,10 @@ def run(args: argparse.Namespace) -> int:
     from training._distributed import process_group
     from training.identification import CHUNK
 
+    if args.plot is not None:  # before any work: pages asked for and not drawable is bad usage
+        from training.figures import require_plots
+
+        require_plots("--plot")
     group = process_group()  # under torchrun: the records are split, rank 0 writes them in input order
     if not args.files:
         raise UserError("expected at least one record FILE (NAME.csv, NAME.json or NAME), received none")

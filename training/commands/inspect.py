@@ -1,11 +1,14 @@
-"""``twomass inspect CHECKPOINT_DIR --out DIR``: the figures of trained maps as PNG files.
+"""``twomass inspect [CHECKPOINT_DIR] --out DIR``: the figures of trained maps as PNG files.
 
-For each map of the folder (checked against its manifest): the U-matrix, the hit map (with
-``--data``: the dataset the maps were trained on), each stored parameter as a coloured plane and
-the paper-style contour plot (Figs. 7-8), as ``DIR/<map>/<figure>.png``: the same figures that
-``twomass train`` writes to TensorBoard (``docs/figures.md``). Prints a JSON summary per map
-(grid, ensemble, training systems, quality, recall-distance quantiles); without matplotlib it
-prints the summary and one line that says how to get the figures.
+Without ``CHECKPOINT_DIR``: the maps ``Identifier.load()`` uses (``$TWOMASS_CHECKPOINTS``, else the
+shipped ones, in a checkout and in an installed wheel alike). For each map of the folder (checked
+against its manifest): the U-matrix, the hit map (with ``--data``: the dataset the maps were trained
+on), each stored parameter as a coloured plane and the paper-style contour plot (Figs. 7-8), as
+``DIR/<map>/<figure>.png``: the same figures that ``twomass train`` writes to TensorBoard
+(``docs/figures.md``). Prints a JSON summary per map
+(grid, ensemble, training systems, quality, recall-distance quantiles). The figures need
+matplotlib (the ``plot`` extra): without it the command stops before any work with one line that
+says how to get it (exit 2).
 """
 
 from __future__ import annotations
@@ -19,8 +22,9 @@ HELP = "the figures of trained maps (U-matrix, hits, parameter planes, contour p
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("checkpoints", type=Path, metavar="CHECKPOINT_DIR",
-                        help="folder with the maps and manifest.json (e.g. the shipped checkpoints/)")
+    parser.add_argument("checkpoints", type=Path, nargs="?", metavar="CHECKPOINT_DIR",
+                        help="folder with the maps and manifest.json (default: the shipped maps, or "
+                             "$TWOMASS_CHECKPOINTS)")
     parser.add_argument("--out", type=Path, required=True, metavar="DIR", help="folder for the PNG files")
     parser.add_argument("--data", type=Path, metavar="DIR",
                         help="dataset folder the maps were trained on (`twomass generate`): adds the hit maps")
@@ -42,23 +46,19 @@ def run(args: argparse.Namespace) -> int:
     from training._json import dumps
     from training.commands.identify import load_identifier
     from training.errors import UserError
-    from training.figures import PLOT_HINT, map_png_paths, plots_available, refuse_existing, write_map_pngs
+    from training.figures import map_png_paths, refuse_existing, require_matplotlib, write_map_pngs
 
+    require_matplotlib()  # the figures are the point: none drawable is bad usage, said before any work
     if args.out.exists() and not args.out.is_dir():
         raise UserError(f"--out: expected a folder, received the file {str(args.out)!r}")
-    if not args.checkpoints.is_dir():
+    if args.checkpoints is not None and not args.checkpoints.is_dir():
         raise UserError(f"CHECKPOINT_DIR: expected a folder with the trained maps and manifest.json, received "
                         f"{str(args.checkpoints)!r} (not found)")
     maps = load_identifier(args.checkpoints, refine=False).maps
     rows = _training_rows(args.data, maps) if args.data is not None else {}
-    plots = plots_available()
-    if plots:  # before anything is printed or drawn
-        refuse_existing([p for name, t in maps.items() for p in map_png_paths(t, args.out, hits=name in rows).values()],
-                        args.overwrite)
+    refuse_existing([p for name, t in maps.items() for p in map_png_paths(t, args.out, hits=name in rows).values()],
+                    args.overwrite)  # before anything is printed or drawn
     print(dumps({name: _summary(t) for name, t in maps.items()}))
-    if not plots:
-        print(f"twomass inspect: no figures written; {PLOT_HINT}", file=sys.stderr)
-        return 0
     written = [p for name, t in maps.items()
                for p in write_map_pngs(t, args.out, rows.get(name), overwrite=args.overwrite)]
     print(f"twomass inspect: {len(written)} figure(s) of {len(maps)} map(s) written to {args.out}", file=sys.stderr)

@@ -1,15 +1,21 @@
-"""``twomass simulate``: parameters in (JSON or a seeded population), records out (CSV + JSON)."""
+"""``twomass simulate``: parameters in (JSON or a seeded population), records out (CSV + JSON).
+
+Each system of ``--params`` runs on the reference drive or on the drive its keys give (``T_s``,
+``encoder_counts``, ``T_Ei``, ``K_M``, ``M_N``, ``M_max``, ``current_noise_std``: checked against
+SPEC 3.1's envelope, :mod:`training.params_file`); its record's metadata carries that drive.
+"""
 
 from __future__ import annotations
 
 import argparse
 import sys
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 from training.commands import _progress
 from training.errors import OutputExistsError, UserError
-from training.params_file import read_params_file
+from training.params_file import read_plants
 
 HELP = "simulate the SPEC test run for given or sampled systems and write records (CSV + JSON)"
 
@@ -17,7 +23,9 @@ HELP = "simulate the SPEC test run for given or sampled systems and write record
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     src = parser.add_mutually_exclusive_group(required=True)
     src.add_argument("--params", type=Path, help="JSON file: one system (object) or a list of systems; keys "
-                     "J_sigma, V_J, f_e, d, backlash [rad, total], M_FC, mu_F (or J_M, J_L, C_F, D_F), optional name")
+                     "J_sigma, V_J, f_e, d, backlash [rad, total], M_FC, mu_F (or J_M, J_L, C_F, D_F), optional name; "
+                     "optional drive keys per system T_s, encoder_counts, T_Ei, K_M, M_N, M_max, current_noise_std "
+                     "(default: the reference drive's; checked against SPEC 3.1's envelope)")
     src.add_argument("--population", type=int, metavar="N", help="draw N systems from the SPEC default population")
     parser.add_argument("--seed", type=int, default=0, help="population and noise seed (default 0)")
     parser.add_argument("--out", type=Path, required=True, help="folder for NAME.csv + NAME.json")
@@ -70,17 +78,25 @@ def _disk_estimate(params: Any, drive: Any, signal: Any) -> float:
     return float(samples.sum()) * CSV_ROW_BYTES + params.J_sigma.numel() * META_BYTES
 
 
-def _signal(args: argparse.Namespace, drive: Any) -> Any:
-    """The test signal of the options: finite levels, ``M*`` within the drive's ``M_max`` (SPEC 3.1)."""
+def _signal(args: argparse.Namespace, drives: list[Any]) -> Any:
+    """The test signal of the options: finite levels, ``M*`` within each drive's ``M_max`` (SPEC 3.1)."""
     from sim import TestSignalConfig
     from training._checks import finite_number
 
     for option, value in (("--M-star", args.M_star), ("--w-max", args.w_max), ("--timeout", args.timeout)):
         finite_number(option, value)
-    if args.M_star > drive.M_max:
-        raise UserError(f"--M-star: expected at most the drive's M_max {drive.M_max:g} Nm (SPEC 3.1), "
+    M_max = min(d.M_max for d in drives)
+    if args.M_star > M_max:
+        raise UserError(f"--M-star: expected at most the drive's M_max {M_max:g} Nm (SPEC 3.1), "
                         f"received {args.M_star:g}")
     return TestSignalConfig(M_star=args.M_star, w_max=args.w_max, timeout=args.timeout)
+
+
+def _runs(drives: list[Any]) -> list[tuple[int, int]]:
+    """``(start, stop)`` of each run of consecutive systems on one drive (the simulator runs one drive
+    per batch; each system's noise stays seeded by its index in the whole batch)."""
+    starts = [i for i in range(len(drives)) if i == 0 or (drives[i] is not drives[i - 1] and drives[i] != drives[i - 1])]
+    return list(zip(starts, starts[1:] + [len(drives)]))
 
 
 def _params_text(truth: dict[str, Any]) -> str:
@@ -94,40 +110,53 @@ def run(args: argparse.Namespace) -> int:
     import torch
 
     from sim import DriveConfig, RecordError, iter_records, sample_population, write_record
-    from training._checks import BYTES_PER_SYSTEM, check_disk, check_memory, check_sim_cost, record_name, seed
+    from training._checks import BYTES_PER_SYSTEM, check_disk, check_memory, check_sim_cost, finite_number, seed
 
-    drive = DriveConfig()
-    signal = _signal(args, drive)
+    finite_number("--M-star", args.M_star)  # the drives' noise is checked at it
     seed("--seed", args.seed)
     if args.params is not None:
-        params, names = read_params_file(args.params, "sys")
-        for name in names:
-            record_name(f"--params {args.params}", name)
+        plants = read_plants(args.params, "sys", M_star=args.M_star)
+        params, names, drives = plants.params, plants.names, plants.drives
     else:
         if args.population < 1:
             raise UserError(f"--population: expected N >= 1, received {args.population}")
         check_memory(f"--population {args.population}", args.population * BYTES_PER_SYSTEM)
         params, names = sample_population(args.population, args.seed), None
+        drives = [DriveConfig()] * args.population
+    signal = _signal(args, drives)
     n = params.J_sigma.numel()
-    check_sim_cost(f"--params {args.params}" if args.params is not None else "--population", params, drive)
+    flat = params.reshape(-1)
+    runs = _runs(drives)
+    source = f"--params {args.params}" if args.params is not None else "--population"
+    for start, stop in runs:
+        check_sim_cost(source, flat[start:stop], drives[start])
     what = f"simulate ({n} systems, --timeout {args.timeout:g}, --w-max {args.w_max:g})"
-    check_memory(what, _memory_estimate(params, drive, signal, args.method, 8 if args.float64 else 4))
-    check_disk(what, args.out, _disk_estimate(params, drive, signal))
+    itemsize = 8 if args.float64 else 4
+    check_memory(what, max(_memory_estimate(flat[start:stop], drives[start], signal, args.method, itemsize)
+                           for start, stop in runs))
+    check_disk(what, args.out, sum(_disk_estimate(flat[start:stop], drives[start], signal) for start, stop in runs))
     _refuse_existing(args.out, names or [f"sys{i:05d}" for i in range(n)], args.overwrite)
     dtype = torch.float64 if args.float64 else torch.float32
     bar = _progress.bar(args, total=n, desc="simulate", unit="sys")
     written = 0
-    if args.method == "reference":
-        from sim import responses_to_records, simulate_test
 
-        resp = simulate_test(params, drive, signal, method="reference", seed=args.seed)
-        records = responses_to_records(resp, params, drive, signal, names=names)
-        bar.update(n)
-    else:
-        records = iter_records(params, drive, signal, seed=args.seed, dtype=dtype)
-    for rec in records:
-        if names is not None and args.method == "fast":
-            rec.name = names[int(rec.name[3:])]
+    def records(start: int, stop: int) -> Iterator[Any]:
+        """The records of systems ``start:stop`` (one drive), named by their index in the whole batch."""
+        part, drive, part_seed = flat[start:stop], drives[start], args.seed + start
+        if args.method == "reference":
+            from sim import responses_to_records, simulate_test
+
+            resp = simulate_test(part, drive, signal, method="reference", seed=part_seed)
+            part_names = names[start:stop] if names is not None else [f"sys{i:05d}" for i in range(start, stop)]
+            yield from responses_to_records(resp, part, drive, signal, names=part_names)
+            bar.update(stop - start)
+            return
+        for rec in iter_records(part, drive, signal, seed=part_seed, dtype=dtype):
+            i = start + int(rec.name[3:])
+            rec.name = names[i] if names is not None else f"sys{i:05d}"
+            yield rec
+
+    for rec in (rec for start, stop in runs for rec in records(start, stop)):
         try:
             write_record(args.out / rec.name, rec, overwrite=args.overwrite)  # refuses NaN/inf, writing nothing
         except KeyboardInterrupt:  # Ctrl-C or SIGTERM between its CSV and its JSON: no half record stays

@@ -9,7 +9,9 @@
 * the house style for any page (:func:`new_figure`, :func:`save_png`, :func:`draw_plane`, ...).
 
 matplotlib is the optional ``plot`` extra: it is imported only when a figure is drawn;
-:func:`plots_available` says whether it is here, :data:`PLOT_HINT` how to get it.
+:func:`plots_available` says whether it is here, :data:`PLOT_HINT` how to get it (``pip install -e``
+in a checkout, from the package index otherwise), :func:`require_plots` refuses a command's figure
+option without it.
 """
 
 from ._commission import PANELS as COMMISSION_PANELS
@@ -19,7 +21,7 @@ from ._identify import (PageWriter, anti_resonance, best_match, failure_figure, 
 from ._planes import (COMPONENT_LABELS, PARAMETER_PLANES, ParameterPlane, draw_plane, map_figure, map_figure_names,
                       map_figures, map_png_paths, parameter_plane_figure, unit_weights, unit_xy, write_map_pngs)
 from ._style import (DPI, MARK, MEASURED, MODEL, PLOT_HINT, figure_image, new_figure, plots_available,
-                     refuse_existing, require_matplotlib, save_png, with_unit)
+                     refuse_existing, require_matplotlib, require_plots, save_png, with_unit)
 from ._tensorboard import log_map_figures
 
 __all__ = [
@@ -29,6 +31,6 @@ __all__ = [
     "best_match", "map_figures", "map_figure", "map_figure_names", "map_png_paths", "write_map_pngs",
     "parameter_plane_figure", "PARAMETER_PLANES", "ParameterPlane", "COMPONENT_LABELS", "draw_plane", "unit_weights",
     "unit_xy", "log_map_figures",
-    "PLOT_HINT", "plots_available", "require_matplotlib", "new_figure", "save_png", "refuse_existing",
+    "PLOT_HINT", "plots_available", "require_matplotlib", "require_plots", "new_figure", "save_png", "refuse_existing",
     "figure_image", "with_unit", "DPI", "MEASURED", "MODEL", "MARK",
 ]

@@ -15,8 +15,20 @@ import numpy as np
 
 from training.errors import OutputExistsError, UserError
 
+
+
+def _install_command(here: Path = Path(__file__)) -> str:
+    """How to get the ``plot`` extra where this module (``here``) lies: into a checkout
+    (``pyproject.toml`` beside the ``training`` package; an editable install too) with
+    ``pip install -e``, else (an installed wheel) from the package index."""
+    root = here.resolve().parents[2]
+    if (root / "pyproject.toml").is_file():
+        return f'pip install -e ".[plot]" (in {root})'
+    return "pip install 'twomass-som[plot]'"
+
+
 #: The one line a command prints (or the error says) where matplotlib is missing.
-PLOT_HINT = "figures need matplotlib: pip install 'twomass-som[plot]'"
+PLOT_HINT = f"figures need matplotlib, the 'plot' extra: {_install_command()}"
 
 #: Resolution of every figure [dots per inch]; sizes below are in inches.
 DPI = 100
@@ -34,6 +46,13 @@ def require_matplotlib() -> Any:
     except ImportError:
         raise UserError(PLOT_HINT) from None
     return matplotlib
+
+
+def require_plots(option: str) -> None:
+    """A :class:`training.errors.UserError` naming ``option`` (``--plot``, ...) and saying how to get
+    matplotlib (:data:`PLOT_HINT`) where it is not installed: a command checks before any work."""
+    if not plots_available():
+        raise UserError(f"{option}: {PLOT_HINT}")
 
 
 def plots_available() -> bool:

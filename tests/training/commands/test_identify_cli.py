@@ -272,7 +272,7 @@ def test_existing_out_raises_output_exists_error(records, tmp_path):
     out = tmp_path / "taken.jsonl"
     out.write_text("")
     args = argparse.Namespace(files=[str(records / "good.csv")], out=out, overwrite=False, checkpoints=None,
-                              jobs=None, no_refine=True, no_progress=True)
+                              jobs=None, no_refine=True, no_progress=True, plot=None)
     with pytest.raises(OutputExistsError, match="exists"):
         identify.run(args)
 

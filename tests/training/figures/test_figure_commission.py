@@ -69,7 +69,7 @@ def test_commission_command_writes_the_page(tmp_path):
     assert main(args) == 2  # the page exists: not replaced without --overwrite
 
 
-def test_commission_without_matplotlib_still_commissions(tmp_path, monkeypatch, capsys):
+def test_commission_without_matplotlib_refuses_plots_before_any_work(tmp_path, monkeypatch, capsys):
     from training.cli import main
 
     monkeypatch.setitem(__import__("sys").modules, "matplotlib", None)  # as if not installed
@@ -79,7 +79,7 @@ def test_commission_without_matplotlib_still_commissions(tmp_path, monkeypatch, 
                      '"mu_F": 0.001}')
     args = ["commission", "--params", str(plant), "--w-limit", "20", "--travel-limit", "5", "--no-tune",
             "--plots", str(tmp_path / "plots"), "--json", str(tmp_path / "r.json")]
-    assert main(args) == 0
+    assert main(args) == 2
     err = capsys.readouterr().err
-    assert "pip install 'twomass-som[plot]'" in err and len(err.strip().splitlines()) == 1
-    assert (tmp_path / "r.json").exists() and not (tmp_path / "plots").exists()
+    assert "the 'plot' extra: pip install" in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "r.json").exists() and not (tmp_path / "plots").exists()
