@@ -32,6 +32,15 @@ __all__ = ["CommissioningReport", "PlantRun", "summarize", "summary_text"]
 _SHOWN: tuple[str, ...] = sim.PARAM_NAMES
 _UNITS = {"J_sigma": "kg m^2", "f_e": "Hz", "backlash": "rad (2s)", "M_FC": "Nm", "mu_F": "Nm s/rad"}
 
+#: Where the text report prints a commissioning warning, by its code: with the test runs, after the
+#: closed-loop runs on the drive (before what was delivered), or under the permission (the others:
+#: what the permission and the design read).
+_WARNING_SECTION: dict[str, str] = {
+    "test_not_informative": "test", "speed_against_torque": "test",
+    "run_stopped": "drive", "loop_rejected": "drive", "loop_not_settled": "drive", "loop_unlike_model": "drive",
+    "scenario_small": "drive",
+}
+
 
 @dataclass(frozen=True)
 class PlantRun:
@@ -198,7 +207,8 @@ class CommissioningReport:
              f"(drive M_max {c.M_max:g} Nm, T_s {c.T_s * 1e6:g} us, T_Ei {c.T_Ei * 1e3:g} ms)"]
         if self.breach is not None:
             L.append(f"STOPPED: {self.breach.text()}")
-        L += self._excitation_lines() + self._identification_lines()
+        notes = self._warning_lines()
+        L += self._excitation_lines() + notes["test"] + self._identification_lines()
         if self.validation is not None:
             v = self.validation
             osc = "n/a (oscillation below 3 q_w)" if v.osc_nrmse is None else f"{v.osc_nrmse:.3g} (<= {v.osc_threshold:g})"
@@ -207,13 +217,27 @@ class CommissioningReport:
         if self.permission is not None:
             L.append(f"4 REFUSED [{self.permission.rule}]: no controller from the identified model. {self.permission.reason}"
                      if self.refused else f"4 permission: {self.permission.reason}")
-        L += [f"   warning [{w.code}]: {w.text}" for w in self.warnings]
+        L += notes["permission"]
         if self.proposal is not None:
             L += self._proposal_lines()
         if self.fallback is not None:
             L += self._fallback_lines()
-        L += self._delivered_lines() + self._limit_lines() + self._truth_lines()
+        L += notes["drive"] + self._delivered_lines() + self._limit_lines() + self._truth_lines()
         return "\n".join(line.rstrip() for line in L)
+
+    def _warning_lines(self) -> dict[str, list[str]]:
+        """The commissioning's warnings by the section of the report they belong to (by code,
+        :data:`_WARNING_SECTION`). ``run_stopped`` is said of a test run and of a closed-loop run
+        alike: the first one goes with the test runs when a test run was stopped (the chain warns
+        in its order), the others with the runs on the drive."""
+        out: dict[str, list[str]] = {"test": [], "permission": [], "drive": []}
+        test_stopped = any(e.get("aborted") for e in self.excitation.log)
+        for w in self.warnings:
+            section = _WARNING_SECTION.get(w.code, "permission")
+            if w.code == "run_stopped" and test_stopped:
+                section, test_stopped = "test", False
+            out[section].append(f"   warning [{w.code}]: {w.text}")
+        return out
 
     def _excitation_lines(self) -> list[str]:
         L = ["1 test signal (rules E1-E9; stop at: the speed limit handed to the drive, the user's less the headroom after a stop):",
@@ -354,7 +378,8 @@ def summarize(reports: list[CommissioningReport], wall_s: float) -> dict[str, An
     whose experiments ended at a passed limit (``stopped_at_limit``, names), delivered
     loops (model-based, F1), improvement over the model-based deliveries whose proposal settled,
     the F1 crossovers; with simulated drives the truth checks (stable, margins on the true linear
-    model)."""
+    model). ``wall_s``: the time the caller measured over the drives [s] (``summary_text`` calls it
+    the chain time)."""
     by_rule: dict[str, int] = {}
     for r in reports:
         if r.refused:
@@ -397,13 +422,15 @@ def summary_text(s: dict[str, Any]) -> str:
          f"refused for a model-based controller: {s['refused']}/{s['plants']} ({rules}); delivered: {s['delivered']}/{s['plants']} "
          f"({s['model_based']} model-based, {s['fallback']} fallback F1)",
          "F1 crossovers [rad/s]: " + (", ".join(f"{v:.3g}" for v in sorted(w_c)) if w_c else "none"),
-         f"improvement on the drive over the model-based deliveries with a settled proposal (1 - delivered/proposal cost): "
-         f"median {pct(s['median_improvement'])}, worst {pct(s['worst_improvement'])} ({s['worst_plant']})"]
+         "improvement on the drive over the model-based deliveries with a settled proposal (1 - delivered/proposal cost): "
+         + ("none to summarize (no such delivery)" if s["worst_plant"] is None else
+            f"median {pct(s['median_improvement'])}, worst {pct(s['worst_improvement'])} ({s['worst_plant']})")]
     if s["with_truth"]:
         pm, gm = s["true_min_phase_margin"], s["true_min_gain_margin_dB"]
         L += ["-- simulation only --",
               f"identified structure = true class: {s['structure_correct']}/{s['with_truth']}",
               f"delivered loops stable on the true linear model: {s['true_stable']}/{s['delivered']}; smallest true PM "
               f"{'-' if pm is None else f'{pm:.1f} deg'}, GM {'-' if gm is None else f'{gm:.1f} dB'}"]
-    L.append(f"wall time {s['wall_s']:.0f} s")
+    L.append(f"chain time {s['wall_s']:.1f} s (the drives' experiments and analysis; the command's start-up and "
+             "loading the maps not counted)")
     return "\n".join(L)

@@ -131,9 +131,9 @@ def set_tables(name: str, s: Mapping[str, Any], methods: Sequence[str]) -> list[
 
 
 def timing_lines(timing: Mapping[str, Any], workers: int | None) -> list[str]:
-    """Markdown lines: this run's wall time, and how long the (possibly cached) results took to compute."""
+    """Markdown lines: this run's wall time over the study (from :func:`run_study`), and how long the (possibly cached) results took to compute."""
     sets = timing["sets"]
-    lines = [f"Wall time of this run: {timing['total_s']:.0f} s ("
+    lines = [f"Wall time of this run's study (the command's start-up not counted): {timing['total_s']:.0f} s ("
              + ", ".join(f"{k} {v['s']:.0f} s" for k, v in sets.items()) + f"), {workers} workers."]
     done = []
     for name, v in sets.items():

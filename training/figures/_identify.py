@@ -117,7 +117,7 @@ def _text(result: IdentificationResult, a: Analysis, n: int) -> str:
         lines.append(f"  (maps said {q.maps_structure})")
     lines.append("  P(class) on the structure map: " + ", ".join(f"{c} {v:.2f}"
                                                                   for c, v in q.structure_probabilities.items()))
-    lines += ["", "parameters"]
+    lines += ["", "parameters (reported)"]
     for name in PARAMETER_NAMES:
         lines.append(f"  {name:9} {number(getattr(result.parameters, name)):>11}  {PARAMETER_UNITS[name]}")
     lines += ["", "quality"]
@@ -130,7 +130,7 @@ def _text(result: IdentificationResult, a: Analysis, n: int) -> str:
         lines.append(f"  refine residual {number(q.refine_residual, 3)} (maps' answer "
                      f"{number(q.refine_start_residual, 3)})")
     est = q.maps_estimate
-    lines.append(f"  maps' estimate: f_e {number(est.get('f_e'))} Hz, V_J {number(est.get('V_J'), 3)}, "
+    lines.append(f"  maps' answer: f_e {number(est.get('f_e'))} Hz, V_J {number(est.get('V_J'), 3)}, "
                  f"s_N {number(est.get('s_N'), 3)}")
     if q.section_flags:
         lines.append("  sections: " + "; ".join(q.section_flags))
@@ -244,22 +244,31 @@ def best_match(trained: TrainedMap, features: np.ndarray, member: int = 0) -> in
     return unit
 
 
-def _identified(symbol: str, result: IdentificationResult | None) -> float | None:
-    """The record's identified value of a plane's parameter (``s_N``: the refined, else the maps')."""
+def plane_values(symbol: str, unit_value: float, result: IdentificationResult | None,
+                 member: int = 0) -> list[tuple[str, float | None]]:
+    """The values of a plane's quantity that a panel of the maps page names, each with what it is:
+    ``"best unit (member k)"``, the record's best match unit on one ensemble member; ``"maps"``,
+    the maps' answer, the ensemble's estimate before the refinement (where the maps estimate the
+    quantity); and ``"reported"``, the value the identification answers (``parameters``; for
+    ``s_N`` the refined ``quality.refined_s_N``, else the maps' value, which is then reported)."""
+    out: list[tuple[str, float | None]] = [(f"best unit (member {member + 1})", unit_value)]
     if result is None:
-        return None
-    if symbol == "s_N":
-        q = result.quality
-        return q.refined_s_N if q.refined_s_N is not None else q.maps_estimate.get("s_N")
-    return getattr(result.parameters, symbol)
+        return out
+    q = result.quality
+    maps = q.maps_estimate.get(symbol)
+    answer = (q.refined_s_N if q.refined_s_N is not None else maps) if symbol == "s_N" else getattr(result.parameters, symbol)
+    if maps is not None:
+        out.append(("maps", maps))
+    return out + [("reported", answer)]
 
 
 def maps_figure(analysis: Analysis, maps: dict[str, TrainedMap], result: IdentificationResult | None = None, *,
                 member: int = 0, name: str | None = None) -> Any:
     """The record on the maps: per map (of :data:`PARAMETER_PLANES`) the parameter its units
     store, with lines of constant value (paper Figs. 7-8) and the record's best match (ensemble
-    member ``member``) marked; each panel names the unit's value, the identified value and the
-    recall distance over the map's training 99 % quantile (14 x 11 in)."""
+    member ``member``) marked; each panel names the recall distance over the map's training 99 %
+    quantile and the quantity's values, each labelled (:func:`plane_values`: the best unit's, the
+    maps' answer, and the value the identification reports) (14 x 11 in)."""
     names = [n for n in PARAMETER_PLANES if n in maps]
     fig = new_figure(14.0, 11.0)
     cols = 2
@@ -272,12 +281,12 @@ def maps_figure(analysis: Analysis, maps: dict[str, TrainedMap], result: Identif
         draw_plane(ax, trained.som.grid, values, label=with_unit(plane.label, plane.unit), log=True, contours=True,
                    mark=unit, mark_label="record's best match")
         r, c = divmod(unit, trained.som.grid.cols)
-        ident = _identified(plane.symbol, result)
         dist = result.quality.map_distance_ratio.get(map_name) if result is not None else None
         unit_text = "" if plane.unit == "-" else f" {plane.unit}"
+        said = "; ".join(f"{what} {number(v, 3)}{unit_text}"
+                         for what, v in plane_values(plane.symbol, float(values[unit]), result, member))
         ax.set_title(f"{map_name} map (member {member + 1} of {trained.som.batch_shape.numel()}): best match row {r}, "
-                     f"column {c}\nunit's {plane.symbol} {number(float(values[unit]), 3)}{unit_text}; identified "
-                     f"{number(ident, 3)}{unit_text}; distance / 99 % quantile {number(dist, 2)}", fontsize=9)
+                     f"column {c}, distance / 99 % quantile {number(dist, 2)}\n{plane.symbol}: {said}", fontsize=9)
     fig.suptitle(f"{name or (result.record if result is not None else None) or 'record'} on the maps",
                  fontsize=12, fontweight="bold")
     return fig
