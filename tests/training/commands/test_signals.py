@@ -29,7 +29,7 @@ from training.cli import main
 TWOMASS = [sys.executable, "-m", "training.cli"]
 SIGNALS = [signal.SIGTERM, signal.SIGINT]
 #: Seconds a command may take to get to work, and to end once signalled (a busy machine).
-START_TIMEOUT, END_TIMEOUT = 240.0, 60.0
+START_TIMEOUT, END_TIMEOUT = 240.0, 180.0  # generous: a loaded CI machine is slow, a hang is not
 
 
 # --- in this process: the handlers of training.cli ---------------------------------------------------
