@@ -10,7 +10,7 @@ gaps the speed refinement answered ``stiff`` with a lead of 1.6-3.2 counts score
 angle error of the best model without a gap. The speed also loses a gap on a slowly sampled
 drive's stiff shaft, crossed in a sample or two even where it is tens of counts wide: on a 0.2 Nm
 drive at 844 us the speed refinement dropped the maps' gap of 14 counts of lead for a model
-without one (envelope seed 12, #658), while the angle error picks the gap model at 0.82 x.
+without one, while the angle error picks the gap model at 0.82 x.
 
 :func:`find_hidden_gap` lets models with and without a gap compete on the angle error, each side
 with its own search, and returns the gap model where it wins clearly. The angle error is the

@@ -56,11 +56,10 @@ class RefineConfig:
     exploring error is below ``switch_win`` x the first's (a clear win only: a narrow one added
     false gaps on stiff shafts of a coarse drive), it replaces the first exploration: its elites
     become the finalists, and the rattle starts from its best; where it loses, the answer is the one
-    without it (it draws from a random stream of its own). (Its best models joining the first's
-    elites as finalists was not enough: the whole-record error of a lightly damped shaft rattling
-    in its gap is needle-sharp, +-5 % in ``f_e`` scores like no fit at all, and the near-true
-    models of the climb lost the choice to the first's soft, narrow ones; large axis, held-out
-    seeds 9, 11, 13, with the rescue: backlash within 30 % 85.1, 87.5, 88.1 -> 89.4, 96.4, 93.2 %.)
+    without it (it draws from a random stream of its own). It replaces the first's elites rather
+    than joining them because the whole-record error of a lightly damped shaft rattling in its gap
+    is needle-sharp (+-5 % in ``f_e`` scores like no fit at all): the climb's near-true models would
+    lose the choice to the first's soft, narrow ones.
 
     Rescue (answers that explain little): where the exploration's best leaves more than
     ``rescue_above`` of the windows' measured energy unexplained while that energy is
@@ -68,11 +67,9 @@ class RefineConfig:
     a response to explain), the maps' answer is taken to be far off (measured on the large axis: a
     stiff shaft with a wide gap answered ``elastic`` at 13 Hz, the truth at 232 Hz; on the noisy
     drive a shaft with a gap of ``s_N`` 0.57 answered at 75 Hz and ``V_J`` 0.32 leaving 0.70 of the
-    windows' energy, the truth at 95 Hz and 0.68 leaving 0.02: until session 20 the rescue ran above
-    0.8 only; from 0.5, on 10 matrix rows of 200 and 2000 envelope systems, 13 answers gained, 7 of
-    them the class, the others a width within 30 % or ``E_30``, one lost its class, warned; the
-    time within the machine's noise). A grid over
-    the whole range, ``rescue_grid_f_e`` eigenfrequencies from SPEC 3.1's lowest to the Nyquist
+    windows' energy, the truth at 95 Hz and 0.68 leaving 0.02: so a far-off answer can still
+    explain half the energy, and the threshold is 0.5). A grid over
+    the whole range, ``rescue_grid_f_e`` eigenfrequencies from the drive envelope's lowest to the Nyquist
     frequency times ``rescue_V_J`` times ``grid_s_N``, then ``far_rounds`` rounds, with a random
     stream of its own (where it loses, the answer is the one without it). Where it beats the
     exploration by ``switch_win``, its elites join the finalists beside the exploration's (the
@@ -122,14 +119,12 @@ class RefineConfig:
     seeds where it has no gap), and the lowest error stands: too much damping is
     where the lightly damped shafts' valleys hold it (measured: a noisy drive's ``d`` 0.012 at
     20 Hz stopped at ``d`` 0.028 and ``V_J`` 41 % high, unwarned, the truth scoring 300 x better;
-    from half the damping it reaches the truth. On the drive matrix and 2000 envelope systems 8
-    answers gained, 4 of them the class, one lost ``E_10``; about 10 % of the reference drive's
-    records are retried. Retrying every fit above 4 x the noise took twice as long for the same).
+    from half the damping it reaches the truth; about 10 % of the reference drive's records are
+    retried, and retrying every fit above 4 x the noise took twice as long for the same answers).
     The maps' answer, where it was near, is the other way out (measured: a fast spindle's 88 Hz
     shaft, ``d`` 0.011, answered with ``V_J`` 33 % low and ``d`` 0.004, unwarned at a residual of
     0.48; the maps had ``V_J`` 7 % low and no gap, and from there, with the gap seeds, the polish
-    reaches the truth. On 13 matrix rows of 200 and 2000 envelope systems 6 answers gained, 2 lost
-    ``E_10`` or the class at a threshold, warned).
+    reaches the truth).
 
     Free one-mass part (problems with ``free_one_mass``: STEP 2 flagged its fit, as for very soft
     mechanics whose test sections are shorter than an oscillation period; and wherever the
@@ -148,15 +143,13 @@ class RefineConfig:
     its bound; or 2.5 % of ``M*`` and 1 % of ``M* / w_max``) around the chosen model and around the
     maps' answer, then ``free_rounds`` rounds (``free_spread``: the first spread of the three new
     coordinates, in units of their scales 1, ``M*``, ``M* / w_max``): one search with ``V_J`` x 0.5,
-    1, 2 of the centre's, one (a random stream of its own) with 5 ``V_J`` over SPEC 3.1's range, for
-    a STEP 2 that read the motor alone (a load 3-5 x the motor lies beyond the first). Measured on
-    the envelope's tests shorter than one period (seeds 5 and 6, 199 records), against the previous
-    grids over ``J_sigma`` (x 1/4 .. 4), ``f_e`` (in steps of 2) and ``V_J`` without the scale: the
-    scale alone took ``J_sigma`` within 5 % from 65 to 71 % and ``E_30`` from 74 to 81 %, with the
-    finer ``f_e`` grid and the polish's damped steps to 75 and 85 %. The free
+    1, 2 of the centre's, one (a random stream of its own) with 5 ``V_J`` over the drive envelope's
+    range, for a STEP 2 that read the motor alone (a load 3-5 x the motor lies beyond the first).
+    The exact scale takes ``J_sigma`` out of the grids because a grid over it (and over ``f_e`` in
+    steps of 2) left the search in a broad valley beside the needle in ``f_e``. The free
     model replaces the chosen one only when its plain squared error is below ``free_win`` times the
     chosen one's with STEP 2's own one-mass values, uncapped (against the capped friction, a 2 Hz
-    model 3 x worse than the chosen 37 Hz one had won on a commissioning plant with motor friction).
+    model 3 x worse than the chosen 37 Hz one would win on a commissioning plant with motor friction).
 
     Angle (:mod:`training.identification._refine._angle`, run by the identifier where the answer is
     ``stiff`` on a record whose speed could hide a backlash, or where the refinement dropped the
