@@ -14,24 +14,15 @@ from sim import DriveConfig, Record, TestSignalConfig, TwoMassParams, responses_
 from training.errors import IdentificationError
 from training.identification import analyze, detect_sections
 
+from test_plausibility import variant
+
 RPM = 60.0 / (2.0 * math.pi)
 
 
 def _copy(rec: Record, *, drop: tuple[str, ...] = (), keep_ref: bool = False, **changes) -> Record:
     """``rec`` without its ``section`` column (and ``torque_ref`` unless ``keep_ref``), metadata
-    ``drop`` removed, then ``changes`` to metadata or columns."""
-    new = copy.deepcopy(rec)
-    new.section = None
-    if not keep_ref:
-        new.torque_ref = None
-    for k in drop:
-        new.meta.pop(k, None)
-    for k, v in changes.items():
-        if k in new.meta:
-            new.meta[k] = v
-        else:
-            setattr(new, k, v)
-    return new
+    ``drop`` removed, then ``changes`` to metadata or columns (:func:`test_plausibility.variant`)."""
+    return variant(rec, drop_meta=drop, section=None, **({} if keep_ref else {"torque_ref": None}), **changes)
 
 
 def _rows(rec: Record, rows: np.ndarray) -> Record:
