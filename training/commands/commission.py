@@ -55,7 +55,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     src.add_argument("--params", type=Path, help="JSON file: one plant (object) or a list of plants; keys J_sigma, V_J, "
                      "f_e, d, backlash [rad, total 2s], M_FC, mu_F (or J_M, J_L, C_F, D_F), optional name; "
                      "optional drive keys per plant T_s, encoder_counts, T_Ei, K_M, M_N, M_max, current_noise_std "
-                     "(default: the reference drive's; checked against SPEC 3.1's envelope)")
+                     "(default: the reference drive's; checked against the drive envelope of docs/contract.md)")
     src.add_argument("--population", type=int, metavar="N", help="draw N plants from the SPEC default population")
     src.add_argument("--resume", type=Path, metavar="DIR",
                      help="a file-based drive: DIR/drive.json (config, limits); the chain writes each experiment it "

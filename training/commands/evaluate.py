@@ -59,11 +59,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     only.add_argument("--no-som", action="store_true", help="IV4 only (e.g. while the maps are being retrained)")
     parser.add_argument("--no-plots", action="store_true", help="skip the PNG figures")
     parser.add_argument("--drives", type=int, default=None, metavar="N",
-                        help="instead: the study on the matrix of six drives across SPEC 3.1's envelope (issue 11), "
+                        help="instead: the study on the matrix of six drives across the drive envelope (docs/contract.md), "
                              "N systems per drive (seed --seed), written to OUT/drives.md and OUT/drives.json")
     parser.add_argument("--envelope-drives", type=int, default=None, metavar="K",
-                        help="with --drives N: instead of the matrix, K drives and tests drawn at random over SPEC "
-                             "3.1's envelope (seed --seed; drives no matrix chose), N systems each, and all together; "
+                        help="with --drives N: instead of the matrix, K drives and tests drawn at random over the "
+                             "drive envelope (seed --seed; drives no matrix chose), N systems each, and all together; "
                              "written to OUT/drives_envelope.md and OUT/drives_envelope.json")
     _progress.add_option(parser)
 
@@ -108,11 +108,11 @@ def _run_drives(args: argparse.Namespace) -> int:
                + (f" --checkpoints {args.checkpoints}" if args.checkpoints is not None else ""))
     if envelope:
         runs = envelope_rows(args.envelope_drives, args.drives, args.seed, identifier)
-        title = f"Identification on {args.envelope_drives} drives drawn at random over SPEC 3.1's envelope (issue 11)"
+        title = f"Identification on {args.envelope_drives} drives drawn at random over the drive envelope"
     else:
         runs = ((name, case.description, drive_rows(case, args.drives, args.seed, identifier))
                 for name, case in DRIVES.items())
-        title = "Identification on a matrix of drives (issue 11)"
+        title = "Identification on a matrix of drives"
     figures, descriptions, every = {}, {}, []
     for name, words, rows in runs:  # a drive at a time: its figures as soon as they are known
         figures[name], descriptions[name] = drive_figures(rows), words

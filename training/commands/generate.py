@@ -28,8 +28,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help=f"systems per shard file, the unit of resuming (default: N/{MIN_SHARDS} rounded up, "
                              f"at most {MAX_SHARD_SIZE}: an interrupt loses at most one shard's work)")
     parser.add_argument("--envelope", action="store_true",
-                        help="draw drives, test runs and mechanics over SPEC 3.1's drive envelope (the shipped maps' "
-                             "data) instead of the SPEC 1 population on the reference drive")
+                        help="draw drives, test runs and mechanics over the drive envelope of docs/contract.md (the shipped "
+                             "maps' data) instead of the default population on the reference drive")
     parser.add_argument("--workers", type=int, default=None,
                         help="analysis processes, >= 1 (default: CPU count; under torchrun: each process's share)")
     _progress.add_option(parser)

@@ -25,7 +25,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     src.add_argument("--params", type=Path, help="JSON file: one system (object) or a list of systems; keys "
                      "J_sigma, V_J, f_e, d, backlash [rad, total], M_FC, mu_F (or J_M, J_L, C_F, D_F), optional name; "
                      "optional drive keys per system T_s, encoder_counts, T_Ei, K_M, M_N, M_max, current_noise_std "
-                     "(default: the reference drive's; checked against SPEC 3.1's envelope)")
+                     "(default: the reference drive's; checked against the drive envelope of docs/contract.md)")
     src.add_argument("--population", type=int, metavar="N", help="draw N systems from the SPEC default population")
     parser.add_argument("--seed", type=int, default=0, help="population and noise seed (default 0)")
     parser.add_argument("--out", type=Path, required=True, help="folder for NAME.csv + NAME.json")

@@ -66,7 +66,7 @@ def _case(name: str, description: str, M_N: float, w_max: float, time_scale: tup
 
 #: The matrix of issue 11 (each inside SPEC 3.1's envelope).
 DRIVES: dict[str, DriveCase] = {c.name: c for c in (
-    _case("reference", "SPEC 1 reference drive", 10.0, 100.0),
+    _case("reference", "the reference drive", 10.0, 100.0),
     _case("servo_200w", "200 W servo, 125 us, 2^17 counts", 0.64, 300.0, (0.05, 1.0), M_max=1.9, K_M=0.4,
           T_s=125e-6, T_Ei=2e-4, encoder_counts=2**17, noise=0.005),
     _case("low_res_1ms", "low-resolution drive, 1 ms, 2^13 counts", 10.0, 100.0, T_s=1e-3, T_Ei=1e-3,
@@ -166,7 +166,7 @@ def drive_figures(rows: Sequence[dict[str, Any]]) -> dict[str, Any]:
 
 
 def drives_markdown(figures: dict[str, dict[str, Any]], command: str, descriptions: dict[str, str] | None = None,
-                    title: str = "Identification on a matrix of drives (issue 11)") -> str:
+                    title: str = "Identification on a matrix of drives") -> str:
     """The per-drive table (``figures``: drive name -> :func:`drive_figures`; ``descriptions``: drive
     name -> the drive in words, default those of :data:`DRIVES`)."""
     fmt = lambda v: "n/a" if v is None else f"{v:.1f}"  # noqa: E731

@@ -228,7 +228,7 @@ def envelope_warnings(findings: list[Finding]) -> list[IdentWarning]:
     for f in findings:
         unit = UNITS[f.quantity]
         rng = f.envelope if "envelope" in f.outside else f.trained
-        what = "SPEC 3.1's drive envelope" if "envelope" in f.outside else "what the maps were trained on"
+        what = "the drive envelope (docs/contract.md)" if "envelope" in f.outside else "what the maps were trained on"
         code = "outside_envelope" if "envelope" in f.outside else "drive_outside_training"
         out.append(IdentWarning(code, f"{f.quantity} = {_fmt(f.value)} {unit} is outside {what} "
                                       f"({_fmt(rng[0])} .. {_fmt(rng[1])} {unit}): the answer is less certain".replace(

@@ -47,7 +47,7 @@ WARNING_CODES: dict[str, str] = {
                        "encoder_counts it steps in; the torque: neither M_star nor M_max): a unit error would go "
                        "unnoticed",
     "drive_outside_training": "a drive or test value lies outside what the maps were trained on",
-    "outside_envelope": "a drive, test or identified value lies outside SPEC 3.1's drive envelope",
+    "outside_envelope": "a drive, test or identified value lies outside the drive envelope (docs/contract.md)",
     "backlash_below_resolution": "a backlash narrower than the encoder resolves may hide, or its width is "
                                  "uncertain: an upper bound is given",
     "backlash_from_angle": "the backlash shows in the motor's angle, not in the fit of its speed (a coarse "
