@@ -152,7 +152,7 @@ def _check_drive(source: str, drive: Any, M_star: float) -> None:
     ``current_noise_std`` as the measured torque's noise over the test torque ``M_star``
     (``current_noise_std K_M / M_star``). ``K_M`` alone has no range: torque and inertia scaled
     together give the same speed."""
-    from training.identification import SPEC_ENVELOPE  # here: the commands' --help loads no torch
+    from training.identification import SPEC_ENVELOPE, inside_envelope  # here: the commands' --help loads no torch
 
     d = drive
     checks = (  # key, its value and unit; the envelope's quantity, the value checked, what it is where derived
@@ -165,7 +165,7 @@ def _check_drive(source: str, drive: Any, M_star: float) -> None:
          f"current_noise_std * K_M / M* (K_M {d.K_M:g} Nm/A, M* {M_star:g} Nm)"))
     for key, value, unit, quantity, checked, derived in checks:
         lo, hi = SPEC_ENVELOPE[quantity]
-        if lo * (1.0 - 1e-9) <= checked <= hi * (1.0 + 1e-9):
+        if inside_envelope(quantity, checked):  # the identification's own test of "inside"
             continue
         expected = (f"{derived} within {lo:.8g} .. {hi:.8g}, received {checked:.4g}" if derived
                     else f"{lo:.8g} .. {hi:.8g} {unit}")

@@ -38,9 +38,10 @@ from typing import Any
 import numpy as np
 
 import sim
+from sim._values import loads
 from som_torch import atomic_write
 from training._json import dumps, json_safe
-from training.errors import CommissioningError, ExperimentPending, UserError
+from training.errors import CommissioningError, ExperimentPending, UserError, one_line
 
 from ._guard import CONFIG_KEYS, MEASURED_TORQUE_ALLOWANCE, config_conflict, record_peaks
 
@@ -77,11 +78,11 @@ class FileDrive:
         self.folder = Path(folder)
         spec = self.folder / "drive.json"
         try:
-            d = json.loads(spec.read_text())
+            d = loads(spec.read_text(encoding="utf-8-sig"))
         except FileNotFoundError:
             raise UserError(f"{spec}: not found (expected {{\"config\": {{...}}, \"limits\": {{...}}}})") from None
-        except (OSError, json.JSONDecodeError) as err:
-            raise UserError(f"{spec}: {err}") from None
+        except (OSError, UnicodeDecodeError, ValueError) as err:  # unreadable, not UTF-8, no JSON, nested too deeply
+            raise UserError(f"{spec}: {one_line(err)}") from None
         if not isinstance(d, dict) or not isinstance(d.get("config"), dict) or not isinstance(d.get("limits"), dict):
             raise UserError(f"{spec}: expected an object with 'config' and 'limits' objects")
         self.config = d["config"]

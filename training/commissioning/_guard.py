@@ -279,8 +279,12 @@ class CheckedDrive:
             raise LimitPassed(self.breach)
         rec = self._checked(call_drive(self.drive.run_closed_loop, "run_closed_loop", (law, scenario, limits), self.timeout),
                             "run_closed_loop")
-        if not rec.meta.get("aborted", False) and len(rec) != len(scenario):
-            raise CommissioningError(f"drive.run_closed_loop returned {len(rec)} of the scenario's {len(scenario)} samples "
+        n, N = len(rec), len(scenario)
+        if n > N:
+            raise CommissioningError(f"drive.run_closed_loop returned {n} samples for a scenario of {N}: the recording of "
+                                     f"another experiment")
+        if n < N and not rec.meta.get("aborted", False):
+            raise CommissioningError(f"drive.run_closed_loop returned {n} of the scenario's {N} samples "
                                      f"without flagging a stop (metadata 'aborted'): a cut recording, not a stop at a limit")
         return self._keep(kind, rec, {"stop_at": limits.w_max})
 

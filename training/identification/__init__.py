@@ -3,7 +3,7 @@ model-based refinement -> one typed result (SPEC sections 4 and 9)."""
 
 from ._analysis import FEATURE_NAMES, FEATURE_VERSION, REFERENCE_DRIVE, Analysis, analyze
 from ._drive import DriveValues
-from ._envelope import FILE_NAME as ENVELOPE_FILE, SPEC_ENVELOPE, Envelope, trained_envelope
+from ._envelope import FILE_NAME as ENVELOPE_FILE, SPEC_ENVELOPE, Envelope, inside_envelope, trained_envelope
 from ._batch import CHUNK
 from ._features import eigenfrequency_features, extra_features, structure_and_peaks, structure_features
 from ._identifier import Identifier
@@ -22,7 +22,7 @@ __all__ = [
     "Identifier", "CHUNK", "IdentificationResult", "IdentificationFailure", "Outcome", "Parameters", "Quality",
     "IdentWarning", "WARNING_CODES", "PARAMETER_NAMES", "PARAMETER_UNITS",
     "analyze", "Analysis", "FEATURE_NAMES", "FEATURE_VERSION", "REFERENCE_DRIVE", "DriveValues",
-    "Envelope", "SPEC_ENVELOPE", "ENVELOPE_FILE", "trained_envelope",
+    "Envelope", "SPEC_ENVELOPE", "ENVELOPE_FILE", "inside_envelope", "trained_envelope",
     "detect_sections", "SectionSplit", "fit_one_mass", "FORMULATIONS", "OneMassFit", "speed_from_position",
     "eigenfrequency_features", "structure_features", "structure_and_peaks", "extra_features", "fit_oscillation",
     "OscillationFit",

@@ -113,6 +113,12 @@ def _inside(value: float, rng: tuple[float, float], slack: float = 1.0) -> bool:
     return lo * (1.0 - REL_TOL) / slack - 1e-300 <= value <= hi * (1.0 + REL_TOL) * slack + 1e-300
 
 
+def inside_envelope(quantity: str, value: float) -> bool:
+    """Whether ``value`` lies in the drive envelope's range of ``quantity`` (:data:`SPEC_ENVELOPE`),
+    with the tolerance the identification's own check allows (``REL_TOL``)."""
+    return _inside(value, SPEC_ENVELOPE[quantity])
+
+
 def _fmt(v: float) -> str:
     return f"2^{math.log2(v):.4g}" if v >= 1024 and float(math.log2(v)).is_integer() else f"{v:.4g}"
 

@@ -165,6 +165,19 @@ class CutLoopDrive(sim.SimulatedDrive):
         return rec
 
 
+class LongLoopDrive(sim.SimulatedDrive):
+    """Its closed-loop record is the scenario's and 300 samples more, flagged as stopped."""
+
+    def run_closed_loop(self, law: Any, scenario: sim.Scenario, limits: sim.DriveLimits) -> sim.Record:
+        rec = super().run_closed_loop(law, scenario, limits)
+        T_s = rec.T_s
+        for c in ("speed", "current", "torque_ref"):
+            setattr(rec, c, np.concatenate([getattr(rec, c), np.zeros(300)]))
+        rec.t = rec.t[0] + T_s * np.arange(len(rec.speed))
+        rec.meta["aborted"] = True
+        return rec
+
+
 class WrongTsDrive(sim.SimulatedDrive):
     """Samples at 250 us (the simulator's config) while the ``config`` it shows says 125 us."""
 

@@ -281,6 +281,17 @@ def test_a_cut_closed_loop_record_is_a_fault_not_a_stop(stub):
         commission(faulty_drives.CutLoopDrive(PLANT), LIMITS, identifier=stub("elastic", PLANT), config=FAST)
 
 
+def test_a_closed_loop_record_longer_than_the_scenario_is_a_fault_even_when_stopped(stub):
+    with pytest.raises(CommissioningError, match=r"drive\.run_closed_loop returned 1500 samples for a scenario of 1200"):
+        commission(faulty_drives.LongLoopDrive(PLANT), LIMITS, identifier=stub("elastic", PLANT), config=FAST)
+
+
+def test_a_drive_json_nested_too_deeply_is_one_line(tmp_path):
+    (tmp_path / "drive.json").write_text("[" * 200_000 + "]" * 200_000)
+    with pytest.raises(ValueError, match=r"drive\.json: invalid JSON: objects and lists nested too deeply$"):
+        FileDrive(tmp_path)
+
+
 def test_a_record_sampled_otherwise_than_the_config_is_a_fault(stub):
     ident = stub("elastic", PLANT)
     with pytest.raises(CommissioningError, match=r"experiment 1: its T_s 0\.00025 s .* config T_s 0\.000125 s"):
