@@ -34,6 +34,7 @@ from pathlib import Path
 from typing import Any
 
 from sim import EnvelopeRanges, PopulationRanges, time_scale
+from sim._values import shown
 from som_torch import CheckpointError, atomic_write
 from training._json import dumps
 from training.errors import error_text
@@ -201,8 +202,8 @@ def _range(value: Any, entry: str) -> tuple[float, float]:
     except OverflowError:  # an integer beyond float's range
         lo = hi = math.nan
     if not (math.isfinite(lo) and math.isfinite(hi) and lo <= hi):
-        shown = repr(value) if len(repr(value)) <= 60 else repr(value)[:57] + "..."
-        raise CheckpointError(f"{entry}: expected [low, high], two finite numbers with low <= high, received {shown}")
+        raise CheckpointError(f"{entry}: expected [low, high], two finite numbers with low <= high, received "
+                              f"{shown(value)}")
     return lo, hi
 
 

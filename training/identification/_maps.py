@@ -20,6 +20,7 @@ import torch
 
 import som_torch as st
 from sim import STRUCTURE_CLASSES
+from sim._values import shown
 from training.identification._analysis import FEATURE_NAMES, FEATURE_VERSION, GAP_NAMES
 from training.identification._envelope import FILE_NAME as ENVELOPE_FILE
 
@@ -124,19 +125,13 @@ CHECKPOINT_FILES: tuple[str, ...] = tuple(f"{name}.pt" for name in MAP_SPECS) + 
 DISTANCE_QUANTILES = ("0.5", "0.95", "0.99")
 
 
-def _shown(value: Any) -> str:
-    """``value``'s repr for an error line, at most 40 characters."""
-    text = repr(value)
-    return text if len(text) <= 40 else text[:37] + "..."
-
-
 def _json_kind(value: Any) -> str:
     """``value`` named as JSON names it, for an error line (``string 'x'``, ``null``, ``array [1, 2]``)."""
     if value is None:
         return "null"
     kind = {bool: "boolean", int: "number", float: "number", str: "string", list: "array", dict: "object"}.get(
         type(value), type(value).__name__)
-    return f"{kind} {_shown(value)}"
+    return f"{kind} {shown(value)}"
 
 
 def _number(value: Any) -> float:
