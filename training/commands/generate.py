@@ -15,6 +15,9 @@ MIN_SHARDS, MAX_SHARD_SIZE = 10, 500
 #: Bytes of a shard file besides its numbers (the .npz's headers: about 1000 measured), for the disk check.
 SHARD_OVERHEAD = 2048
 
+#: Rejected systems whose reason the summary prints (the rest: in the shards' .rejected.json files).
+SHOWN_REASONS = 3
+
 def default_shard_size(n: int) -> int:
     """Systems per shard for ``n`` systems when ``--shard-size`` is not given."""
     return max(1, min(MAX_SHARD_SIZE, -(-n // MIN_SHARDS)))
@@ -38,7 +41,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from training._distributed import process_group
     from sim import EnvelopeRanges
-    from training.learning import ESTIMATE_NAMES, TRUTH_NAMES, GenerateConfig, generate, load_dataset
+    from training.learning import ESTIMATE_NAMES, TRUTH_NAMES, GenerateConfig, generate
 
     from training._checks import BYTES_PER_SYSTEM, check_disk, check_memory, seed
     from training._pool import WORKER_MEMORY
@@ -64,7 +67,19 @@ def run(args: argparse.Namespace) -> int:
         generate(args.out, config, workers=workers, progress=bar.update)
     if not group.main:
         return 0
-    ds = load_dataset(args.out)
-    print(f"{args.out}: {len(ds)} systems, {int(ds.ok.sum())} analysed, {len(ds) - int(ds.ok.sum())} rejected "
-          f"by the analysis, sha256 {ds.sha256[:16]}")
+    print("\n".join(summary(args.out)))
     return 0
+
+
+def summary(out: Path) -> list[str]:
+    """What the dataset in ``out`` holds, and why the analysis rejected the first few systems it did."""
+    from training.learning import load_dataset, rejection_reasons
+
+    ds = load_dataset(out)
+    lines = [f"{out}: {len(ds)} systems, {int(ds.ok.sum())} analysed, {len(ds) - int(ds.ok.sum())} rejected "
+             f"by the analysis, sha256 {ds.sha256[:16]}"]
+    reasons = rejection_reasons(out)
+    lines += [f"  rejected system {system}: {reason}" for system, reason in list(reasons.items())[:SHOWN_REASONS]]
+    if len(reasons) > SHOWN_REASONS:
+        lines.append(f"  ... {len(reasons) - SHOWN_REASONS} more in {out}/shard_*.rejected.json")
+    return lines

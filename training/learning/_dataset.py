@@ -6,6 +6,8 @@ A dataset is a folder::
                           feature version) -- written first, checked on resume
     shard_00000.npz ...   per shard: features (S x F), truth columns (S), STEP-2 estimates (S),
                           ok (S; False where the analysis failed), written atomically
+    shard_00000.rejected.json ...   per shard with rejected systems: why the analysis refused
+                          each (outside the shards and their sha256: the reasons are words)
 
 Generation is resumable: an interrupted run continues with the missing shards; a folder made
 with another config is refused rather than mixed or overwritten. Under ``torchrun`` the ranks
@@ -95,11 +97,12 @@ class Dataset:
         return int(self.ok.shape[0])
 
 
-def _analyze_one(record: Any) -> tuple[np.ndarray, np.ndarray] | None:
+def _analyze_one(record: Any) -> tuple[np.ndarray, np.ndarray] | str:
+    """The features and STEP 2's estimates of ``record``, or why the analysis refused it."""
     try:
         a = analyze(record)
-    except ValueError:
-        return None
+    except ValueError as err:
+        return one_line(err)
     f = a.fit
     est = np.array([f.J_sigma, f.M_FC, f.mu_F, f.M_0, a.M_star, a.osc_quanta, f.rel_residual])
     return a.features, est
@@ -145,10 +148,10 @@ TASK_SYSTEMS = 16
 
 
 def _task(fields: dict[str, np.ndarray], drive: DriveConfig, signal: TestSignalConfig, substeps: int,
-          seed: int) -> dict[str, np.ndarray]:
+          seed: int) -> tuple[dict[str, np.ndarray], dict[int, str]]:
     """Features, estimates, truth and ok of the systems ``TwoMassParams(**fields)`` (flat ``m``)
     tested with ``signal`` on ``drive``, simulated with ``substeps`` and current noise seeded
-    ``seed + i`` for system ``i``. The parameters come as numpy arrays: torch would hand a tensor
+    ``seed + i`` for system ``i``; and why the analysis refused a system (by its index). The parameters come as numpy arrays: torch would hand a tensor
     to the worker as a shared-memory file descriptor, through a thread of this process that prints
     a traceback when the worker is ended during the hand-over (an interrupted run)."""
     sub = TwoMassParams(**fields)
@@ -158,11 +161,14 @@ def _task(fields: dict[str, np.ndarray], drive: DriveConfig, signal: TestSignalC
     out = {"features": np.zeros((m, len(FEATURE_NAMES))), "estimate": np.full((m, len(ESTIMATE_NAMES)), np.nan),
            "truth": np.stack([_truth_row(r.meta["truth"], drive, signal) for r in records]),
            "ok": np.zeros(m, dtype=bool)}
+    rejected: dict[int, str] = {}
     for i, record in enumerate(records):
         res = _analyze_one(record)
-        if res is not None:
+        if isinstance(res, str):
+            rejected[i] = res
+        else:
             out["features"][i], out["estimate"][i], out["ok"][i] = res[0], res[1], True
-    return out
+    return out, rejected
 
 
 def _population(config: GenerateConfig) -> EnvelopeSample:
@@ -177,9 +183,10 @@ def _population(config: GenerateConfig) -> EnvelopeSample:
 
 
 def _shard(k: int, population: EnvelopeSample, config: GenerateConfig, pool: Any,
-           progress: Callable[[int], None] | None) -> dict[str, np.ndarray]:
+           progress: Callable[[int], None] | None) -> tuple[dict[str, np.ndarray], dict[int, str]]:
     """The arrays of shard ``k``: a function of ``config`` and ``k`` alone (substeps per case within
-    the shard, noise seeded per system), whatever the workers and their tasks."""
+    the shard, noise seeded per system), whatever the workers and their tasks; and why the analysis
+    refused a system (by its index in the dataset)."""
     params, case, cases = population.params, population.cell.tolist(), population.cases
     lo, hi = _bounds(config, k)
     seed = config.seed * 1_000_003 + lo
@@ -193,12 +200,14 @@ def _shard(k: int, population: EnvelopeSample, config: GenerateConfig, pool: Any
             sub = run[torch.arange(j, min(j + TASK_SYSTEMS, b - a))]
             fields = {k: getattr(sub, k).numpy() for k in PARAM_NAMES}
             tasks.append((fields, drive, signal, substeps, seed + a - lo + j))
-    parts = []
-    for part in pool.map(_task, *zip(*tasks)):
+    parts, rejected, start = [], {}, lo
+    for part, refused in pool.map(_task, *zip(*tasks)):
         parts.append(part)
+        rejected.update({start + i: reason for i, reason in refused.items()})
+        start += len(part["ok"])
         if progress:
             progress(len(part["ok"]))
-    return {name: np.concatenate([part[name] for part in parts]) for name in parts[0]}
+    return {name: np.concatenate([part[name] for part in parts]) for name in parts[0]}, rejected
 
 
 def generate(out_dir: str | os.PathLike[str], config: GenerateConfig, *, workers: int | None = None,
@@ -225,7 +234,10 @@ def generate(out_dir: str | os.PathLike[str], config: GenerateConfig, *, workers
             for r in range(0, len(missing), group.world):
                 deal = missing[r:r + group.world]  # shard deal[i] goes to rank i
                 mine = _shard(deal[group.rank], population, config, pool, own) if group.rank < len(deal) else None
-                for i, (k, arrays) in enumerate(zip(deal, group.gather(mine) or [])):
+                for i, (k, (arrays, rejected)) in enumerate(zip(deal, group.gather(mine) or [])):
+                    if rejected:  # before the shard: a shard on disk is done and never rewritten
+                        rows = [{"system": j, "reason": why} for j, why in sorted(rejected.items())]
+                        atomic_write(out / _rejected_name(k), lambda f: f.write(dumps({"rejected": rows})), text=True)
                     atomic_write(out / f"shard_{k:05d}.npz", lambda f: np.savez(f, **arrays))
                     written = True
                     if own and i != group.rank:
@@ -235,6 +247,22 @@ def generate(out_dir: str | os.PathLike[str], config: GenerateConfig, *, workers
             (out / "dataset.json").unlink(missing_ok=True)
         raise
     return out
+
+
+def _rejected_name(k: int) -> str:
+    return f"shard_{k:05d}.rejected.json"
+
+
+def rejection_reasons(folder: str | os.PathLike[str]) -> dict[int, str]:
+    """Why the analysis refused systems of the dataset in ``folder``: system index -> one line
+    (from the shards' ``.rejected.json`` files; a shard written without one has none listed)."""
+    reasons: dict[int, str] = {}
+    for path in sorted(Path(folder).glob("shard_*.rejected.json")):
+        try:
+            reasons.update({int(row["system"]): str(row["reason"]) for row in json.loads(path.read_text())["rejected"]})
+        except (ValueError, OSError, KeyError, TypeError, RecursionError):  # words only: an unreadable list is no error
+            continue
+    return reasons
 
 
 def load_dataset(folder: str | os.PathLike[str]) -> Dataset:

@@ -77,3 +77,26 @@ def test_an_envelope_dataset_stores_each_systems_drive(tmp_path):
     assert env.trained["T_s"] == (62.5e-6, 1e-3) and env.trained["encoder_counts"] == (2.0**12, 2.0**24)
     assert env.trained["time_scale"] == (0.02, 0.05)
     assert Envelope.from_dict(env.to_dict()) == env
+
+
+def test_generate_says_why_the_analysis_rejected_a_system(tmp_path, capsys):
+    """A motor that cannot break away (Coulomb friction above M*) gives no test run: the summary names
+    the reason; the reasons live beside the shards, outside their sha256."""
+    from training.commands import generate as command
+    from training.learning import GenerateConfig, generate, load_dataset, rejection_reasons
+
+    config = GenerateConfig(n=2, seed=3, shard_size=2, ranges=PopulationRanges(M_FC=(20.0, 30.0)))
+    generate(tmp_path / "stuck", config, workers=1)
+    reasons = rejection_reasons(tmp_path / "stuck")
+    assert sorted(reasons) == [0, 1] and all(reasons.values())
+    dataset = load_dataset(tmp_path / "stuck")
+    assert not dataset.ok.any()
+    (tmp_path / "stuck" / "shard_00000.rejected.json").unlink()
+    assert load_dataset(tmp_path / "stuck").sha256 == dataset.sha256 and rejection_reasons(tmp_path / "stuck") == {}
+    lines = command.summary(tmp_path / "stuck")
+    assert "2 systems, 0 analysed, 2 rejected" in lines[0] and len(lines) == 1  # the reasons' file was removed
+    generate(tmp_path / "more", GenerateConfig(n=5, seed=3, shard_size=5, ranges=PopulationRanges(M_FC=(20.0, 30.0))),
+             workers=1)
+    lines = command.summary(tmp_path / "more")
+    assert lines[1] == f"  rejected system 0: {rejection_reasons(tmp_path / 'more')[0]}"
+    assert len(lines) == 5 and lines[4].startswith("  ... 2 more in")
