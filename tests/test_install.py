@@ -9,6 +9,7 @@ import json
 import os
 import subprocess
 import sys
+import tarfile
 import tomllib
 from pathlib import Path
 
@@ -95,3 +96,19 @@ def test_setup_builds_the_libraries_the_kernels_look_for():
                 assert "-march=native" not in ext.extra_compile_args and ext.optional
                 assert ext.define_macros == [("REAL", real)]
     assert not built
+
+
+def test_the_sdist_carries_the_contract_and_the_docs(tmp_path):
+    """A user of the source distribution has the contract, the docs, the pins and the tests, and no
+    compiled kernel of this machine."""
+    res = subprocess.run([sys.executable, "setup.py", "-q", "sdist", "--dist-dir", str(tmp_path)], cwd=REPO,
+                         capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0, res.stderr
+    (archive,) = tmp_path.glob("*.tar.gz")
+    with tarfile.open(archive) as tar:
+        names = {name.split("/", 1)[1] for name in tar.getnames() if "/" in name}
+    expected = {str(p.relative_to(REPO)) for p in (REPO / "docs").rglob("*") if p.is_file()}
+    assert expected <= names, sorted(expected - names)
+    assert {"docs/contract.md", "README.md", "CHANGELOG.md", "constraints.txt", "tests/test_contract_doc.py",
+            "sim/_kernel.c", "checkpoints/manifest.json"} <= names
+    assert not any(name.endswith(".so") for name in names)
