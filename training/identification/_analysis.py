@@ -7,6 +7,7 @@ identification can never disagree on the feature definition (``FEATURE_VERSION``
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -54,8 +55,16 @@ FEATURE_NAMES: tuple[str, ...] = (
     EIG_NAMES + STRUCT_NAMES + EXTRA_NAMES + ("log10_osc_quanta", "log10_f_fit", "log10_V_J_fit", "d_fit", "r2_fit")
     + CONTEXT_NAMES + GAP_NAMES
 )
+#: Each feature's column in the feature vector, by name.
+FEATURE_INDEX: dict[str, int] = {name: column for column, name in enumerate(FEATURE_NAMES)}
 
-__all__ = ["FEATURE_VERSION", "FEATURE_NAMES", "REFERENCE_DRIVE", "Analysis", "analyze"]
+
+def feature_columns(names: Sequence[str]) -> list[int]:
+    """The feature vector's columns of the features ``names``, in their order."""
+    return [FEATURE_INDEX[name] for name in names]
+
+
+__all__ = ["FEATURE_VERSION", "FEATURE_NAMES", "FEATURE_INDEX", "feature_columns", "REFERENCE_DRIVE", "Analysis", "analyze"]
 
 
 class _FromDrive:
@@ -92,7 +101,7 @@ class Analysis:
     M_star, T_s, T_Ei, encoder_counts, M_N, q_w = (_FromDrive() for _ in range(6))  # read from ``drive``
 
     def feature(self, name: str) -> float:
-        return float(self.features[FEATURE_NAMES.index(name)])
+        return float(self.features[FEATURE_INDEX[name]])
 
 
 def analyze(record: Record) -> Analysis:
