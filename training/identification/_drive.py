@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from sim import DriveConfig, Record, speed_quantum, time_scale
-from training.identification._plausibility import QUANTIZED_SHARE, on_grid
+from training.identification._plausibility import BOUNDS, on_grid
 from training.identification._result import IdentWarning
 from training.identification._sections import SectionSplit, diff_noise
 
@@ -87,7 +87,7 @@ def drive_values(record: Record, split: SectionSplit, torque: np.ndarray) -> tup
                                                      "(the class rule w_e T_Ei and the refinement depend on it)")
     counts = record.encoder_counts
     sources["encoder_counts"] = "record"
-    if counts is not None and on_grid(np.abs(record.speed), record.q_w) < QUANTIZED_SHARE:
+    if counts is not None and on_grid(np.abs(record.speed), record.q_w) < BOUNDS.quantized_share:
         finer = estimated_encoder_counts(record.speed, T_s)  # the speed shows steps the encoder cannot make
         if finer is not None and finer > 1.5 * counts:
             warnings.append(IdentWarning("drive_value_mismatch", f"encoder_counts {counts} (metadata) cannot make the "
@@ -139,7 +139,7 @@ def estimated_encoder_counts(speed: np.ndarray, T_s: float) -> int | None:
     whole = n >= 1
     q = float(np.median(x[whole] / n[whole]))
     counts = int(round(2.0 * math.pi / (q * T_s)))
-    if counts < 16 or on_grid(x, speed_quantum(counts, T_s)) < QUANTIZED_SHARE:
+    if counts < 16 or on_grid(x, speed_quantum(counts, T_s)) < BOUNDS.quantized_share:
         return None
     return counts
 

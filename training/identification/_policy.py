@@ -11,15 +11,15 @@ the maps' answer and the refined one are classed by.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 
 from sim import STRUCTURE_CLASSES, class_index, two_mass_derived
 from training.identification._analysis import Analysis
 from training.identification._envelope import Finding
 from training.identification._limits import backlash_negligible, speed_resolution
 from training.identification._refine import Refined
+from training.identification._settings import check_positive
 
 #: The classes with a backlash (their width is identified).
 BACKLASH_CLASSES = ("elastic_backlash", "stiff_backlash")
@@ -45,14 +45,7 @@ class IdentificationPolicy:
     start_s_N_floor: float = 1e-3
 
     def __post_init__(self) -> None:
-        at_most_one = ("stiff_sure", "class_margin", "damping_cap")
-        for field in fields(self):
-            value = getattr(self, field.name)
-            high = 1.0 if field.name in at_most_one else math.inf
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0.0 < value <= high \
-                    or not math.isfinite(value):
-                bound = "in (0, 1]" if field.name in at_most_one else "a finite number > 0"
-                raise ValueError(f"IdentificationPolicy.{field.name}: expected {bound}, received {value!r}")
+        check_positive(self, at_most_one=("stiff_sure", "class_margin", "damping_cap"))
 
 
 @dataclass(frozen=True)

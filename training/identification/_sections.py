@@ -33,7 +33,7 @@ from __future__ import annotations
 import contextlib
 
 import math
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -41,8 +41,10 @@ from scipy.ndimage import median_filter
 
 from sim import SECTION_LEVELS, SECTION_NAMES, SPEED_RETURN, Record
 from training._checks import as_signal
+from training.identification._settings import check_positive
 
-__all__ = ["SectionSplit", "SectionRules", "RULES", "SPEC_TAIL", "detect_sections", "sections_from_column", "diff_noise", "law_end", "torque_amplitude",
+__all__ = ["SectionSplit", "SectionRules", "RULES", "SPEC_TAIL",
+           "detect_sections", "sections_from_column", "diff_noise", "law_end", "torque_amplitude",
            "incomplete_run"]
 
 #: The distinct torque levels of the test signal over ``M*``, highest first: ``(1, 0.7, 0, -0.7, -1)``.
@@ -89,11 +91,7 @@ class SectionRules:
     settle_lags: float = 3.0
 
     def __post_init__(self) -> None:
-        for field in fields(self):
-            value = getattr(self, field.name)
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) \
-                    or not value > 0:
-                raise ValueError(f"SectionRules.{field.name}: expected a finite number > 0, received {value!r}")
+        check_positive(self)
 
 
 #: The section detection's thresholds.
@@ -519,7 +517,8 @@ def _incomplete(runs: list[list[int]], w: np.ndarray, info: dict[str, Any], Ts: 
                      4: (True, -SPEED_RETURN * w_max), 5: (True, 0.0)}[k]
     tail = w[runs[-1][0]:]
     ended = np.flatnonzero(tail >= level if rising else tail <= level)
-    settle = keep + int(math.ceil(RULES.settle_lags * float(info.get("T_Ei") or 0.0) / Ts)) + 2  # before the next step shows
+    # the samples before the next step shows
+    settle = keep + int(math.ceil(RULES.settle_lags * float(info.get("T_Ei") or 0.0) / Ts)) + 2
     if ended.size and runs[-1][0] + int(ended[0]) < n - settle:
         return None  # the law ended that section well before the record ends: not simply cut short
     missing = f"sections {', '.join(SECTION_NAMES[k + 1:])} and the 50 ms tail are" if k < 5 else "the 50 ms tail is"
