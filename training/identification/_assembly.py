@@ -253,7 +253,7 @@ def drive_quantities(analysis: Analysis) -> dict[str, float | None]:
 
 def mechanics_quantities(analysis: Analysis, parameters: Parameters) -> dict[str, float | None]:
     """The identified mechanics the envelope checks (``d``, the least certain, with a slack:
-    :data:`._envelope.SLACK`)."""
+    :meth:`._envelope.EnvelopeTolerances.slack`)."""
     s_N = (normalized_backlash(parameters.backlash, analysis.M_N, parameters.C_F)
            if parameters.backlash is not None and parameters.C_F is not None else None)
     return {"f_e": parameters.f_e, "V_J": parameters.V_J, "d": parameters.d, "s_N": s_N,
