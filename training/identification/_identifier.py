@@ -17,7 +17,7 @@ from __future__ import annotations
 import math
 import os
 from collections.abc import Callable, Iterable, Iterator, Sequence
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -37,6 +37,14 @@ from training.identification._policy import (IdentificationPolicy, MapsAnswer, a
 from training.identification._refine import (RefineConfig, RefineProblem, Refined, find_hidden_gap, refine,
                                              torque_reference)
 from training.identification._result import IdentificationFailure, IdentificationResult, Outcome
+
+
+@dataclass(frozen=True)
+class _Refinement:
+    """One record's refinement: its ``problem`` (which the angle's check reuses) and the ``refined`` answer."""
+
+    problem: RefineProblem
+    refined: Refined
 
 
 class Identifier:
@@ -171,27 +179,29 @@ class Identifier:
         answers = self._recall(analyses)
         evidence = [RecordEvidence(analysis, answer, None, self.envelope.check(drive_quantities(analysis)), name)
                     for analysis, answer, name in zip(analyses, answers, names)]
-        problems = self._refined(evidence)
+        refinements = self._refinements(evidence)
         judge = Judge(self.envelope, self.policy)
-        evidence = [replace(e, refined=problems[i][1]) if i in problems else e for i, e in enumerate(evidence)]
-        results = [assemble(e, judge) for e in evidence]
-        checked = [i for i in problems if angle_checked_when(evidence[i].analysis, evidence[i].maps,
-                                                               results[i].structure)]
+        evidence = [replace(record, refined=refinements[i].refined) if i in refinements else record
+                    for i, record in enumerate(evidence)]
+        results = [assemble(record, judge) for record in evidence]
+        checked = [i for i in refinements
+                   if angle_checked_when(evidence[i].analysis, evidence[i].maps, results[i].structure)]
         for i in checked:
-            gap = find_hidden_gap(problems[i][0], self.refine)
+            gap = find_hidden_gap(refinements[i].problem, self.refine)
             if gap is not None:
                 results[i] = assemble(replace(evidence[i], gap=gap), judge)
         return results
 
-    def _refined(self, evidence: Sequence[RecordEvidence]) -> dict[int, tuple[RefineProblem, Refined]]:
-        """The refinement's problem and answer of each record it sees (by index; none without a
-        refinement)."""
+    def _refinements(self, evidence: Sequence[RecordEvidence]) -> dict[int, _Refinement]:
+        """The refinement of each record it sees (:func:`._policy.refined_when`), by index; none
+        without a refinement."""
         if self.refine is None:
             return {}
-        todo = [i for i, e in enumerate(evidence)
-                if refined_when(e.analysis, e.maps, e.drive_findings, self.policy)]
+        todo = [i for i, record in enumerate(evidence)
+                if refined_when(record.analysis, record.maps, record.drive_findings, self.policy)]
         problems = [self._problem(evidence[i].analysis, evidence[i].maps) for i in todo]
-        return dict(zip(todo, zip(problems, refine(problems, self.refine))))
+        return {i: _Refinement(problem, refined)
+                for i, problem, refined in zip(todo, problems, refine(problems, self.refine))}
 
     def _recall(self, analyses: Sequence[Analysis]) -> list[MapsAnswer]:
         """The maps' answer per analysis (one batched recall per map)."""

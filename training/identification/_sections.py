@@ -521,10 +521,15 @@ def _incomplete(runs: list[list[int]], w: np.ndarray, info: dict[str, Any], Ts: 
     settle = keep + int(math.ceil(RULES.settle_lags * float(info.get("T_Ei") or 0.0) / Ts)) + 2
     if ended.size and runs[-1][0] + int(ended[0]) < n - settle:
         return None  # the law ended that section well before the record ends: not simply cut short
+    return _incomplete_text(k, got[-1] != _ZERO, info, Ts, n)
+
+
+def _incomplete_text(k: int, torque_applied: bool, info: dict[str, Any], Ts: float, n: int) -> str:
+    """The error line of a record of ``n`` samples that ends in section ``k`` (0..5 for I..VI)."""
     missing = f"sections {', '.join(SECTION_NAMES[k + 1:])} and the 50 ms tail are" if k < 5 else "the 50 ms tail is"
     why = ("the drive aborted it at a limit (metadata aborted: true)" if info.get("aborted")
            else "was the recording cut short? record the whole test run")
-    state = "the torque still applied" if got[-1] != _ZERO else "the speed still moving"
+    state = "the torque still applied" if torque_applied else "the speed still moving"
     return (f"incomplete test run: the record ends in section {SECTION_NAMES[k]} at "
             f"t = {_time_at(info, Ts, n - 1):.6g} s ({state}); {missing} missing: {why}")
 

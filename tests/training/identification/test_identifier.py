@@ -256,3 +256,17 @@ def test_a_refined_stiff_answer_near_the_backlash_threshold_says_so(ident, good)
 
     assert "s_N = 0.095" in near(1e-3, 0.095)
     assert "s_N = 0.09 (the maps' estimate)" in near(0.09, 0.01) and "s_N = 0.01" not in near(0.09, 0.01)
+
+
+def test_the_refinement_stands_on_its_class_its_evidence_or_a_replaced_fit():
+    """:func:`refinement_stands`: the maps' class kept, evidence at the policy's threshold, or
+    STEP 2's values replaced; else the maps' answer stays."""
+    from training.identification._policy import refinement_stands
+
+    policy = IdentificationPolicy()
+    weak = SimpleNamespace(evidence=policy.class_evidence / 2, J_sigma=None)
+    assert refinement_stands("stiff", "stiff", weak, policy)
+    assert not refinement_stands("stiff", "elastic", weak, policy)
+    assert refinement_stands("stiff", "elastic", SimpleNamespace(evidence=policy.class_evidence, J_sigma=None), policy)
+    assert refinement_stands("stiff", "elastic", SimpleNamespace(evidence=0.0, J_sigma=0.1), policy)
+    assert not refinement_stands("stiff", "elastic", weak, IdentificationPolicy(class_evidence=1e9))
