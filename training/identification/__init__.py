@@ -4,12 +4,13 @@ model-based refinement -> one typed result (SPEC sections 4 and 9)."""
 from ._analysis import FEATURE_NAMES, FEATURE_VERSION, REFERENCE_DRIVE, Analysis, analyze
 from ._drive import DriveValues
 from ._envelope import FILE_NAME as ENVELOPE_FILE, SPEC_ENVELOPE, Envelope, inside_envelope, trained_envelope
-from ._batch import CHUNK
+from ._batch import CHUNK, ReadRecord
 from ._features import eigenfrequency_features, extra_features, structure_and_peaks, structure_features
 from ._identifier import Identifier
 from ._limits import BACKLASH_VISIBLE_COUNTS, backlash_resolution, motor_lead
 from ._maps import CORRECTIONS, MAP_SPECS, SUBSETS, TARGETS, from_correction, MapSpec, TrainedMap, load_map, recall_targets
 from ._maps import CHECKPOINT_FILES, DISTANCE_QUANTILES, MapMetadata
+from ._policy import IdentificationPolicy
 from ._one_mass import FORMULATIONS, OneMassFit, fit_one_mass, speed_from_position
 from ._oscillation import OscillationFit, fit_oscillation
 from ._plausibility import check_record
@@ -19,7 +20,7 @@ from ._result import (PARAMETER_NAMES, PARAMETER_UNITS, WARNING_CODES, Identific
 from ._sections import SectionSplit, detect_sections
 
 __all__ = [
-    "Identifier", "CHUNK", "IdentificationResult", "IdentificationFailure", "Outcome", "Parameters", "Quality",
+    "Identifier", "IdentificationPolicy", "ReadRecord", "CHUNK", "IdentificationResult", "IdentificationFailure", "Outcome", "Parameters", "Quality",
     "IdentWarning", "WARNING_CODES", "PARAMETER_NAMES", "PARAMETER_UNITS",
     "analyze", "Analysis", "FEATURE_NAMES", "FEATURE_VERSION", "REFERENCE_DRIVE", "DriveValues",
     "Envelope", "SPEC_ENVELOPE", "ENVELOPE_FILE", "inside_envelope", "trained_envelope",

@@ -7,6 +7,7 @@ identification can never disagree on the feature definition (``FEATURE_VERSION``
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -18,8 +19,8 @@ from sim.records import as_record
 from training.errors import IdentificationError, one_line
 from training.identification._consistency import consistency_warnings, torque_scale_hint
 from training.identification._drive import REFERENCE_DRIVE, DriveValues, drive_values
-from training.identification._features import (EIG_NAMES, EXTRA_NAMES, STRUCT_NAMES, eigenfrequency_features,
-                                               extra_features, structure_and_peaks)
+from training.identification._features import (EIG_NAMES, EXTRA_NAMES, STRUCT_NAMES, ExtraColumn,
+                                               eigenfrequency_features, extra_features, structure_and_peaks)
 from training.identification._one_mass import OneMassFit, fit_one_mass
 from training.identification._oscillation import fit_oscillation
 from training.identification._plausibility import check_record, resolution_hint, unit_warnings
@@ -49,13 +50,24 @@ NO_FREQUENCY = -6.0
 GAP_NAMES: tuple[str, ...] = ("log10_gap_lead", "log10_q_phi_rel")
 _GAP_FLOOR = 1e-9  # lead over the angle scale below which the log reads the floor
 
+#: The oscillation's own features: its rms over the speed quantum and the eq.-1 fit's frequency,
+#: ``V_J`` (both log10), damping and ``r^2`` (:func:`training.identification._oscillation.fit_oscillation`).
+OSCILLATION_NAMES: tuple[str, ...] = ("log10_osc_quanta", "log10_f_fit", "log10_V_J_fit", "d_fit", "r2_fit")
+
 #: Names of the feature vector's components, in order.
 FEATURE_NAMES: tuple[str, ...] = (
-    EIG_NAMES + STRUCT_NAMES + EXTRA_NAMES + ("log10_osc_quanta", "log10_f_fit", "log10_V_J_fit", "d_fit", "r2_fit")
-    + CONTEXT_NAMES + GAP_NAMES
+    EIG_NAMES + STRUCT_NAMES + EXTRA_NAMES + OSCILLATION_NAMES + CONTEXT_NAMES + GAP_NAMES
 )
+#: Each feature's column in the feature vector, by name.
+FEATURE_INDEX: dict[str, int] = {name: column for column, name in enumerate(FEATURE_NAMES)}
 
-__all__ = ["FEATURE_VERSION", "FEATURE_NAMES", "REFERENCE_DRIVE", "Analysis", "analyze"]
+
+def feature_columns(names: Sequence[str]) -> list[int]:
+    """The feature vector's columns of the features ``names``, in their order."""
+    return [FEATURE_INDEX[name] for name in names]
+
+
+__all__ = ["FEATURE_VERSION", "FEATURE_NAMES", "FEATURE_INDEX", "feature_columns", "REFERENCE_DRIVE", "Analysis", "analyze"]
 
 
 class _FromDrive:
@@ -92,7 +104,7 @@ class Analysis:
     M_star, T_s, T_Ei, encoder_counts, M_N, q_w = (_FromDrive() for _ in range(6))  # read from ``drive``
 
     def feature(self, name: str) -> float:
-        return float(self.features[FEATURE_NAMES.index(name)])
+        return float(self.features[FEATURE_INDEX[name]])
 
 
 def analyze(record: Record) -> Analysis:
@@ -196,13 +208,14 @@ def _analyze(record: Record) -> Analysis:
     q_w = drive.q_w
     sel = np.concatenate([w_osc[a:b] for a, b in split.bounds.tolist()])
     osc_quanta = float(np.sqrt(np.mean(sel * sel))) / q_w if sel.size else 0.0
-    log10_f_peak = extra[EXTRA_NAMES.index("log10_f_peak")]
+    log10_f_peak = extra[ExtraColumn.log10_f_peak]
     osc = fit_oscillation(torque, w_osc, split.bounds, T_s, 10.0 ** log10_f_peak if log10_f_peak else 0.0)
     V_J_fit = osc.gain * fit.J_sigma  # eq. 1: gain = V_J / J_sigma
-    features = np.concatenate([eig, struct, extra, [
-        math.log10(max(osc_quanta, 1e-3)),
-        math.log10(osc.f_0) if osc.f_0 > 0 else 0.0,
-        math.log10(V_J_fit) if V_J_fit > 1e-3 else -3.0,
-        osc.d, osc.r2], _context(osc.f_0, fit.J_sigma, drive), _gap(w_osc, split, T_s, fit.J_sigma, drive)])
+    oscillation = {"log10_osc_quanta": math.log10(max(osc_quanta, 1e-3)),
+                   "log10_f_fit": math.log10(osc.f_0) if osc.f_0 > 0 else 0.0,
+                   "log10_V_J_fit": math.log10(V_J_fit) if V_J_fit > 1e-3 else -3.0,
+                   "d_fit": osc.d, "r2_fit": osc.r2}
+    features = np.concatenate([eig, struct, extra, [oscillation[name] for name in OSCILLATION_NAMES],
+                               _context(osc.f_0, fit.J_sigma, drive), _gap(w_osc, split, T_s, fit.J_sigma, drive)])
     return Analysis(sections=split, fit=fit, features=features, drive=drive, osc_quanta=osc_quanta,
                     warnings=fit.warnings + tuple(drive_warnings), section_flags=split.flags)

@@ -7,6 +7,8 @@ import gc
 import multiprocessing
 import os
 from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass
+from typing import Protocol
 
 from sim import Record, read_record
 from training._distributed import process_group
@@ -52,31 +54,65 @@ def default_jobs(n_records: int) -> int:
     return 1 if n_records < 2 * CHUNK else min(process_group().cpus(), -(-n_records // CHUNK))
 
 
-#: A chunk's read-and-analysed records, ``(name, outcome)`` each, to their final outcomes.
-Answer = Callable[[list[tuple[str, "Analysis | IdentificationFailure"]]], list[Outcome]]
-_answer: Answer | None = None  # in a forked worker: the parent's answerer (see :func:`answered_files`)
+@dataclass(frozen=True)
+class ReadRecord:
+    """One record file read and analysed: its ``name`` (the path as given) and its ``outcome``
+    (the analysis, or the failure to read or analyse it)."""
+
+    name: str
+    outcome: Analysis | IdentificationFailure
 
 
-def _start_worker(answer: Answer) -> None:
-    """Pool initializer: one thread for BLAS, torch and the simulator kernel (one worker per core)."""
-    global _answer
+class ChunkIdentifier(Protocol):
+    """What answers a chunk of read records (:meth:`training.identification.Identifier.identify_read`):
+    one final outcome per record, in order."""
+
+    def identify_read(self, chunk: Sequence[ReadRecord]) -> list[Outcome]: ...
+
+
+#: In a forked worker: the parent's identifier, handed over by the fork (:func:`_start_worker`), not pickled.
+_worker_identifier: ChunkIdentifier | None = None
+
+
+def _start_worker(identifier: ChunkIdentifier) -> None:
+    """Pool initializer: keeps the identifier; one thread for BLAS, torch and the simulator kernel
+    (one worker per core)."""
+    global _worker_identifier
     import torch
     from threadpoolctl import threadpool_limits
 
-    _answer = answer
+    _worker_identifier = identifier
     os.environ["TWOMASS_SIM_THREADS"] = "1"
     torch.set_num_threads(1)
     threadpool_limits(limits=1)
 
 
+def _read(paths: Sequence[str]) -> list[ReadRecord]:
+    return [ReadRecord(path, file_outcome(path)) for path in paths]
+
+
 def _answer_chunk(paths: list[str]) -> list[Outcome]:
-    return _answer([(p, file_outcome(p)) for p in paths])
+    """A worker's task: read, analyse and identify one chunk of files."""
+    if _worker_identifier is None:
+        raise RuntimeError("_answer_chunk runs in a worker started by answered_files only")
+    return _worker_identifier.identify_read(_read(paths))
 
 
-def answered_files(paths: Sequence[str], jobs: int | None, answer: Answer,
+def _answered_here(chunks: list[list[str]], identifier: ChunkIdentifier,
+                   tick: Callable[[int], object]) -> Iterator[Outcome]:
+    """:func:`answered_files` in this process: each record counted as it is read."""
+    for chunk in chunks:
+        items = []
+        for path in chunk:
+            items.append(ReadRecord(path, file_outcome(path)))
+            tick(1)
+        yield from identifier.identify_read(items)
+
+
+def answered_files(paths: Sequence[str], jobs: int | None, identifier: ChunkIdentifier,
                    progress: Callable[[int], object] | None = None) -> Iterator[Outcome]:
     """One outcome per path, in order: the records read and analysed (:func:`file_outcome`) in
-    chunks of :data:`CHUNK`, each chunk then answered by ``answer`` (the maps' recall and the
+    chunks of :data:`CHUNK`, each chunk then answered by ``identifier`` (the maps' recall and the
     refinement). With ``jobs > 1`` (``None``: :func:`default_jobs`) whole chunks go to ``jobs``
     forked workers, so every stage runs on every core; the outcomes are the same as with one
     (each chunk is the same batch). ``progress`` gets the number of records done as they are.
@@ -91,12 +127,7 @@ def answered_files(paths: Sequence[str], jobs: int | None, answer: Answer,
     tick = progress or (lambda _n: None)
     chunks = [list(paths[i:i + CHUNK]) for i in range(0, len(paths), CHUNK)]
     if jobs == 1 or len(chunks) < 2 or "fork" not in multiprocessing.get_all_start_methods():
-        for chunk in chunks:
-            items = []
-            for path in chunk:
-                items.append((path, file_outcome(path)))
-                tick(1)
-            yield from answer(items)
+        yield from _answered_here(chunks, identifier, tick)
         return
     # the parent's objects (modules, maps) out of the collector's sight before the fork: the workers'
     # collections then neither walk them nor copy the memory pages they share with the parent
@@ -105,7 +136,7 @@ def answered_files(paths: Sequence[str], jobs: int | None, answer: Answer,
     if freeze:
         gc.freeze()
     try:
-        with multiprocessing.get_context("fork").Pool(min(jobs, len(chunks)), _start_worker, (answer,)) as pool:
+        with multiprocessing.get_context("fork").Pool(min(jobs, len(chunks)), _start_worker, (identifier,)) as pool:
             for outcomes in pool.imap(_answer_chunk, chunks):
                 tick(len(outcomes))
                 yield from outcomes

@@ -12,7 +12,7 @@ speed and answers with confidence; these checks say so (coded warnings, the answ
   not checked on runs that timed out, were aborted or start late (the law's durations fail there);
   also a speed clipped at ``w_max`` itself, whose ends the law keeps (:func:`_clipped`);
 - ``torque_scale_mismatch``: the measured torque (``current * K_M``) holds its levels at another
-  scale than ``M*`` (metadata, else ``torque_ref``'s levels) by more than :data:`TORQUE_SCALE_TOL`;
+  scale than ``M*`` (metadata, else ``torque_ref``'s levels) by more than :attr:`ConsistencyTolerances.torque_scale`;
 - ``record_starts_late``: section I starts at a speed above a few quanta (the test starts at rest);
 - ``run_aborted``: metadata ``aborted: true`` (the drive stopped the run at a limit, SPEC 8.1).
 """
@@ -20,6 +20,7 @@ speed and answers with confidence; these checks say so (coded warnings, the answ
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -27,13 +28,32 @@ from sim import SECTION_LEVELS, SECTION_NAMES, Record
 from training.identification._drive import DriveValues, settled_bounds
 from training.identification._result import IdentWarning
 from training.identification._sections import SectionSplit, law_end, torque_amplitude
+from training.identification._settings import check_positive
 
-__all__ = ["consistency_warnings", "torque_scale_hint", "TORQUE_SCALE_TOL"]
+__all__ = ["consistency_warnings", "torque_scale_hint", "ConsistencyTolerances", "TOLERANCES"]
 
-#: The measured torque's levels may differ from ``M*``'s by this share before ``torque_scale_mismatch``.
-TORQUE_SCALE_TOL = 0.15
-_START_QUANTA = 3.0  # speed quanta (or 1 % of w_max, the larger) at which section I starts "late"
-_CLIP_QUANTA = 3.0  # speed quanta per sample the speed must still gain at a switch to call a flat top clipped
+
+@dataclass(frozen=True)
+class ConsistencyTolerances:
+    """How far a record may stray from its metadata and from SPEC 2's test before a warning."""
+
+    #: the measured torque's levels may differ from ``M*``'s by this share before ``torque_scale_mismatch``.
+    torque_scale: float = 0.15
+    #: section I starts "late" above this many speed quanta ...
+    start_quanta: float = 3.0
+    #: ... or this share of ``w_max``, the larger.
+    start_share: float = 0.01
+    #: the speed quanta per sample the speed must still gain at a switch to call a flat top clipped.
+    clip_quanta: float = 3.0
+    #: a section may end this many current-loop lags ``T_Ei`` (plus two samples) off the law's end.
+    law_lags: float = 2.0
+
+    def __post_init__(self) -> None:
+        check_positive(self, at_most_one=("torque_scale", "start_share"))
+
+
+#: The consistency checks' tolerances.
+TOLERANCES = ConsistencyTolerances()
 
 
 def consistency_warnings(record: Record, split: SectionSplit, drive: DriveValues,
@@ -49,19 +69,19 @@ def consistency_warnings(record: Record, split: SectionSplit, drive: DriveValues
                                                "test is incomplete, its values are suspect"))
     speed = record.speed
     start = int(split.bounds[0, 0])
-    if abs(speed[start]) > max(_START_QUANTA * q_w, 0.01 * w_max):
+    if abs(speed[start]) > max(TOLERANCES.start_quanta * q_w, TOLERANCES.start_share * w_max):
         out.append(IdentWarning("record_starts_late", f"section I starts at {speed[start]:.4g} rad/s, not at rest: the "
                                                       "recording began after the test had started (its first torque "
                                                       "step is missing)"))
     # the law's durations and thresholds hold for a whole run that no limit or timeout cut short
-    law = _law_mismatch(speed, split, w_max, math.ceil(2.0 * T_Ei / record.T_s) + 2) \
+    law = _law_mismatch(speed, split, w_max, math.ceil(TOLERANCES.law_lags * T_Ei / record.T_s) + 2) \
         if not out and not record.timed_out else []
     return out + (law or _clipped(speed, split, q_w)) + _torque_scale(record, split, torque, T_Ei)
 
 
 def _clipped(speed: np.ndarray, split: SectionSplit, q_w: float) -> list[IdentWarning]:
     """``test_law_mismatch`` for a speed clipped at the switching speed itself (a scope's full
-    scale set to ``w_max``): where I (IV) ends the speed rose (fell) by :data:`_CLIP_QUANTA` quanta
+    scale set to ``w_max``): where I (IV) ends the speed rose (fell) by :attr:`ConsistencyTolerances.clip_quanta` quanta
     a sample, and the current loop's lag still drives it on for a sample or more; the record
     instead holds its extreme value, exactly, from the switch on."""
     for k, sign in ((0, 1.0), (3, -1.0)):
@@ -69,7 +89,7 @@ def _clipped(speed: np.ndarray, split: SectionSplit, q_w: float) -> list[IdentWa
         if j < 2 or j + 3 > speed.size:
             continue
         w = sign * speed
-        if w[j - 1] - w[j - 2] >= _CLIP_QUANTA * q_w and np.all(w[j:j + 3] == w.max()):
+        if w[j - 1] - w[j - 2] >= TOLERANCES.clip_quanta * q_w and np.all(w[j:j + 3] == w.max()):
             return [IdentWarning("test_law_mismatch", f"the speed holds {speed[j]:.4g} rad/s exactly from the end of "
                                                       f"section {SECTION_NAMES[k]} on, where it moved by "
                                                       f"{w[j - 1] - w[j - 2]:.3g} rad/s a sample before: a speed "
@@ -79,7 +99,7 @@ def _clipped(speed: np.ndarray, split: SectionSplit, q_w: float) -> list[IdentWa
 
 def torque_scale_hint(record: Record) -> str | None:
     """Why the sections may not show: the largest level of ``torque_ref``, else of the measured
-    torque, off the metadata's ``M_star`` by more than :data:`TORQUE_SCALE_TOL` (else None)."""
+    torque, off the metadata's ``M_star`` by more than :attr:`ConsistencyTolerances.torque_scale` (else None)."""
     M_star = record.meta.get("M_star")
     if M_star is None:
         return None
@@ -87,7 +107,7 @@ def torque_scale_hint(record: Record) -> str | None:
         if signal is None or not np.any(signal):
             continue
         scale = torque_amplitude(signal) / float(M_star)
-        if abs(scale - 1.0) > TORQUE_SCALE_TOL:
+        if abs(scale - 1.0) > TOLERANCES.torque_scale:
             why = "its units (Nm) or M_star wrong?" if what == "torque_ref" else "K_M, M_star or the current's units wrong?"
             return f"{what} reaches {scale:.3g} x metadata M_star = {float(M_star):.4g} Nm: {why}"
     return None
@@ -130,7 +150,7 @@ def _torque_scale(record: Record, split: SectionSplit, torque: np.ndarray, T_Ei:
     if not den > 0:
         return []
     scale = num / den / split.M_star
-    if abs(scale - 1.0) <= TORQUE_SCALE_TOL:
+    if abs(scale - 1.0) <= TOLERANCES.torque_scale:
         return []
     return [IdentWarning("torque_scale_mismatch", f"{_measured(record)} holds the test's levels at {scale:.3g} x M* = "
                                                   f"{split.M_star:.4g} Nm: K_M, M_star or the current's units are "

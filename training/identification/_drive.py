@@ -24,15 +24,38 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from sim import DriveConfig, Record, speed_quantum, time_scale
-from training.identification._plausibility import QUANTIZED_SHARE, on_grid
+from training.identification._plausibility import BOUNDS, on_grid
 from training.identification._result import IdentWarning
 from training.identification._sections import SectionSplit, diff_noise
+from training.identification._settings import check_positive
 
 #: The SPEC reference drive: its encoder and current loop are assumed where a record gives neither
 #: (with a warning).
 REFERENCE_DRIVE = DriveConfig()
 
-_SETTLE = 5.0  # current-loop time constants after each section start before the torque holds its level
+
+
+@dataclass(frozen=True)
+class DriveEstimates:
+    """The thresholds of the drive values estimated from the signals."""
+
+    #: current-loop time constants after each section start before the torque holds its level.
+    settle_lags: float = 5.0
+    #: an encoder the speed's steps show this many times finer than the metadata's replaces it.
+    finer_encoder: float = 1.5
+    #: the speed's steps below this many times the smallest are one quantum (a float32 speed's scatter).
+    quantum_spread: float = 1.5
+    #: the fewest encoder counts per revolution an estimate may give.
+    min_counts: int = 16
+    #: the fewest nonzero speed samples an encoder is estimated from.
+    min_samples: int = 32
+
+    def __post_init__(self) -> None:
+        check_positive(self)
+
+
+#: The drive estimates' thresholds.
+ESTIMATES = DriveEstimates()
 
 
 @dataclass(frozen=True)
@@ -87,9 +110,9 @@ def drive_values(record: Record, split: SectionSplit, torque: np.ndarray) -> tup
                                                      "(the class rule w_e T_Ei and the refinement depend on it)")
     counts = record.encoder_counts
     sources["encoder_counts"] = "record"
-    if counts is not None and on_grid(np.abs(record.speed), record.q_w) < QUANTIZED_SHARE:
+    if counts is not None and on_grid(np.abs(record.speed), record.q_w) < BOUNDS.quantized_share:
         finer = estimated_encoder_counts(record.speed, T_s)  # the speed shows steps the encoder cannot make
-        if finer is not None and finer > 1.5 * counts:
+        if finer is not None and finer > ESTIMATES.finer_encoder * counts:
             warnings.append(IdentWarning("drive_value_mismatch", f"encoder_counts {counts} (metadata) cannot make the "
                                                                  f"speed's steps of 2*pi/({finer} T_s): {finer} counts "
                                                                  "are used"))
@@ -125,7 +148,7 @@ def estimated_encoder_counts(speed: np.ndarray, T_s: float) -> int | None:
     ``q_w = 2 pi / (counts T_s)``), or ``None`` when the speed is not quantized."""
     x = np.abs(np.asarray(speed, dtype=np.float64))
     x = x[x > 0]
-    if x.size < 32:
+    if x.size < ESTIMATES.min_samples:
         return None
     u = np.unique(x)
     if u.size < 4:
@@ -134,12 +157,12 @@ def estimated_encoder_counts(speed: np.ndarray, T_s: float) -> int | None:
     q0 = float(steps.min())
     if not q0 > 0:
         return None
-    q = float(np.median(steps[steps < 1.5 * q0]))
+    q = float(np.median(steps[steps < ESTIMATES.quantum_spread * q0]))
     n = np.round(x / q)  # each speed's multiple; their ratios refine q (a float32 speed's steps scatter)
     whole = n >= 1
     q = float(np.median(x[whole] / n[whole]))
     counts = int(round(2.0 * math.pi / (q * T_s)))
-    if counts < 16 or on_grid(x, speed_quantum(counts, T_s)) < QUANTIZED_SHARE:
+    if counts < ESTIMATES.min_counts or on_grid(x, speed_quantum(counts, T_s)) < BOUNDS.quantized_share:
         return None
     return counts
 
@@ -154,6 +177,6 @@ def torque_noise(torque: np.ndarray, split: SectionSplit, T_s: float, T_Ei: floa
 
 def settled_bounds(split: SectionSplit, T_s: float, T_Ei: float) -> list[tuple[int, int] | None]:
     """Per section I..VI of ``split``: ``[start, stop)`` once the current loop has settled on the
-    section's level (:data:`_SETTLE` time constants ``T_Ei`` in), ``None`` where it is too short."""
-    skip = int(math.ceil(_SETTLE * T_Ei / T_s)) + 1
+    section's level (:attr:`DriveEstimates.settle_lags` time constants ``T_Ei`` in), ``None`` where it is too short."""
+    skip = int(math.ceil(ESTIMATES.settle_lags * T_Ei / T_s)) + 1
     return [(a + skip, b) if b - a > skip + 2 else None for a, b in split.bounds.tolist()]

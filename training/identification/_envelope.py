@@ -39,6 +39,7 @@ from som_torch import CheckpointError, atomic_write
 from training._json import dumps
 from training.errors import error_text
 from training.identification._result import IdentWarning
+from training.identification._settings import check_positive
 
 FORMAT = "twomass-envelope/1"
 FILE_NAME = "envelope.json"
@@ -48,12 +49,40 @@ UNITS: dict[str, str] = {"T_s": "s", "encoder_counts": "counts/rev", "T_Ei": "s"
                          "M_star_over_M_max": "", "time_scale": "s", "current_noise": "of M*", "f_e": "Hz", "V_J": "",
                          "d": "", "s_N": "", "M_FC_over_M_star": ""}
 
-#: The record's noise is estimated (:func:`training.identification._drive.torque_noise`, a few %
-#: spread): the trained range reaches this much above the training drive's noise.
-NOISE_SPREAD = 1.25
 
 
-def _sampled(env: Mapping[str, Any], noise_spread: float = NOISE_SPREAD) -> dict[str, tuple[float, float]]:
+@dataclass(frozen=True)
+class EnvelopeTolerances:
+    """How far outside a range a value may lie before it is called outside."""
+
+    #: the record's noise is estimated (:func:`training.identification._drive.torque_noise`, a few %
+    #: spread): the trained range reaches this much above the training drive's noise.
+    noise_spread: float = 1.25
+    #: the relative tolerance of every range (a drive's T_s read from its time column, rounding of metadata).
+    relative: float = 0.01
+    #: identified values whose own uncertainty is wide lie outside a range only beyond this factor
+    #: of its ends. ``d`` is the least certain value (it trades off against ``V_J``): an answer with
+    #: ``d`` past 1.2 x the envelope's 0.1 was wrong for 27 of 31 elastic answers on the drive
+    #: matrix and 2000 envelope systems (3 of them unwarned); between 0.1 and 0.12, right for 16 of
+    #: 17 unwarned.
+    d_slack: float = 1.2
+    #: ``current_noise`` is an estimate too (a percent or two of spread on a test run): a record
+    #: made at the envelope's 5 % read 5.06 % and was called outside.
+    current_noise_slack: float = 1.1
+
+    def __post_init__(self) -> None:
+        check_positive(self, at_most_one=("relative",))
+
+    def slack(self, quantity: str) -> float:
+        """The factor beyond a range's ends from which ``quantity`` lies outside (1: none)."""
+        return {"d": self.d_slack, "current_noise": self.current_noise_slack}.get(quantity, 1.0)
+
+
+#: The envelope checks' tolerances.
+TOLERANCES = EnvelopeTolerances()
+
+
+def _sampled(env: Mapping[str, Any], noise_spread: float = TOLERANCES.noise_spread) -> dict[str, tuple[float, float]]:
     """The drive and test ranges of :class:`sim.EnvelopeRanges` ``env`` (its fields, as stored in a
     dataset): the test's ``M*`` down to 0 (a weaker test only lowers the noise's share), any noise
     up to ``noise_spread`` x the range's."""
@@ -80,8 +109,6 @@ SPEC_ENVELOPE: dict[str, tuple[float, float]] = {k: _SPEC_RANGES[k] for k in UNI
 #: quantity left out would be a check silently off.
 TRAINED_QUANTITIES = ("T_s", "encoder_counts", "T_Ei", "time_scale", "current_noise")
 
-#: Relative tolerance of every range (a drive's T_s read from its time column, rounding of metadata).
-REL_TOL = 0.01
 
 
 @dataclass(frozen=True)
@@ -100,23 +127,17 @@ class Finding:
                 "envelope": None if self.envelope is None else list(self.envelope), "outside": list(self.outside)}
 
 
-#: Identified values whose own uncertainty is wide lie outside a range only beyond this factor of
-#: its ends. ``d`` is the least certain value (it trades off against ``V_J``): an answer with ``d``
-#: past 1.2 x the envelope's 0.1 was wrong for 27 of 31 elastic answers on the drive matrix and
-#: 2000 envelope systems (3 of them unwarned); between 0.1 and 0.12, right for 16 of 17 unwarned.
-#: ``current_noise`` is an estimate too (a percent or two of spread on a test run): a record made at
-#: the envelope's 5 % read 5.06 % and was called outside.
-SLACK: dict[str, float] = {"d": 1.2, "current_noise": 1.1}
 
 
 def _inside(value: float, rng: tuple[float, float], slack: float = 1.0) -> bool:
     lo, hi = rng
-    return lo * (1.0 - REL_TOL) / slack - 1e-300 <= value <= hi * (1.0 + REL_TOL) * slack + 1e-300
+    return (lo * (1.0 - TOLERANCES.relative) / slack - 1e-300 <= value
+            <= hi * (1.0 + TOLERANCES.relative) * slack + 1e-300)
 
 
 def inside_envelope(quantity: str, value: float) -> bool:
     """Whether ``value`` lies in the drive envelope's range of ``quantity`` (:data:`SPEC_ENVELOPE`),
-    with the tolerance the identification's own check allows (``REL_TOL``)."""
+    with the tolerance the identification's own check allows (:attr:`EnvelopeTolerances.relative`)."""
     return _inside(value, SPEC_ENVELOPE[quantity])
 
 
@@ -139,7 +160,7 @@ class Envelope:
                 continue
             tr, env = self.trained.get(name), self.envelope.get(name)
             outside = tuple(k for k, rng in (("trained", tr), ("envelope", env)) if rng is not None
-                            and not _inside(value, rng, SLACK.get(name, 1.0)))
+                            and not _inside(value, rng, TOLERANCES.slack(name)))
             if outside:
                 out.append(Finding(name, float(value), tr, env, outside))
         return out
@@ -224,7 +245,7 @@ def trained_envelope(metadata: Mapping[str, Any]) -> Envelope:
     trained = {"T_s": point(drive["T_s"]), "encoder_counts": point(drive["encoder_counts"]), "T_Ei": point(drive["T_Ei"]),
                "time_scale": (time_scale(J[0], M_star, w_max), time_scale(J[1], M_star, w_max)),
                # up to the training drive's noise, with room for the estimate's own spread
-               "current_noise": (0.0, NOISE_SPREAD * drive["current_noise_std"] * drive["K_M"] / M_star)}
+               "current_noise": (0.0, TOLERANCES.noise_spread * drive["current_noise_std"] * drive["K_M"] / M_star)}
     return Envelope(trained=trained)
 
 

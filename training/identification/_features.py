@@ -36,6 +36,8 @@ names the whole vector and is stored with a map's checkpoint):
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
+from enum import IntEnum
 from typing import Any
 
 import numpy as np
@@ -46,7 +48,7 @@ from training.identification._one_mass import butter_sos, hann, section_bounds
 
 __all__ = [
     "EIG_F_LO", "EIG_F_HI", "EIG_N_BINS", "EIG_EDGES", "EIG_NAMES", "STRUCT_SAMPLES_PER_PERIOD", "STRUCT_NAMES",
-    "EXTRA_NAMES", "eigenfrequency_features", "structure_features", "structure_and_peaks", "extra_features",
+    "EXTRA_NAMES", "ExtraColumn", "eigenfrequency_features", "structure_features", "structure_and_peaks", "extra_features",
     "dominant_frequency", "zero_crossing_frequency",
 ]
 
@@ -281,8 +283,27 @@ def _decay_damping(seg: np.ndarray, T_s: float, f: float) -> float:
     return float(np.clip(-slope / (2 * math.pi * f), 0.0, 1.0))
 
 
-EXTRA_NAMES = ("log10_f_zc", "log10_f_peak", "log10_V_J_amp", "d_decay", "thd", "log2_f_ratio_zero",
-               "log2_f_ratio_07", "log10_osc_rel")
+class ExtraColumn(IntEnum):
+    """The columns of :func:`extra_features`; each member's name is its feature's name."""
+
+    log10_f_zc = 0
+    log10_f_peak = 1
+    log10_V_J_amp = 2
+    d_decay = 3
+    thd = 4
+    log2_f_ratio_zero = 5
+    log2_f_ratio_07 = 6
+    log10_osc_rel = 7
+
+
+#: Component names of :func:`extra_features`, in column order.
+EXTRA_NAMES: tuple[str, ...] = tuple(column.name for column in ExtraColumn)
+#: The periods of the oscillation after a torque step over which its amplitude is read (``log10_V_J_amp``).
+AMPLITUDE_PERIODS = 1.5
+#: The sections whose zero-crossing frequencies the ratio features compare with that of the ``M*``
+#: sections I and IV (indices into I..VI): the zero-torque sections II, V and the ``0.7 M*`` ones III, VI.
+_RATIO_SECTIONS = {ExtraColumn.log2_f_ratio_zero: (1, 4), ExtraColumn.log2_f_ratio_07: (2, 5)}
+_FULL_TORQUE_SECTIONS = (0, 3)
 
 
 def extra_features(
@@ -296,7 +317,7 @@ def extra_features(
     structure: Any = None,
     peaks: dict[int, float] | None = None,
 ) -> np.ndarray:
-    """Improved features (``"extra-v1"``, 8 components; names in ``EXTRA_NAMES``).
+    """Improved features (``"extra-v1"``, 8 components; columns :class:`ExtraColumn`, names :data:`EXTRA_NAMES`).
 
     Args:
         w_osc, T_s, sections: as for :func:`eigenfrequency_features` (sections ordered I..VI for
@@ -324,49 +345,104 @@ def extra_features(
     x, scale = _normalized(_check(w_osc, T_s))
     T_s = float(T_s)
     bounds = _bounds(x, sections)
-    f_zc, f_pk, vj, dd = [], [], [], []
     steps = None if torque_steps is None else np.asarray(torque_steps, dtype=np.float64).ravel()
-    fz_sec = np.zeros(len(bounds))
-    for i, a, seg in _segments(x, bounds):
+    amplitude = _StepAmplitude(x, scale, T_s, J_sigma, steps)
+    measured = _section_measures(x, T_s, bounds, peaks, amplitude)
+    out = np.zeros(len(ExtraColumn))
+    if measured.zero_crossing:
+        out[ExtraColumn.log10_f_zc] = math.log10(float(np.median(measured.zero_crossing)))
+    if measured.peak:
+        out[ExtraColumn.log10_f_peak] = math.log10(float(np.median(measured.peak)))
+        out[ExtraColumn.d_decay] = float(np.median(measured.damping))
+    if measured.amplitude:
+        out[ExtraColumn.log10_V_J_amp] = float(np.median(measured.amplitude))
+    out[ExtraColumn.thd] = _thd(x, T_s, sections, structure)
+    if len(bounds) == 6:
+        for column, sections_compared in _RATIO_SECTIONS.items():
+            out[column] = _frequency_ratio(measured.section_zero_crossing, sections_compared)
+    out[ExtraColumn.log10_osc_rel] = _relative_rms(x, bounds, scale, speed_span)
+    return np.nan_to_num(out, nan=0.0, posinf=0.0, neginf=0.0)
+
+
+@dataclass(frozen=True)
+class _StepAmplitude:
+    """``log10(A J_sigma 2 pi f / |dM|)`` of a section (paper eq. 1): the amplitude ``A`` (half the
+    peak-to-peak of ``x`` over the first :data:`AMPLITUDE_PERIODS` periods, in the input's units:
+    ``scale``) the torque step ``steps[i]`` excites; ``None`` where ``J_sigma`` or the step is
+    unknown or zero."""
+
+    x: np.ndarray
+    scale: float
+    T_s: float
+    J_sigma: float | None
+    steps: np.ndarray | None
+
+    def __call__(self, i: int, start: int, length: int, f: float) -> float | None:
+        J_sigma, steps = self.J_sigma, self.steps
+        if J_sigma is None or steps is None or i >= steps.size or not abs(steps[i]) > 0:
+            return None
+        m = min(length, max(2, int(AMPLITUDE_PERIODS / (f * self.T_s))))
+        A = 0.5 * float(np.ptp(self.x[start:start + m]))
+        if not (A > 0 and J_sigma):
+            return None
+        return (math.log10(A) + math.log10(self.scale) + math.log10(abs(float(J_sigma)) * 2 * math.pi * f)
+                - math.log10(abs(steps[i])))
+
+
+@dataclass(frozen=True)
+class _SectionMeasures:
+    """Per-section measures of :func:`extra_features` over the sections that oscillate: the
+    zero-crossing and peak frequencies [Hz] (where found), the envelope's damping and the step
+    amplitudes (where a peak was found), and each section's zero-crossing frequency (0: none)."""
+
+    zero_crossing: list[float]
+    peak: list[float]
+    damping: list[float]
+    amplitude: list[float]
+    section_zero_crossing: np.ndarray
+
+
+def _section_measures(x: np.ndarray, T_s: float, bounds: list[tuple[int, int]], peaks: dict[int, float] | None,
+                      amplitude: _StepAmplitude) -> _SectionMeasures:
+    measured = _SectionMeasures([], [], [], [], np.zeros(len(bounds)))
+    for i, start, seg in _segments(x, bounds):
         if not _scale_ok(seg):
             continue
-        fz = zero_crossing_frequency(seg, T_s)
-        fp = peaks[i] if peaks is not None and i in peaks else dominant_frequency(seg, T_s)
-        fz_sec[i] = fz
-        if fz > 0:
-            f_zc.append(fz)
-        if fp > 0:
-            f_pk.append(fp)
-            dd.append(_decay_damping(seg, T_s, fp))
-            if J_sigma is not None and steps is not None and i < steps.size and abs(steps[i]) > 0:
-                m = min(seg.size, max(2, int(1.5 / (fp * T_s))))
-                A = 0.5 * float(np.ptp(x[a:a + m]))
-                if A > 0 and J_sigma:  # log10(A * J_sigma * 2 pi f / |dM|), A in the input's units
-                    vj.append(math.log10(A) + math.log10(scale) + math.log10(abs(float(J_sigma)) * 2 * math.pi * fp)
-                              - math.log10(abs(steps[i])))
-    out = np.zeros(len(EXTRA_NAMES))
-    if f_zc:
-        out[0] = math.log10(float(np.median(f_zc)))
-    if f_pk:
-        out[1] = math.log10(float(np.median(f_pk)))
-        out[3] = float(np.median(dd))
-    if vj:
-        out[2] = float(np.median(vj))
+        f_zc = zero_crossing_frequency(seg, T_s)
+        f_peak = peaks[i] if peaks is not None and i in peaks else dominant_frequency(seg, T_s)
+        measured.section_zero_crossing[i] = f_zc
+        if f_zc > 0:
+            measured.zero_crossing.append(f_zc)
+        if f_peak > 0:
+            measured.peak.append(f_peak)
+            measured.damping.append(_decay_damping(seg, T_s, f_peak))
+            step_amplitude = amplitude(i, start, seg.size, f_peak)
+            if step_amplitude is not None:
+                measured.amplitude.append(step_amplitude)
+    return measured
+
+
+def _thd(x: np.ndarray, T_s: float, sections: Any, structure: Any) -> float:
+    """``sqrt(1 - a1^2)`` of the structure features' fundamental ``a1`` (given, else computed)."""
     if structure is not None:
         a1 = float(np.asarray(structure, dtype=np.float64).ravel()[0])
     else:
         a1 = float(structure_features(x, T_s, sections)[0]) if x.size else 0.0
-    out[4] = math.sqrt(max(0.0, 1.0 - min(1.0, a1) ** 2)) if a1 > 0 else 0.0
-    if len(bounds) == 6:
-        def ratio(num_idx: tuple[int, int]) -> float:
-            den = [fz_sec[i] for i in (0, 3) if fz_sec[i] > 0]
-            num = [fz_sec[i] for i in num_idx if fz_sec[i] > 0]
-            return math.log2(float(np.mean(num)) / float(np.mean(den))) if den and num else 0.0
-        out[5] = ratio((1, 4))
-        out[6] = ratio((2, 5))
-    if speed_span is not None and speed_span > 0 and x.size:
-        sel = np.concatenate([x[a:b] for a, b in bounds]) if bounds else x
-        rms = float(np.sqrt(np.mean(sel * sel)))
-        if rms > 0:
-            out[7] = math.log10(rms) + math.log10(scale) - math.log10(float(speed_span))
-    return np.nan_to_num(out, nan=0.0, posinf=0.0, neginf=0.0)
+    return math.sqrt(max(0.0, 1.0 - min(1.0, a1) ** 2)) if a1 > 0 else 0.0
+
+
+def _frequency_ratio(section_zero_crossing: np.ndarray, compared: tuple[int, int]) -> float:
+    """``log2`` of the mean zero-crossing frequency of the ``compared`` sections over that of the
+    ``M*`` sections I and IV (0 where either has none)."""
+    den = [section_zero_crossing[i] for i in _FULL_TORQUE_SECTIONS if section_zero_crossing[i] > 0]
+    num = [section_zero_crossing[i] for i in compared if section_zero_crossing[i] > 0]
+    return math.log2(float(np.mean(num)) / float(np.mean(den))) if den and num else 0.0
+
+
+def _relative_rms(x: np.ndarray, bounds: list[tuple[int, int]], scale: float, speed_span: float | None) -> float:
+    """``log10(rms(w_osc) / speed_span)`` over the sections (0 where unknown)."""
+    if speed_span is None or not speed_span > 0 or not x.size:
+        return 0.0
+    sel = np.concatenate([x[a:b] for a, b in bounds]) if bounds else x
+    rms = float(np.sqrt(np.mean(sel * sel)))
+    return math.log10(rms) + math.log10(scale) - math.log10(float(speed_span)) if rms > 0 else 0.0

@@ -21,7 +21,7 @@ import torch
 import som_torch as st
 from sim import STRUCTURE_CLASSES
 from sim._values import shown
-from training.identification._analysis import FEATURE_NAMES, FEATURE_VERSION, GAP_NAMES
+from training.identification._analysis import FEATURE_INDEX, FEATURE_NAMES, FEATURE_VERSION, GAP_NAMES
 from training.identification._envelope import FILE_NAME as ENVELOPE_FILE
 
 _HARM = tuple(n for n in FEATURE_NAMES if n.startswith("harm_"))
@@ -32,7 +32,7 @@ def _log10(x: np.ndarray, floor: float = 1e-6) -> np.ndarray:
 
 
 def _feature(f: np.ndarray, name: str) -> np.ndarray:
-    return f[:, FEATURE_NAMES.index(name)]
+    return f[:, FEATURE_INDEX[name]]
 
 
 #: The parameters stored as corrections to the eq.-1 oscillation fit: parameter -> (its fit feature,
@@ -158,6 +158,11 @@ class MapMetadata:
     spec: MapSpec
     interpolate: int
     distance_quantiles: dict[str, float]
+
+    @property
+    def distance_unit(self) -> float:
+        """The unit of a recall's distance ratio: the last of :data:`DISTANCE_QUANTILES` (finite, positive)."""
+        return self.distance_quantiles[DISTANCE_QUANTILES[-1]]
 
     @classmethod
     def from_dict(cls, meta: Mapping[str, Any], where: str | Path, n_units: int) -> "MapMetadata":

@@ -50,6 +50,7 @@ from scipy import signal as _signal
 
 from training._checks import as_signal
 from training.identification._result import IdentWarning
+from training.identification._settings import check_positive
 
 __all__ = ["OneMassFit", "SectionFit", "FORMULATIONS", "fit_one_mass", "speed_from_position", "section_bounds"]
 
@@ -85,8 +86,8 @@ class OneMassFit:
     windows for ``"integral"`` (noise dominated: 7 % on EMPS), filtered torque for ``"derivative"``.
     ``std``: standard deviations of ``(J_sigma, mu_F, M_FC, M_0)`` from the least squares.
     ``warnings``: reasons (coded) to distrust the fit: any formulation's collinear regressors
-    (variance inflation above :data:`COLLINEAR_INFLATION`) or a residual above
-    :data:`UNINFORMATIVE_RESIDUAL`; a ``"trajectory"`` fit's residual above 5 % or sections
+    (variance inflation above :attr:`OneMassTrust.collinear_inflation`) or a residual above
+    :attr:`OneMassTrust.uninformative_residual`; a ``"trajectory"`` fit's residual above 5 % or sections
     shorter than two periods of the oscillation; empty when none.
     """
 
@@ -312,16 +313,33 @@ def _lstsq_normal(G: np.ndarray, b: np.ndarray, y: np.ndarray,
     return theta, std, float(np.sqrt(np.mean(r * r)))
 
 
-#: Variance inflation ``1 / (1 - R^2)`` of a parameter's regressor on the others above which the
-#: parameter is not determined (test runs: at most 10^2.4; a speed that never reverses makes
-#: Coulomb friction and offset collinear: 10^5 and more).
-COLLINEAR_INFLATION = 1e4
-#: Relative residual above which the one-mass model explains too little to be trusted (the
-#: trajectory fit of a test run: below 0.05; the integral form on EMPS: 0.07).
-UNINFORMATIVE_RESIDUAL = 0.5
-#: Periods of the oscillation the shortest test section must hold for the trajectory fit to be
-#: trusted (shorter, and the fit reads about the motor's inertia: the load has not followed yet).
-SECTION_PERIODS = 2.0
+@dataclass(frozen=True)
+class OneMassTrust:
+    """When STEP 2's one-mass fit is not trusted (its coded warnings)."""
+
+    #: the variance inflation ``1 / (1 - R^2)`` of a parameter's regressor on the others above which
+    #: the parameter is not determined (test runs: at most 10^2.4; a speed that never reverses makes
+    #: Coulomb friction and offset collinear: 10^5 and more).
+    collinear_inflation: float = 1e4
+    #: the relative residual above which the one-mass model explains too little to be trusted (the
+    #: trajectory fit of a test run: below 0.05; the integral form on EMPS: 0.07).
+    uninformative_residual: float = 0.5
+    #: the trajectory fit's relative residual above which the record is not one mass.
+    trajectory_residual: float = 0.05
+    #: the trajectory fit's relative residual above which short sections are checked.
+    short_sections_residual: float = 0.01
+    #: the periods of the oscillation the shortest test section must hold for the trajectory fit to
+    #: be trusted (shorter, and the fit reads about the motor's inertia: the load has not followed yet).
+    section_periods: float = 2.0
+
+    def __post_init__(self) -> None:
+        check_positive(self)
+
+
+#: STEP 2's trust thresholds.
+TRUST = OneMassTrust()
+#: :attr:`OneMassTrust.section_periods` of :data:`TRUST` (the refinement's free stage reads it).
+SECTION_PERIODS = TRUST.section_periods
 _PARAMETERS = ("J_sigma", "mu_F", "M_FC", "M_0")
 
 
@@ -336,12 +354,12 @@ def _trust_warnings(G: np.ndarray, n_par: int, rel: float) -> tuple[IdentWarning
     except np.linalg.LinAlgError:
         inflation = np.full(n_par, np.inf)
     out = []
-    collinear = [_PARAMETERS[j] for j in range(n_par) if not inflation[j] < COLLINEAR_INFLATION]
+    collinear = [_PARAMETERS[j] for j in range(n_par) if not inflation[j] < TRUST.collinear_inflation]
     if collinear:
         out.append(IdentWarning("one_mass_fit_collinear", f"one-mass fit: the regressors of {', '.join(collinear)} are "
                                 "nearly collinear (does the speed never reverse? fit_one_mass in Python: "
                                 "offset=False): those values are not determined by this record"))
-    if rel > UNINFORMATIVE_RESIDUAL:
+    if rel > TRUST.uninformative_residual:
         out.append(IdentWarning("one_mass_fit_uninformative", f"one-mass fit: residual {rel:.2f} of the signal's rms: "
                                 "the model explains little of this record (noisy current, too little acceleration?); "
                                 "J_sigma and friction cannot be trusted"))
@@ -483,12 +501,12 @@ def _trajectory_warnings(rel: float, f_osc: float, bounds: list[tuple[int, int]]
                          T_s: float) -> tuple[IdentWarning, ...]:
     """Reasons to distrust a trajectory fit: residual above 5 %, sections shorter than two periods."""
     warns = []
-    if rel > 0.05:
+    if rel > TRUST.trajectory_residual:
         warns.append(IdentWarning("one_mass_fit_residual", f"one-mass fit residual is {100 * rel:.1f} % of the "
                                   "signal: the record is not well described by one mass (oscillation too large?)"))
-    if f_osc > 0 and rel > 0.01:
+    if f_osc > 0 and rel > TRUST.short_sections_residual:
         shortest = min(b - a for a, b in bounds) * T_s
-        if shortest * f_osc < SECTION_PERIODS:
+        if shortest * f_osc < TRUST.section_periods:
             warns.append(IdentWarning("one_mass_fit_short_sections",
                                       f"shortest section ({1e3 * shortest:.0f} ms) holds fewer than two periods of "
                                       f"the {f_osc:.3g} Hz oscillation: lower M* or raise w_max"))

@@ -44,6 +44,7 @@ Where that detection fails on a speed quantized in steps of half ``w_max`` or mo
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -52,23 +53,48 @@ from sim import Record, speed_quantum
 from sim.records import any_timed_out
 from training.identification._result import IdentWarning
 from training.identification._sections import incomplete_run
+from training.identification._settings import check_positive
 
-__all__ = ["check_record", "unit_warnings", "T_S_MAX", "T_EI_MAX", "T_S_OVER_T_EI_MAX", "TORQUE_RATIO", "SPEED_RATIO",
-           "J_RANGE"]
+__all__ = ["check_record", "unit_warnings", "PlausibilityBounds", "BOUNDS"]
 
-T_S_MAX = 0.02  # largest plausible sample time of a speed loop [s]
-T_EI_MAX = 0.05  # largest plausible current-loop time constant [s]
-T_S_OVER_T_EI_MAX = 50.0
-TORQUE_RATIO = (0.3, 3.0)  # 99th percentile of |torque| over M_star
-TORQUE_OVER_M_MAX = 1.5  # 99th percentile of |torque| over M_max (when M_star is not given)
-SPEED_RATIO = (0.3, 3.0)  # peak |speed| over w_max (above: beyond the overshoot the record's acceleration explains)
-_ACCEL_WINDOW = 8  # samples over which the acceleration is measured
-_GLITCH_SAMPLES = 3  # at most this many samples above the plausible peak: glitches, not units
-J_RANGE = (1e-7, 1e4)  # plausible one-mass inertia [kg m^2]
-_MIN_CORRELATION = 0.5  # |correlation| of torque integral and speed change needed to judge the inertia
-QUANTIZED_SHARE = 0.99  # share of nonzero speed samples on a quantum grid to call the speed quantized
-_ON_GRID = 0.9  # share of nonzero speed samples on the encoder's rad/s grid that confirms the speed's units
-RESOLUTION = 0.5  # speed quantum over w_max from which a failed section detection names the encoder
+
+@dataclass(frozen=True)
+class PlausibilityBounds:
+    """The bounds beyond which a record's units or metadata are implausible (module docstring)."""
+
+    #: the largest plausible sample time of a speed loop [s].
+    T_s_max: float = 0.02
+    #: the largest plausible current-loop time constant [s].
+    T_Ei_max: float = 0.05
+    #: the largest plausible ``T_s / T_Ei``.
+    T_s_over_T_Ei_max: float = 50.0
+    #: the 99th percentile of ``|torque|`` over ``M_star``.
+    torque_ratio: tuple[float, float] = (0.3, 3.0)
+    #: the 99th percentile of ``|torque|`` over ``M_max`` (when ``M_star`` is not given), at most.
+    torque_over_M_max: float = 1.5
+    #: the peak ``|speed|`` over ``w_max`` (above: beyond the overshoot the record's acceleration explains).
+    speed_ratio: tuple[float, float] = (0.3, 3.0)
+    #: the samples over which the acceleration is measured.
+    accel_window: int = 8
+    #: at most this many samples above the plausible peak are glitches, not units.
+    glitch_samples: int = 3
+    #: the plausible one-mass inertia [kg m^2].
+    J_range: tuple[float, float] = (1e-7, 1e4)
+    #: the ``|correlation|`` of torque integral and speed change needed to judge the inertia.
+    min_correlation: float = 0.5
+    #: the share of nonzero speed samples on a quantum grid that calls the speed quantized.
+    quantized_share: float = 0.99
+    #: the share of nonzero speed samples on the encoder's rad/s grid that confirms the speed's units.
+    on_grid: float = 0.9
+    #: the speed quantum over ``w_max`` from which a failed section detection names the encoder.
+    resolution: float = 0.5
+
+    def __post_init__(self) -> None:
+        check_positive(self, at_most_one=("min_correlation", "quantized_share", "on_grid"))
+
+
+#: The plausibility checks' bounds.
+BOUNDS = PlausibilityBounds()
 
 
 def check_record(record: Record) -> None:
@@ -136,18 +162,19 @@ def unit_warnings(record: Record) -> list[IdentWarning]:
 
 
 def _check_timing(T_s: float, T_Ei: Any) -> None:
-    if T_s > T_S_MAX:
-        raise ValueError(f"time looks like wrong units (sample time T_s = {T_s:.4g} s, expected <= {T_S_MAX:g} s "
+    if T_s > BOUNDS.T_s_max:
+        raise ValueError(f"time looks like wrong units (sample time T_s = {T_s:.4g} s, "
+                         f"expected <= {BOUNDS.T_s_max:g} s "
                          f"for a drive's speed loop; t in ms instead of s?)")
     if T_Ei is None:
         return
     T_Ei = float(T_Ei)
-    if T_Ei > T_EI_MAX:
+    if T_Ei > BOUNDS.T_Ei_max:
         raise ValueError(f"metadata T_Ei looks like wrong units (T_Ei = {T_Ei:.4g} s, expected a current-loop "
-                         f"time constant <= {T_EI_MAX:g} s; given in ms instead of s?)")
-    if T_Ei > 0 and T_s > T_S_OVER_T_EI_MAX * T_Ei:
+                         f"time constant <= {BOUNDS.T_Ei_max:g} s; given in ms instead of s?)")
+    if T_Ei > 0 and T_s > BOUNDS.T_s_over_T_Ei_max * T_Ei:
         raise ValueError(f"time looks like wrong units (T_s = {T_s:.4g} s is {T_s / T_Ei:.3g} x T_Ei = {T_Ei:.4g} s, "
-                         f"expected <= {T_S_OVER_T_EI_MAX:g} x; t and T_Ei in different units?)")
+                         f"expected <= {BOUNDS.T_s_over_T_Ei_max:g} x; t and T_Ei in different units?)")
 
 
 def _check_torque_scale(torque: np.ndarray, name: str, meta: dict[str, Any]) -> None:
@@ -157,15 +184,15 @@ def _check_torque_scale(torque: np.ndarray, name: str, meta: dict[str, Any]) -> 
     M_star = meta.get("M_star")
     if M_star is not None:
         ratio = peak / float(M_star)
-        lo, hi = TORQUE_RATIO
+        lo, hi = BOUNDS.torque_ratio
         if not lo <= ratio <= hi:
             raise ValueError(f"{name} looks like wrong units ({what} reaches {peak:.4g} Nm, {ratio:.3g} x metadata "
                              f"M_star = {float(M_star):.4g} Nm, expected {lo:g}..{hi:g} x; {hint})")
         return
     M_max = meta.get("M_max")
-    if M_max is not None and peak > TORQUE_OVER_M_MAX * float(M_max):
+    if M_max is not None and peak > BOUNDS.torque_over_M_max * float(M_max):
         raise ValueError(f"{name} looks like wrong units ({what} reaches {peak:.4g} Nm, {peak / float(M_max):.3g} x "
-                         f"metadata M_max = {float(M_max):.4g} Nm, expected <= {TORQUE_OVER_M_MAX:g} x; {hint})")
+                         f"metadata M_max = {float(M_max):.4g} Nm, expected <= {BOUNDS.torque_over_M_max:g} x; {hint})")
 
 
 def _speed_units(meta: dict[str, Any], T_s: float | None) -> dict[str, float]:
@@ -190,7 +217,7 @@ def overshoot_allowance(speed: np.ndarray, T_s: float, T_Ei: float | None) -> fl
     torque away: the record's own acceleration times the current loop's lag and the sampling delays
     (a first-order current loop adds ``M* T_Ei / J``; detection and application add up to ~2.5
     samples). Small drives with small inertias overshoot ``w_max`` by several times this way."""
-    m = _ACCEL_WINDOW
+    m = BOUNDS.accel_window
     if speed.size <= m or T_Ei is None:
         return 0.0
     accel = np.abs(speed[m:] - speed[:-m]) / (m * T_s)  # window of m samples: quantization / m
@@ -204,13 +231,13 @@ def _check_speed_scale(speed: np.ndarray, T_s: float, meta: dict[str, Any], reco
     abs_speed = np.abs(speed)
     peak = float(np.max(abs_speed))
     ratio = peak / float(w_max)
-    lo, hi = SPEED_RATIO
+    lo, hi = BOUNDS.speed_ratio
     timed_out = any_timed_out(meta)
     counts = meta.get("encoder_counts")
     quantum = speed_quantum(float(counts), T_s) if counts else 0.0  # an encoder's speed reads up to one count high
     allowed = hi * float(w_max) + overshoot_allowance(speed, T_s, meta.get("T_Ei")) + quantum
     above = np.flatnonzero(abs_speed > allowed)
-    if 0 < above.size <= _GLITCH_SAMPLES:  # a few samples far above the rest: no unit does that
+    if 0 < above.size <= BOUNDS.glitch_samples:  # a few samples far above the rest: no unit does that
         rest = float(np.max(np.delete(abs_speed, above)))
         at = float(record.t[int(above[np.argmax(abs_speed[above])])])  # a time, as the file's rows and a record's index agree on
         raise ValueError(f"speed has {above.size} sample(s) far above the rest (peak |speed| {peak:.4g} rad/s at "
@@ -244,23 +271,23 @@ def _check_speed_quantum(speed: np.ndarray, T_s: float, meta: dict[str, Any]) ->
         return  # too few moving samples to judge
     q_w = speed_quantum(float(counts), T_s)
     for unit, factor in _speed_units(meta, T_s).items():
-        if on_grid(x, q_w * factor) >= QUANTIZED_SHARE:
+        if on_grid(x, q_w * factor) >= BOUNDS.quantized_share:
             raise ValueError(f"speed looks like wrong units (its values are multiples of {q_w * factor:.6g}, the "
                              f"encoder's speed quantum 2*pi/(encoder_counts*T_s) = {q_w:.6g} rad/s in {unit}; "
                              f"expected rad/s)")
 
 
 def _on_encoder_grid(speed: np.ndarray, T_s: float, counts: float) -> bool:
-    """Whether ``speed`` steps in the speed quantum of ``counts`` in rad/s (:data:`_ON_GRID` of its
+    """Whether ``speed`` steps in the speed quantum of ``counts`` in rad/s (:attr:`PlausibilityBounds.on_grid` of its
     nonzero samples, at least 32 of them): the encoder then confirms its units. A speed not
     quantized at all (filtered) is not judged by the encoder."""
     x = speed[speed != 0]
-    return x.size >= 32 and on_grid(x, speed_quantum(float(counts), T_s)) >= _ON_GRID
+    return x.size >= 32 and on_grid(x, speed_quantum(float(counts), T_s)) >= BOUNDS.on_grid
 
 
 def resolution_hint(record: Record) -> str | None:
     """Why the test's sections may not show, where the encoder hardly resolves the test: a speed
-    quantized in rad/s in steps ``2 pi / (encoder_counts T_s)`` of :data:`RESOLUTION` x ``w_max``
+    quantized in rad/s in steps ``2 pi / (encoder_counts T_s)`` of :attr:`PlausibilityBounds.resolution` x ``w_max``
     (or of the peak speed) or more; else None."""
     counts, speed = record.meta.get("encoder_counts"), np.asarray(record.speed, dtype=np.float64)
     x = speed[speed != 0]
@@ -268,7 +295,7 @@ def resolution_hint(record: Record) -> str | None:
         return None
     q_w = speed_quantum(float(counts), record.T_s)
     w_max = float(record.meta.get("w_max") or np.abs(speed).max())
-    if q_w < RESOLUTION * w_max or on_grid(x, q_w) < QUANTIZED_SHARE:
+    if q_w < BOUNDS.resolution * w_max or on_grid(x, q_w) < BOUNDS.quantized_share:
         return None
     return (f"the encoder hardly resolves this test: its speed quantum 2*pi/(encoder_counts*T_s) = {q_w:.4g} rad/s "
             f"is {q_w / w_max:.2g} x w_max = {w_max:.4g} rad/s; raise w_max, or record a finer speed")
@@ -281,13 +308,13 @@ def _check_inertia(torque: np.ndarray, speed: np.ndarray, T_s: float, name: str)
     if not den > 0:
         return
     corr = float(impulse @ dw) / math.sqrt(den)
-    if corr < -_MIN_CORRELATION:
+    if corr < -BOUNDS.min_correlation:
         raise ValueError(f"speed does not follow the {name} (it falls under positive {name}: correlation "
                          f"{corr:.2f} of speed change and {name} integral); check the sign of speed or {name}")
-    if corr < _MIN_CORRELATION:
+    if corr < BOUNDS.min_correlation:
         return  # no clear one-mass behaviour: the section detection and fit judge it
     J = float(impulse @ dw) / float(dw @ dw)
-    lo, hi = J_RANGE
+    lo, hi = BOUNDS.J_range
     if not lo <= J <= hi:
         raise ValueError(f"speed/{name} look like wrong units (one-mass inertia estimate {J:.3g} kg m^2, "
                          f"expected {lo:g}..{hi:g} kg m^2)")

@@ -10,7 +10,7 @@ the interpolated crossing of the mid level minus ``T_Ei*ln 2`` (the first-order 
 half the step), rounded to the nearest sample; as in ``sim``, the sample that starts a section
 is measured at the instant its new ``M_ref`` is applied (its current still shows the old level). When the record carries ``torque_ref`` the classification uses it directly.
 
-A noisy current (its sample-to-sample noise above :data:`NOISY` of ``M*``) cannot be classified
+A noisy current (its sample-to-sample noise above :attr:`SectionRules.noisy` of ``M*``) cannot be classified
 sample by sample; the switching law itself is known, though, so the sections are then found by
 replaying it on the measured speed (:func:`_switching_law`: I ends at ``w_max``, II after I's
 duration or at ``0.2 w_max``, III at the zero crossing, ...), from the start of section I (where
@@ -41,8 +41,10 @@ from scipy.ndimage import median_filter
 
 from sim import SECTION_LEVELS, SECTION_NAMES, SPEED_RETURN, Record
 from training._checks import as_signal
+from training.identification._settings import check_positive
 
-__all__ = ["SectionSplit", "detect_sections", "sections_from_column", "diff_noise", "law_end", "torque_amplitude",
+__all__ = ["SectionSplit", "SectionRules", "RULES", "SPEC_TAIL",
+           "detect_sections", "sections_from_column", "diff_noise", "law_end", "torque_amplitude",
            "incomplete_run"]
 
 #: The distinct torque levels of the test signal over ``M*``, highest first: ``(1, 0.7, 0, -0.7, -1)``.
@@ -51,12 +53,49 @@ _PATTERN = [int(np.flatnonzero(_CLASS_LEVELS == v)[0]) for v in SECTION_LEVELS] 
 _ZERO = int(np.flatnonzero(_CLASS_LEVELS == 0.0)[0])
 _TOP = int(np.flatnonzero(_CLASS_LEVELS == 1.0)[0])  # +M*: section I only
 _RISE = int(np.flatnonzero(_CLASS_LEVELS == 0.7)[0])  # +0.7 M*: VI, or the torque's rise into I
-#: Runs of one torque level shorter than this [s] are transitions (spikes, ringing), not sections.
-MIN_RUN = 2e-3
-#: Torque noise (std over ``M*``) above which the sections come from the switching law on the speed.
-NOISY = 0.03
-#: A section's mean torque may miss its level by this much of ``M*`` (plus its noise) on the speed path.
-_LEVEL_TOL = 0.25
+#: SPEC 2's tail at rest after section VI [s].
+SPEC_TAIL = 0.05
+
+
+@dataclass(frozen=True)
+class SectionRules:
+    """The thresholds of the section detection (each checked to be a finite number > 0)."""
+
+    #: runs of one torque level shorter than this [s] are transitions (spikes, ringing), not sections.
+    min_run: float = 2e-3
+    #: torque noise (std over ``M*``) above which the sections come from the switching law on the speed.
+    noisy: float = 0.03
+    #: a section's mean torque may miss its level by this much of ``M*`` on the speed path ...
+    level_tolerance: float = 0.25
+    #: ... plus this many standard deviations of the mean's noise.
+    level_sigmas: float = 3.0
+    #: a sample's torque belongs to the nearest level within this much of ``M*`` (else to none).
+    class_tolerance: float = 0.15
+    #: the percentile of ``|torque|`` that stands for the largest level in a first estimate of ``M*`` ...
+    amplitude_percentile: float = 99.0
+    #: ... and the share of it above which samples count as the largest levels (``M*`` their median).
+    amplitude_share: float = 0.85
+    #: a noisy torque is smoothed until its noise lies this many sigmas ...
+    smooth_sigmas: float = 2.5
+    #: ... below this share of its amplitude (the levels' spacing is 0.3 of it).
+    smooth_share: float = 0.05
+    #: a speed held at its extreme for at least this many samples ...
+    saturated_samples: int = 20
+    #: ... or one in this many samples of the record (whichever is more) ...
+    saturated_part: int = 50
+    #: ... away from zero by this share of the speed's span ...
+    saturated_span: float = 0.05
+    #: ... under a mean torque above this share of the largest is saturated.
+    saturated_torque: float = 0.3
+    #: current-loop lags ``T_Ei`` after which the next torque step shows (an incomplete run's end).
+    settle_lags: float = 3.0
+
+    def __post_init__(self) -> None:
+        check_positive(self)
+
+
+#: The section detection's thresholds.
+RULES = SectionRules()
 
 
 @dataclass(frozen=True)
@@ -137,12 +176,13 @@ def _check_speed(w: np.ndarray, y: np.ndarray) -> None:
     if not span > 1e-12 * max(1.0, float(np.max(np.abs(w)))):
         raise ValueError(f"speed: expected a varying speed, received a constant speed ({w[0]:.6g} rad/s)")
     ymax = float(np.max(np.abs(y))) if y.size else 0.0
-    min_run = max(20, w.size // 50)
+    min_run = max(RULES.saturated_samples, w.size // RULES.saturated_part)
     for ext in (float(np.max(w)), float(np.min(w))):
         at = np.abs(w - ext) <= 1e-9 * max(1.0, abs(ext))
         starts, stops, vals = _runs(at.astype(np.int8))
         for a, b, v in zip(starts, stops, vals):
-            if v and b - a >= min_run and abs(ext) > 0.05 * span and np.mean(np.abs(y[a:b])) > 0.3 * ymax:
+            if (v and b - a >= min_run and abs(ext) > RULES.saturated_span * span
+                    and np.mean(np.abs(y[a:b])) > RULES.saturated_torque * ymax):
                 raise ValueError(f"speed: expected an unsaturated speed, received {b - a} samples saturated "
                                  f"at {ext:.6g} rad/s under torque")
 
@@ -157,7 +197,7 @@ def detect_sections(
     T_Ei: float | None = None,
     torque_ref: Any = None,
     use_column: bool = False,
-    min_run: float = MIN_RUN,
+    min_run: float = RULES.min_run,
     w_max: float | None = None,
 ) -> SectionSplit:
     """Find sections I..VI of a test run.
@@ -195,7 +235,7 @@ def detect_sections(
     ys, source, lag = _classified_signal(y, info, Ts)
     Ms, estimated = _amplitude(ys, info.get("M_star"))
     noise = diff_noise(y) if source == "torque" else 0.0  # the reference is noiseless
-    if noise > NOISY * Ms:
+    if noise > RULES.noisy * Ms:
         return _switching_law(w, y, info, Ts, noise)
     keep = max(3, int(round(min_run / Ts)))
     runs = _level_runs(ys, Ms, keep)
@@ -326,28 +366,49 @@ def _switching_law(w: np.ndarray, y: np.ndarray, info: dict[str, Any], Ts: float
     sections best fit the torque levels wins."""
     n = y.size
     ys, smooth_len = _smoothed(y, noise)
-    M_rough = float(np.percentile(np.abs(ys), 99.0))
-    keep = max(3, int(round(MIN_RUN / Ts)))
+    M_rough = float(np.percentile(np.abs(ys), RULES.amplitude_percentile))
+    keep = max(3, int(round(RULES.min_run / Ts)))
     runs = _level_runs(ys, _amplitude(ys, None)[0], keep) if M_rough > 0 else []
     _check_one_run(runs, w, info, Ts)
     lag = float(info.get("T_Ei") or 0.0) * math.log(2.0) / Ts  # [samples] of the torque behind its reference
-    expected = ",".join(_level_text(v) for v in SECTION_LEVELS)
-    fail = (f"no recognisable test-signal sections: expected torque levels {expected} x M* and the speed to follow "
-            f"the switching law (w_max, 0.2 w_max, 0), received a noisy torque ({noise / max(M_rough, 1e-300):.2g} "
-            "of M*) and a speed that does not")
+    fail = (f"no recognisable test-signal sections: expected torque levels {_EXPECTED_LEVELS} x M* and the speed to "
+            "follow the switching law (w_max, 0.2 w_max, 0), received a noisy torque "
+            f"({noise / max(M_rough, 1e-300):.2g} of M*) and a speed that does not")
     try:
         rise = _crossing(ys, 0.5 * M_rough, 0, True)
         fall = _crossing(ys, 0.5 * M_rough, int(rise) + 1, False)
     except ValueError:
         raise ValueError(_incomplete(runs, w, info, Ts, keep) or fail) from None
     k0 = int(round(rise - lag))
-    k0 = 0 if k0 < max(3, int(round(MIN_RUN / Ts))) else k0  # no run before I: the record starts in I
+    k0 = 0 if k0 < keep else k0  # no run before I: the record starts in I
+    best = _best_replay(w, y, k0, _w_max_candidates(w, info, fall - lag, smooth_len, k0), info.get("M_star"))
+    if best is None:
+        raise ValueError(_incomplete(runs, w, info, Ts, keep) or fail)
+    bounds, Ms = best
+    levels = np.array([y[a:b].mean() for a, b in bounds.tolist()])
+    _check_law_levels(levels, bounds, Ms, noise)
+    _check_speed_follows(w, bounds)
+    flags = ([f"sections from the switching law on the speed (torque noise {noise / Ms:.2g} of M*)"]
+             + _law_flags(bounds, n, k0, Ts) + _duration_flags(bounds))
+    b6 = int(bounds[5, 1])
+    return SectionSplit(bounds, (b6, int(n)), Ms, info.get("M_star") is None, levels, tuple(flags), "speed", n)
+
+
+def _w_max_candidates(w: np.ndarray, info: dict[str, Any], fall: float, smooth_len: int, k0: int) -> list[float]:
+    """The ``w_max`` values to replay the law with: the record's, else each speed near the smoothed
+    torque's ``fall`` after I [samples, at the step instant]: the controller saw ``w_max`` one
+    sample before it, and the smoothed fall is a few samples unsure."""
     if info.get("w_max") is not None:
-        candidates = [float(info["w_max"])]
-    else:  # the controller saw w_max one sample before the fall; the smoothed fall is a few samples unsure
-        j = int(round(fall - lag)) - 1
-        h = smooth_len // 2 + 3
-        candidates = sorted(set(w[max(j - h, k0):min(j + h + 1, n)].tolist()))
+        return [float(info["w_max"])]
+    j = int(round(fall)) - 1
+    h = smooth_len // 2 + 3
+    return sorted(set(w[max(j - h, k0):min(j + h + 1, w.size)].tolist()))
+
+
+def _best_replay(w: np.ndarray, y: np.ndarray, k0: int, candidates: list[float],
+                 M_star: float | None) -> tuple[np.ndarray, float] | None:
+    """The bounds and ``M*`` of the law replayed from ``k0`` with the candidate ``w_max`` whose
+    sections (all non-empty) best fit the torque levels (:func:`_level_fit`); None when none does."""
     best = None
     for w_max in candidates:
         try:
@@ -355,37 +416,44 @@ def _switching_law(w: np.ndarray, y: np.ndarray, info: dict[str, Any], Ts: float
         except ValueError:
             continue
         if np.all(bounds[:, 1] > bounds[:, 0]):
-            Ms, cost = _level_fit(y, bounds, info.get("M_star"))
+            Ms, cost = _level_fit(y, bounds, M_star)
             if best is None or cost < best[2]:
                 best = (bounds, Ms, cost)
-    if best is None:
-        raise ValueError(_incomplete(runs, w, info, Ts, keep) or fail)
-    bounds, Ms, _ = best
-    levels = np.array([y[a:b].mean() for a, b in bounds.tolist()])
+    return None if best is None else (best[0], best[1])
+
+
+def _check_law_levels(levels: np.ndarray, bounds: np.ndarray, Ms: float, noise: float) -> None:
+    """Each section's mean torque ``levels`` must lie within :attr:`SectionRules.level_tolerance`
+    of ``M*`` (plus :attr:`SectionRules.level_sigmas` of its mean's noise) of its level; else
+    ValueError (one line)."""
     miss = np.abs(levels - np.asarray(SECTION_LEVELS) * Ms)
-    if not Ms > 0 or np.any(miss > _LEVEL_TOL * Ms + 3.0 * noise / np.sqrt(bounds[:, 1] - bounds[:, 0])):
-        raise ValueError(f"no recognisable test-signal sections: expected torque levels {expected} x M* "
+    if not Ms > 0 or np.any(miss > RULES.level_tolerance * Ms
+                            + RULES.level_sigmas * noise / np.sqrt(bounds[:, 1] - bounds[:, 0])):
+        raise ValueError(f"no recognisable test-signal sections: expected torque levels {_EXPECTED_LEVELS} x M* "
                          f"(M*={Ms:.4g}) in order, received section means "
                          f"{','.join(f'{v / max(abs(Ms), 1e-300):+.2f}' for v in levels)} x M*")
-    _check_speed_follows(w, bounds)
+
+
+def _law_flags(bounds: np.ndarray, n: int, k0: int, Ts: float) -> list[str]:
+    """The notes on the law's sections: the tail missing or short, samples before section I."""
     b6 = int(bounds[5, 1])
-    flags = [f"sections from the switching law on the speed (torque noise {noise / Ms:.2g} of M*)"]
+    flags = []
     if b6 >= n:
         flags.append("record ends in section VI (no tail)")
-    elif n - b6 < int(round(0.05 / Ts)) - 2:
+    elif n - b6 < int(round(SPEC_TAIL / Ts)) - 2:
         flags.append("tail shorter than 50 ms")
     if k0 > 0:
         flags.append(f"{k0} samples before section I")
-    flags += _duration_flags(bounds)
-    return SectionSplit(bounds, (b6, int(n)), Ms, info.get("M_star") is None, levels, tuple(flags), "speed", n)
+    return flags
 
 
 def _smoothed(y: np.ndarray, noise: float) -> tuple[np.ndarray, int]:
     """A noisy torque ``y`` through a median filter long enough to bring its ``noise`` [Nm] well
     below the levels' spacing, and the filter's length [samples]."""
     n = y.size
-    a_rough = float(np.percentile(np.abs(y), 99.0))
-    smooth_len = max(5, 2 * int(math.ceil((2.5 * noise / max(0.05 * a_rough, 1e-300)) ** 2 / 2)) + 1)
+    a_rough = float(np.percentile(np.abs(y), RULES.amplitude_percentile))
+    smooth_len = max(5, 2 * int(math.ceil((RULES.smooth_sigmas * noise / max(RULES.smooth_share * a_rough, 1e-300)) ** 2
+                                          / 2)) + 1)
     return median_filter(y, size=min(smooth_len, max(5, n // 20) | 1), mode="nearest"), smooth_len
 
 
@@ -449,13 +517,19 @@ def _incomplete(runs: list[list[int]], w: np.ndarray, info: dict[str, Any], Ts: 
                      4: (True, -SPEED_RETURN * w_max), 5: (True, 0.0)}[k]
     tail = w[runs[-1][0]:]
     ended = np.flatnonzero(tail >= level if rising else tail <= level)
-    settle = keep + int(math.ceil(3.0 * float(info.get("T_Ei") or 0.0) / Ts)) + 2  # before the next step shows
+    # the samples before the next step shows
+    settle = keep + int(math.ceil(RULES.settle_lags * float(info.get("T_Ei") or 0.0) / Ts)) + 2
     if ended.size and runs[-1][0] + int(ended[0]) < n - settle:
         return None  # the law ended that section well before the record ends: not simply cut short
+    return _incomplete_text(k, got[-1] != _ZERO, info, Ts, n)
+
+
+def _incomplete_text(k: int, torque_applied: bool, info: dict[str, Any], Ts: float, n: int) -> str:
+    """The error line of a record of ``n`` samples that ends in section ``k`` (0..5 for I..VI)."""
     missing = f"sections {', '.join(SECTION_NAMES[k + 1:])} and the 50 ms tail are" if k < 5 else "the 50 ms tail is"
     why = ("the drive aborted it at a limit (metadata aborted: true)" if info.get("aborted")
            else "was the recording cut short? record the whole test run")
-    state = "the torque still applied" if got[-1] != _ZERO else "the speed still moving"
+    state = "the torque still applied" if torque_applied else "the speed still moving"
     return (f"incomplete test run: the record ends in section {SECTION_NAMES[k]} at "
             f"t = {_time_at(info, Ts, n - 1):.6g} s ({state}); {missing} missing: {why}")
 
@@ -471,12 +545,12 @@ def incomplete_run(record: Record, upto: int = 6) -> str | None:
         ys, source, _ = _classified_signal(y, info, Ts)
         Ms = _amplitude(ys, info.get("M_star"))[0]
         noise = diff_noise(y) if source == "torque" else 0.0
-        if noise > NOISY * Ms:  # as the switching law classifies it
+        if noise > RULES.noisy * Ms:  # as the switching law classifies it
             ys = _smoothed(y, noise)[0]
             Ms = _amplitude(ys, None)[0]
     except ValueError:
         return None
-    keep = max(3, int(round(MIN_RUN / Ts)))
+    keep = max(3, int(round(RULES.min_run / Ts)))
     return _incomplete(_level_runs(ys, Ms, keep), w, info, Ts, keep, upto)
 
 
@@ -494,13 +568,13 @@ def _amplitude(ys: np.ndarray, M_star: float | None) -> tuple[float, bool]:
     """``M*`` [Nm] (estimated from the largest levels of ``ys`` when ``None``) and whether estimated."""
     estimated = M_star is None
     if estimated:
-        a = float(np.percentile(np.abs(ys), 99.0))
+        a = float(np.percentile(np.abs(ys), RULES.amplitude_percentile))
         if not math.isfinite(a):
             raise ValueError("torque: expected finite values, received inf or NaN (current * K_M beyond the float "
                              "range?)")
         if not a > 0:
             raise ValueError("torque: expected steps between +-M*, +-0.7M* and 0, received a zero torque")
-        M_star = float(np.median(np.abs(ys)[np.abs(ys) > 0.85 * a]))
+        M_star = float(np.median(np.abs(ys)[np.abs(ys) > RULES.amplitude_share * a]))
     Ms = float(M_star)
     if not Ms > 0:
         raise ValueError(f"M_star: expected a positive torque amplitude [Nm], received {Ms!r}")
@@ -509,10 +583,11 @@ def _amplitude(ys: np.ndarray, M_star: float | None) -> tuple[float, bool]:
 
 def _level_runs(ys: np.ndarray, Ms: float, keep_len: int) -> list[list[int]]:
     """Runs ``[start, stop, level index]`` of ``ys`` classified to :data:`_CLASS_LEVELS` (within
-    0.15 M*), runs shorter than ``keep_len`` samples dropped and equal neighbours merged."""
+    :attr:`SectionRules.class_tolerance` of ``M*``), runs shorter than ``keep_len`` samples dropped and equal
+    neighbours merged."""
     dist = np.abs(ys[:, None] / Ms - _CLASS_LEVELS[None, :])
     codes = np.argmin(dist, axis=1)
-    codes = np.where(np.min(dist, axis=1) <= 0.15, codes, -1)
+    codes = np.where(np.min(dist, axis=1) <= RULES.class_tolerance, codes, -1)
     starts, stops, vals = _runs(codes)
     merged: list[list[int]] = []
     for a, b, v in zip(starts, stops, vals):
@@ -527,6 +602,10 @@ def _level_runs(ys: np.ndarray, Ms: float, keep_len: int) -> list[list[int]]:
 
 def _level_text(level: float) -> str:
     return f"{level:+.1f}".rstrip("0").rstrip(".") if level else "0"
+
+
+#: SPEC 2's torque levels of sections I..VI over ``M*``, as an error line names them.
+_EXPECTED_LEVELS = ",".join(_level_text(v) for v in SECTION_LEVELS)
 
 
 def _test_start(runs: list[list[int]], Ms: float, w: np.ndarray, info: dict[str, Any], Ts: float, keep: int) -> int:
@@ -548,9 +627,8 @@ def _pattern_start(runs: list[list[int]], Ms: float) -> int:
         if seq[i:i + 6] == _PATTERN:
             return i
     found = ",".join(f"{_CLASS_LEVELS[v]:+.1f}" for v in seq[:12]) or "none"
-    expected = ",".join(_level_text(v) for v in SECTION_LEVELS)
     raise ValueError("no recognisable test-signal sections: expected torque levels "
-                     f"{expected} x M* (M*={Ms:.4g}) in order, received {found}")
+                     f"{_EXPECTED_LEVELS} x M* (M*={Ms:.4g}) in order, received {found}")
 
 
 @dataclass(frozen=True)
@@ -609,7 +687,7 @@ def _boundaries(runs: list[list[int]], hit: int, step: _StepLocator,
         tail = (b6, b6)
         flags.append("record ends in section VI (no tail)")
     bounds[5, 1] = b6
-    if tail[1] - tail[0] < int(round(0.05 / Ts)) - 2 and tail[1] > tail[0]:
+    if tail[1] - tail[0] < int(round(SPEC_TAIL / Ts)) - 2 and tail[1] > tail[0]:
         flags.append("tail shorter than 50 ms")
     if bounds[0, 0] > 0:
         flags.append(f"{bounds[0, 0]} samples before section I")

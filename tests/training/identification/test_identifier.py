@@ -14,8 +14,10 @@ from sim import STRUCTURE_CLASSES, two_mass_derived, write_record
 from training.errors import IdentificationError
 from training.identification import (PARAMETER_NAMES, WARNING_CODES, IdentificationFailure, IdentificationResult,
                                      Identifier, IdentWarning, Parameters, Quality, fit_one_mass)
-from training.identification import _batch, _identifier, analyze
+from training.identification import IdentificationPolicy, _assembly, _batch, analyze
+from training.identification._assembly import Draft, Judge, RecordEvidence
 from training.identification._maps import MAP_SPECS
+from training.identification._policy import MapsAnswer
 from training.identification._refine import Refined
 
 #: The keys of SPEC section 9's object and of its ``quality`` (the refinement's last four).
@@ -77,16 +79,26 @@ def test_warnings_carry_codes():
 
 
 def test_the_identifier_codes_its_own_warnings():
-    a = SimpleNamespace(osc_quanta=0.5)
-    m = SimpleNamespace(structure="elastic", used=("structure", "f_e", "V_J"),
-                        distance_ratio={"structure": 0.5, "f_e": 1.5, "V_J": 0.9, "backlash": 3.0})
-    warns = Identifier._maps_warnings(a, m)
+    analysis = SimpleNamespace(osc_quanta=0.5)
+    answer = SimpleNamespace(structure="elastic", used=("structure", "f_e", "V_J"),
+                             distance_ratio={"structure": 0.5, "f_e": 1.5, "V_J": 0.9, "backlash": 3.0})
+    draft = Draft("elastic", Parameters(J_sigma=1.0), (), ())
+    judge = Judge(envelope=None, policy=IdentificationPolicy())
+    warns = _assembly.warn_maps(RecordEvidence(analysis, answer, None, (), None), draft, judge).warnings
     assert [w.code for w in warns] == ["unlike_training_data", "oscillation_below_quantum"]
     assert "f_e map (distance 1.50" in warns[0].text
-    r = SimpleNamespace(J_sigma=0.1, residual=0.9)
-    assert [w.code for w in _identifier._refine_warnings(r, "elastic")] == ["one_mass_fit_replaced",
-                                                                           "refine_partial_fit"]
-    assert [w.code for w in _identifier._refine_warnings(r, "stiff")] == ["one_mass_fit_replaced"]
+    refined = SimpleNamespace(J_sigma=0.1, residual=0.9)
+    policy = IdentificationPolicy()
+    assert [w.code for w in _assembly.refine_warnings(refined, "elastic", policy)] == ["one_mass_fit_replaced",
+                                                                                      "refine_partial_fit"]
+    assert [w.code for w in _assembly.refine_warnings(refined, "stiff", policy)] == ["one_mass_fit_replaced"]
+
+
+@pytest.mark.parametrize("field, value", [("stiff_sure", 1.5), ("class_evidence", 0.0), ("damping_cap", float("nan")),
+                                          ("class_margin", True)])
+def test_the_policy_names_its_failing_setting(field, value):
+    with pytest.raises(ValueError, match=rf"^IdentificationPolicy\.{field}: expected"):
+        IdentificationPolicy(**{field: value})
 
 
 def test_one_mass_fit_warnings_carry_codes():
@@ -193,9 +205,9 @@ def test_refined_evidence_is_the_drop_of_the_squared_error_per_degree_of_freedom
     assert refined(0.0, 0.1).evidence == float("inf")
 
 
-def _stiff_maps_answer(s_N: float = 1e-3) -> _identifier._MapsAnswer:
+def _stiff_maps_answer(s_N: float = 1e-3) -> MapsAnswer:
     """The maps' answer ``stiff`` (a 3 kHz shaft) with the structure map's ``s_N``."""
-    return _identifier._MapsAnswer("stiff", {c: 0.25 for c in STRUCTURE_CLASSES}, f_e=3000.0, V_J=1.0, d=0.05,
+    return MapsAnswer("stiff", {c: 0.25 for c in STRUCTURE_CLASSES}, f_e=3000.0, V_J=1.0, d=0.05,
                                    s_N=s_N, s_N_backlash=s_N, distance_ratio=dict.fromkeys(MAP_SPECS, 0.5))
 
 
@@ -207,6 +219,11 @@ def _refined_shaft(a, s_N: float, residual: float) -> Refined:
                    dof=4000, n_sims=1)
 
 
+def _result(ident: Identifier, analysis, answer: MapsAnswer, refined: Refined) -> IdentificationResult:
+    """The result the identifier assembles from these answers (no drive findings)."""
+    return _assembly.assemble(RecordEvidence(analysis, answer, refined, (), "x"), Judge(ident.envelope, ident.policy))
+
+
 @pytest.mark.parametrize("residual, kept", [(0.9999, "maps"), (0.9, "refined")])
 def test_a_refined_class_stands_only_where_the_record_shows_it(ident, good, residual, kept):
     """The maps say stiff; the refinement's model adds a backlash (stiff_backlash). Fitting the
@@ -214,8 +231,8 @@ def test_a_refined_class_stands_only_where_the_record_shows_it(ident, good, resi
     backlash: the maps' answer stays, warned ``class_undecided``. 10 % better (evidence 940) does."""
     a = analyze(good)
     r = _refined_shaft(a, 1.0, residual)
-    assert ident._refined_parameters(a, r)[0] == "stiff_backlash"
-    res = ident._result(a, _stiff_maps_answer(), r, [], "x")
+    assert _assembly.refined_parameters(a, r)[0] == "stiff_backlash"
+    res = _result(ident, a, _stiff_maps_answer(), r)
     if kept == "maps":
         assert res.structure == "stiff" and res.parameters.f_e is None
         assert res.has_warning("class_undecided")
@@ -233,9 +250,23 @@ def test_a_refined_stiff_answer_near_the_backlash_threshold_says_so(ident, good)
     a = analyze(good)
 
     def near(maps_s_N: float, refined_s_N: float) -> list[str]:
-        res = ident._result(a, _stiff_maps_answer(maps_s_N), _refined_shaft(a, refined_s_N, 0.5), [], "x")
+        res = _result(ident, a, _stiff_maps_answer(maps_s_N), _refined_shaft(a, refined_s_N, 0.5))
         assert res.structure == "stiff"
         return [w.text.split(" lies")[0] for w in res.warnings if w.code == "class_near_threshold"]
 
     assert "s_N = 0.095" in near(1e-3, 0.095)
     assert "s_N = 0.09 (the maps' estimate)" in near(0.09, 0.01) and "s_N = 0.01" not in near(0.09, 0.01)
+
+
+def test_the_refinement_stands_on_its_class_its_evidence_or_a_replaced_fit():
+    """:func:`refinement_stands`: the maps' class kept, evidence at the policy's threshold, or
+    STEP 2's values replaced; else the maps' answer stays."""
+    from training.identification._policy import refinement_stands
+
+    policy = IdentificationPolicy()
+    weak = SimpleNamespace(evidence=policy.class_evidence / 2, J_sigma=None)
+    assert refinement_stands("stiff", "stiff", weak, policy)
+    assert not refinement_stands("stiff", "elastic", weak, policy)
+    assert refinement_stands("stiff", "elastic", SimpleNamespace(evidence=policy.class_evidence, J_sigma=None), policy)
+    assert refinement_stands("stiff", "elastic", SimpleNamespace(evidence=0.0, J_sigma=0.1), policy)
+    assert not refinement_stands("stiff", "elastic", weak, IdentificationPolicy(class_evidence=1e9))

@@ -1,0 +1,180 @@
+"""The identifier's decisions for one record, as named rules over typed values with their own
+settings (:class:`IdentificationPolicy`):
+
+- :data:`REFINED_WHEN`: which maps' answers the refinement sees (any rule that holds);
+- :func:`angle_checked_when`: which refined stiff results are checked for a gap in the motor's angle;
+- :func:`refinement_stands`: whether the refinement's class replaces the maps' one;
+
+and SPEC's class rule on a two-mass model of the record's drive (:func:`spec_class`), which both
+the maps' answer and the refined one are classed by.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+from sim import STRUCTURE_CLASSES, class_index, two_mass_derived
+from training.identification._analysis import Analysis
+from training.identification._envelope import Finding
+from training.identification._limits import backlash_negligible, speed_resolution
+from training.identification._refine import Refined
+from training.identification._settings import check_positive
+
+#: The classes with a backlash (their width is identified).
+BACKLASH_CLASSES = ("elastic_backlash", "stiff_backlash")
+
+
+@dataclass(frozen=True)
+class IdentificationPolicy:
+    """The thresholds of the identifier's decisions (each checked to lie in its range)."""
+
+    #: rms of ``w_osc`` [speed quanta] from which the oscillation shows above the quantization.
+    visible_quanta: float = 1.0
+    #: the structure map's probability of ``stiff`` below which a stiff answer is refined too.
+    stiff_sure: float = 0.6
+    #: :attr:`Refined.evidence` below which the refinement's class does not replace the maps' one.
+    class_evidence: float = 15.0
+    #: the refined model's residual (of the oscillation's rms) above which its fit is called partial.
+    partial_fit_residual: float = 0.7
+    #: relative distance to a class threshold within which the neighbouring class is about as likely.
+    class_margin: float = 0.25
+    #: the largest damping the maps' answer gives (the ``f_e`` map's read-out clipped to ``[0, this]``).
+    damping_cap: float = 0.9
+    #: the smallest ``s_N`` the refinement starts from (its coordinate is ``log10 s_N``).
+    start_s_N_floor: float = 1e-3
+
+    def __post_init__(self) -> None:
+        check_positive(self, at_most_one=("stiff_sure", "class_margin", "damping_cap"))
+
+
+@dataclass(frozen=True)
+class MapsAnswer:
+    """What the maps say about one record, before the refinement: the structure and its
+    probabilities, ``f_e`` [Hz], ``V_J``, ``d``, the structure map's and the backlash map's
+    ``s_N`` (on the record's own ``M_N``: :func:`s_N_on_record`), and each map's recall distance
+    over its training 99 % quantile."""
+
+    structure: str
+    probabilities: dict[str, float]
+    f_e: float
+    V_J: float
+    d: float
+    s_N: float
+    s_N_backlash: float
+    distance_ratio: dict[str, float]
+
+    @property
+    def used(self) -> tuple[str, ...]:
+        """The maps whose recall this answer rests on."""
+        return (("structure",) + (("f_e", "V_J") if self.structure != "stiff" else ())
+                + (("backlash",) if self.structure in BACKLASH_CLASSES else ()))
+
+    @property
+    def outside_training(self) -> bool:
+        return any(self.distance_ratio[name] > 1.0 for name in self.used)
+
+
+# -- which answers are refined ------------------------------------------------------------------
+#: A rule on one record: its analysis, the maps' answer, the envelope's findings on its drive.
+RecordRule = Callable[[Analysis, MapsAnswer, Sequence[Finding], IdentificationPolicy], bool]
+
+
+def _not_stiff(analysis: Analysis, answer: MapsAnswer, findings: Sequence[Finding],
+               policy: IdentificationPolicy) -> bool:
+    """An elastic or backlash answer: the refinement fits its parameters on the record."""
+    return answer.structure != "stiff"
+
+
+def _oscillation_shows(analysis: Analysis, answer: MapsAnswer, findings: Sequence[Finding],
+                       policy: IdentificationPolicy) -> bool:
+    """The oscillation shows above the quantization: near the ``w_e T_Ei = 1`` threshold the maps'
+    ``f_e`` decides the class."""
+    return analysis.osc_quanta >= policy.visible_quanta
+
+
+def _drive_outside_training(analysis: Analysis, answer: MapsAnswer, findings: Sequence[Finding],
+                            policy: IdentificationPolicy) -> bool:
+    """The drive lies outside the maps' training (or the envelope): their stiff verdict is unproven."""
+    return bool(findings)
+
+
+def _speed_may_hide_backlash(analysis: Analysis, answer: MapsAnswer, findings: Sequence[Finding],
+                             policy: IdentificationPolicy) -> bool:
+    """The drive's speed could hide a backlash from the features: the replay still sees the gap crossings."""
+    return hides_backlash(analysis)
+
+
+def _unsure_of_stiff(analysis: Analysis, answer: MapsAnswer, findings: Sequence[Finding],
+                     policy: IdentificationPolicy) -> bool:
+    """The structure map itself is unsure of ``stiff``."""
+    return answer.probabilities["stiff"] < policy.stiff_sure
+
+
+#: The maps' answer of a record is refined when any of these holds.
+REFINED_WHEN: tuple[RecordRule, ...] = (_not_stiff, _oscillation_shows, _drive_outside_training,
+                                        _speed_may_hide_backlash, _unsure_of_stiff)
+
+
+def refined_when(analysis: Analysis, answer: MapsAnswer, findings: Sequence[Finding],
+                 policy: IdentificationPolicy) -> bool:
+    """Whether the refinement sees this record (:data:`REFINED_WHEN`)."""
+    return any(rule(analysis, answer, findings, policy) for rule in REFINED_WHEN)
+
+
+def angle_checked_when(analysis: Analysis, answer: MapsAnswer, result_structure: str) -> bool:
+    """Whether a refined record's result is checked for a gap in the motor's angle: a ``stiff``
+    result on STEP 2's trusted fit, where the record's speed could hide a backlash or the
+    refinement dropped the maps' gap."""
+    return (result_structure == "stiff" and not analysis.fit.warnings
+            and (hides_backlash(analysis) or answer.structure in BACKLASH_CLASSES))
+
+
+def refinement_stands(maps_structure: str, refined_structure: str, refined: Refined,
+                      policy: IdentificationPolicy) -> bool:
+    """Whether the refinement's answer replaces the maps' one: it keeps their class, or the record
+    shows its better fit (:attr:`Refined.evidence`), or it replaced STEP 2's one-mass values."""
+    return (refined_structure == maps_structure or refined.evidence >= policy.class_evidence
+            or refined.J_sigma is not None)
+
+
+# -- the record's own scales ---------------------------------------------------------------------
+def s_N_on_record(analysis: Analysis, log10_s_star: float) -> float:
+    """The record's ``s_N = s C_F / M_N`` from a map's ``log10_s_star``, ``s* = s C_F / M*`` (the
+    gap's torque over the test's torque: what the speed shows), by the record's ``M*`` and ``M_N``."""
+    return 10.0 ** log10_s_star * analysis.M_star / analysis.M_N
+
+
+def hides_backlash(analysis: Analysis) -> bool:
+    """Whether the record's speed could hide a backlash that matters on a stiff shaft
+    (:func:`._limits.speed_resolution`, :func:`._limits.backlash_negligible`): the angle may still
+    show it."""
+    J_sigma = abs(analysis.fit.J_sigma)
+    return speed_resolution(analysis.q_w, J_sigma, analysis.M_star) > backlash_negligible(analysis.M_N, analysis.T_Ei,
+                                                                                         J_sigma)
+
+
+@dataclass(frozen=True)
+class ClassModel:
+    """A two-mass model of which SPEC's class rule speaks, with the label that names it in a warning."""
+
+    J_sigma: float
+    V_J: float
+    f_e: float
+    d: float
+    s_N: float
+    label: str = ""
+
+
+def class_quantities(analysis: Analysis, J_sigma: float, V_J: float, f_e: float, d: float,
+                     s_N: float) -> dict[str, float]:
+    """The quantities of SPEC's class rule (:data:`sim.CLASS_THRESHOLDS`) of a two-mass model on the
+    record's drive: ``s_N``, ``w_e T_Ei`` and ``r_osc = V_J M* / (J_sigma w_0 q_w)``."""
+    derived = two_mass_derived(J_sigma, V_J, f_e, d)
+    return {"s_N": s_N, "w_e_T_Ei": derived.w_e * analysis.T_Ei,
+            "r_osc": V_J * analysis.M_star / (J_sigma * derived.w_0 * analysis.q_w)}
+
+
+def spec_class(analysis: Analysis, J_sigma: float, V_J: float, f_e: float, d: float, s_N: float) -> str:
+    """SPEC's class (:func:`sim.class_index`) of a two-mass model on the record's drive."""
+    return STRUCTURE_CLASSES[int(class_index(**class_quantities(analysis, J_sigma, V_J, f_e, d, s_N)))]
