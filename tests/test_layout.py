@@ -93,3 +93,72 @@ def test_rooms_meet_through_their_faces() -> None:
                 if not m.startswith(f"training.{parts[1]}"):
                     bad.append(f"{m} -> {i}")
     assert not bad, bad
+
+
+#: The most decisions one function may hold (McCabe's cyclomatic complexity, counted as radon does).
+MAX_COMPLEXITY = 20
+
+_NESTED = (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)
+
+
+def _decisions(node: ast.AST) -> int:
+    """The decision points of one node, as radon's ComplexityVisitor counts them."""
+    if isinstance(node, ast.Try):
+        return len(node.handlers) + bool(node.orelse)
+    if isinstance(node, ast.BoolOp):
+        return len(node.values) - 1
+    if isinstance(node, (ast.If, ast.IfExp, ast.Assert)):
+        return 1
+    if isinstance(node, (ast.For, ast.While, ast.AsyncFor)):
+        return 1 + bool(node.orelse)
+    if isinstance(node, ast.comprehension):
+        return 1 + len(node.ifs)
+    if isinstance(node, ast.Match):
+        wildcard = any(getattr(case.pattern, "pattern", False) is None for case in node.cases)
+        return max(0, len(node.cases) - wildcard)
+    return 0
+
+
+def complexity(function: ast.FunctionDef | ast.AsyncFunctionDef) -> int:
+    """1 + the decisions of the body, nested functions and classes left out (they count on their own)."""
+    total, todo = 1, list(function.body)
+    while todo:
+        node = todo.pop()
+        if not isinstance(node, _NESTED):
+            total += _decisions(node)
+            todo.extend(ast.iter_child_nodes(node))
+    return total
+
+
+def _complexities() -> dict[str, int]:
+    out = {}
+    for path in sorted(p for pkg in PACKAGES for p in (REPO / pkg).rglob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                out[f"{path.relative_to(REPO)}:{node.lineno} {node.name}"] = complexity(node)
+    return out
+
+
+def test_complexity_counts_as_radon_does() -> None:
+    code = ("def f(x, ys):\n"
+            "    if x and ys or not x:\n"          # if +1, two BoolOps +2
+            "        return [y for y in ys if y]\n"  # comprehension +1, its if +1
+            "    for y in ys:\n"                   # for +1, else +1
+            "        try:\n"
+            "            x = 1 if y else 2\n"      # ternary +1
+            "        except ValueError:\n"         # handler +1
+            "            pass\n"
+            "    else:\n"
+            "        def g():\n"                   # a closure counts on its own
+            "            if x: return 1\n"
+            "    assert x\n"                       # +1
+            "    while x: x -= 1\n")               # +1
+    f = ast.parse(code).body[0]
+    assert complexity(f) == 12
+    assert complexity(f.body[1].orelse[0]) == 2
+
+
+def test_no_function_is_too_complex() -> None:
+    """A function a newcomer can change without rereading the rest: at most MAX_COMPLEXITY decisions."""
+    over = {name: c for name, c in _complexities().items() if c > MAX_COMPLEXITY}
+    assert not over, f"functions above complexity {MAX_COMPLEXITY}: {over}"
