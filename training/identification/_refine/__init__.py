@@ -2,13 +2,13 @@
 of :data:`PIPELINE`, registered in :data:`STAGES`) and the backlash found in the motor's angle
 (:func:`find_hidden_gap`). The settings, stage by stage, and their measured reasons: :class:`RefineConfig`."""
 
-from ._angle import AngleSettings, HiddenGap, find_hidden_gap
+from ._angle import AngleSettings, HiddenGap
 from ._choose import ChooseSettings
 from ._climb import ClimbSettings
 from ._config import RefineConfig
 from ._explore import ExploreSettings
 from ._free import FreeSettings
-from ._pipeline import PIPELINE, STAGES, refine
+from ._pipeline import PIPELINE, STAGES, find_hidden_gap, refine
 from ._polish import PolishSettings
 from ._problem import RefineProblem, Refined, torque_reference
 from ._rattle import RattleSettings

@@ -12,7 +12,7 @@ drive's stiff shaft, crossed in a sample or two even where it is tens of counts 
 drive at 844 us the speed refinement dropped the maps' gap of 14 counts of lead for a model
 without one, while the angle error picks the gap model at 0.82 x.
 
-:func:`find_hidden_gap` lets models with and without a gap compete on the angle error, each side
+:func:`hidden_gap` lets models with and without a gap compete on the angle error, each side
 with its own search, and returns the gap model where it wins clearly. The angle error is the
 running sum of the speed error less its projection on the running sums of the refinement's
 per-section quadratic trends (:func:`angle_basis`: the speed's detrending, integrated), so the
@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -33,14 +32,11 @@ from training.identification._envelope import SPEC_ENVELOPE
 from training.identification._refine._checks import above, at_least
 from training.identification._refine._problem import RefineProblem
 from training.identification._refine._replay import replay_drive, simulate, trend_basis
-from training.identification._refine._search import cem, product_grid, run
+from training.identification._refine._search import SearchSettings, cem, product_grid, run
 from training.identification._refine._space import HIGH, LOW
 from training.identification._refine._stage import Stage
 
-if TYPE_CHECKING:
-    from training.identification._refine._config import RefineConfig
-
-__all__ = ["AngleSettings", "HiddenGap", "angle_basis", "find_hidden_gap"]
+__all__ = ["AngleSettings", "HiddenGap", "angle_basis", "hidden_gap"]
 
 
 @dataclass(frozen=True)
@@ -114,11 +110,9 @@ def _angle_energy(E: np.ndarray, T_s: float, Q: np.ndarray, stride: int) -> np.n
     return (r * r).sum(axis=0)
 
 
-def find_hidden_gap(p: RefineProblem, config: RefineConfig) -> HiddenGap | None:
+def hidden_gap(p: RefineProblem, settings: AngleSettings, search: SearchSettings, seed: int) -> HiddenGap | None:
     """The gap model of ``p`` where it explains the angle clearly better than every model without
-    a gap (see :class:`AngleSettings`, ``config.angle``), else None; the searches draw from
-    ``config.seed``, as ``config.search`` sets them."""
-    settings, search = config.angle, config.search
+    a gap (see :class:`AngleSettings`), else None; the searches draw from ``seed``."""
     stride = max(1, len(p.speed) // settings.samples)
     drive, Q = replay_drive(p), angle_basis(p.segments, len(p.speed), stride)
 
@@ -136,7 +130,7 @@ def find_hidden_gap(p: RefineProblem, config: RefineConfig) -> HiddenGap | None:
     cost, _ = score(grid)
     threshold = math.log10(S_N_ELASTIC)
     best: list[tuple[np.ndarray, float]] = []
-    rng = np.random.default_rng(config.seed)
+    rng = np.random.default_rng(seed)
     for gap, low_s, high_s in ((False, LOW[3], threshold - settings.side_margin), (True, threshold, HIGH[3])):
         side = (grid[:, 3] >= threshold) == gap
         low, high = LOW.copy(), HIGH.copy()
@@ -154,4 +148,4 @@ def find_hidden_gap(p: RefineProblem, config: RefineConfig) -> HiddenGap | None:
 
 
 STAGE = Stage("angle", "the identifier's call: a stiff answer whose speed could hide a gap, or a dropped maps' gap",
-              AngleSettings, find_hidden_gap)
+              AngleSettings, hidden_gap)

@@ -35,6 +35,7 @@ import numpy as np
 
 from training.identification._refine import (_angle, _choose, _climb, _explore, _free, _polish, _rattle, _rescue,
                                              _retry)
+from training.identification._refine._angle import HiddenGap, hidden_gap
 from training.identification._refine._choose import Choice, choose
 from training.identification._refine._climb import climb, climbs
 from training.identification._refine._config import RefineConfig
@@ -126,6 +127,11 @@ def polish(problems: list[RefineProblem], chosen: list[Refined], measured: list[
     polishing = polish_lanes(problems, chosen, config.polish, config.free, config.batch)
     retry(problems, polishing, config.retry, config.polish, config.batch)
     return polished(problems, chosen, measured, polishing, config.polish, config.batch)
+
+
+def find_hidden_gap(p: RefineProblem, config: RefineConfig) -> HiddenGap | None:
+    """The angle stage of ``p`` (:func:`._angle.hidden_gap`) with ``config``'s settings."""
+    return hidden_gap(p, config.angle, config.search, config.seed)
 
 
 def refine(problems: list[RefineProblem], config: RefineConfig | None = None) -> list[Refined]:

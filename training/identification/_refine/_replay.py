@@ -23,6 +23,25 @@ DIVERGED = 1e6
 
 
 @dataclass(frozen=True)
+class Accuracy:
+    """How finely the refinement's replays integrate: RK4 substeps per sample such that
+    ``w_0 dt <= w_0_dt`` for the stiffest model of a call (frequency error < 0.1 %), and ``dt <=
+    T_Ei/2`` (:func:`sim.rk4_substeps`). One setting for every stage: models compared in one
+    stage and the next must be replayed alike."""
+
+    w_0_dt: float = 0.5  # the stiffest model's w_0 times the substep at most
+    minimum: int = 1  # substeps per sample at least
+
+    def __post_init__(self) -> None:
+        above(self, 0.0, "w_0_dt")
+        at_least(self, 1, "minimum")
+
+
+#: The refinement's replay accuracy (:class:`Accuracy`).
+ACCURACY = Accuracy()
+
+
+@dataclass(frozen=True)
 class BatchSettings:
     """How many models and samples one replay call takes: what the wall time and the memory
     depend on, never an answer (records run packed only with records on the same drive and
@@ -129,10 +148,9 @@ def problem_substeps(p: RefineProblem, theta: np.ndarray) -> int:
 
 
 def _substeps(values: dict[str, np.ndarray], T_s: float, T_Ei: float) -> int:
-    """RK4 substeps per sample: ``w_0 dt <= 0.5`` for the stiffest model of
-    :func:`model_values` (frequency error < 0.1 %), ``dt <= T_Ei/2`` (:func:`sim.rk4_substeps`)."""
+    """RK4 substeps per sample for the models of :func:`model_values` (:data:`ACCURACY`)."""
     w_0 = sim.two_mass_derived(values["J_sigma"], values["V_J"], values["f_e"], values["d"]).w_0
-    return sim.rk4_substeps(float(w_0.max()), T_s, T_Ei, w_0_dt=0.5, minimum=1)
+    return sim.rk4_substeps(float(w_0.max()), T_s, T_Ei, w_0_dt=ACCURACY.w_0_dt, minimum=ACCURACY.minimum)
 
 
 def replay_drive(p: RefineProblem) -> sim.DriveConfig:
