@@ -32,7 +32,7 @@ from training.identification._envelope import SPEC_ENVELOPE
 from training.identification._refine._checks import above, at_least
 from training.identification._refine._problem import RefineProblem
 from training.identification._refine._replay import replay_drive, simulate, trend_basis
-from training.identification._refine._search import SearchSettings, cem, product_grid, run
+from training.identification._refine._search import SearchSettings, cem_one, product_grid
 from training.identification._refine._space import HIGH, LOW
 from training.identification._refine._stage import Stage
 
@@ -135,8 +135,8 @@ def hidden_gap(p: RefineProblem, settings: AngleSettings, search: SearchSettings
         side = (grid[:, 3] >= threshold) == gap
         low, high = LOW.copy(), HIGH.copy()
         low[3], high[3] = low_s, high_s
-        scored = run(cem(grid[side], cost[side], settings.rounds, np.asarray(search.spread), search, rng, low, high),
-                     score)
+        scored = cem_one(grid[side], cost[side], settings.rounds, np.asarray(search.spread), search, rng, score, low,
+                         high)
         k = int(np.argmin(scored.cost))
         best.append((scored.theta[k], float(scored.cost[k])))
     (_, no_gap), (theta, with_gap) = best

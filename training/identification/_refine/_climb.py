@@ -12,7 +12,7 @@ import sim
 from training.identification._refine._checks import at_least
 from training.identification._refine._explore import grid_search
 from training.identification._refine._problem import RefineProblem
-from training.identification._refine._search import Search, SearchSettings
+from training.identification._refine._search import Score, Scored, SearchSettings, own_rng
 from training.identification._refine._space import HIGH, LOW
 from training.identification._refine._stage import Stage
 
@@ -56,15 +56,19 @@ def climbs(p: RefineProblem, theta0: np.ndarray, best: np.ndarray, settings: Cli
                 and 10.0 ** theta0[0] >= settings.above * bandwidth)
 
 
-def climb(p: RefineProblem, best: np.ndarray, settings: ClimbSettings, search: SearchSettings,
-          rng: np.random.Generator) -> Search:
-    """The climb's window search from ``offset`` decades above ``best`` (4) at its gap's width;
-    returns the :class:`._search.Scored` models."""
-    up = best.copy()
-    up[0] += settings.offset
-    up[3] += math.log10(float(p.C_F(up) / p.C_F(best)))  # the same width 2s = 2 s_N M_N / C_F
-    return grid_search(np.clip(up, LOW, HIGH), settings.grid_f_e, settings.span, settings.grid_s_N, settings.rounds,
-                       search, rng)
+def climb(problems: list[RefineProblem], best: dict[int, np.ndarray], settings: ClimbSettings,
+          search: SearchSettings, seed: int, score: Score) -> dict[int, Scored]:
+    """The climb's window search of each record ``i`` from ``offset`` decades above its ``best[i]``
+    (4) at its gap's width, drawing from its own stream of ``seed``; every scored model."""
+    up = {}
+    for i, model in best.items():
+        centre = model.copy()
+        centre[0] += settings.offset
+        # the same width 2s = 2 s_N M_N / C_F
+        centre[3] += math.log10(float(problems[i].C_F(centre) / problems[i].C_F(model)))
+        up[i] = np.clip(centre, LOW, HIGH)
+    rngs = {i: own_rng(seed, settings.stream) for i in best}
+    return grid_search(up, settings.grid_f_e, settings.span, settings.grid_s_N, settings.rounds, search, rngs, score)
 
 
 STAGE = Stage("climb", "a gap found above the start on a shaft stiff for the current loop", ClimbSettings, climb)

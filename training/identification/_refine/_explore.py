@@ -10,7 +10,7 @@ import numpy as np
 
 from training.identification._refine._checks import above, at_least, sized
 from training.identification._refine._problem import RefineProblem
-from training.identification._refine._search import Search, SearchSettings, cem, log10_s_N_grid
+from training.identification._refine._search import Score, Scored, SearchSettings, cem, log10_s_N_grid, scored
 from training.identification._refine._space import HIGH, LOW
 from training.identification._refine._stage import Stage
 from training.identification._refine._windows import ScoreWindows, first_samples, level_at
@@ -60,23 +60,26 @@ def explore_windows(p: RefineProblem, settings: ExploreSettings) -> ScoreWindows
     return ScoreWindows.of(p, first_samples(seg, length), lead)
 
 
-def grid_search(theta0: np.ndarray, grid_f_e: int, span: float, grid_s_N: Sequence[float], rounds: int,
-                search: SearchSettings, rng: np.random.Generator) -> Search:
-    """A window search from ``theta0`` (4): ``grid_f_e`` eigenfrequencies over ``+-span`` decades
-    around it times the backlash values ``grid_s_N`` (0: the start's), then ``rounds`` rounds;
-    returns the :class:`._search.Scored` models."""
-    grid = np.repeat(theta0[None], grid_f_e * len(grid_s_N), axis=0)  # G x 4
-    grid[:, 0] += np.repeat(np.linspace(-span, span, grid_f_e), len(grid_s_N))
-    grid[:, 3] = np.tile(log10_s_N_grid(theta0, grid_s_N), grid_f_e)
-    cost, theta = yield np.clip(grid, LOW, HIGH)
-    return (yield from cem(theta, cost, rounds, np.asarray(search.spread, dtype=np.float64), search, rng))
+def grid_search(theta0: dict[int, np.ndarray], grid_f_e: int, span: float, grid_s_N: Sequence[float], rounds: int,
+                search: SearchSettings, rngs: dict[int, np.random.Generator], score: Score) -> dict[int, Scored]:
+    """A window search of each record ``i`` from ``theta0[i]`` (4): ``grid_f_e`` eigenfrequencies
+    over ``+-span`` decades around it times the backlash values ``grid_s_N`` (0: the start's), then
+    ``rounds`` rounds drawn from ``rngs[i]``; every scored model."""
+    grids = {}
+    for i, start in theta0.items():
+        grid = np.repeat(start[None], grid_f_e * len(grid_s_N), axis=0)  # G x 4
+        grid[:, 0] += np.repeat(np.linspace(-span, span, grid_f_e), len(grid_s_N))
+        grid[:, 3] = np.tile(log10_s_N_grid(start, grid_s_N), grid_f_e)
+        grids[i] = np.clip(grid, LOW, HIGH)
+    return cem(scored(grids, score), rounds, np.asarray(search.spread, dtype=np.float64), search, rngs, score)
 
 
-def explore(theta0: np.ndarray, settings: ExploreSettings, search: SearchSettings,
-            rng: np.random.Generator) -> Search:
-    """The exploration from the maps' answer ``theta0`` (4), as a window :data:`._search.Search`
-    that returns the :class:`._search.Scored` models."""
-    return grid_search(theta0, settings.grid_f_e, settings.grid_span, settings.grid_s_N, settings.rounds, search, rng)
+def explore(theta0: dict[int, np.ndarray], settings: ExploreSettings, search: SearchSettings,
+            rngs: dict[int, np.random.Generator], score: Score) -> dict[int, Scored]:
+    """The exploration of each record ``i`` from the maps' answer ``theta0[i]`` (4), scored on its
+    windows by ``score``; every scored model."""
+    return grid_search(theta0, settings.grid_f_e, settings.grid_span, settings.grid_s_N, settings.rounds, search,
+                       rngs, score)
 
 
 STAGE = Stage("explore", "always: every refined record", ExploreSettings, explore)

@@ -15,7 +15,7 @@ from training.identification._one_mass import SECTION_PERIODS
 from training.identification._refine._checks import at_least, sized
 from training.identification._refine._problem import RefineProblem
 from training.identification._refine._replay import DIVERGED, simulate
-from training.identification._refine._search import SearchSettings, cem, own_rng, run
+from training.identification._refine._search import SearchSettings, cem_one, own_rng
 from training.identification._refine._space import HIGH, LOW
 from training.identification._refine._stage import Stage
 
@@ -111,7 +111,7 @@ def free_one_mass(p: RefineProblem, best: np.ndarray, settings: FreeSettings, se
     found = []  # each grid with its own search: one best model does not cover both kinds of start
     for grid, stream in ((around, rng), (held, own_rng(seed, settings.stream))):
         cost, theta = plain(np.clip(np.concatenate(grid), low, high))
-        scored = run(cem(theta, cost, settings.rounds, spread, search, stream, low, high), plain)
+        scored = cem_one(theta, cost, settings.rounds, spread, search, stream, plain, low, high)
         found.append((scored.theta, scored.cost))
     theta, cost = (np.concatenate(v) for v in zip(*found))
     k = int(np.argmin(cost))

@@ -29,7 +29,8 @@ The stages, in order (:data:`PIPELINE`; each a module with its settings, :data:`
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import functools
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -48,10 +49,10 @@ from training.identification._refine._rattle import rattle, rattles
 from training.identification._refine._replay import detrended_cost, relative_rms, replay_drive
 from training.identification._refine._rescue import rescues, survey
 from training.identification._refine._retry import retry
-from training.identification._refine._search import Scored, TaggedSearch, own_rng, tagged
+from training.identification._refine._search import Scored
 from training.identification._refine._space import HIGH, LOW
 from training.identification._refine._stage import Stage
-from training.identification._refine._windows import ScoreWindows, run_window_searches
+from training.identification._refine._windows import ScoreWindows, score_windows
 
 #: The stages by name, each with its settings class, entry point and when it runs.
 STAGES: dict[str, Stage] = {module.STAGE.name: module.STAGE for module in
@@ -69,37 +70,58 @@ class Explored:
     n_sims: int
 
 
-def _window_stages(p: RefineProblem, windows: ScoreWindows, config: RefineConfig,
-                   rng: np.random.Generator) -> TaggedSearch:
-    """The window stages of ``p`` (explore, rescue, climb, rattle; ``windows``:
-    :func:`._explore.explore_windows`) as one :data:`._search.TaggedSearch` that returns the
-    :class:`Explored` finalists: the maps' answer; the best of the search that won (the
-    exploration, the rescue or the climb), and the exploration's too where the rescue won; the
-    rattle's best where it ran."""
-    theta0 = np.clip(np.asarray(p.theta, dtype=np.float64), LOW, HIGH)
-    winner: Scored = yield from tagged(explore(theta0, config.explore, config.search, rng), False)
-    n_sims = len(winner.cost)
-    finalists = [theta0[None]]
-    if rescues(p, windows, float(winner.cost.min()), config.rescue):
-        stream = own_rng(config.seed, config.rescue.stream)
-        rescued: Scored = yield from tagged(survey(p, theta0, config.rescue, config.search, stream), False)
-        n_sims += len(rescued.cost)
-        if rescued.cost.min() < config.rescue.switch_win * winner.cost.min():
-            finalists.append(winner.elites(config.choose.finalists))
-            winner = rescued
-    if climbs(p, theta0, winner.best, config.climb):
-        stream = own_rng(config.seed, config.climb.stream)
-        climbed: Scored = yield from tagged(climb(p, winner.best, config.climb, config.search, stream), False)
-        n_sims += len(climbed.cost)
-        if climbed.cost.min() < config.climb.switch_win * winner.cost.min():
-            winner = climbed
-    elites = winner.elites(config.choose.finalists)
-    finalists.append(elites)
-    if rattles(winner.best, windows, config.rattle):
-        rattled: Scored = yield from rattle(winner.best, elites, config.rattle, config.search, rng)
-        n_sims += len(rattled.cost)
-        finalists.append(rattled.elites(config.rattle.finalists))
-    return Explored(np.concatenate(finalists), n_sims)
+@dataclass(frozen=True)
+class _Leading:
+    """One record through the window stages so far: the search whose models lead (``winner``), the
+    elites of a search it replaced that still compete (``set_aside``) and the models simulated."""
+
+    winner: Scored
+    set_aside: tuple[np.ndarray, ...]
+    n_sims: int
+
+    def challenged(self, challenger: Scored, switch_win: float, keep: int) -> _Leading:
+        """After a ``challenger`` search: it leads where its best is below ``switch_win`` x the
+        leader's, the leader's ``keep`` best set aside then (0: none)."""
+        n_sims = self.n_sims + len(challenger.cost)
+        if not challenger.cost.min() < switch_win * self.winner.cost.min():
+            return replace(self, n_sims=n_sims)
+        kept = (self.winner.elites(keep),) if keep else ()
+        return _Leading(challenger, self.set_aside + kept, n_sims)
+
+
+def _window_stages(problems: list[RefineProblem], windows: list[ScoreWindows], config: RefineConfig,
+                   rngs: list[np.random.Generator]) -> list[Explored]:
+    """The window stages (explore, rescue, climb, rattle; ``windows``: :func:`._explore.explore_windows`)
+    of every problem, each stage's searches side by side; the finalists of each: the maps' answer;
+    the best of the search that led (the exploration, the rescue or the climb), and the
+    exploration's too where the rescue led; the rattle's best where it ran."""
+    plain, led = (functools.partial(score_windows, problems, windows, tag, config.explore.gain_range, config.batch)
+                  for tag in (False, True))
+    theta0 = {i: np.clip(np.asarray(p.theta, dtype=np.float64), LOW, HIGH) for i, p in enumerate(problems)}
+    explored = explore(theta0, config.explore, config.search, dict(enumerate(rngs)), plain)
+    state = {i: _Leading(found, (), len(found.cost)) for i, found in explored.items()}
+    asked = {i: theta0[i] for i, lead in state.items()
+             if rescues(problems[i], windows[i], float(lead.winner.cost.min()), config.rescue)}
+    for i, found in survey(problems, asked, config.rescue, config.search, config.seed, plain).items():
+        state[i] = state[i].challenged(found, config.rescue.switch_win, config.choose.finalists)
+    asked = {i: lead.winner.best for i, lead in state.items()
+             if climbs(problems[i], theta0[i], lead.winner.best, config.climb)}
+    for i, found in climb(problems, asked, config.climb, config.search, config.seed, plain).items():
+        state[i] = state[i].challenged(found, config.climb.switch_win, 0)
+    elites = {i: lead.winner.elites(config.choose.finalists) for i, lead in state.items()}
+    asked = {i: lead.winner.best for i, lead in state.items() if rattles(lead.winner.best, windows[i], config.rattle)}
+    rattled = rattle(asked, elites, config.rattle, config.search, {i: rngs[i] for i in asked}, led)
+    return [_explored(theta0[i], lead, elites[i], rattled.get(i), config) for i, lead in sorted(state.items())]
+
+
+def _explored(theta0: np.ndarray, lead: _Leading, elites: np.ndarray, rattled: Scored | None,
+              config: RefineConfig) -> Explored:
+    """One record's :class:`Explored` finalists: the maps' answer ``theta0``, the set-aside elites,
+    the leading search's ``elites`` and the best of the rattle where it ran."""
+    if rattled is None:
+        return Explored(np.concatenate([theta0[None], *lead.set_aside, elites]), lead.n_sims)
+    return Explored(np.concatenate([theta0[None], *lead.set_aside, elites, rattled.elites(config.rattle.finalists)]),
+                    lead.n_sims + len(rattled.cost))
 
 
 def _chosen(p: RefineProblem, choice: Choice, explored: int, config: RefineConfig,
@@ -141,9 +163,7 @@ def refine(problems: list[RefineProblem], config: RefineConfig | None = None) ->
     config = config or RefineConfig()
     rngs = [np.random.default_rng(config.seed) for _ in problems]
     windows = [explore_windows(p, config.explore) for p in problems]
-    searches = [_window_stages(p, w, config, rng) for p, w, rng in zip(problems, windows, rngs)]
-    explored: list[Explored] = run_window_searches(problems, windows, searches, config.explore.gain_range,
-                                                   config.batch)
+    explored = _window_stages(problems, windows, config, rngs)
     choices = choose(problems, [e.finalists for e in explored], config.batch)
     chosen = [_chosen(p, c, e.n_sims, config, rng) for p, c, e, rng in zip(problems, choices, explored, rngs)]
     return polish(problems, chosen, [c.measured for c in choices], config)

@@ -8,7 +8,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from training.identification._refine._checks import at_least
-from training.identification._refine._search import Scored, SearchSettings, TaggedSearch, cem, tagged
+from training.identification._refine._search import Score, Scored, SearchSettings, cem, scored
 from training.identification._refine._space import HIGH, LOW
 from training.identification._refine._stage import Stage
 from training.identification._refine._windows import ScoreWindows
@@ -41,16 +41,17 @@ def rattles(best: np.ndarray, windows: ScoreWindows, settings: RattleSettings) -
     return bool(10.0 ** best[3] >= settings.min_s_N and windows.lead.any())
 
 
-def rattle(best: np.ndarray, elites: np.ndarray, settings: RattleSettings, search: SearchSettings,
-           rng: np.random.Generator) -> TaggedSearch:
-    """The rattle's led window search from the exploration's ``elites`` and its ``best`` with
-    ``s_N`` shifted; returns the :class:`._search.Scored` models."""
-    again = np.concatenate([elites, np.repeat(best[None], len(settings.shift), axis=0)])
-    again[-len(settings.shift):, 3] += settings.shift
-    cost, theta = yield np.clip(again, LOW, HIGH), True
-    found: Scored = yield from tagged(cem(theta, cost, settings.rounds, np.asarray(search.spread, dtype=np.float64),
-                                          search, rng), True)
-    return found
+def rattle(best: dict[int, np.ndarray], elites: dict[int, np.ndarray], settings: RattleSettings,
+           search: SearchSettings, rngs: dict[int, np.random.Generator], score: Score) -> dict[int, Scored]:
+    """The rattle's window search of each record ``i`` (``score`` replays its led windows from
+    their zero-torque section) from the exploration's ``elites[i]`` and its ``best[i]`` with
+    ``s_N`` shifted, drawing from ``rngs[i]``; every scored model."""
+    again = {}
+    for i, model in best.items():
+        start = np.concatenate([elites[i], np.repeat(model[None], len(settings.shift), axis=0)])
+        start[-len(settings.shift):, 3] += settings.shift
+        again[i] = np.clip(start, LOW, HIGH)
+    return cem(scored(again, score), settings.rounds, np.asarray(search.spread, dtype=np.float64), search, rngs, score)
 
 
 STAGE = Stage("rattle", "the exploration's best has a gap and the record a zero-torque section before a step",

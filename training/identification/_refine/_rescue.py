@@ -11,7 +11,8 @@ from training.identification._envelope import SPEC_ENVELOPE
 from training.identification._refine._checks import at_least
 from training.identification._refine._problem import RefineProblem
 from training.identification._refine._replay import quantization_energy
-from training.identification._refine._search import Search, SearchSettings, cem, log10_s_N_grid, product_grid
+from training.identification._refine._search import (Score, Scored, SearchSettings, cem, log10_s_N_grid, own_rng,
+                                                     product_grid, scored)
 from training.identification._refine._space import HIGH, LOW
 from training.identification._refine._stage import Stage
 from training.identification._refine._windows import ScoreWindows
@@ -52,14 +53,17 @@ def rescues(p: RefineProblem, windows: ScoreWindows, cost: float, settings: Resc
     return cost > settings.above * windows.yy and windows.yy >= settings.signal * noise
 
 
-def survey(p: RefineProblem, theta0: np.ndarray, settings: RescueSettings, search: SearchSettings,
-           rng: np.random.Generator) -> Search:
-    """The rescue's window search over the whole range, ``d`` and the start's ``s_N`` from
-    ``theta0`` (4); returns the :class:`._search.Scored` models."""
-    f_e = np.geomspace(SPEC_ENVELOPE["f_e"][0], min(10.0 ** HIGH[0], 0.5 / p.T_s), settings.grid_f_e)
-    grid = product_grid(f_e, settings.grid_V_J, float(theta0[2]), log10_s_N_grid(theta0, settings.grid_s_N))
-    cost, theta = yield np.clip(grid, LOW, HIGH)
-    return (yield from cem(theta, cost, settings.rounds, np.asarray(search.spread, dtype=np.float64), search, rng))
+def survey(problems: list[RefineProblem], theta0: dict[int, np.ndarray], settings: RescueSettings,
+           search: SearchSettings, seed: int, score: Score) -> dict[int, Scored]:
+    """The rescue's window search of each record ``i`` over the whole range, ``d`` and the start's
+    ``s_N`` from ``theta0[i]`` (4), drawing from its own stream of ``seed``; every scored model."""
+    grids = {}
+    for i, start in theta0.items():
+        f_e = np.geomspace(SPEC_ENVELOPE["f_e"][0], min(10.0 ** HIGH[0], 0.5 / problems[i].T_s), settings.grid_f_e)
+        grid = product_grid(f_e, settings.grid_V_J, float(start[2]), log10_s_N_grid(start, settings.grid_s_N))
+        grids[i] = np.clip(grid, LOW, HIGH)
+    rngs = {i: own_rng(seed, settings.stream) for i in theta0}
+    return cem(scored(grids, score), settings.rounds, np.asarray(search.spread, dtype=np.float64), search, rngs, score)
 
 
 STAGE = Stage("rescue", "the exploration's best leaves over `above` of the windows' energy, well above the noise",

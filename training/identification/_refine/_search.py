@@ -1,24 +1,20 @@
-"""The cross-entropy search shared by the stages (:func:`cem`, :class:`SearchSettings`), written
-as a generator that yields candidates and is sent their costs, so that many records' searches
-share one simulator call per step."""
+"""The cross-entropy search shared by the stages (:func:`cem`, :class:`SearchSettings`), many
+records' searches side by side, so that they share one simulator call per round."""
 
 from __future__ import annotations
 
 import itertools
 import math
-from collections.abc import Callable, Generator, Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 
 from training.identification._refine._checks import at_least, not_below_field, sized
 from training.identification._refine._space import HIGH, LOW
 
-#: A search: yields candidates ``C x D``, is sent ``(cost C, candidates as scored)`` for each, returns its result.
-Search = Generator[np.ndarray, tuple[np.ndarray, np.ndarray], Any]
-#: The exploration's search: its candidates come with whether their windows take the lead (:func:`window_speeds`).
-TaggedSearch = Generator[tuple[np.ndarray, bool], tuple[np.ndarray, np.ndarray], Any]
+#: Scores a batch of records' candidates: ``{record: C x D}`` -> ``{record: (cost C, candidates as scored)}``.
+Score = Callable[[dict[int, np.ndarray]], dict[int, tuple[np.ndarray, np.ndarray]]]
 
 
 @dataclass(frozen=True)
@@ -59,45 +55,43 @@ class Scored:
         return self.theta[np.argsort(self.cost)[:count]]
 
 
-def cem(theta: np.ndarray, cost: np.ndarray, rounds: int, spread: np.ndarray, search: SearchSettings,
-        rng: np.random.Generator, low: np.ndarray = LOW, high: np.ndarray = HIGH) -> Search:
-    """``rounds`` of the cross-entropy search from the best of ``theta``/``cost`` (all kept), as a
-    :data:`Search` that returns the :class:`Scored` models, the scored candidates appended."""
-    mean, std = theta[int(np.argmin(cost))], spread
+def scored(asked: dict[int, np.ndarray], score: Score) -> dict[int, Scored]:
+    """The candidates ``asked`` of each record as scored by ``score``."""
+    return {i: Scored(theta, cost) for i, (cost, theta) in score(asked).items()}
+
+
+def cem(start: dict[int, Scored], rounds: int, spread: np.ndarray, search: SearchSettings,
+        rngs: dict[int, np.random.Generator], score: Score, low: np.ndarray = LOW,
+        high: np.ndarray = HIGH) -> dict[int, Scored]:
+    """``rounds`` of the cross-entropy search of each record from the best of its ``start`` (all
+    kept), the records side by side (one ``score`` call a round; each record draws from its own
+    ``rngs[i]``, so its search is the same whatever the others); returns every scored model."""
+    found = dict(start)
+    mean = {i: s.best for i, s in found.items()}
+    std = dict.fromkeys(found, spread)
     for _ in range(rounds):
-        cand = np.clip(mean + std * rng.standard_normal((search.candidates, theta.shape[1])), low, high)
-        c, cand = yield cand
-        theta, cost = np.concatenate([theta, cand]), np.concatenate([cost, c])
-        elite = theta[np.argsort(cost)[: search.elites]]
-        mean = elite[0]  # the best so far; the elites' spread sets the next step
-        std = np.maximum(search.elite_weight * elite.std(axis=0) + search.memory * std, search.floor * spread)
-    return Scored(theta, cost)
+        asked = {i: np.clip(mean[i] + std[i] * rngs[i].standard_normal((search.candidates, found[i].theta.shape[1])),
+                            low, high) for i in found}
+        for i, new in scored(asked, score).items():
+            found[i] = Scored(np.concatenate([found[i].theta, new.theta]), np.concatenate([found[i].cost, new.cost]))
+            elite = found[i].elites(search.elites)
+            mean[i] = elite[0]  # the best so far; the elites' spread sets the next step
+            std[i] = np.maximum(search.elite_weight * elite.std(axis=0) + search.memory * std[i], search.floor * spread)
+    return found
 
 
-def run(search: Search, score: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]) -> Any:
-    """The result of ``search`` with each of its candidates scored by ``score``."""
-    try:
-        candidates = next(search)
-        while True:
-            candidates = search.send(score(candidates))
-    except StopIteration as done:
-        return done.value
+def cem_one(theta: np.ndarray, cost: np.ndarray, rounds: int, spread: np.ndarray, search: SearchSettings,
+            rng: np.random.Generator, score: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]],
+            low: np.ndarray = LOW, high: np.ndarray = HIGH) -> Scored:
+    """:func:`cem` of one record scored by ``score`` (``C x D`` -> ``(cost C, candidates as scored)``)."""
+    return cem({0: Scored(theta, cost)}, rounds, spread, search, {0: rng},
+               lambda asked: {i: score(theta) for i, theta in asked.items()}, low, high)[0]
 
 
 def own_rng(seed: int, stream: int) -> np.random.Generator:
     """The random stream ``stream`` of an optional stage, apart from the exploration's (``seed``):
     where the stage loses, the searches after it draw what they would have drawn without it."""
     return np.random.default_rng([seed, stream])
-
-
-def tagged(search: Search, led: bool) -> TaggedSearch:
-    """``search`` with each of its candidates tagged ``led`` (the exploring stage's searches)."""
-    try:
-        candidates = next(search)
-        while True:
-            candidates = search.send((yield candidates, led))
-    except StopIteration as done:
-        return done.value
 
 
 def product_grid(f_e: Sequence[float], V_J: Sequence[float], d: float, log10_s_N: Sequence[float]) -> np.ndarray:

@@ -1,7 +1,7 @@
 """The exploring stages' score: short windows after each torque step (:class:`ScoreWindows`),
 each candidate's speed over them replayed from a quasi-static start (:func:`window_speeds`), the
-error after its best gain (:func:`score_shape`), and the driver that runs many records' window
-searches side by side (:func:`run_window_searches`)."""
+error after its best gain (:func:`score_shape`), many records' candidates side by side
+(:func:`score_windows`)."""
 
 from __future__ import annotations
 
@@ -15,7 +15,6 @@ from sim.replay import replay_speed
 from training.identification._refine._problem import RefineProblem
 from training.identification._refine._replay import (DIVERGED, BatchSettings, finite, model_values, pack_indices,
                                                      problem_substeps, replay_drive, sim_params, trend_basis)
-from training.identification._refine._search import TaggedSearch
 from training.identification._refine._space import HIGH, LOW
 
 
@@ -150,28 +149,24 @@ def _replay_windows(lanes: dict[str, np.ndarray], drive: sim.DriveConfig, subste
                         quantize=False, state=state, substeps=substeps).numpy()  # lanes x length (a view)
 
 
-def run_window_searches(problems: list[RefineProblem], windows: list[ScoreWindows], searches: list[TaggedSearch],
-                        gain_range: tuple[float, float], batch: BatchSettings) -> list:
-    """The results of each problem's window search (``searches[i]`` over ``windows[i]``, scored by
-    :func:`score_shape`), the searches run side by side: each step's candidates of every problem on
-    one drive, substep count and similar window length go to the simulator in one call
-    (:func:`pack_indices`), so that the per-call costs are paid once per batch, not once per record."""
-    asked = {i: next(s) for i, s in enumerate(searches)}
-    results: list = [None] * len(problems)
-    while asked:
-        todo = sorted(asked)
-        substeps = [problem_substeps(problems[i], asked[i][0]) for i in todo]
-        sizes = [len(asked[i][0]) * windows[i].y.shape[0] for i in todo]
-        packs = pack_indices([problems[i] for i in todo], sizes, substeps, [windows[i].y.shape[1] for i in todo],
-                             max_models=batch.window_models, min_length_ratio=batch.length_ratio)
-        for pack in packs:
-            ids = [todo[k] for k in pack]
-            X = window_speeds([(problems[i], asked[i][0], windows[i], asked[i][1]) for i in ids],
-                              replay_drive(problems[ids[0]]), substeps[pack[0]], batch)
-            for i, x in zip(ids, X):
-                try:
-                    asked[i] = searches[i].send(score_shape(asked[i][0], x, windows[i], gain_range))
-                except StopIteration as done:
-                    results[i] = done.value
-                    del asked[i]
-    return results
+def score_windows(problems: list[RefineProblem], windows: list[ScoreWindows], led: bool,
+                  gain_range: tuple[float, float], batch: BatchSettings,
+                  asked: dict[int, np.ndarray]) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+    """The window score (:func:`score_shape`) of the candidates ``asked[i]`` ``C_i x 4`` of each
+    problem ``i`` over its ``windows[i]`` (``led``: see :func:`window_speeds`), with the candidates
+    as scored: the records on one drive, substep count and similar window length go to the
+    simulator in one call (:func:`pack_indices`), so that the per-call costs are paid once per
+    batch, not once per record (a result does not depend on its pack)."""
+    todo = sorted(asked)
+    substeps = [problem_substeps(problems[i], asked[i]) for i in todo]
+    sizes = [len(asked[i]) * windows[i].y.shape[0] for i in todo]
+    packs = pack_indices([problems[i] for i in todo], sizes, substeps, [windows[i].y.shape[1] for i in todo],
+                         max_models=batch.window_models, min_length_ratio=batch.length_ratio)
+    out = {}
+    for pack in packs:
+        ids = [todo[k] for k in pack]
+        X = window_speeds([(problems[i], asked[i], windows[i], led) for i in ids], replay_drive(problems[ids[0]]),
+                          substeps[pack[0]], batch)
+        for i, x in zip(ids, X):
+            out[i] = score_shape(asked[i], x, windows[i], gain_range)
+    return out
