@@ -147,7 +147,7 @@ def polish(problems: list[RefineProblem], chosen: list[Refined], measured: list[
     if not config.polish.iterations:
         return list(chosen)
     polishing = polish_lanes(problems, chosen, config.polish, config.free, config.batch)
-    retry(problems, polishing, config.retry, config.polish, config.batch)
+    polishing = retry(problems, polishing, config.retry, config.polish, config.batch)
     return polished(problems, chosen, measured, polishing, config.polish, config.batch)
 
 

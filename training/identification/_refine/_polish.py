@@ -76,7 +76,7 @@ def _errors(problems: list[RefineProblem], asked: dict[int, np.ndarray], scored:
             for i, E in packed_errors(problems, asked, batch, {i: rows for i, (rows, _) in scored.items()})}
 
 
-@dataclass
+@dataclass(frozen=True)
 class Lane:
     """One problem's polish: its model ``theta`` over :data:`COORDINATES` (4) or
     :data:`FREE_COORDINATES` (7), the coordinates it moves (``free``), their bounds and difference
@@ -92,11 +92,11 @@ class Lane:
     moved: bool = False
 
 
-@dataclass
+@dataclass(frozen=True)
 class Polishing:
-    """The polish of a batch under way: each problem's :class:`Lane` and its scored samples, the
-    models simulated so far per problem (``n_sims``), the chosen models (``first``), their errors
-    (``start``: what a polished model must beat) and each lane's error at its model (``cost``)."""
+    """The polish of a batch: each problem's :class:`Lane` and its scored samples, the models
+    simulated per problem (``n_sims``), the chosen models (``first``), their errors (``start``:
+    what a polished model must beat) and each lane's error at its model (``cost``)."""
 
     lanes: dict[int, Lane]
     scored: dict[int, Scoring]
@@ -127,12 +127,13 @@ def polish(problems: list[RefineProblem], chosen: list[Refined], settings: Polis
     lanes, scored = {}, {}
     for i, (p, r) in enumerate(zip(problems, chosen)):
         lanes[i], scored[i] = _lane(p, r, settings, free)
-    n_sims = dict.fromkeys(lanes, 0)
     first = {i: lane.theta.copy() for i, lane in lanes.items()}  # the chosen models
-    # the chosen models' errors, what the polished ones must beat (the gap-seeded lanes' here, the others' in descend)
-    start = gap_seeded(problems, lanes, scored, settings, batch, n_sims)
-    cost = descend(problems, lanes, scored, settings, batch, n_sims, start)
-    return Polishing(lanes, scored, n_sims, first, start, cost)
+    seeded = gap_seeded(problems, lanes, scored, settings, batch)
+    descent = descend(problems, seeded.lanes, scored, settings, batch)
+    # the chosen models' errors, what the polished ones must beat (the gap-seeded lanes' before their seeds)
+    start = {**descent.first, **seeded.before}
+    n_sims = {i: seeded.n_sims.get(i, 0) + descent.n_sims[i] for i in lanes}
+    return Polishing(lanes=descent.lanes, scored=scored, n_sims=n_sims, first=first, start=start, cost=descent.cost)
 
 
 def polished(problems: list[RefineProblem], chosen: list[Refined], measured: list[float], polishing: Polishing,
@@ -165,23 +166,32 @@ def moving(theta: np.ndarray | list[float]) -> list[int]:
     return [k for k in range(len(theta)) if k != 3 or theta[3] > NO_GAP]
 
 
+@dataclass(frozen=True)
+class Seeded:
+    """The gap seeds tried: every lane (those a seed beat moved to it, ``s_N`` free then), the
+    errors of the tried lanes at their models as they were (``before``) and the models simulated."""
+
+    lanes: dict[int, Lane]
+    before: dict[int, float]
+    n_sims: dict[int, int]
+
+
 def gap_seeded(problems: list[RefineProblem], lanes: dict[int, Lane], scored: dict[int, Scoring],
-               settings: PolishSettings, batch: BatchSettings, n_sims: dict[int, int]) -> dict[int, float]:
+               settings: PolishSettings, batch: BatchSettings) -> Seeded:
     """Each lane whose model has no gap moved to the best of its models with the gaps of
-    ``settings.gap_seeds`` where one beats it, with ``s_N`` free then (``theta``, ``free`` and
-    ``moved`` updated in place); returns those lanes' errors at their models as they were."""
+    ``settings.gap_seeds`` where one beats it."""
     seeds = np.log10(np.asarray(settings.gap_seeds, dtype=np.float64))
     asked = {i: np.vstack([lane.theta] + [np.concatenate([lane.theta[:3], [g], lane.theta[4:]]) for g in seeds])
              for i, lane in lanes.items() if lane.theta[3] <= NO_GAP and seeds.size}
-    before = {}
+    out, before, n_sims = dict(lanes), {}, {}
     for i, R in _errors(problems, asked, scored, batch).items():
-        n_sims[i] += R.shape[1]
+        n_sims[i] = R.shape[1]
         c = (R * R).sum(0)
         before[i] = float(c[0])
         k = int(np.argmin(c))
         if k > 0:
-            lanes[i].theta, lanes[i].free, lanes[i].moved = asked[i][k], moving(asked[i][k]), True
-    return before
+            out[i] = replace(lanes[i], theta=asked[i][k], free=moving(asked[i][k]), moved=True)
+    return Seeded(out, before, n_sims)
 
 
 def measured_energy(p: RefineProblem, scored: Scoring) -> float:
@@ -196,45 +206,59 @@ def _with_steps(lane: Lane) -> np.ndarray:
     return np.clip(np.vstack([lane.theta, stepped]), lane.low, lane.high)
 
 
+@dataclass(frozen=True)
+class Descent:
+    """The Levenberg-Marquardt descent of some lanes: each lane at its final model (``moved`` where
+    an iteration moved it), its error there (``cost``) and at its first model (``first``), and the
+    models simulated per lane."""
+
+    lanes: dict[int, Lane]
+    cost: dict[int, float]
+    first: dict[int, float]
+    n_sims: dict[int, int]
+
+
+def _damped_moves(lane: Lane, asked: np.ndarray, R: np.ndarray, settings: PolishSettings) -> np.ndarray:
+    """The lane's damped Levenberg-Marquardt steps ``L x D`` (clipped) from its errors ``R`` at its
+    model and its stepped models ``asked`` (:func:`_with_steps`), one per ``lambda`` of ``settings.damping``."""
+    r = R[:, 0]
+    step = asked[1:, lane.free].diagonal() - lane.theta[lane.free]  # the steps as clipped
+    J = (R[:, 1:] - r[:, None]) / np.where(step != 0, step, 1.0)  # M x F: the forward-difference Jacobian
+    A, g = J.T @ J, J.T @ r
+    D = np.diag(np.maximum(np.diag(A), settings.diagonal_floor * max(float(np.diag(A).max()), 1e-300)))
+    moves = np.repeat(lane.theta[None], len(settings.damping), axis=0)  # L x D
+    for row, lam in zip(moves, settings.damping):
+        row[lane.free] += np.linalg.solve(A + lam * D, -g)
+    return np.clip(moves, lane.low, lane.high)
+
+
 def descend(problems: list[RefineProblem], lanes: dict[int, Lane], scored: dict[int, Scoring],
-            settings: PolishSettings, batch: BatchSettings, n_sims: dict[int, int],
-            start: dict[int, float]) -> dict[int, float]:
-    """Up to ``settings.iterations`` Levenberg-Marquardt iterations of each lane (``theta`` and
-    ``moved`` updated in place; a lane stops once an iteration gains less than ``tolerance``),
-    the lanes side by side; returns each lane's error at its final model (``start`` gets the error
-    of a lane's first model where it has none, ``n_sims`` the models simulated)."""
-    cost: dict[int, float] = {}
+            settings: PolishSettings, batch: BatchSettings) -> Descent:
+    """Up to ``settings.iterations`` Levenberg-Marquardt iterations of each lane (a lane stops once
+    an iteration gains less than ``tolerance``), the lanes side by side: one replay per iteration
+    for the errors at the models and their steps, one for the damped moves."""
+    lanes, cost, first, n_sims = dict(lanes), {}, {}, dict.fromkeys(lanes, 0)
     active = set(lanes)
     for _ in range(settings.iterations):
         if not active:
             break
-        # the error r and its forward-difference Jacobian J (M x F) at each model, one replay for all
         asked = {i: _with_steps(lanes[i]) for i in active}
         trials = {}
         for i, R in _errors(problems, asked, scored, batch).items():
-            lane = lanes[i]
             n_sims[i] += R.shape[1]
-            r = R[:, 0]
-            cost[i] = float(r @ r)
-            start.setdefault(i, cost[i])
-            step = asked[i][1:, lane.free].diagonal() - lane.theta[lane.free]  # the steps as clipped
-            J = (R[:, 1:] - r[:, None]) / np.where(step != 0, step, 1.0)  # M x F
-            A, g = J.T @ J, J.T @ r
-            D = np.diag(np.maximum(np.diag(A), settings.diagonal_floor * max(float(np.diag(A).max()), 1e-300)))
-            moves = np.repeat(lane.theta[None], len(settings.damping), axis=0)  # L x D
-            for row, lam in zip(moves, settings.damping):
-                row[lane.free] += np.linalg.solve(A + lam * D, -g)
-            trials[i] = np.clip(moves, lane.low, lane.high)
+            cost[i] = float(R[:, 0] @ R[:, 0])
+            first.setdefault(i, cost[i])
+            trials[i] = _damped_moves(lanes[i], asked[i], R, settings)
         for i, R in _errors(problems, trials, scored, batch).items():
             n_sims[i] += R.shape[1]
             c = (R * R).sum(0)
             k = int(np.argmin(c))
             ratio = float(c[k]) / cost[i] if cost[i] > 0 else 1.0
             if ratio < 1.0:
-                lanes[i].theta, cost[i], lanes[i].moved = trials[i][k], float(c[k]), True
+                lanes[i], cost[i] = replace(lanes[i], theta=trials[i][k], moved=True), float(c[k])
             if ratio > 1.0 - settings.tolerance:  # no better, or hardly: done
                 active.discard(i)
-    return cost
+    return Descent(lanes, cost, first, n_sims)
 
 
 STAGE = Stage("polish", "always, unless `iterations` is 0: every chosen model", PolishSettings, polish)

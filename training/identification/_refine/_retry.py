@@ -8,7 +8,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from training.identification._refine._checks import at_least, within
-from training.identification._refine._polish import (Polishing, PolishSettings, descend, gap_seeded, maps_lane,
+from training.identification._refine._polish import (Lane, Polishing, PolishSettings, descend, gap_seeded, maps_lane,
                                                      measured_energy)
 from training.identification._refine._problem import RefineProblem
 from training.identification._refine._replay import BatchSettings, quantization_energy
@@ -46,26 +46,35 @@ def retried(p: RefineProblem, polishing: Polishing, i: int, settings: RetrySetti
                 and cost > settings.residual ** 2 * measured_energy(p, scored))
 
 
+def _lighter(lane: Lane, settings: RetrySettings) -> Lane:
+    """``lane`` from its model with its ``d`` times ``settings.damping`` (within its bounds)."""
+    theta = lane.theta.copy()
+    theta[2] = max(theta[2] * settings.damping, float(lane.low[2]))
+    return replace(lane, theta=theta, moved=False)
+
+
 def retry(problems: list[RefineProblem], polishing: Polishing, settings: RetrySettings, polish: PolishSettings,
           batch: BatchSettings) -> Polishing:
-    """``polishing`` with each poor fit polished again (its lane and cost replaced where a retry
-    lowers its error; updated in place and returned)."""
-    lanes, cost = polishing.lanes, polishing.cost
+    """``polishing`` with each poor fit polished again: its lane and cost replaced where a retry
+    lowers its error, the models simulated added."""
+    lanes, cost, n_sims = dict(polishing.lanes), dict(polishing.cost), dict(polishing.n_sims)
     again = [i for i in lanes if retried(problems[i], polishing, i, settings)]
-    lighter = {i: replace(lanes[i], theta=lanes[i].theta.copy(), moved=False) for i in again}
-    for lane in lighter.values():
-        lane.theta[2] = max(lane.theta[2] * settings.damping, float(lane.low[2]))
+    lighter = {i: _lighter(lanes[i], settings) for i in again}
     maps = {i: maps_lane(problems[i], lanes[i]) for i in again}
     # (not where the chosen model is the maps' answer: its descent would repeat the first)
     maps = {i: lane for i, lane in maps.items()
             if not np.allclose(lane.theta, polishing.first[i], rtol=0.0, atol=settings.same_model)}
-    gap_seeded(problems, maps, polishing.scored, polish, batch, polishing.n_sims)
-    for lanes_again in (lighter, maps):
-        for i, c in descend(problems, lanes_again, polishing.scored, polish, batch, polishing.n_sims,
-                            polishing.start).items():
+    seeded = gap_seeded(problems, maps, polishing.scored, polish, batch)
+    for i, n in seeded.n_sims.items():
+        n_sims[i] += n
+    for tried in (lighter, seeded.lanes):
+        descent = descend(problems, tried, polishing.scored, polish, batch)
+        for i, n in descent.n_sims.items():
+            n_sims[i] += n
+        for i, c in descent.cost.items():
             if c < cost[i]:
-                lanes[i], cost[i] = replace(lanes_again[i], moved=True), c
-    return polishing
+                lanes[i], cost[i] = replace(descent.lanes[i], moved=True), c
+    return replace(polishing, lanes=lanes, cost=cost, n_sims=n_sims)
 
 
 STAGE = Stage("retry", "a polished fit above `residual` of the measured speed and `above` x its noise",
