@@ -10,10 +10,13 @@ import pytest
 from _refine_problems import refine_problem
 
 from sim import DriveConfig, TestSignalConfig, TwoMassParams
-from training.identification._refine import RefineConfig, Refined, refine
-from training.identification._refine._config import NO_GAP
-from training.identification._refine._polish import polish as polish_chosen
+from training.identification._refine import PolishSettings, RefineConfig, Refined, RetrySettings
+from training.identification._refine._pipeline import polish as polish_chosen
 from training.identification._refine._replay import detrend_basis, detrended_energy
+from training.identification._refine._space import NO_GAP
+
+
+NO_RETRY = RefineConfig(retry=RetrySettings(above=math.inf))
 
 
 def polish(problems, chosen, config=RefineConfig()):
@@ -49,7 +52,8 @@ def test_a_lightly_damped_model_30_percent_off_comes_back():
     off = _refined(56.2, 1.39, 0.05)
     out = polish([p], [off])[0]
     assert abs(out.f_e / 56.0 - 1) < 0.003 and abs(out.V_J / 2.0 - 1) < 0.05 and abs(out.d - 0.017) < 0.003
-    undamped = RefineConfig(polish_damping=(1e-2, 1e-1), polish_retry_above=math.inf)  # (the retry finds it too)
+    # (the retry finds it too)
+    undamped = RefineConfig(polish=PolishSettings(damping=(1e-2, 1e-1)), retry=RetrySettings(above=math.inf))
     assert polish([p], [off], undamped)[0].V_J == off.V_J
 
 
@@ -65,7 +69,7 @@ def test_a_fit_left_above_the_noise_is_tried_again_from_a_lighter_damping():
     out = polish([p], [off])[0]
     assert abs(out.f_e / 19.948 - 1) < 0.005 and abs(out.V_J / 3.483 - 1) < 0.03 and abs(out.d - 0.0122) < 0.002
     assert abs(out.s_N / 0.0565 - 1) < 0.1 and out.residual < 0.1
-    assert polish([p], [off], RefineConfig(polish_retry_above=math.inf))[0].V_J == pytest.approx(off.V_J, rel=0.1)
+    assert polish([p], [off], NO_RETRY)[0].V_J == pytest.approx(off.V_J, rel=0.1)
 
 
 def test_a_fit_left_above_the_noise_is_tried_again_from_the_maps_answer():
@@ -83,7 +87,7 @@ def test_a_fit_left_above_the_noise_is_tried_again_from_the_maps_answer():
     out = polish([p], [off])[0]
     assert abs(out.V_J / 2.9475 - 1) < 0.02 and abs(out.d - 0.0114) < 0.001 and abs(out.s_N / 0.00924 - 1) < 0.1
     assert out.residual < 0.1
-    assert polish([p], [off], RefineConfig(polish_retry_above=math.inf))[0].V_J == pytest.approx(off.V_J, rel=0.1)
+    assert polish([p], [off], NO_RETRY)[0].V_J == pytest.approx(off.V_J, rel=0.1)
 
 
 def test_a_tiny_gap_the_answer_lacks_is_found():
@@ -95,7 +99,7 @@ def test_a_tiny_gap_the_answer_lacks_is_found():
     off = _refined(29.75, 0.93, 0.034)  # the answer without the seeds
     out = polish([p], [off])[0]
     assert abs(out.s_N / 0.0155 - 1) < 0.05 and abs(out.V_J - 1.0) < 0.02 and abs(out.d - 0.02) < 0.002
-    assert polish([p], [off], RefineConfig(polish_gap_seeds=()))[0].s_N == off.s_N
+    assert polish([p], [off], RefineConfig(polish=PolishSettings(gap_seeds=())))[0].s_N == off.s_N
 
 
 def test_a_gap_the_polish_removes_is_not_reported():
@@ -113,7 +117,7 @@ def test_a_gap_the_polish_removes_is_not_reported():
 def test_without_iterations_nothing_moves():
     p = refine_problem(ELASTIC, np.zeros(4))
     off = _refined(26.0, 1.7, 0.035)
-    assert polish([p], [off], RefineConfig(polish_iterations=0))[0] == off
+    assert polish([p], [off], RefineConfig(polish=PolishSettings(iterations=0)))[0] == off
 
 
 def test_a_free_stage_model_returns_with_its_one_mass_part():
@@ -145,5 +149,5 @@ def test_each_answer_is_the_same_whatever_the_others():
 
 
 def test_a_negative_iteration_count_is_refused():
-    with pytest.raises(ValueError, match="polish_iterations >= 0"):
-        refine([], RefineConfig(polish_iterations=-1))
+    with pytest.raises(ValueError, match=r"PolishSettings\.iterations: expected >= 0"):
+        PolishSettings(iterations=-1)

@@ -9,7 +9,8 @@ from _refine_problems import DRIVE, refine_problem
 
 from sim import TwoMassParams
 from training.evaluation import DRIVES
-from training.identification._refine import RefineConfig, RefineProblem, refine, torque_reference
+from training.identification._refine import (ExploreSettings, FreeSettings, PolishSettings, RefineConfig,
+                                             RefineProblem, RescueSettings, SearchSettings, refine, torque_reference)
 from training.identification._refine._explore import explore_windows
 
 
@@ -40,7 +41,8 @@ def test_recovers_an_elastic_plant_with_backlash_from_a_perturbed_start():
 def test_a_start_at_the_truth_stays_there():
     true = TwoMassParams(J_sigma=0.03, V_J=1.0, f_e=60.0, d=0.02, backlash=0.0, M_FC=0.1, mu_F=0.0)
     p = refine_problem(true, np.array([math.log10(60.0), 0.0, 0.02, -3.0]))
-    out = refine([p], RefineConfig(rounds=1, candidates=8, elites=4))[0]
+    small = RefineConfig(explore=ExploreSettings(rounds=1), search=SearchSettings(candidates=8, elites=4))
+    out = refine([p], small)[0]
     assert out.residual <= out.start_residual
     assert abs(out.f_e / 60.0 - 1) < 0.01 and abs(out.V_J - 1.0) < 0.05 and out.s_N < 0.05
 
@@ -55,7 +57,7 @@ def test_exploring_windows_hold_4_periods_up_to_0_1_s_or_400_samples(T_s: float,
     p = RefineProblem(speed=np.zeros(4100), start=np.array([0, 0, 2000, 4000]), level=np.array([0.0, 1.0, 0.0, -1.0]),
                       segments=seg, J_sigma=0.04, M_FC=0.1, mu_F=0.0, T_s=T_s, T_Ei=1e-3, encoder_counts=2**13,
                       M_N=10.0, theta=np.array([math.log10(f_e), 0.0, 0.03, -3.0]))
-    w = explore_windows(p, RefineConfig())
+    w = explore_windows(p, ExploreSettings())
     assert (w.inside.sum(1)).tolist() == [expected, expected, 10]  # the third segment is shorter
 
 
@@ -76,15 +78,17 @@ def test_a_small_gap_on_a_slowly_sampled_drive_is_found():
 
 
 def test_bad_config_is_rejected():
-    with pytest.raises(ValueError, match="candidates >= elites >= 2"):
-        refine([], RefineConfig(candidates=4, elites=8))
-    with pytest.raises(ValueError, match="window_samples >= 0"):
-        refine([], RefineConfig(window_samples=-1))
-    with pytest.raises(ValueError, match="rescue_grid_f_e >= 1"):
-        refine([], RefineConfig(rescue_grid_f_e=0))
-    with pytest.raises(ValueError, match="far_rounds"):
-        refine([], RefineConfig(far_rounds=-1))
-    with pytest.raises(ValueError, match="three values each in free_spread"):
-        refine([], RefineConfig(free_spread=(0.1, 0.1)))  # the two-coordinate free stage's
-    with pytest.raises(ValueError, match="polish_gap_seeds above 0.002"):
-        refine([], RefineConfig(polish_gap_seeds=(0.001, 0.01)))  # no gap at all by the search's floor
+    with pytest.raises(ValueError, match=r"SearchSettings\.candidates: expected >= elites"):
+        SearchSettings(candidates=4, elites=8)
+    with pytest.raises(ValueError, match=r"ExploreSettings\.window_samples: expected >= 0"):
+        ExploreSettings(window_samples=-1)
+    with pytest.raises(ValueError, match=r"RescueSettings\.grid_f_e: expected >= 1"):
+        RescueSettings(grid_f_e=0)
+    with pytest.raises(ValueError, match=r"RescueSettings\.rounds"):
+        RescueSettings(rounds=-1)
+    with pytest.raises(ValueError, match=r"FreeSettings\.spread: expected 3 values"):
+        FreeSettings(spread=(0.1, 0.1))  # the two-coordinate free stage's
+    with pytest.raises(ValueError, match=r"PolishSettings\.gap_seeds: expected every value above 0.002"):
+        PolishSettings(gap_seeds=(0.001, 0.01))  # no gap at all by the search's floor
+    with pytest.raises(TypeError, match=r"RefineConfig\.polish: expected PolishSettings"):
+        RefineConfig(polish=FreeSettings())

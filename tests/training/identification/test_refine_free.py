@@ -9,7 +9,7 @@ import numpy as np
 from _refine_problems import refine_problem
 
 from sim import DriveConfig, TestSignalConfig, TwoMassParams
-from training.identification._refine import RefineConfig, refine
+from training.identification._refine import FreeSettings, RefineConfig, refine
 from training.identification._refine._free import free_bounds, free_one_mass, scaled_fit
 from training.identification._refine._replay import replay_drive, simulate
 
@@ -28,7 +28,8 @@ def test_a_test_shorter_than_one_period_gets_the_whole_inertia():
     out = refine([p])[0]
     assert out.J_sigma is not None and abs(out.J_sigma / 1.12e-4 - 1) < 0.1
     assert abs(out.f_e / 7.93 - 1) < 0.05
-    assert refine([p], RefineConfig(free_periods=0.0))[0].J_sigma is None  # only the short sections start it
+    only_flagged = RefineConfig(free=FreeSettings(periods=0.0))
+    assert refine([p], only_flagged)[0].J_sigma is None  # only the short sections start it
 
 
 def test_the_free_stage_answers_the_same_at_any_torque_scale():
@@ -64,7 +65,7 @@ def test_the_free_stage_never_trades_the_answer_for_a_worse_one():
     p = dataclasses.replace(refine_problem(true, theta, SERVO, SIGNAL), free_one_mass=True)
     config = RefineConfig()
     drive = replay_drive(p)
-    out, _ = free_one_mass(p, theta, config, np.random.default_rng(0), drive)
+    out = free_one_mass(p, theta, config.free, config.search, config.seed, np.random.default_rng(0), drive).theta
     chosen = np.concatenate([theta, [math.log10(p.J_sigma), max(p.M_FC, 0.0), max(p.mu_F, 0.0)]])
     answer = np.concatenate([out, chosen[4:]]) if len(out) == 4 else out  # the chosen model where it lost
     err = (simulate(p, np.stack([chosen, answer]), drive) ** 2).sum(0)
@@ -78,7 +79,7 @@ def test_the_free_models_come_at_their_exact_best_scale():
     true = TwoMassParams(J_sigma=1.12e-4, V_J=1.8, f_e=30.0, d=0.04, backlash=0.0, M_FC=0.02, mu_F=4e-5)
     true = dataclasses.replace(true, backlash=2.0 * 0.5 * SERVO.M_N / float(true.C_F))  # s_N 0.5
     p = refine_problem(true, [math.log10(30.0), math.log10(1.8), 0.04, math.log10(0.5)], SERVO, SIGNAL)
-    low, high, _ = free_bounds(p)
+    low, high, _ = free_bounds(p, FreeSettings())
     plant = np.array([math.log10(30.0), math.log10(1.8), 0.04, math.log10(0.5), math.log10(1.12e-4), 0.02, 4e-5])
     off = plant + [0.0, 0.0, 0.0, 0.0, math.log10(2.5), 0.0, 1.5 * 4e-5]
     cost, scaled = scaled_fit(p, replay_drive(p), low, high, np.stack([plant, off]))

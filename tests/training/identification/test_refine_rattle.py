@@ -8,8 +8,9 @@ import numpy as np
 from _refine_problems import refine_problem
 
 from sim import DriveConfig, TestSignalConfig, TwoMassParams
-from training.identification._refine import RefineConfig, refine
-from training.identification._refine._explore import explore_windows, window_speeds
+from training.identification._refine import BatchSettings, ExploreSettings, RattleSettings, RefineConfig, refine
+from training.identification._refine._explore import explore_windows
+from training.identification._refine._windows import window_speeds
 from training.identification._refine._replay import problem_substeps, replay_drive, simulate
 
 # a large industrial axis (500 us, 2^16 counts, current loop 1.5 ms)
@@ -18,18 +19,19 @@ SIGNAL = TestSignalConfig(M_star=200.0, w_max=150.0)
 # f_e 119 Hz (w_e T_Ei 1.1: stiff), s_N 0.63: stiff_backlash (a system of the drive matrix's large axis)
 TRUE = TwoMassParams(J_sigma=0.1424, V_J=1.973, f_e=118.8, d=0.0612, backlash=0.01417, M_FC=2.37, mu_F=0.0186)
 THETA = [math.log10(118.8), math.log10(1.973), 0.0612, math.log10(0.63)]  # the truth's coordinates
-NO_RATTLE = RefineConfig(rattle_s_N=math.inf)
+NO_RATTLE = RefineConfig(rattle=RattleSettings(min_s_N=math.inf))
 
 
 def test_a_window_after_a_zero_torque_section_started_at_that_section_replays_the_whole_record():
     p = refine_problem(TRUE, THETA, AXIS, SIGNAL)
-    w = explore_windows(p, RefineConfig())
+    w = explore_windows(p, ExploreSettings())
     after = np.flatnonzero(w.lead)
     assert len(after) == 2  # the windows after sections II and V
     theta = np.array([THETA])
     whole = simulate(p, theta, replay_drive(p))[:, 0] + p.speed  # N
     S = problem_substeps(p, theta)
-    led, plain = (window_speeds([(p, theta, w, tag)], replay_drive(p), S)[0][0] for tag in (True, False))  # J x L
+    led, plain = (window_speeds([(p, theta, w, tag)], replay_drive(p), S, BatchSettings())[0][0]
+                  for tag in (True, False))  # J x L
     for j in after:  # up to the quadratic trend the score removes (the one-mass part's drift)
         n, Q = int(w.inside[j].sum()), w.Q[j]
         ref = whole[w.at[j]:w.at[j] + n]
@@ -56,15 +58,13 @@ def test_no_rattle_without_a_gap():
     assert refine([p])[0] == refine([p], NO_RATTLE)[0]
 
 
-def test_led_windows_replayed_in_chunks_give_the_same_speeds(monkeypatch):
-    import training.identification._refine._explore as explore_module
-
+def test_led_windows_replayed_in_chunks_give_the_same_speeds():
     p = refine_problem(TRUE, THETA, AXIS, SIGNAL)
-    w = explore_windows(p, RefineConfig())
+    w = explore_windows(p, ExploreSettings())
     rng = np.random.default_rng(0)
     theta = np.clip(np.array(THETA) + rng.normal(0.0, 0.05, (100, 4)), [-9, -9, 0.01, -9], 9)  # C x 4
     drive = replay_drive(p)
     S = problem_substeps(p, theta)
-    whole = window_speeds([(p, theta, w, True)], drive, S)[0]
-    monkeypatch.setattr(explore_module, "_LED_SAMPLES", 1000)  # 64 lanes per replay: 4 replays
-    np.testing.assert_array_equal(window_speeds([(p, theta, w, True)], drive, S)[0], whole)
+    whole = window_speeds([(p, theta, w, True)], drive, S, BatchSettings())[0]
+    chunked = BatchSettings(led_samples=1000)  # 64 lanes per replay: 4 replays
+    np.testing.assert_array_equal(window_speeds([(p, theta, w, True)], drive, S, chunked)[0], whole)

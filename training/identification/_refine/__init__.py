@@ -1,10 +1,24 @@
-"""The model-based refinement of the maps' answer on the record itself (:func:`refine`: explore,
-choose, free one-mass stage, polish; :mod:`._stages`) and the backlash found in the motor's angle
-(:func:`find_hidden_gap`). The settings and their measured reasons: :class:`RefineConfig`."""
+"""The model-based refinement of the maps' answer on the record itself (:func:`refine`: the stages
+of :data:`PIPELINE`, registered in :data:`STAGES`) and the backlash found in the motor's angle
+(:func:`find_hidden_gap`). The settings, stage by stage, and their measured reasons: :class:`RefineConfig`."""
 
-from ._angle import HiddenGap, find_hidden_gap
+from ._angle import AngleSettings, HiddenGap
+from ._choose import ChooseSettings
+from ._climb import ClimbSettings
 from ._config import RefineConfig
+from ._explore import ExploreSettings
+from ._free import FreeSettings
+from ._pipeline import PIPELINE, STAGES, find_hidden_gap, refine
+from ._polish import PolishSettings
 from ._problem import RefineProblem, Refined, torque_reference
-from ._stages import refine
+from ._rattle import RattleSettings
+from ._replay import BatchSettings
+from ._rescue import RescueSettings
+from ._retry import RetrySettings
+from ._search import SearchSettings
+from ._stage import Stage
 
-__all__ = ["HiddenGap", "RefineConfig", "RefineProblem", "Refined", "find_hidden_gap", "refine", "torque_reference"]
+__all__ = ["AngleSettings", "BatchSettings", "ChooseSettings", "ClimbSettings", "ExploreSettings", "FreeSettings",
+           "HiddenGap", "PIPELINE", "PolishSettings", "RattleSettings", "RefineConfig", "RefineProblem", "Refined",
+           "RescueSettings", "RetrySettings", "STAGES", "SearchSettings", "Stage", "find_hidden_gap", "refine",
+           "torque_reference"]

@@ -12,7 +12,7 @@ drive's stiff shaft, crossed in a sample or two even where it is tens of counts 
 drive at 844 us the speed refinement dropped the maps' gap of 14 counts of lead for a model
 without one, while the angle error picks the gap model at 0.82 x.
 
-:func:`find_hidden_gap` lets models with and without a gap compete on the angle error, each side
+:func:`hidden_gap` lets models with and without a gap compete on the angle error, each side
 with its own search, and returns the gap model where it wins clearly. The angle error is the
 running sum of the speed error less its projection on the running sums of the refinement's
 per-section quadratic trends (:func:`angle_basis`: the speed's detrending, integrated), so the
@@ -29,27 +29,40 @@ import numpy as np
 
 from sim import S_N_ELASTIC
 from training.identification._envelope import SPEC_ENVELOPE
-from training.identification._refine._config import HIGH, LOW, RefineConfig
+from training.identification._refine._checks import above, at_least
 from training.identification._refine._problem import RefineProblem
 from training.identification._refine._replay import replay_drive, simulate, trend_basis
-from training.identification._refine._search import cem, product_grid, run
+from training.identification._refine._search import SearchSettings, cem_one, product_grid
+from training.identification._refine._space import HIGH, LOW
+from training.identification._refine._stage import Stage
 
-__all__ = ["HiddenGap", "angle_basis", "find_hidden_gap"]
+__all__ = ["AngleSettings", "HiddenGap", "angle_basis", "hidden_gap"]
 
-#: The first grid: eigenfrequencies from SPEC 3.1's lowest to 4 x the current loop's bandwidth
-#: (``GRID_F_E`` of them, log spaced), ``V_J`` over SPEC 3.1's range 0.2 .. 5, normalized backlash values.
-GRID_F_E = 12
-GRID_V_J: tuple[float, ...] = (0.2, 0.45, 1.0, 2.2, 5.0)
-GRID_S_N: tuple[float, ...] = (1e-3, 0.03, 0.1, 0.3, 1.0, 3.0, 10.0, 30.0, 100.0)
-GRID_D = 0.05
-#: A gap model is adopted where its angle error is below this ratio of the best model without a gap ...
-ANGLE_WIN = 0.85
-#: ... and its ``s_N`` at least this x the class threshold (models at the threshold stand in for damping).
-S_N_CLEAR = 1.5
-#: The angle is scored on about this many samples at most, every ``stride``-th (a gap's offset
-#: lasts a section; a record of 180 000 samples cost 7.8 s of cumulative sums and projections, its
-#: replays 1.7 s).
-ANGLE_SAMPLES = 4000
+
+@dataclass(frozen=True)
+class AngleSettings:
+    """Models with and without a gap compete on the whole record's angle error: a grid of
+    ``grid_f_e`` eigenfrequencies from the drive envelope's lowest to ``grid_top`` x the current
+    loop's bandwidth times ``grid_V_J`` times ``grid_s_N`` at damping ``grid_d``, then ``rounds``
+    cross-entropy rounds on each side of the class threshold; the gap model wins below ``win``."""
+
+    grid_f_e: int = 12  # eigenfrequencies of the grid, log spaced
+    grid_top: float = 4.0  # the grid's highest f_e: this x the current loop's bandwidth
+    grid_V_J: tuple[float, ...] = (0.2, 0.45, 1.0, 2.2, 5.0)  # V_J of the grid (the drive envelope's range)
+    grid_s_N: tuple[float, ...] = (1e-3, 0.03, 0.1, 0.3, 1.0, 3.0, 10.0, 30.0, 100.0)  # s_N of the grid
+    grid_d: float = 0.05  # the grid's damping
+    rounds: int = 4  # cross-entropy rounds on each side of the class threshold
+    side_margin: float = 1e-9  # the side without a gap ends this far below the threshold [decades of s_N]
+    win: float = 0.85  # the gap model wins below this ratio of the best model's angle error without a gap ...
+    s_N_clear: float = 1.5  # ... with s_N at least this x the class threshold (models at it stand in for damping)
+    # the angle scored on about this many samples at most, every stride-th (a gap's offset lasts a
+    # section; a record of 180 000 samples cost 7.8 s of cumulative sums and projections, its replays 1.7 s)
+    samples: int = 4000
+
+    def __post_init__(self) -> None:
+        at_least(self, 1, "grid_f_e", "samples")
+        at_least(self, 0, "rounds", "win", "s_N_clear", "side_margin")
+        above(self, 0.0, "grid_top")
 
 
 @dataclass(frozen=True)
@@ -97,40 +110,42 @@ def _angle_energy(E: np.ndarray, T_s: float, Q: np.ndarray, stride: int) -> np.n
     return (r * r).sum(axis=0)
 
 
-def find_hidden_gap(p: RefineProblem, config: RefineConfig) -> HiddenGap | None:
+def hidden_gap(p: RefineProblem, settings: AngleSettings, search: SearchSettings, seed: int) -> HiddenGap | None:
     """The gap model of ``p`` where it explains the angle clearly better than every model without
-    a gap (below :data:`ANGLE_WIN`, with ``s_N >=`` :data:`S_N_CLEAR` x the class threshold), else
-    None. A grid over ``f_e``, ``V_J`` and ``s_N`` (:data:`GRID_F_E` ...), then
-    ``config.angle_rounds`` cross-entropy rounds on each side of the class threshold ``s_N = 0.1``
-    from its best models, all scored on the whole record's angle error."""
-    stride = max(1, len(p.speed) // ANGLE_SAMPLES)
+    a gap (see :class:`AngleSettings`), else None; the searches draw from ``seed``."""
+    stride = max(1, len(p.speed) // settings.samples)
     drive, Q = replay_drive(p), angle_basis(p.segments, len(p.speed), stride)
 
     def score(theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         # a chunk at a time: the grid is ordered by f_e, so a chunk's substeps suit its models,
         # and the errors of a long record stay small
-        chunks = range(0, len(theta), config.candidates)
-        return np.concatenate([_angle_energy(simulate(p, theta[k:k + config.candidates], drive), p.T_s, Q, stride)
+        chunks = range(0, len(theta), search.candidates)
+        return np.concatenate([_angle_energy(simulate(p, theta[k:k + search.candidates], drive), p.T_s, Q, stride)
                                for k in chunks]), theta
 
     bandwidth = 1.0 / (2.0 * math.pi * p.T_Ei)
-    f_e = np.geomspace(SPEC_ENVELOPE["f_e"][0], min(4.0 * bandwidth, 10.0 ** HIGH[0]), GRID_F_E)
-    grid = product_grid(f_e, GRID_V_J, GRID_D, [math.log10(s) for s in GRID_S_N])  # G x 4, ordered by f_e
+    f_e = np.geomspace(SPEC_ENVELOPE["f_e"][0], min(settings.grid_top * bandwidth, 10.0 ** HIGH[0]), settings.grid_f_e)
+    grid = product_grid(f_e, settings.grid_V_J, settings.grid_d,
+                        [math.log10(s) for s in settings.grid_s_N])  # G x 4, ordered by f_e
     cost, _ = score(grid)
     threshold = math.log10(S_N_ELASTIC)
     best: list[tuple[np.ndarray, float]] = []
-    rng = np.random.default_rng(config.seed)
-    for gap, low_s, high_s in ((False, LOW[3], threshold - 1e-9), (True, threshold, HIGH[3])):
+    rng = np.random.default_rng(seed)
+    for gap, low_s, high_s in ((False, LOW[3], threshold - settings.side_margin), (True, threshold, HIGH[3])):
         side = (grid[:, 3] >= threshold) == gap
         low, high = LOW.copy(), HIGH.copy()
         low[3], high[3] = low_s, high_s
-        theta, c = run(cem(grid[side], cost[side], config.angle_rounds, np.asarray(config.spread), config, rng,
-                           low, high), score)
-        k = int(np.argmin(c))
-        best.append((theta[k], float(c[k])))
+        scored = cem_one(grid[side], cost[side], settings.rounds, np.asarray(search.spread), search, rng, score, low,
+                         high)
+        k = int(np.argmin(scored.cost))
+        best.append((scored.theta[k], float(scored.cost[k])))
     (_, no_gap), (theta, with_gap) = best
     ratio = with_gap / no_gap if no_gap > 0 else math.inf
     s_N = float(10.0 ** theta[3])
-    if ratio >= ANGLE_WIN or s_N < S_N_CLEAR * S_N_ELASTIC:
+    if ratio >= settings.win or s_N < settings.s_N_clear * S_N_ELASTIC:
         return None
     return HiddenGap(**p.answer(theta, s_N), angle_ratio=ratio)
+
+
+STAGE = Stage("angle", "the identifier's call: a stiff answer whose speed could hide a gap, or a dropped maps' gap",
+              AngleSettings, hidden_gap)

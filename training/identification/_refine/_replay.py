@@ -7,13 +7,58 @@ from __future__ import annotations
 import functools
 import math
 from collections.abc import Iterator
+from dataclasses import dataclass
 
 import numpy as np
 import torch
 
 import sim
 from sim.replay import replay_speed
+from training.identification._refine._checks import above, at_least, within
 from training.identification._refine._problem import RefineProblem
+
+#: The speed error [rad/s] a diverged model's samples read (NaN, +-inf), and the bound above which
+#: a model counts as diverged.
+DIVERGED = 1e6
+
+
+@dataclass(frozen=True)
+class Accuracy:
+    """How finely the refinement's replays integrate: RK4 substeps per sample such that
+    ``w_0 dt <= w_0_dt`` for the stiffest model of a call (frequency error < 0.1 %), and ``dt <=
+    T_Ei/2`` (:func:`sim.rk4_substeps`). One setting for every stage: models compared in one
+    stage and the next must be replayed alike."""
+
+    w_0_dt: float = 0.5  # the stiffest model's w_0 times the substep at most
+    minimum: int = 1  # substeps per sample at least
+
+    def __post_init__(self) -> None:
+        above(self, 0.0, "w_0_dt")
+        at_least(self, 1, "minimum")
+
+
+#: The refinement's replay accuracy (:class:`Accuracy`).
+ACCURACY = Accuracy()
+
+
+@dataclass(frozen=True)
+class BatchSettings:
+    """How many models and samples one replay call takes: what the wall time and the memory
+    depend on, never an answer (records run packed only with records on the same drive and
+    substep count, and a result does not depend on its pack)."""
+
+    window_models: int = 4096  # exploring windows: simulated windows per replay call at most
+    record_models: int = 256  # whole records (choose, polish): models per replay call at most
+    length_ratio: float = 0.6  # records packed only within this ratio of the pack's longest (the others idle)
+    # window lanes x samples per replay of led windows at most (float32: 64 MB; a zero-torque section
+    # that ran to its 10 s timeout at 62.5 us is 160 000 samples long) ...
+    led_samples: int = 16 * 2**20
+    led_lanes: int = 64  # ... but at least this many lanes per replay
+
+    def __post_init__(self) -> None:
+        at_least(self, 1, "window_models", "record_models", "led_samples", "led_lanes")
+        within(self, "length_ratio", 0.0, 1.0)
+        above(self, 0.0, "length_ratio")
 
 
 def detrend_basis(segments: np.ndarray) -> list[tuple[int, int, np.ndarray]]:
@@ -49,7 +94,7 @@ def _detrend(e: np.ndarray, Q: np.ndarray) -> np.ndarray:
 
 def finite(E: np.ndarray) -> np.ndarray:
     """``E`` with a diverged model's errors (NaN, +-inf) read as +-1e6 rad/s (a finite sum: none)."""
-    return E if np.isfinite(E.sum()) else np.nan_to_num(E, nan=1e6, posinf=1e6, neginf=-1e6)
+    return E if np.isfinite(E.sum()) else np.nan_to_num(E, nan=DIVERGED, posinf=DIVERGED, neginf=-DIVERGED)
 
 
 def model_values(p: RefineProblem, theta: np.ndarray) -> dict[str, np.ndarray]:
@@ -103,10 +148,9 @@ def problem_substeps(p: RefineProblem, theta: np.ndarray) -> int:
 
 
 def _substeps(values: dict[str, np.ndarray], T_s: float, T_Ei: float) -> int:
-    """RK4 substeps per sample: ``w_0 dt <= 0.5`` for the stiffest model of
-    :func:`model_values` (frequency error < 0.1 %), ``dt <= T_Ei/2`` (:func:`sim.rk4_substeps`)."""
+    """RK4 substeps per sample for the models of :func:`model_values` (:data:`ACCURACY`)."""
     w_0 = sim.two_mass_derived(values["J_sigma"], values["V_J"], values["f_e"], values["d"]).w_0
-    return sim.rk4_substeps(float(w_0.max()), T_s, T_Ei, w_0_dt=0.5, minimum=1)
+    return sim.rk4_substeps(float(w_0.max()), T_s, T_Ei, w_0_dt=ACCURACY.w_0_dt, minimum=ACCURACY.minimum)
 
 
 def replay_drive(p: RefineProblem) -> sim.DriveConfig:
@@ -119,7 +163,7 @@ def detrended_cost(p: RefineProblem, theta: np.ndarray, basis: list, drive: sim.
     return detrended_energy(simulate(p, theta, drive), basis)
 
 
-def packed_errors(problems: list[RefineProblem], asked: dict[int, np.ndarray],
+def packed_errors(problems: list[RefineProblem], asked: dict[int, np.ndarray], batch: BatchSettings,
                   rows: dict[int, np.ndarray] | None = None) -> Iterator[tuple[int, np.ndarray]]:
     """``(i, E)``: the speed error ``N_i x C_i`` (or over the samples ``rows[i]`` only) of the
     candidates ``asked[i]`` ``C_i x 4`` (or ``x 7``) of each problem ``i``, a pack at a time
@@ -127,7 +171,8 @@ def packed_errors(problems: list[RefineProblem], asked: dict[int, np.ndarray],
     pack)."""
     todo = sorted(asked)
     substeps = [problem_substeps(problems[i], asked[i]) for i in todo]
-    for pack in pack_indices([problems[i] for i in todo], [len(asked[i]) for i in todo], substeps):
+    for pack in pack_indices([problems[i] for i in todo], [len(asked[i]) for i in todo], substeps, None,
+                             max_models=batch.record_models, min_length_ratio=batch.length_ratio):
         ids = [todo[k] for k in pack]
         yield from zip(ids, simulate_packed([(problems[i], asked[i]) for i in ids], replay_drive(problems[ids[0]]),
                                             None if rows is None else [rows[i] for i in ids]))
@@ -144,8 +189,8 @@ def relative_rms(cost: float, measured: float) -> float:
     return math.sqrt(cost / measured) if measured > 0 else math.sqrt(cost)
 
 
-def pack_indices(problems: list[RefineProblem], sizes: list[int], substeps: list[int], lengths: list[int] | None = None,
-                 max_models: int = 256, min_length_ratio: float = 0.6) -> list[list[int]]:
+def pack_indices(problems: list[RefineProblem], sizes: list[int], substeps: list[int], lengths: list[int] | None,
+                 max_models: int, min_length_ratio: float) -> list[list[int]]:
     """Indices of ``problems`` in packs of one drive and one substep count (so that a result does
     not depend on its pack), simulated lengths (default: the records') within
     ``min_length_ratio`` of the pack's longest (the shorter ones idle while it runs) and at most

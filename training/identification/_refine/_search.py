@@ -1,66 +1,105 @@
-"""The cross-entropy search, written as a generator that yields candidates and is sent their
-costs, so that many records' searches share one simulator call per step."""
+"""The cross-entropy search shared by the stages (:func:`cem`, :class:`SearchSettings`), many
+records' searches side by side, so that they share one simulator call per round."""
 
 from __future__ import annotations
 
 import itertools
 import math
-from collections.abc import Callable, Generator, Sequence
-from typing import Any
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 
 import numpy as np
 
-from training.identification._refine._config import HIGH, LOW, RefineConfig
+from training.identification._refine._checks import at_least, not_below_field, sized
+from training.identification._refine._space import HIGH, LOW
 
-#: A search: yields candidates ``C x D``, is sent ``(cost C, candidates as scored)`` for each, returns its result.
-Search = Generator[np.ndarray, tuple[np.ndarray, np.ndarray], Any]
-#: The exploration's search: its candidates come with whether their windows take the lead (:func:`window_speeds`).
-TaggedSearch = Generator[tuple[np.ndarray, bool], tuple[np.ndarray, np.ndarray], Any]
+#: Scores a batch of records' candidates: ``{record: C x D}`` -> ``{record: (cost C, candidates as scored)}``.
+Score = Callable[[dict[int, np.ndarray]], dict[int, tuple[np.ndarray, np.ndarray]]]
 
 
-def cem(theta: np.ndarray, cost: np.ndarray, rounds: int, spread: np.ndarray, config: RefineConfig,
-        rng: np.random.Generator, low: np.ndarray = LOW, high: np.ndarray = HIGH) -> Search:
-    """``rounds`` of the cross-entropy search from the best of ``theta``/``cost`` (all kept), as a
-    :data:`Search` that returns ``(theta, cost)``, the scored candidates appended."""
-    mean, std = theta[int(np.argmin(cost))], spread
+@dataclass(frozen=True)
+class SearchSettings:
+    """The cross-entropy search every stage runs: ``candidates`` models a round around the best
+    so far, the ``elites`` best setting the next round's spread (``spread``: the first round's
+    standard deviation per coordinate of :data:`COORDINATES`). The C kernel runs blocks of 32
+    models on the CPU's cores: 64 candidates take the wall time of 32 on two."""
+
+    candidates: int = 64  # models per round
+    elites: int = 12  # best models that set the next round's spread
+    spread: tuple[float, float, float, float] = (0.05, 0.12, 0.03, 0.3)  # first spread over COORDINATES
+    elite_weight: float = 0.7  # the next spread: this x the elites' standard deviation ...
+    memory: float = 0.15  # ... plus this x the last spread (the search shrinks, but not at once) ...
+    floor: float = 0.02  # ... and never below this x the first spread (it keeps moving)
+
+    def __post_init__(self) -> None:
+        at_least(self, 2, "elites")
+        not_below_field(self, "candidates", "elites")
+        sized(self, "spread", 4, "log10 f_e, log10 V_J, d, log10 s_N")
+        at_least(self, 0.0, "elite_weight", "memory", "floor")
+
+
+@dataclass(frozen=True)
+class Scored:
+    """Every model a search scored (``theta`` ``C x D``) and its cost (``C``)."""
+
+    theta: np.ndarray
+    cost: np.ndarray
+
+    @property
+    def best(self) -> np.ndarray:
+        """The model of the lowest cost."""
+        return self.theta[int(np.argmin(self.cost))]
+
+    def elites(self, count: int) -> np.ndarray:
+        """The ``count`` models of the lowest costs, best first."""
+        return self.theta[np.argsort(self.cost)[:count]]
+
+
+def scored(asked: dict[int, np.ndarray], score: Score) -> dict[int, Scored]:
+    """The candidates ``asked`` of each record as scored by ``score``."""
+    return {i: Scored(theta, cost) for i, (cost, theta) in score(asked).items()}
+
+
+def cem(start: dict[int, Scored], rounds: int, spread: np.ndarray, search: SearchSettings,
+        rngs: dict[int, np.random.Generator], score: Score, low: np.ndarray = LOW,
+        high: np.ndarray = HIGH) -> dict[int, Scored]:
+    """``rounds`` of the cross-entropy search of each record from the best of its ``start`` (all
+    kept), the records side by side (one ``score`` call a round; each record draws from its own
+    ``rngs[i]``, so its search is the same whatever the others); returns every scored model."""
+    found = dict(start)
+    mean = {i: s.best for i, s in found.items()}
+    std = dict.fromkeys(found, spread)
     for _ in range(rounds):
-        cand = np.clip(mean + std * rng.standard_normal((config.candidates, theta.shape[1])), low, high)
-        c, cand = yield cand
-        theta, cost = np.concatenate([theta, cand]), np.concatenate([cost, c])
-        elite = theta[np.argsort(cost)[: config.elites]]
-        mean = elite[0]  # the best so far; the elites' spread sets the next step
-        std = np.maximum(0.7 * elite.std(axis=0) + 0.15 * std, 0.02 * spread)
-    return theta, cost
+        asked = {i: np.clip(mean[i] + std[i] * rngs[i].standard_normal((search.candidates, found[i].theta.shape[1])),
+                            low, high) for i in found}
+        for i, new in scored(asked, score).items():
+            found[i] = Scored(np.concatenate([found[i].theta, new.theta]), np.concatenate([found[i].cost, new.cost]))
+            elite = found[i].elites(search.elites)
+            mean[i] = elite[0]  # the best so far; the elites' spread sets the next step
+            std[i] = np.maximum(search.elite_weight * elite.std(axis=0) + search.memory * std[i], search.floor * spread)
+    return found
 
 
-def run(search: Search, score: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]) -> Any:
-    """The result of ``search`` with each of its candidates scored by ``score``."""
-    try:
-        candidates = next(search)
-        while True:
-            candidates = search.send(score(candidates))
-    except StopIteration as done:
-        return done.value
+def cem_one(theta: np.ndarray, cost: np.ndarray, rounds: int, spread: np.ndarray, search: SearchSettings,
+            rng: np.random.Generator, score: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]],
+            low: np.ndarray = LOW, high: np.ndarray = HIGH) -> Scored:
+    """:func:`cem` of one record scored by ``score`` (``C x D`` -> ``(cost C, candidates as scored)``)."""
+    return cem({0: Scored(theta, cost)}, rounds, spread, search, {0: rng},
+               lambda asked: {i: score(theta) for i, theta in asked.items()}, low, high)[0]
 
 
-def own_rng(config: RefineConfig, stage: int) -> np.random.Generator:
-    """The random stream of an optional stage (1: rescue, 2: climb, 3: the free stage's second
-    search), apart from the exploration's: where the stage loses, the searches after it draw what
-    they would have drawn without it."""
-    return np.random.default_rng([config.seed, stage])
-
-
-def tagged(search: Search, led: bool) -> TaggedSearch:
-    """``search`` with each of its candidates tagged ``led`` (the exploring stage's searches)."""
-    try:
-        candidates = next(search)
-        while True:
-            candidates = search.send((yield candidates, led))
-    except StopIteration as done:
-        return done.value
+def own_rng(seed: int, stream: int) -> np.random.Generator:
+    """The random stream ``stream`` of an optional stage, apart from the exploration's (``seed``):
+    where the stage loses, the searches after it draw what they would have drawn without it."""
+    return np.random.default_rng([seed, stream])
 
 
 def product_grid(f_e: Sequence[float], V_J: Sequence[float], d: float, log10_s_N: Sequence[float]) -> np.ndarray:
     """Every combination of the eigenfrequencies ``f_e`` [Hz], inertia ratios ``V_J`` and
     ``log10_s_N`` at damping ``d``, as models over :data:`COORDINATES` ``G x 4`` (``f_e`` slowest)."""
     return np.array([[math.log10(f), math.log10(v), d, s] for f, v, s in itertools.product(f_e, V_J, log10_s_N)])
+
+
+def log10_s_N_grid(theta0: np.ndarray, grid_s_N: Sequence[float]) -> list[float]:
+    """log10 ``s_N`` of a stage's grid ``grid_s_N``, its 0 standing for the start's (``theta0``)."""
+    return [math.log10(v) if v > 0 else float(theta0[3]) for v in grid_s_N]
