@@ -169,7 +169,7 @@ def render_markdown(summary: Mapping[str, Any], *, command: str = "", figures: S
               "(paper section 4). A missing estimate is a miss: the SOM's `stiff` class has no `f_e`/`V_J`, "
               "IV4 results with `valid=False` count as misses.", ""]
     if summary.get("checks"):
-        lines += ["## Acceptance checks (issue 5)", ""]
+        lines += ["## Acceptance checks", ""]
         for c in summary["checks"]:
             mark = {True: "PASS", False: "FAIL", None: "n/a"}[c["passed"]]
             lines.append(f"- **{mark}** {c['name']}: {c['detail']}")

@@ -78,13 +78,14 @@ def iv4_result(record: Any) -> dict[str, Any]:
     out: dict[str, Any] = dict.fromkeys(METHOD_PARAMS["iv4"])
     out.update(valid=False, reason="", converged=False, iterations=0)
     try:
-        res = identify_iv4(record.motor_torque, record.speed, record.T_s, T_Ei=float(record.meta["T_Ei"]))
+        res = identify_iv4(record.motor_torque, record.speed, record.T_s, T_Ei=float(record.info.T_Ei))
     except Exception as err:  # noqa: BLE001 - reported as an invalid result (a miss)
         out["reason"] = error_text(err)
         return out
-    out.update({k: _num(res.get(k)) for k in METHOD_PARAMS["iv4"]})
-    out.update(valid=bool(res.get("valid", False)), reason=str(res.get("reason", "")),
-               converged=bool(res.get("converged", False)), iterations=int(res.get("iterations", 0)))
+    estimate = res.estimate
+    out.update({k: _num(getattr(estimate, k)) for k in METHOD_PARAMS["iv4"]})
+    out.update(valid=bool(estimate.valid), reason=str(estimate.reason), converged=bool(res.converged),
+               iterations=int(res.iterations))
     return out
 
 

@@ -1,6 +1,6 @@
 """Aggregation of the study's per-system rows (SPEC 7): recognition rates ``E_30``/``E_50`` per grid
 cell, per backlash, per true class and overall; per-parameter error statistics; the structure
-confusion matrix; the issues' acceptance checks. All figures come from :mod:`._metrics`.
+confusion matrix; the acceptance checks (the study's targets). All figures come from :mod:`._metrics`.
 
 Conventions: a missing estimate is a miss. The SOM gives no ``f_e``/``V_J`` for the ``stiff``
 class (``None``), a record it cannot analyse gets ``error``; IV4 results with ``valid=False``
@@ -156,7 +156,7 @@ def summarize_set(rows: Sequence[Mapping[str, Any]], methods: Sequence[str],
 
 
 def acceptance_checks(grid: Mapping[str, Any], methods: Sequence[str]) -> list[dict[str, Any]]:
-    """The issue's targets on the grid summary: SOM ``E_30 >= 95 %`` in every cell with backlash
+    """The study's targets on the grid summary: SOM ``E_30 >= 95 %`` in every cell with backlash
     <= 0.2 degree and ``f_e`` <= 80 Hz; SOM ``E_30`` above IV4's in every cell where most
     systems have ``s_N > 1``. Each check: ``name``, ``passed`` (``None``: not applicable), ``detail``."""
     cells = grid.get("cells", [])
