@@ -4,7 +4,8 @@ CSV: a header row ``t, speed`` and ``current`` or ``torque``; optional ``torque_
 (integers 0..6); one row of numbers per line, ``,`` between them and ``.`` as decimal mark. A header
 cell may carry its unit as ``name [unit]``; it must then be the SI unit of the column.
 
-JSON metadata (one object; numbers are finite, Python or numpy numbers for in-memory records):
+JSON metadata (one object; numbers are finite, Python or numpy numbers for in-memory records), checked
+by :func:`sim._meta.check_meta` and read typed as ``Record.info`` (:class:`RecordMeta`):
 
 * ``T_Ei`` [s] current-loop time constant, > 0 (required);
 * ``K_M`` [Nm/A] torque constant, > 0 (required when only ``current`` is given);
@@ -28,6 +29,7 @@ a sample of an in-memory record its index (from 0).
 from __future__ import annotations
 
 import dataclasses
+import io
 import json
 import os
 import re
@@ -42,22 +44,14 @@ import torch
 from som_torch import atomic_write
 
 from sim._csv import format_numbers, parse_numbers
+from sim._meta import (FORMAT, MAX_ENCODER_COUNTS, MAX_TIMED_OUT, META_KEYS, UNIFORM_TOL, UNITS,  # noqa: F401 (the face)
+                       RecordError, RecordMeta, any_timed_out, check_meta, record_error)
 from sim._signal import TestSignalConfig
-from sim._values import loads, plain, printable, shown
-from sim.params import DriveConfig, TwoMassParams, check_real, speed_quantum
+from sim._values import loads, shown
+from sim.params import DriveConfig, TwoMassParams, speed_quantum
 
-FORMAT = "twomass-record/1"
-UNITS: dict[str, str] = {"t": "s", "speed": "rad/s", "current": "A", "torque": "Nm", "torque_ref": "Nm", "section": "1"}
 COLUMNS: tuple[str, ...] = ("t", "speed", "current", "torque", "torque_ref", "section")
-META_KEYS: frozenset[str] = frozenset({"K_M", "T_Ei", "T_s", "encoder_counts", "M_star", "w_max", "M_max", "M_N",
-                                       "current_noise_std", "timed_out", "aborted", "units", "format", "notes", "truth"})
-_POSITIVE_META = ("K_M", "T_Ei", "T_s", "encoder_counts", "M_star", "w_max", "M_max", "M_N")
 MIN_SAMPLES = 32
-#: Largest deviation from the uniform time grid [samples]: a missing or repeated row is a whole
-#: sample off; a time column printed to 1 us at 62.5 us is up to 0.016 off.
-UNIFORM_TOL = 0.05
-MAX_ENCODER_COUNTS = 2 ** 53  # counts per revolution a float64 angle still resolves
-MAX_TIMED_OUT = 6  # flags of metadata 'timed_out': one per section
 #: The longest test run inside SPEC 3.1's envelope has 960 801 rows (six sections each ended by the
 #: default 10 s safety timeout, and the 50 ms tail, at the shortest sample time, 62.5 us); a record
 #: file may hold about four times as many lines after its header (MAX_ROWS) and MAX_BYTES bytes
@@ -69,13 +63,10 @@ MAX_BYTES = 512 * 2**20
 MAX_META_BYTES = 2**20
 
 
-class RecordError(ValueError):
-    """A record that cannot be read or written; the message is one line naming the file."""
-
-
 @dataclass
 class Record:
-    """One test run. Arrays are float64 ``N`` (``section`` int64 ``N``, 1..6 and 0 for the tail)."""
+    """One test run. Arrays are float64 ``N`` (``section`` int64 ``N``, 1..6 and 0 for the tail);
+    ``meta`` the metadata as its JSON object, ``info`` the same typed (:class:`RecordMeta`)."""
 
     t: np.ndarray
     speed: np.ndarray
@@ -86,6 +77,11 @@ class Record:
     section: np.ndarray | None = None
     name: str = "record"
     extra: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def info(self) -> RecordMeta:
+        """The metadata typed (:class:`RecordMeta`) once :func:`validate` has checked it."""
+        return RecordMeta.of(self.meta)
 
     @property
     def T_s(self) -> float:
@@ -128,15 +124,7 @@ class Record:
         return {c: getattr(self, c) for c in COLUMNS if getattr(self, c) is not None}
 
 
-def any_timed_out(meta: Mapping[str, Any]) -> bool:
-    """Whether metadata ``timed_out`` (``true``/``false`` or a list of them per section; absent:
-    ``false``) says that a section of the run ended by its safety timeout."""
-    flags = meta.get("timed_out", False)
-    return any(flags) if isinstance(flags, (list, tuple)) else bool(flags)
-
-
-def _err(where: Path | str, msg: str) -> RecordError:
-    return RecordError(printable(f"{where}: {msg}"))
+_err = record_error
 
 
 #: ``line_of(i)``: the file line of sample ``i`` of a record being read (None: an in-memory record).
@@ -156,7 +144,9 @@ def validate(rec: Record, where: Path | str = "record", meta_where: Path | str |
     ``where``), and a sample by its file line (``line_of``) or else its index."""
     with np.errstate(all="ignore"):  # independent of a caller's np.seterr
         T_s_t = _validate_columns(rec, where, line_of)
-        return dataclasses.replace(rec, meta=_validated_meta(rec, T_s_t, where if meta_where is None else meta_where))
+        meta = check_meta(rec.meta, T_s_t=T_s_t, n=len(rec.t), has_torque=rec.torque is not None,
+                          where=where if meta_where is None else meta_where)
+        return dataclasses.replace(rec, meta=meta)
 
 
 def as_record(record: Any, where: str | None = None) -> Record:
@@ -248,74 +238,6 @@ def _validate_columns(rec: Record, where: Path | str, line_of: LineOf | None) ->
     if rec.section is not None:
         _section(where, rec.section.astype(np.float64), line_of)
     return T_s_t
-
-
-def _meta_number(where: Path | str, key: str, value: Any, positive: bool = True) -> int | float:
-    """Metadata ``key``'s ``value`` as a Python number if finite and > 0 (``positive``) or >= 0."""
-    try:
-        v = check_real(f"metadata '{key}'", value)
-    except TypeError:
-        v = None
-    if v is None or (v <= 0 if positive else v < 0):
-        raise _err(where, f"metadata '{key}': expected a finite number {'> 0' if positive else '>= 0'}, "
-                          f"received {shown(value)}")
-    return v
-
-
-def _validated_meta(rec: Record, T_s_t: float, where: Path | str) -> dict[str, Any]:
-    """The checked metadata of ``rec`` (plain JSON values; ``T_s`` filled in from the time column's ``T_s_t``)."""
-    if not isinstance(rec.meta, Mapping):
-        raise _err(where, f"metadata: expected a dict (the JSON object of SPEC 3), received {shown(rec.meta)}")
-    bad_key = next((k for k in rec.meta if not isinstance(k, str)), None)
-    if bad_key is not None:
-        raise _err(where, f"metadata: expected text keys, received {shown(bad_key)}")
-    unknown = sorted(set(rec.meta) - META_KEYS)
-    if unknown:
-        more = f" and {len(unknown) - 5} more" if len(unknown) > 5 else ""
-        raise _err(where, f"unknown metadata key(s) {', '.join(shown(k) for k in unknown[:5])}{more}; expected some "
-                          f"of {sorted(META_KEYS)}")
-    meta: dict[str, Any] = {}
-    for k, v in rec.meta.items():  # plain JSON values (numpy numbers as Python numbers), numbers checked
-        if k in _POSITIVE_META or k == "current_noise_std":
-            meta[k] = _meta_number(where, k, v, positive=k != "current_noise_std")
-        else:
-            try:
-                meta[k] = plain(v, f"metadata {shown(k)}")
-            except ValueError as err:
-                raise _err(where, str(err)) from None
-    n = len(rec.t)
-    counts = meta.get("encoder_counts")
-    if counts is not None and (counts > MAX_ENCODER_COUNTS or int(counts) != counts):
-        raise _err(where, f"metadata 'encoder_counts': expected an integer up to 2^53, received {shown(counts)}")
-    if "aborted" in meta and not isinstance(meta["aborted"], bool):
-        raise _err(where, f"metadata 'aborted': expected true or false, received {shown(meta['aborted'])}")
-    tmo = meta.get("timed_out", False)
-    if not (isinstance(tmo, bool) or isinstance(tmo, list) and len(tmo) <= MAX_TIMED_OUT
-            and all(isinstance(x, bool) for x in tmo)):
-        raise _err(where, f"metadata 'timed_out': expected a list of true/false per section (at most "
-                          f"{MAX_TIMED_OUT}) or one true/false for the run, received {shown(tmo)}")
-    if "T_Ei" not in meta:
-        raise _err(where, "metadata 'T_Ei' (current-loop time constant) is missing")
-    if rec.torque is None and "K_M" not in meta:
-        raise _err(where, "metadata 'K_M' is missing (needed when only 'current' is given)")
-    if "T_s" in meta:
-        if abs(meta["T_s"] - T_s_t) > 1e-6 * T_s_t + UNIFORM_TOL * T_s_t / n:
-            raise _err(where, f"metadata T_s={meta['T_s']!r} disagrees with the time column ({T_s_t!r} s)")
-    else:
-        meta["T_s"] = T_s_t
-    units = meta.get("units", {})
-    if not isinstance(units, dict):
-        raise _err(where, f"metadata 'units': expected an object, received {shown(units)}")
-    for c, u in units.items():
-        if c not in UNITS:
-            raise _err(where, f"metadata 'units': unknown column {shown(c)}")
-        if u != UNITS[c]:
-            raise _err(where, f"unknown unit {shown(u)} for column '{c}' (expected '{UNITS[c]}')")
-    if meta.get("format", FORMAT) != FORMAT:
-        raise _err(where, f"metadata 'format': expected {FORMAT!r}, received {shown(meta['format'])}")
-    if "truth" in meta and not isinstance(meta["truth"], dict):
-        raise _err(where, f"metadata 'truth': expected an object, received {shown(meta['truth'])}")
-    return meta
 
 
 def _paths(path: str | os.PathLike[str]) -> tuple[Path, Path, str]:

@@ -37,6 +37,7 @@ import os
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, replace
+from typing import Any
 
 import torch
 
@@ -172,12 +173,24 @@ def _verdict(ours: Run, theirs: Run) -> str:
             f"(mean over {k} map(s)): equal or better: {ok}")
 
 
-def run(args: argparse.Namespace) -> int:
-    import numpy as np
-    import som_torch as st
-    from som_torch import _native
-    from threadpoolctl import threadpool_limits
+@dataclass(frozen=True)
+class _Setup:
+    """What every implementation starts from: the data (``maps x N x C``), its normalized twin
+    (``xn``), the initial maps (``init``), the som_torch method and the command's arguments."""
 
+    args: argparse.Namespace
+    data: torch.Tensor
+    xn: torch.Tensor
+    init: Any
+    method: str
+
+    @property
+    def maps(self) -> int:
+        return int(self.args.maps)
+
+
+def _check_args(args: argparse.Namespace) -> None:
+    """A ``ValueError`` naming the first option out of range."""
     from training._checks import finite_number, seed
 
     for name in ("maps", "rows", "cols", "samples", "active", "epochs"):
@@ -188,90 +201,130 @@ def run(args: argparse.Namespace) -> int:
     finite_number("--sigma", args.sigma)
     finite_number("--learning-rate", args.learning_rate)
     seed("--seed", args.seed)
-    C, R, K, M = args.active + args.inactive, args.rows, args.cols, args.maps
+
+
+def _setup(args: argparse.Namespace) -> _Setup:
+    """The data, the initial maps (range-normalized, random initial weights) and the method."""
+    import som_torch as st
+    from som_torch import _native
+
     names = [f"feature_{i}" for i in range(args.active)] + [f"param_{i}" for i in range(args.inactive)]
     active = [True] * args.active + [False] * args.inactive
-    data = make_data(M, args.samples, args.active, args.inactive, args.seed)
-    init = st.SOM(st.Grid(R, K), names, active, batch_shape=(M,), dtype=torch.float64)
+    data = make_data(args.maps, args.samples, args.active, args.inactive, args.seed)
+    init = st.SOM(st.Grid(args.rows, args.cols), names, active, batch_shape=(args.maps,), dtype=torch.float64)
     init.fit_normalization(data, "range")
     st.init_random(init, data, args.seed)
-    xn = init.normalize(data)  # maps x N x C, normalized
-    steps = args.epochs * args.samples
     method = args.method
     if method == "fast":
         method = "native" if _native.available() else "torch"
-    cpus = os.cpu_count() or 1
+    return _Setup(args, data, init.normalize(data), init, method)
+
+
+def _online(setup: _Setup, n_maps: int, dtype: torch.dtype, sched: Schedule) -> Run:
+    """som_torch's online training of the first ``n_maps`` maps in one call."""
+    import som_torch as st
+    from som_torch import _native
+
+    args, method = setup.args, setup.method
+    som = _as(setup.init[:n_maps], dtype)
+    train = lambda: st.train_online(som, setup.data[:n_maps], epochs=args.epochs, learning_rate=sched.learning_rate,  # noqa: E731
+                                    sigma=sched.sigma, schedule=sched.name, neighbourhood="gaussian",
+                                    seed=args.seed, method=method)
+    wall, cpu = _timed(train)
+    threads = _native.threads(n_maps) if method == "native" else 1
+    return Run(f"som_torch online ({method})", sched.label(), str(dtype)[6:], n_maps, threads, wall, cpu,
+               *_quality(som, setup.data[:n_maps]))
+
+
+def _minisom(setup: _Setup, paper: Schedule, k: int) -> Run | None:
+    """MiniSom on the first ``k`` maps, one after the other; None when it is not installed."""
+    import numpy as np
+
+    try:
+        from minisom import MiniSom
+    except ImportError:
+        print("MiniSom not installed (pip install 'minisom==2.3.6', extra `bench`): its lines are skipped")
+        return None
+    args, init, xn = setup.args, setup.init, setup.xn
+    R, K, C = args.rows, args.cols, args.active + args.inactive
+    steps = args.epochs * args.samples
+    ref = init[:k].clone()
+    masked = lambda x, w: np.linalg.norm(x[:args.active] - w[..., :args.active], axis=-1)  # noqa: E731
+    wall = cpu = 0.0
+    for b in range(k):
+        ms = MiniSom(R, K, C, sigma=args.sigma, learning_rate=args.learning_rate,
+                     neighborhood_function="gaussian", activation_distance=masked, random_seed=args.seed + b)
+        ms._weights = init.weights[b].reshape(R, K, C).numpy().copy()
+        w, c = _timed(lambda: ms.train(xn[b].numpy(), steps, random_order=True))  # noqa: B023
+        wall, cpu = wall + w, cpu + c
+        ref.weights[b] = torch.from_numpy(ms.get_weights().reshape(-1, C))
+    return Run("MiniSom 2.3.6 online", paper.label(), "float64", k, 1, wall, cpu, *_quality(ref, setup.data[:k]))
+
+
+def _xpysom_run(setup: _Setup, XPySom: Any, setting: XPySomSetting) -> Run:
+    """XPySom's batch training of every map in ``setting``, one after the other (BLAS on every core)."""
+    import numpy as np
+    from threadpoolctl import threadpool_limits
+
+    args, init, xn = setup.args, setup.init, setup.xn
+    R, K, cpus = args.rows, args.cols, os.cpu_count() or 1
+    ref = init.clone()
+    wall = cpu = 0.0
+    for b in range(setup.maps):
+        xs = XPySom(R, K, args.active, sigma=args.sigma, sigmaN=1.0, decay_function=setting.decay,
+                    neighborhood_function="gaussian", std_coeff=setting.std_coeff, random_seed=args.seed + b)
+        xs._weights = init.weights[b, :, :args.active].reshape(R, K, -1).numpy().astype(np.float32)
+        with threadpool_limits(limits=cpus, user_api="blas"):
+            w, c = _timed(lambda: xs.train(xn[b, :, :args.active].numpy(), args.epochs))  # noqa: B023
+        wall, cpu = wall + w, cpu + c
+        ref.weights[b, :, :args.active] = torch.from_numpy(np.asarray(xs.get_weights(), np.float64)
+                                                           .reshape(-1, args.active))
+    return Run("XPySom 1.0.7 batch", f"{setting.decay} sigma {args.sigma:g}->1, std_coeff "
+               f"{setting.std_coeff:g}", "float32", setup.maps, cpus, wall, cpu, *_quality(ref, setup.data))
+
+
+def run(args: argparse.Namespace) -> int:
+    import som_torch as st
+    from som_torch import _native
+
+    _check_args(args)
+    setup = _setup(args)
+    M, steps = args.maps, args.epochs * args.samples
     paper = Schedule("asymptotic", (args.sigma, args.sigma / 3), (args.learning_rate, args.learning_rate / 3))
     print(machine_line())
-    print(f"set-up: maps of {R} x {K}, {args.active} active + {args.inactive} inactive components, {args.samples} "
-          f"vectors, {args.epochs} epochs ({steps} steps per map), gaussian; som_torch online method {method}, "
-          f"kernel {_native.library()}, {_native.threads(M)} thread(s) for {M} maps; times: wall and CPU of this "
-          "process", flush=True)
-
-    def online(n_maps: int, dtype: torch.dtype, sched: Schedule) -> Run:
-        som = _as(init[:n_maps], dtype)
-        train = lambda: st.train_online(som, data[:n_maps], epochs=args.epochs, learning_rate=sched.learning_rate,  # noqa: E731
-                                        sigma=sched.sigma, schedule=sched.name, neighbourhood="gaussian",
-                                        seed=args.seed, method=method)
-        wall, cpu = _timed(train)
-        threads = _native.threads(n_maps) if method == "native" else 1
-        return Run(f"som_torch online ({method})", sched.label(), str(dtype)[6:], n_maps, threads, wall, cpu,
-                   *_quality(som, data[:n_maps]))
-
+    print(f"set-up: maps of {args.rows} x {args.cols}, {args.active} active + {args.inactive} inactive components, "
+          f"{args.samples} vectors, {args.epochs} epochs ({steps} steps per map), gaussian; som_torch online method "
+          f"{setup.method}, kernel {_native.library()}, {_native.threads(M)} thread(s) for {M} maps; times: wall and "
+          "CPU of this process", flush=True)
     for dtype in (torch.float64, torch.float32):  # build/load the kernels untimed
-        st.train_online(_as(init[:1], dtype), data[:1, :2], epochs=1, method=method)
-    runs = [online(1, torch.float64, paper), online(M, torch.float64, paper)]
+        st.train_online(_as(setup.init[:1], dtype), setup.data[:1, :2], epochs=1, method=setup.method)
+    runs = [_online(setup, 1, torch.float64, paper), _online(setup, M, torch.float64, paper)]
     verdicts = []
-
     k = min(args.minisom_maps, M)
-    if k > 0:
-        try:
-            from minisom import MiniSom
-        except ImportError:
-            MiniSom = None
-            print("MiniSom not installed (pip install 'minisom==2.3.6', extra `bench`): its lines are skipped")
-        if MiniSom is not None:
-            ref = init[:k].clone()
-            masked = lambda x, w: np.linalg.norm(x[:args.active] - w[..., :args.active], axis=-1)  # noqa: E731
-            wall = cpu = 0.0
-            for b in range(k):
-                ms = MiniSom(R, K, C, sigma=args.sigma, learning_rate=args.learning_rate,
-                             neighborhood_function="gaussian", activation_distance=masked, random_seed=args.seed + b)
-                ms._weights = init.weights[b].reshape(R, K, C).numpy().copy()
-                w, c = _timed(lambda: ms.train(xn[b].numpy(), steps, random_order=True))  # noqa: B023
-                wall, cpu = wall + w, cpu + c
-                ref.weights[b] = torch.from_numpy(ms.get_weights().reshape(-1, C))
-            runs.append(Run("MiniSom 2.3.6 online", paper.label(), "float64", k, 1, wall, cpu,
-                            *_quality(ref, data[:k])))
-            verdicts += [f"som_torch online float64 vs MiniSom (float64), {paper.label()}, {n} map(s) per call: "
-                         f"{_verdict(ours, runs[-1])}" for n, ours in ((1, runs[0]), (M, runs[1]))]
-
+    minisom = _minisom(setup, paper, k) if k > 0 else None
+    if minisom is not None:
+        runs.append(minisom)
+        verdicts += [f"som_torch online float64 vs MiniSom (float64), {paper.label()}, {n} map(s) per call: "
+                     f"{_verdict(ours, minisom)}" for n, ours in ((1, runs[0]), (M, runs[1]))]
     XPySom = _xpysom()
     if XPySom is None:
         print(f"XPySom not installed ({XPYSOM_INSTALL}; not in the `bench` extra): its lines are skipped")
     for setting in MATCHED:
         sched = replace(setting.online, sigma=(args.sigma, setting.online.sigma[1]),
                         learning_rate=(args.learning_rate, setting.online.learning_rate[1]))
-        ours = [online(1, torch.float32, sched), online(M, torch.float32, sched)]
+        ours = [_online(setup, 1, torch.float32, sched), _online(setup, M, torch.float32, sched)]
         runs += ours
         if XPySom is None:
             continue
-        ref = init.clone()
-        wall = cpu = 0.0
-        for b in range(M):
-            xs = XPySom(R, K, args.active, sigma=args.sigma, sigmaN=1.0, decay_function=setting.decay,
-                        neighborhood_function="gaussian", std_coeff=setting.std_coeff, random_seed=args.seed + b)
-            xs._weights = init.weights[b, :, :args.active].reshape(R, K, -1).numpy().astype(np.float32)
-            with threadpool_limits(limits=cpus, user_api="blas"):
-                w, c = _timed(lambda: xs.train(xn[b, :, :args.active].numpy(), args.epochs))  # noqa: B023
-            wall, cpu = wall + w, cpu + c
-            ref.weights[b, :, :args.active] = torch.from_numpy(np.asarray(xs.get_weights(), np.float64)
-                                                               .reshape(-1, args.active))
-        runs.append(Run("XPySom 1.0.7 batch", f"{setting.decay} sigma {args.sigma:g}->1, std_coeff "
-                        f"{setting.std_coeff:g}", "float32", M, cpus, wall, cpu, *_quality(ref, data)))
+        runs.append(_xpysom_run(setup, XPySom, setting))
         verdicts += [f"som_torch online float32, {sched.label()}, vs XPySom (float32) {setting.label}, {n} map(s) "
                      f"per call: {_verdict(our, runs[-1])}" for n, our in ((1, ours[0]), (M, ours[1]))]
+    _report(args, runs, verdicts)
+    return 0
 
+
+def _report(args: argparse.Namespace, runs: list[Run], verdicts: list[str]) -> None:
+    """The table of the runs, the verdicts, the command line; the JSON file where asked for."""
     table = Table(["implementation", "precision", "maps", "threads", "schedule", "wall s", "CPU s", "CPU/wall",
                    "s/map", "QE", "TE"])
     for r in runs:
@@ -285,4 +338,3 @@ def run(args: argparse.Namespace) -> int:
     print(f"reproduce: {args.command_line}")
     if args.json_out:
         write_figures(args.json_out, {"runs": [vars(r) for r in runs], "verdicts": verdicts})
-    return 0

@@ -3,7 +3,8 @@ report, and the cache of per-system results."""
 
 from ._drives import DRIVES, DriveCase, drive_figures, drive_rows, drives_markdown, envelope_rows
 from ._cache import load_cached, method_config, save_cached, source_digest
-from ._iv4 import ARXResult, IV4Result, arx, identify_iv4, iv4, mean_torque, two_mass_from_discrete
+from ._iv4 import (ARXResult, IV4Result, IV4TwoMass, TwoMassEstimate, arx, identify_iv4, iv4, mean_torque,
+                   two_mass_from_discrete)
 from ._metrics import (CLASS_THRESHOLDS, confusion_matrix, recognition_rate, recognized, relative_error,
                        threshold_margin)
 from ._report import render_markdown, report_files, write_report
@@ -18,4 +19,5 @@ __all__ = [
     "method_config", "load_cached", "save_cached", "source_digest",
     "relative_error", "recognized", "recognition_rate", "confusion_matrix", "threshold_margin", "CLASS_THRESHOLDS",
     "iv4", "arx", "identify_iv4", "two_mass_from_discrete", "mean_torque", "ARXResult", "IV4Result",
+    "IV4TwoMass", "TwoMassEstimate",
 ]

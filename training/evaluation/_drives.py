@@ -1,5 +1,5 @@
-"""The study of SPEC 7 on a matrix of drives across SPEC 3.1's envelope (issue 11,
-``twomass evaluate --drives``): per drive, a population whose test time scale, friction and
+"""The study of SPEC 7 on a matrix of drives across SPEC 3.1's envelope (``twomass evaluate
+--drives``): per drive, a population whose test time scale, friction and
 torque fit that drive, simulated on it, identified with the maps, scored. The same on drives
 drawn at random over the envelope (``--envelope-drives``, :func:`envelope_rows`): drives no
 matrix chose.
@@ -64,7 +64,7 @@ def _case(name: str, description: str, M_N: float, w_max: float, time_scale: tup
     return DriveCase(name, description, d, TestSignalConfig(M_star=M_N, w_max=w_max), time_scale)
 
 
-#: The matrix of issue 11 (each inside SPEC 3.1's envelope).
+#: The matrix of drives: the reference drive and five others, each inside SPEC 3.1's envelope.
 DRIVES: dict[str, DriveCase] = {c.name: c for c in (
     _case("reference", "the reference drive", 10.0, 100.0),
     _case("servo_200w", "200 W servo, 125 us, 2^17 counts", 0.64, 300.0, (0.05, 1.0), M_max=1.9, K_M=0.4,
@@ -115,7 +115,7 @@ def _rows(params: TwoMassParams, drive: DriveConfig, signal: TestSignalConfig, s
     records = list(iter_records(params, drive, signal, seed=seed, progress=progress))
     rows = []
     for rec, out in zip(records, identifier.identify_records(records)):
-        truth = dict(rec.meta["truth"])
+        truth = dict(rec.info.truth)
         truth["w_e_T_Ei"] = truth["w_e"] * drive.T_Ei
         truth["gap_counts"] = motor_lead(truth["backlash"], truth["V_J"]) / drive.q_phi
         som: dict[str, Any] = {"structure": None, "n_warnings": 0, "error": None}

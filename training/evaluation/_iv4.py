@@ -38,11 +38,14 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.linalg import expm, solve_toeplitz
 from scipy.signal import lfilter
 
+from sim import two_mass_derived
 from training._checks import as_signal
 
 __all__ = [
     "ARXResult",
     "IV4Result",
+    "IV4TwoMass",
+    "TwoMassEstimate",
     "arx",
     "iv4",
     "two_mass_from_discrete",
@@ -330,14 +333,64 @@ def iv4(
 # ----------------------------------------------------------------------------- two-mass
 
 OUTPUTS = ("speed", "speed_difference", "mean_speed_difference", "angle")
+#: Integrators ``1/(1 - q^-1)`` each output's model leaves out (put back exactly before the conversion).
+_INTEGRATORS = {"speed": 0, "speed_difference": 1, "mean_speed_difference": 2, "angle": 2}
+#: A pole counts as real when its imaginary part is below this share of its size (at least 1 rad/s).
+_REAL_POLE_TOL = 1e-9
+#: A discrete pole counts as on the negative real axis when its imaginary part is below this.
+_NEGATIVE_AXIS_TOL = 1e-12
 
-_KEYS = ("J_sigma", "V_J", "f_e", "d", "w_0", "w_A", "f_0", "f_A", "J_M", "J_L", "C_F", "D_F")
+
+@dataclass(frozen=True)
+class TwoMassEstimate:
+    """The two-mass parameters of a discrete model (:func:`two_mass_from_discrete`); NaN values,
+    ``valid=False`` and a ``reason`` where the model has no resonance pair or is non-physical.
+    ``J_M``, ``J_L``, ``C_F``, ``D_F`` are :func:`sim.two_mass_derived` of ``J_sigma``, ``V_J``,
+    ``f_e``, ``d``."""
+
+    J_sigma: float  # [kg m^2] total inertia (inverse residue at the integrator)
+    V_J: float  # [-] inertia ratio J_L / J_M
+    f_e: float  # [Hz] damped resonance frequency
+    d: float  # [-] damping ratio of the resonance pair
+    w_0: float  # [rad/s] undamped resonance (the pole's size)
+    w_A: float  # [rad/s] anti-resonance (from the numerator)
+    J_M: float  # [kg m^2]
+    J_L: float  # [kg m^2]
+    C_F: float  # [Nm/rad]
+    D_F: float  # [Nm s/rad]
+    integrator_pole: float  # the speed integrator's pole in z (1 for a put-back integrator)
+    valid: bool
+    reason: str
+
+    @property
+    def f_0(self) -> float:
+        """Undamped resonance frequency [Hz]."""
+        return self.w_0 / (2 * np.pi)
+
+    @property
+    def f_A(self) -> float:
+        """Anti-resonance frequency [Hz]."""
+        return self.w_A / (2 * np.pi)
+
+    @classmethod
+    def invalid(cls, reason: str) -> TwoMassEstimate:
+        """No estimate (NaN values), for ``reason``."""
+        nan = float("nan")
+        return cls(nan, nan, nan, nan, nan, nan, nan, nan, nan, nan, nan, valid=False, reason=reason)
 
 
-def _nan_result(reason: str) -> dict[str, Any]:
-    out: dict[str, Any] = {k: float("nan") for k in _KEYS}
-    out.update(integrator_pole=float("nan"), valid=False, reason=reason)
-    return out
+@dataclass(frozen=True)
+class IV4TwoMass:
+    """:func:`identify_iv4`'s answer: the two-mass estimate and the IV4 model ``Delta w = B/A u``
+    it came from (sample time ``T_model`` [s])."""
+
+    estimate: TwoMassEstimate
+    A: FloatArray
+    B: FloatArray
+    T_model: float
+    iterations: int
+    converged: bool
+    noise_variance: float
 
 
 def _zoh_numerator(den: NDArray[np.float64], j: int, T_s: float) -> FloatArray:
@@ -362,9 +415,110 @@ def _zoh_numerator(den: NDArray[np.float64], j: int, T_s: float) -> FloatArray:
     return np.convolve(A_d, h)[: n + 1]
 
 
+def _is_time(value: Any, positive: bool) -> bool:
+    """``value`` is a Python number (no bool) ``> 0`` (``positive``) or ``>= 0``."""
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and (value > 0 if positive else value >= 0)
+
+
+def _checked_model(A: ArrayLike, B: ArrayLike, T_s: float, output: str, T_Ei: float) -> tuple[FloatArray, FloatArray]:
+    """``A`` (normalized to a leading 1) and ``B`` as arrays, checked against ``output``'s model."""
+    A_a, B_a = as_signal("A", A), as_signal("B", B)
+    if not _is_time(T_s, positive=True):
+        raise ValueError(f"T_s: expected a positive sample time in s, received {T_s!r}")
+    if output not in OUTPUTS:
+        raise ValueError(f"output: expected one of {OUTPUTS}, received {output!r}")
+    if A_a.size < 1 or A_a[0] == 0.0:
+        raise ValueError(f"A: expected a leading coefficient 1, received {A_a[:1]}")
+    if not _is_time(T_Ei, positive=False):
+        raise ValueError(f"T_Ei: expected a time constant >= 0 in s, received {T_Ei!r}")
+    A_a = A_a / A_a[0]
+    order_expected = 3 if output == "speed" else 2
+    if A_a.size - 1 != order_expected:
+        raise ValueError(f"A: expected order {order_expected} for output={output!r}, received order {A_a.size - 1}")
+    if B_a.size < 2 or B_a[0] != 0.0:
+        raise ValueError(f"B: expected a delay nk >= 1 (B[0] == 0) and length >= 2, received {B_a.tolist()}")
+    if not np.any(B_a != 0.0):
+        raise ValueError("B: expected a non-zero numerator, received all zeros")
+    return A_a, B_a
+
+
+def _full_model(A: FloatArray, B: FloatArray, T_s: float, output: str, T_Ei: float) -> tuple[FloatArray, FloatArray]:
+    """The model from the torque (reference, for ``T_Ei > 0``) to the speed (or angle) with the
+    left-out integrators and the current-loop pole put back into ``A``."""
+    for _ in range(_INTEGRATORS[output]):
+        A = np.convolve(A, [1.0, -1.0])
+    if T_Ei > 0:
+        A = np.convolve(A, [1.0, -np.exp(-T_s / T_Ei)])
+    if output == "mean_speed_difference":
+        B = B * T_s
+    if B.size > A.size:
+        raise ValueError(f"B: expected at most {A.size} coefficients for output={output!r}, T_Ei={T_Ei}, "
+                         f"received {B.size}")
+    return A, B
+
+
+def _continuous_poles(poles: NDArray[np.complex128], T_s: float, n_int: int, T_Ei: float) -> tuple[NDArray[np.complex128], int]:
+    """``s = log(z)/T_s`` of the discrete ``poles``, the put-back integrators and the current-loop
+    pole set exactly; and the index of the current-loop pole (-1: none)."""
+    s_poles = np.log(poles.astype(complex)) / T_s
+    if n_int > 0:
+        s_poles[np.argsort(np.abs(poles - 1.0))[:n_int]] = 0.0  # the put-back integrators are exact
+    i_cur = -1
+    if T_Ei > 0:
+        i_cur = int(np.argmin(np.abs(s_poles + 1.0 / T_Ei)))
+        s_poles[i_cur] = -1.0 / T_Ei  # the known current-loop pole, exact
+    return s_poles, i_cur
+
+
+def _numerator(s_poles: NDArray[np.complex128], B: FloatArray, T_s: float, T_Ei: float) -> FloatArray:
+    """The continuous speed numerator ``[n_2, n_1, n_0]`` whose ZOH sampling over the poles
+    ``s_poles`` fits ``B`` best (least squares; exact when consistent)."""
+    n = s_poles.size
+    den = np.real(np.poly(s_poles))
+    basis = np.stack([_zoh_numerator(den, j, T_s) for j in range(3)], axis=1)[1:]
+    target = np.concatenate([B, np.zeros(n + 1 - B.size)])[1:]
+    scale = np.linalg.norm(basis, axis=0)
+    coef, *_ = np.linalg.lstsq(basis / scale, target, rcond=None)
+    n0, n1, n2 = coef / scale
+    if T_Ei > 0:  # G(s) / (1 + s T_Ei) = (N / T_Ei) / (... (s + 1/T_Ei))
+        n0, n1, n2 = T_Ei * n0, T_Ei * n1, T_Ei * n2
+    return np.array([n2, n1, n0])
+
+
+def _total_inertia(N_cont: FloatArray, s_poles: NDArray[np.complex128], i_cur: int, n_int: int, a_int: complex) -> float:
+    """``J_sigma``: the inverse residue of the speed model ``N_cont / prod(s - p)`` at the
+    integrator pole ``a_int`` (NaN where the residue has no real part)."""
+    speed_poles = np.delete(s_poles, i_cur) if i_cur >= 0 else s_poles
+    if n_int == 2:  # the angle model has one more pole at 0
+        speed_poles = np.delete(speed_poles, int(np.argmin(np.abs(speed_poles))))
+    others = np.delete(speed_poles, int(np.argmin(np.abs(speed_poles - a_int))))
+    res = np.polyval(N_cont, a_int) / np.prod(a_int - others)
+    return float(1.0 / np.real(res)) if np.real(res) != 0 else float("nan")
+
+
+def _estimate(J_sigma: float, s_p: complex, N_cont: FloatArray, a_int: complex, T_s: float) -> TwoMassEstimate:
+    """The estimate of the total inertia, the resonance pole ``s_p`` and the numerator ``N_cont``
+    (``w_A^2 = n_0/n_2``), the rest derived by :func:`sim.two_mass_derived`."""
+    n2, _, n0 = N_cont
+    w_0 = float(abs(s_p))
+    d = float(-s_p.real / w_0)
+    f_e = float(s_p.imag / (2 * np.pi))
+    w_A2 = float(n0 / n2) if n2 != 0 else float("nan")
+    w_A = float(np.sqrt(w_A2)) if w_A2 > 0 else float("nan")
+    V_J = (w_0 / w_A) ** 2 - 1.0 if w_A2 > 0 else float("nan")
+    with np.errstate(divide="ignore", invalid="ignore"):  # NaN/inf for a non-physical model, not an error
+        derived = two_mass_derived(np.float64(J_sigma), np.float64(V_J), np.float64(f_e), np.float64(d))
+    valid = bool(J_sigma > 0 and V_J > 0 and 0 < d < 1)
+    return TwoMassEstimate(
+        J_sigma=J_sigma, V_J=float(V_J), f_e=f_e, d=d, w_0=w_0, w_A=w_A, J_M=float(derived.J_M),
+        J_L=float(derived.J_L), C_F=float(derived.C_F), D_F=float(derived.D_F),
+        integrator_pole=float(np.real(np.exp(a_int * T_s))), valid=valid,
+        reason="" if valid else "non-physical values (expected J_sigma > 0, V_J > 0, 0 < d < 1)")
+
+
 def two_mass_from_discrete(
     A: ArrayLike, B: ArrayLike, T_s: float, *, output: str = "speed", T_Ei: float = 0.0
-) -> dict[str, Any]:
+) -> TwoMassEstimate:
     """Physical two-mass parameters from a discrete model from motor torque to motor speed.
 
     Continuous model (no backlash, no friction; ``w_0^2 = C_F J_sigma/(J_M J_L)``, ``w_A^2 = C_F/J_L``)::
@@ -382,7 +536,8 @@ def two_mass_from_discrete(
        discrete numerator ``B`` is fitted (least squares; exact when consistent) as
        ``sum_j n_j ZOH(s^j / D(s))``, ``j = 0, 1, 2`` - the physical numerator degree;
     3. ``J_sigma`` = inverse residue of ``G(s)`` at the integrator pole ``a``
-       (``= w_0^2/n_0`` for ``a = 0``), ``w_A^2 = n_0/n_2``.
+       (``= w_0^2/n_0`` for ``a = 0``), ``w_A^2 = n_0/n_2``; ``J_M``, ``J_L``, ``C_F``, ``D_F``
+       from ``J_sigma``, ``V_J``, ``f_e``, ``d`` by :func:`sim.two_mass_derived`.
 
     Args:
         A: ``[1, a_1, ..., a_na]`` denominator in ``q^-1``.
@@ -402,106 +557,27 @@ def two_mass_from_discrete(
             input is the (held) air-gap torque itself.
 
     Returns:
-        dict with ``J_sigma`` [kg m^2], ``V_J`` [-], ``f_e`` [Hz], ``d`` [-], ``w_0``, ``w_A``
-        [rad/s], ``f_0``, ``f_A`` [Hz], ``J_M``, ``J_L`` [kg m^2], ``C_F`` [Nm/rad], ``D_F``
-        [Nm s/rad], ``integrator_pole`` (in ``z``), ``valid`` and ``reason`` (``valid=False``,
-        NaN values and a reason where the model has no resonance pair or is non-physical).
+        :class:`TwoMassEstimate` (``valid=False``, NaN values and a reason where the model has no
+        resonance pair or is non-physical).
     """
-    A_a = as_signal("A", A)
-    B_a = as_signal("B", B)
-    if not isinstance(T_s, (int, float)) or isinstance(T_s, bool) or not T_s > 0:
-        raise ValueError(f"T_s: expected a positive sample time in s, received {T_s!r}")
-    if output not in OUTPUTS:
-        raise ValueError(f"output: expected one of {OUTPUTS}, received {output!r}")
-    if A_a.size < 1 or A_a[0] == 0.0:
-        raise ValueError(f"A: expected a leading coefficient 1, received {A_a[:1]}")
-    if not isinstance(T_Ei, (int, float)) or isinstance(T_Ei, bool) or not T_Ei >= 0:
-        raise ValueError(f"T_Ei: expected a time constant >= 0 in s, received {T_Ei!r}")
-    A_a = A_a / A_a[0]
-    n_int = {"speed": 0, "speed_difference": 1, "mean_speed_difference": 2, "angle": 2}[output]
-    order_expected = 3 if output == "speed" else 2
-    if A_a.size - 1 != order_expected:
-        raise ValueError(f"A: expected order {order_expected} for output={output!r}, received order {A_a.size - 1}")
-    if B_a.size < 2 or B_a[0] != 0.0:
-        raise ValueError(f"B: expected a delay nk >= 1 (B[0] == 0) and length >= 2, received {B_a.tolist()}")
-    if not np.any(B_a != 0.0):
-        raise ValueError("B: expected a non-zero numerator, received all zeros")
-    for _ in range(n_int):
-        A_a = np.convolve(A_a, [1.0, -1.0])
-    if T_Ei > 0:
-        A_a = np.convolve(A_a, [1.0, -np.exp(-T_s / T_Ei)])
-    if output == "mean_speed_difference":
-        B_a = B_a * T_s
-    n = A_a.size - 1
-    if B_a.size > n + 1:
-        raise ValueError(
-            f"B: expected at most {n + 1} coefficients for output={output!r}, T_Ei={T_Ei}, received {B_a.size}"
-        )
-
-    poles = np.roots(A_a)
-    if np.any(np.abs(poles) == 0.0) or np.any((np.abs(poles.imag) < 1e-12) & (poles.real < 0)):
-        return _nan_result("a pole at z = 0 or on the negative real axis (no continuous equivalent)")
-    s_poles = np.log(poles.astype(complex)) / T_s
-    if n_int > 0:
-        s_poles[np.argsort(np.abs(poles - 1.0))[:n_int]] = 0.0  # the put-back integrators are exact
-    i_cur = -1
-    if T_Ei > 0:
-        i_cur = int(np.argmin(np.abs(s_poles + 1.0 / T_Ei)))
-        s_poles[i_cur] = -1.0 / T_Ei  # the known current-loop pole, exact
-    is_real = np.abs(s_poles.imag) < 1e-9 * np.maximum(1.0, np.abs(s_poles))
+    A_a, B_a = _checked_model(A, B, T_s, output, T_Ei)
+    A_full, B_full = _full_model(A_a, B_a, T_s, output, T_Ei)
+    n_int = _INTEGRATORS[output]
+    poles = np.roots(A_full)
+    if np.any(np.abs(poles) == 0.0) or np.any((np.abs(poles.imag) < _NEGATIVE_AXIS_TOL) & (poles.real < 0)):
+        return TwoMassEstimate.invalid("a pole at z = 0 or on the negative real axis (no continuous equivalent)")
+    s_poles, i_cur = _continuous_poles(poles, T_s, n_int, T_Ei)
+    is_real = np.abs(s_poles.imag) < _REAL_POLE_TOL * np.maximum(1.0, np.abs(s_poles))
     upper = np.where((s_poles.imag > 0) & ~is_real)[0]
     if upper.size == 0:
-        return _nan_result("no complex pole pair (no resonance in the model)")
+        return TwoMassEstimate.invalid("no complex pole pair (no resonance in the model)")
     s_p = s_poles[upper[0]]
     drop = [upper[0], int(np.argmin(np.abs(s_poles - np.conj(s_p))))] + ([i_cur] if i_cur >= 0 else [])
     rest = np.delete(s_poles, drop)
     a_int = complex(rest[np.argmin(np.abs(rest))])  # the (speed) integrator pole; 0 for differenced models
-    w_0 = float(abs(s_p))
-    d = float(-s_p.real / w_0)
-    f_e = float(s_p.imag / (2 * np.pi))
-
-    den = np.real(np.poly(s_poles))
-    basis = np.stack([_zoh_numerator(den, j, T_s) for j in range(3)], axis=1)[1:]
-    target = np.concatenate([B_a, np.zeros(n + 1 - B_a.size)])[1:]
-    scale = np.linalg.norm(basis, axis=0)
-    coef, *_ = np.linalg.lstsq(basis / scale, target, rcond=None)
-    n0, n1, n2 = coef / scale
-    if T_Ei > 0:  # G(s) / (1 + s T_Ei) = (N / T_Ei) / (... (s + 1/T_Ei))
-        n0, n1, n2 = T_Ei * n0, T_Ei * n1, T_Ei * n2
-    N_cont = np.array([n2, n1, n0])
-    # speed model G = N / prod(s - p) over `speed_poles` (the angle model has one more pole at 0)
-    speed_poles = np.delete(s_poles, i_cur) if i_cur >= 0 else s_poles
-    if n_int == 2:
-        speed_poles = np.delete(speed_poles, int(np.argmin(np.abs(speed_poles))))
-    i_int = int(np.argmin(np.abs(speed_poles - a_int)))
-    others = np.delete(speed_poles, i_int)
-    res = np.polyval(N_cont, a_int) / np.prod(a_int - others)  # residue at the integrator
-    J_sigma = float(1.0 / np.real(res)) if np.real(res) != 0 else float("nan")
-    w_A2 = float(n0 / n2) if n2 != 0 else float("nan")
-    w_A = float(np.sqrt(w_A2)) if w_A2 > 0 else float("nan")
-    V_J = (w_0 / w_A) ** 2 - 1.0 if w_A2 > 0 else float("nan")
-    J_M = J_sigma / (1.0 + V_J)
-    J_L = J_sigma - J_M
-    C_F = w_A2 * J_L
-    D_F = 2.0 * d * C_F / w_0
-    valid = bool(J_sigma > 0 and V_J > 0 and 0 < d < 1)
-    return {
-        "J_sigma": J_sigma,
-        "V_J": float(V_J),
-        "f_e": f_e,
-        "d": d,
-        "w_0": w_0,
-        "w_A": w_A,
-        "f_0": w_0 / (2 * np.pi),
-        "f_A": w_A / (2 * np.pi),
-        "J_M": float(J_M),
-        "J_L": float(J_L),
-        "C_F": float(C_F),
-        "D_F": float(D_F),
-        "integrator_pole": float(np.real(np.exp(a_int * T_s))),
-        "valid": valid,
-        "reason": "" if valid else "non-physical values (expected J_sigma > 0, V_J > 0, 0 < d < 1)",
-    }
+    N_cont = _numerator(s_poles, B_full, T_s, T_Ei)
+    J_sigma = _total_inertia(N_cont, s_poles, i_cur, n_int, a_int)
+    return _estimate(J_sigma, s_p, N_cont, a_int, T_s)
 
 
 def mean_torque(torque: ArrayLike, T_s: float, T_Ei: float, *, is_reference: bool = False) -> FloatArray:
@@ -542,7 +618,7 @@ def identify_iv4(
     friction: bool = True,
     max_iter: int = 10,
     tol: float = 1e-7,
-) -> dict[str, Any]:
+) -> IV4TwoMass:
     """Identify ``J_sigma``, ``V_J``, ``f_e`` of a linear two-mass system with iterated IV4.
 
     The record must start at rest (speed and torque 0, as the SPEC test signal does).
@@ -580,8 +656,8 @@ def identify_iv4(
         max_iter, tol: IV4 iteration control (see :func:`iv4`).
 
     Returns:
-        dict of :func:`two_mass_from_discrete` plus ``T_model`` [s],
-        ``A``, ``B`` (lists, the ``Delta w`` model), ``iterations``, ``converged``, ``noise_variance``.
+        :class:`IV4TwoMass`: the estimate of :func:`two_mass_from_discrete` and the ``Delta w``
+        model (``A``, ``B``, ``T_model`` [s], ``iterations``, ``converged``, ``noise_variance``).
     """
     M = as_signal("torque", torque)
     w = as_signal("speed", speed)
@@ -611,13 +687,6 @@ def identify_iv4(
         exog = np.stack([np.concatenate([[0.0], c[:-1]]) for c in cols], axis=1)  # lag 1, like x(k-1)
     model = iv4(x, y, na, nb, nk, max_iter=max_iter, tol=tol, exog=exog)
     B = model.B * T  # Delta w = (T B / A) u
-    out = two_mass_from_discrete(model.A, B, T, output="speed_difference")
-    out.update(
-        T_model=T,
-        A=model.A.tolist(),
-        B=B.tolist(),
-        iterations=model.iterations,
-        converged=model.converged,
-        noise_variance=model.noise_variance,
-    )
-    return out
+    estimate = two_mass_from_discrete(model.A, B, T, output="speed_difference")
+    return IV4TwoMass(estimate=estimate, A=model.A, B=B, T_model=T, iterations=model.iterations,
+                      converged=model.converged, noise_variance=model.noise_variance)

@@ -1,4 +1,4 @@
-"""Figures of merit for identification results (SPEC section 7; issue 4's targets).
+"""Figures of merit for identification results (SPEC section 7 and its targets).
 
 All functions take numpy arrays of one length ``N`` (one entry per system) and return plain
 numbers or arrays, so that evaluation, tests and reports share one definition.

@@ -86,48 +86,67 @@ def grid_tables(grid: Mapping[str, Any], methods: Sequence[str]) -> list[str]:
 
 def set_tables(name: str, s: Mapping[str, Any], methods: Sequence[str]) -> list[str]:
     """Markdown lines for one set: overall and per-class ``E_x``, parameter errors, confusion, failures."""
-    titles = [METHOD_TITLES[m] for m in methods]
     lines = [f"### {name}: {s['n']} systems ({s['r_osc_below_1']} with `r_osc < 1`)", ""]
+    lines += _rate_table(s, methods) + [""]
+    lines += ["Parameter errors: signed relative error (absolute for `M_FC` [Nm], `mu_F` [Nm s/rad]) over the "
+              "systems with an estimate; missing = not identified (stiff class, failed or invalid); "
+              "within x %: share of all systems in scope (missing = outside)", ""]
+    body = [_parameter_row(m, p, st) for m in methods for p, st in s["parameters"][m].items()]
+    lines += markdown_table(["method", "parameter", "n", "missing", "mean", "std", "median abs"]
+                            + [f"within {x} % [%]" for x in TOLERANCES], body) + [""]
+    if "confusion" in s:
+        lines += _confusion_lines(s["confusion"])
+    lines += [f"- {n}" for n in _failure_notes(s["failures"])] + [""]
+    return lines
+
+
+def _rate_table(s: Mapping[str, Any], methods: Sequence[str]) -> list[str]:
+    """``E_x`` of each method over all systems and per true class."""
+    titles = [METHOD_TITLES[m] for m in methods]
     header = ["systems", "n"] + [f"{t} E_{x}" for x in TOLERANCES for t in titles]
     body = [["all", str(s["n"])] + [_pct(s["overall"][m][f"E_{x}"]) for x in TOLERANCES for m in methods]]
     for c in s["per_class"]:
         body.append([f"true {c['class']}", str(c["n"])] + [_pct(c[m][f"E_{x}"]) for x in TOLERANCES for m in methods])
-    lines += markdown_table(header, body) + [""]
-    lines += ["Parameter errors: signed relative error (absolute for `M_FC` [Nm], `mu_F` [Nm s/rad]) over the "
-              "systems with an estimate; missing = not identified (stiff class, failed or invalid); "
-              "within x %: share of all systems in scope (missing = outside)", ""]
-    body = []
-    for m in methods:
-        for p, st in s["parameters"][m].items():
-            fmt = (lambda v: "–" if v is None else f"{100 * v:+.1f} %") if st["kind"] == "relative" else _sig
-            med = "–" if st["median_abs"] is None else (f"{100 * st['median_abs']:.1f} %" if st["kind"] == "relative"
-                                                         else _sig(st["median_abs"]))
-            std = "–" if st["std"] is None else (f"{100 * st['std']:.1f} %" if st["kind"] == "relative"
-                                                 else _sig(st["std"]))
-            within = [_pct(st.get(f"within_{x}")) for x in TOLERANCES]
-            body.append([METHOD_TITLES[m], f"`{p}`", str(st["n"]), str(st["n_missing"]), fmt(st["mean"]), std, med]
-                        + within)
-    lines += markdown_table(["method", "parameter", "n", "missing", "mean", "std", "median abs"]
-                    + [f"within {x} % [%]" for x in TOLERANCES], body) + [""]
-    if "confusion" in s:
-        conf = s["confusion"]
-        lines += ["SOM structure confusion (rows: true class, columns: identified class)", ""]
-        body = [[f"**{t}**"] + [str(v) for v in row] for t, row in zip(conf["true"], conf["matrix"])]
-        lines += markdown_table(["true \\ identified"] + conf["predicted"], body)
-        total = sum(sum(r) for r in conf["matrix"])
-        diag = sum(conf["matrix"][i][i] for i in range(len(conf["true"])))
-        lines += ["", f"Structure accuracy: {diag} of {total} ({100 * diag / max(total, 1):.0f} %).", ""]
-    f = s["failures"]
+    return markdown_table(header, body)
+
+
+def _parameter_row(method: str, parameter: str, stats: Mapping[str, Any]) -> list[str]:
+    """One line of the parameter-error table: relative errors in %, absolute ones as numbers."""
+    relative = stats["kind"] == "relative"
+
+    def size(v: float | None) -> str:  # a spread or size of errors
+        return "–" if v is None else (f"{100 * v:.1f} %" if relative else _sig(v))
+
+    mean = stats["mean"]
+    mean_text = ("–" if mean is None else f"{100 * mean:+.1f} %") if relative else _sig(mean)
+    within = [_pct(stats.get(f"within_{x}")) for x in TOLERANCES]
+    return ([METHOD_TITLES[method], f"`{parameter}`", str(stats["n"]), str(stats["n_missing"]), mean_text,
+             size(stats["std"]), size(stats["median_abs"])] + within)
+
+
+def _confusion_lines(conf: Mapping[str, Any]) -> list[str]:
+    """The SOM's structure confusion matrix and its accuracy."""
+    lines = ["SOM structure confusion (rows: true class, columns: identified class)", ""]
+    body = [[f"**{t}**"] + [str(v) for v in row] for t, row in zip(conf["true"], conf["matrix"])]
+    lines += markdown_table(["true \\ identified"] + conf["predicted"], body)
+    total = sum(sum(r) for r in conf["matrix"])
+    diag = sum(conf["matrix"][i][i] for i in range(len(conf["true"])))
+    return lines + ["", f"Structure accuracy: {diag} of {total} ({100 * diag / max(total, 1):.0f} %).", ""]
+
+
+def _failure_notes(failures: Mapping[str, Any]) -> list[str]:
+    """One note per method on its failed, stiff or invalid results."""
     notes = []
-    if "som" in f:
-        notes.append(f"SOM: {f['som']['n_error']} records failed the analysis"
-                     + (f" (e.g. {f['som']['examples'][0]})" if f["som"]["examples"] else "")
-                     + f"; {f['som']['n_stiff_no_f_e']} identified as stiff (no `f_e`, `V_J`: misses)")
-    if "iv4" in f:
-        notes.append(f"IV4: {f['iv4']['n_invalid']} invalid results (misses)"
-                     + (f", e.g. {f['iv4']['examples'][0]}" if f["iv4"]["examples"] else ""))
-    lines += [f"- {n}" for n in notes] + [""]
-    return lines
+    if "som" in failures:
+        som = failures["som"]
+        notes.append(f"SOM: {som['n_error']} records failed the analysis"
+                     + (f" (e.g. {som['examples'][0]})" if som["examples"] else "")
+                     + f"; {som['n_stiff_no_f_e']} identified as stiff (no `f_e`, `V_J`: misses)")
+    if "iv4" in failures:
+        iv4 = failures["iv4"]
+        notes.append(f"IV4: {iv4['n_invalid']} invalid results (misses)"
+                     + (f", e.g. {iv4['examples'][0]}" if iv4["examples"] else ""))
+    return notes
 
 
 def timing_lines(timing: Mapping[str, Any], workers: int | None) -> list[str]:
@@ -169,7 +188,7 @@ def render_markdown(summary: Mapping[str, Any], *, command: str = "", figures: S
               "(paper section 4). A missing estimate is a miss: the SOM's `stiff` class has no `f_e`/`V_J`, "
               "IV4 results with `valid=False` count as misses.", ""]
     if summary.get("checks"):
-        lines += ["## Acceptance checks (issue 5)", ""]
+        lines += ["## Acceptance checks", ""]
         for c in summary["checks"]:
             mark = {True: "PASS", False: "FAIL", None: "n/a"}[c["passed"]]
             lines.append(f"- **{mark}** {c['name']}: {c['detail']}")
@@ -209,6 +228,11 @@ def _csv_text(header: Sequence[str], lines: Sequence[Sequence[Any]]) -> str:
     return buf.getvalue()
 
 
+_STYLE = {"som": dict(color="tab:blue", marker="o"), "maps": dict(color="tab:green", marker="."),
+          "iv4": dict(color="tab:red", marker="x")}  # colour and marker per method
+_CEILING = 10.0  # where Fig. 9 draws a miss (1000 %)
+
+
 def _plot(summary: Mapping[str, Any], rows_by_set: Mapping[str, Sequence[Mapping[str, Any]]],
           out: Path) -> list[str]:
     """Fig. 9 per set and Fig. 10 for the grid; raises ImportError without matplotlib."""
@@ -216,76 +240,79 @@ def _plot(summary: Mapping[str, Any], rows_by_set: Mapping[str, Sequence[Mapping
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    from matplotlib.ticker import NullFormatter
 
     methods = summary["methods"]
-    style = {"som": dict(color="tab:blue", marker="o"), "maps": dict(color="tab:green", marker="."),
-             "iv4": dict(color="tab:red", marker="x")}
-    files = []
-    ceiling = 10.0  # misses drawn at 1000 %
-    for name, rows in rows_by_set.items():
-        if not rows:
-            continue
-        s_N = np.array([r["truth"]["s_N"] for r in rows])
-        order = np.argsort(s_N, kind="stable")
-        fig, (ax, ax2) = plt.subplots(2, 1, figsize=(9, 6), sharex=True, gridspec_kw={"height_ratios": [3, 1]})
-        x = np.arange(len(rows))
-        for m in methods:
-            e = np.abs(relative_errors(rows, m, ("f_e",))["f_e"])[order]
-            miss = ~np.isfinite(e)
-            ax.scatter(x[~miss], np.maximum(e[~miss], 1e-5), s=8, label=f"{METHOD_TITLES[m]}", **style[m])
-            if miss.any():
-                ax.scatter(x[miss], np.full(miss.sum(), ceiling), s=14, facecolors="none", edgecolors=style[m]["color"],
-                           marker="^", label=f"{METHOD_TITLES[m]}: no f_e ({miss.sum()})")
-        ax.axhline(0.3, color="k", lw=0.8, ls="--")
-        ax.set_yscale("log")
-        ax.set_ylim(1e-5, ceiling * 1.5)
-        ax.set_ylabel("|relative f_e error|")
-        ax.set_title(f"{name}: relative f_e error, systems sorted by s_N (paper Fig. 9); dashed: 30 %")
-        ax.legend(loc="upper left", fontsize=8)
-        ax2.plot(x, s_N[order], color="k", lw=1)
-        ax2.set_yscale("symlog", linthresh=1e-2)
-        ax2.axhline(1.0, color="gray", lw=0.8, ls=":")
-        ax2.set_ylabel("s_N")
-        ax2.set_xlabel("system (sorted by s_N)")
-        fig.tight_layout()
-        fname = _FIG9.format(name)
-        fig.savefig(out / fname, dpi=110)
-        plt.close(fig)
-        files.append(fname)
+    files = [_fig9(plt, name, rows, methods, out) for name, rows in rows_by_set.items() if rows]
     grid = summary["sets"].get("grid")
     if grid and "cells" in grid:
-        cells = grid["cells"]
-        bls = sorted({c["backlash_deg"] for c in cells})
-        means = {b["backlash_deg"]: b for b in grid["backlash_means"]}
-        fig, axes = plt.subplots(1, 2, figsize=(11, 4.2), sharey=True)
-        colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
-        for ax, x in zip(axes, sorted(TOLERANCES, reverse=True)):
-            key = f"E_{x}"
-            for i, b in enumerate(bls):
-                sub = sorted((c for c in cells if c["backlash_deg"] == b), key=lambda c: c["f_e"])
-                f = [c["f_e"] for c in sub]
-                for m in methods:
-                    ls = _LINE[m]
-                    y = [np.nan if c[m][key] is None else c[m][key] for c in sub]
-                    mean = means[b][m][key]
-                    ax.plot(f, y, ls=ls, marker=style[m]["marker"], color=colors[i],
-                            label=f"{METHOD_TITLES[m]} {b:g}° (mean {_pct(mean)} %)")
-            ax.set_xscale("log")
-            ax.set_xticks(sorted({c["f_e"] for c in cells}))
-            ax.set_xticklabels([f"{c:g}" for c in sorted({c["f_e"] for c in cells})])
-            ax.xaxis.set_minor_formatter(NullFormatter())
-            ax.set_ylim(-3, 103)
-            ax.set_xlabel("f_e [Hz]")
-            ax.set_title(f"recognition rate E_{x} (f_e & V_J & J_sigma within {x} %)")
-            ax.grid(alpha=0.3)
-            ax.legend(fontsize=7, loc="lower left")
-        axes[0].set_ylabel("E_x [%]")
-        fig.tight_layout()
-        fig.savefig(out / _FIG10, dpi=110)
-        plt.close(fig)
-        files.append(_FIG10)
+        files.append(_fig10(plt, grid, methods, out))
     return files
+
+
+def _fig9(plt: Any, name: str, rows: Sequence[Mapping[str, Any]], methods: Sequence[str], out: Path) -> str:
+    """Fig. 9 of set ``name``: each system's relative ``f_e`` error, systems sorted by ``s_N``."""
+    s_N = np.array([r["truth"]["s_N"] for r in rows])
+    order = np.argsort(s_N, kind="stable")
+    fig, (ax, ax2) = plt.subplots(2, 1, figsize=(9, 6), sharex=True, gridspec_kw={"height_ratios": [3, 1]})
+    x = np.arange(len(rows))
+    for m in methods:
+        e = np.abs(relative_errors(rows, m, ("f_e",))["f_e"])[order]
+        miss = ~np.isfinite(e)
+        ax.scatter(x[~miss], np.maximum(e[~miss], 1e-5), s=8, label=f"{METHOD_TITLES[m]}", **_STYLE[m])
+        if miss.any():
+            ax.scatter(x[miss], np.full(miss.sum(), _CEILING), s=14, facecolors="none", edgecolors=_STYLE[m]["color"],
+                       marker="^", label=f"{METHOD_TITLES[m]}: no f_e ({miss.sum()})")
+    ax.axhline(0.3, color="k", lw=0.8, ls="--")
+    ax.set_yscale("log")
+    ax.set_ylim(1e-5, _CEILING * 1.5)
+    ax.set_ylabel("|relative f_e error|")
+    ax.set_title(f"{name}: relative f_e error, systems sorted by s_N (paper Fig. 9); dashed: 30 %")
+    ax.legend(loc="upper left", fontsize=8)
+    ax2.plot(x, s_N[order], color="k", lw=1)
+    ax2.set_yscale("symlog", linthresh=1e-2)
+    ax2.axhline(1.0, color="gray", lw=0.8, ls=":")
+    ax2.set_ylabel("s_N")
+    ax2.set_xlabel("system (sorted by s_N)")
+    fig.tight_layout()
+    fname = _FIG9.format(name)
+    fig.savefig(out / fname, dpi=110)
+    plt.close(fig)
+    return fname
+
+
+def _fig10(plt: Any, grid: Mapping[str, Any], methods: Sequence[str], out: Path) -> str:
+    """Fig. 10: ``E_50`` (left) and ``E_30`` (right) over ``f_e``, one line per backlash and method."""
+    from matplotlib.ticker import NullFormatter
+
+    cells = grid["cells"]
+    bls = sorted({c["backlash_deg"] for c in cells})
+    means = {b["backlash_deg"]: b for b in grid["backlash_means"]}
+    f_es = sorted({c["f_e"] for c in cells})
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.2), sharey=True)
+    colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    for ax, x in zip(axes, sorted(TOLERANCES, reverse=True)):
+        key = f"E_{x}"
+        for i, b in enumerate(bls):
+            sub = sorted((c for c in cells if c["backlash_deg"] == b), key=lambda c: c["f_e"])
+            f = [c["f_e"] for c in sub]
+            for m in methods:
+                y = [np.nan if c[m][key] is None else c[m][key] for c in sub]
+                ax.plot(f, y, ls=_LINE[m], marker=_STYLE[m]["marker"], color=colors[i],
+                        label=f"{METHOD_TITLES[m]} {b:g}° (mean {_pct(means[b][m][key])} %)")
+        ax.set_xscale("log")
+        ax.set_xticks(f_es)
+        ax.set_xticklabels([f"{c:g}" for c in f_es])
+        ax.xaxis.set_minor_formatter(NullFormatter())
+        ax.set_ylim(-3, 103)
+        ax.set_xlabel("f_e [Hz]")
+        ax.set_title(f"recognition rate E_{x} (f_e & V_J & J_sigma within {x} %)")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7, loc="lower left")
+    axes[0].set_ylabel("E_x [%]")
+    fig.tight_layout()
+    fig.savefig(out / _FIG10, dpi=110)
+    plt.close(fig)
+    return _FIG10
 
 
 #: The report's files: its tables, a Fig. 9 per set, Fig. 10 of the grid.

@@ -78,13 +78,14 @@ def iv4_result(record: Any) -> dict[str, Any]:
     out: dict[str, Any] = dict.fromkeys(METHOD_PARAMS["iv4"])
     out.update(valid=False, reason="", converged=False, iterations=0)
     try:
-        res = identify_iv4(record.motor_torque, record.speed, record.T_s, T_Ei=float(record.meta["T_Ei"]))
+        res = identify_iv4(record.motor_torque, record.speed, record.T_s, T_Ei=float(record.info.T_Ei))
     except Exception as err:  # noqa: BLE001 - reported as an invalid result (a miss)
         out["reason"] = error_text(err)
         return out
-    out.update({k: _num(res.get(k)) for k in METHOD_PARAMS["iv4"]})
-    out.update(valid=bool(res.get("valid", False)), reason=str(res.get("reason", "")),
-               converged=bool(res.get("converged", False)), iterations=int(res.get("iterations", 0)))
+    estimate = res.estimate
+    out.update({k: _num(getattr(estimate, k)) for k in METHOD_PARAMS["iv4"]})
+    out.update(valid=bool(estimate.valid), reason=str(estimate.reason), converged=bool(res.converged),
+               iterations=int(res.iterations))
     return out
 
 
@@ -194,11 +195,7 @@ def run_set(eval_set: EvalSet, *, methods: Sequence[str] = METHODS, drive: Drive
         (wall time of simulation + all methods computed together), ``workers``, ``loadavg``
         (1-minute load average before and after; the machine may be shared).
     """
-    if not methods or any(m not in METHODS for m in methods):
-        raise ValueError(f"methods: expected a non-empty subset of {METHODS}, received {list(methods)}")
-    methods = tuple(m for m in METHODS if m in methods)
-    if workers < 0:
-        raise ValueError(f"workers: expected >= 0, received {workers}")
+    methods = _checked_methods(methods, workers)
     drive = drive or DriveConfig()
     signal = signal or TestSignalConfig()
     ckpt = str(Path(checkpoints) if checkpoints is not None else checkpoints_folder())
@@ -206,22 +203,14 @@ def run_set(eval_set: EvalSet, *, methods: Sequence[str] = METHODS, drive: Drive
     if "som" in methods or "maps" in methods:
         _identifier(ckpt)  # fail fast (one line) on maps that do not fit this toolkit, cached or not
     cache = Path(cache_dir) if cache_dir is not None else None
-    results: dict[str, list[Any]] = {}
-    info: dict[str, dict[str, Any]] = {}
-    group = process_group()  # under torchrun: rank 0 reads and writes the cache
-    for m in methods:
-        hit = group.on_main(partial(load_cached, cache, cfgs[m], eval_set.size)) if cache is not None else None
-        if hit is not None:
-            results[m], info[m] = hit[0], {"cached": True, **hit[1]}
+    results, info = _cached_results(cache, cfgs, eval_set.size)
     todo = tuple(m for m in methods if m not in results)
     if todo:
-        t0, load0 = time.perf_counter(), _loadavg()
-        fresh = _compute(eval_set, todo, drive, signal, ckpt, workers, progress)
-        meta = {"compute_s": time.perf_counter() - t0, "workers": workers, "methods_together": list(todo),
-                "loadavg": [load0, _loadavg()], "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())}
+        fresh, meta = _timed_compute(eval_set, todo, drive, signal, ckpt, workers, progress)
         for m in todo:
             results[m], info[m] = fresh[m], {"cached": False, **meta}
-            if cache is not None and group.main:
+        if cache is not None and process_group().main:
+            for m in todo:
                 save_cached(cache, cfgs[m], fresh[m], meta)
     elif progress:
         progress(eval_set.size)
@@ -230,6 +219,43 @@ def run_set(eval_set: EvalSet, *, methods: Sequence[str] = METHODS, drive: Drive
         for row, res in zip(rows, results[m]):
             row[m] = res
     return rows, {m: info[m] for m in methods}
+
+
+def _timed_compute(eval_set: EvalSet, methods: tuple[str, ...], drive: DriveConfig, signal: TestSignalConfig,
+                   checkpoints: str, workers: int,
+                   progress: Callable[[int], None] | None) -> tuple[dict[str, list[Any]], dict[str, Any]]:
+    """:func:`_compute`'s results and how they were computed: ``compute_s``, ``workers``,
+    ``methods_together``, ``loadavg`` (before and after), ``date``."""
+    t0, load0 = time.perf_counter(), _loadavg()
+    fresh = _compute(eval_set, methods, drive, signal, checkpoints, workers, progress)
+    meta = {"compute_s": time.perf_counter() - t0, "workers": workers, "methods_together": list(methods),
+            "loadavg": [load0, _loadavg()], "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())}
+    return fresh, meta
+
+
+def _checked_methods(methods: Sequence[str], workers: int) -> tuple[str, ...]:
+    """``methods`` in the order of :data:`METHODS`; a ``ValueError`` naming ``methods`` or ``workers``."""
+    if not methods or any(m not in METHODS for m in methods):
+        raise ValueError(f"methods: expected a non-empty subset of {METHODS}, received {list(methods)}")
+    if workers < 0:
+        raise ValueError(f"workers: expected >= 0, received {workers}")
+    return tuple(m for m in METHODS if m in methods)
+
+
+def _cached_results(cache: Path | None, cfgs: dict[str, dict[str, Any]],
+                    size: int) -> tuple[dict[str, list[Any]], dict[str, dict[str, Any]]]:
+    """Per method of ``cfgs`` whose results ``cache`` holds: the results and how they were computed
+    (under torchrun rank 0 reads the cache)."""
+    results: dict[str, list[Any]] = {}
+    info: dict[str, dict[str, Any]] = {}
+    if cache is None:
+        return results, info
+    group = process_group()
+    for m, cfg in cfgs.items():
+        hit = group.on_main(partial(load_cached, cache, cfg, size))
+        if hit is not None:
+            results[m], info[m] = hit[0], {"cached": True, **hit[1]}
+    return results, info
 
 
 def _loadavg() -> float | None:

@@ -1,6 +1,6 @@
 """Aggregation of the study's per-system rows (SPEC 7): recognition rates ``E_30``/``E_50`` per grid
 cell, per backlash, per true class and overall; per-parameter error statistics; the structure
-confusion matrix; the issues' acceptance checks. All figures come from :mod:`._metrics`.
+confusion matrix; the acceptance checks (the study's targets). All figures come from :mod:`._metrics`.
 
 Conventions: a missing estimate is a miss. The SOM gives no ``f_e``/``V_J`` for the ``stiff``
 class (``None``), a record it cannot analyse gets ``error``; IV4 results with ``valid=False``
@@ -9,7 +9,7 @@ count as missing. Relative errors are signed in the statistics and absolute in `
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -127,36 +127,41 @@ def summarize_set(rows: Sequence[Mapping[str, Any]], methods: Sequence[str],
     """All tables of one set (JSON-able). Cells and per-backlash means when ``eval_set`` is a grid."""
     methods = [m for m in METHODS if m in methods]
     r_osc = _column(rows, "truth", "r_osc")
+    per_class = [_class_rates([r for r in rows if r["truth"]["structure"] == c], c, methods) for c in STRUCTURE_CLASSES]
     out: dict[str, Any] = {"n": len(rows), "r_osc_below_1": int(np.sum(r_osc < 1.0)),
-                           "overall": _rates(rows, methods), "per_class": [], "parameters": {},
+                           "overall": _rates(rows, methods), "per_class": per_class,
+                           "parameters": {m: parameter_stats(rows, m) for m in methods},
                            "failures": _failures(rows, methods)}
-    for c in STRUCTURE_CLASSES:
-        sub = [r for r in rows if r["truth"]["structure"] == c]
-        out["per_class"].append({"class": c, "n": len(sub), **_rates(sub, methods)})
-    for m in methods:
-        out["parameters"][m] = parameter_stats(rows, m)
     if "som" in methods:
         out["confusion"] = {"true": list(STRUCTURE_CLASSES), "predicted": list(PREDICTED_LABELS),
                             "matrix": structure_confusion(rows).tolist()}
     if eval_set is not None and eval_set.kind == "grid":
-        cells = []
-        for f_e, bl in eval_set.cells():
-            sub = [r for r in rows if r["cell_f_e"] == f_e and r["cell_backlash_deg"] == bl]
-            s_N = _column(sub, "truth", "s_N")
-            classes = {c: sum(1 for r in sub if r["truth"]["structure"] == c) for c in STRUCTURE_CLASSES}
-            cells.append({"f_e": f_e, "backlash_deg": bl, "n": len(sub),
-                          "s_N_median": _num(np.median(s_N)) if sub else None,
-                          "s_N_above_1": _num(np.mean(s_N > 1.0)) if sub else None,
-                          "r_osc_below_1": int(np.sum(_column(sub, "truth", "r_osc") < 1.0)),
-                          "classes": classes, **_rates(sub, methods)})
-        out["cells"] = cells
+        out["cells"] = [_cell(rows, methods, f_e, bl) for f_e, bl in eval_set.cells()]
         out["backlash_means"] = [{"backlash_deg": bl, **_rates([r for r in rows if r["cell_backlash_deg"] == bl], methods)}
                                  for bl in eval_set.backlash_deg]
     return out
 
 
+def _class_rates(sub: Sequence[Mapping[str, Any]], structure: str, methods: Sequence[str]) -> dict[str, Any]:
+    """The recognition rates over ``sub``, the systems of the true class ``structure``."""
+    return {"class": structure, "n": len(sub), **_rates(sub, methods)}
+
+
+def _cell(rows: Sequence[Mapping[str, Any]], methods: Sequence[str], f_e: float, bl: float) -> dict[str, Any]:
+    """The figures of the grid cell ``f_e`` [Hz], ``bl`` [degree]: its systems' ``s_N``, ``r_osc``,
+    true classes and each method's recognition rates."""
+    sub = [r for r in rows if r["cell_f_e"] == f_e and r["cell_backlash_deg"] == bl]
+    s_N = _column(sub, "truth", "s_N")
+    classes = {c: sum(1 for r in sub if r["truth"]["structure"] == c) for c in STRUCTURE_CLASSES}
+    return {"f_e": f_e, "backlash_deg": bl, "n": len(sub),
+            "s_N_median": _num(np.median(s_N)) if sub else None,
+            "s_N_above_1": _num(np.mean(s_N > 1.0)) if sub else None,
+            "r_osc_below_1": int(np.sum(_column(sub, "truth", "r_osc") < 1.0)),
+            "classes": classes, **_rates(sub, methods)}
+
+
 def acceptance_checks(grid: Mapping[str, Any], methods: Sequence[str]) -> list[dict[str, Any]]:
-    """The issue's targets on the grid summary: SOM ``E_30 >= 95 %`` in every cell with backlash
+    """The study's targets on the grid summary: SOM ``E_30 >= 95 %`` in every cell with backlash
     <= 0.2 degree and ``f_e`` <= 80 Hz; SOM ``E_30`` above IV4's in every cell where most
     systems have ``s_N > 1``. Each check: ``name``, ``passed`` (``None``: not applicable), ``detail``."""
     cells = grid.get("cells", [])
@@ -164,25 +169,28 @@ def acceptance_checks(grid: Mapping[str, Any], methods: Sequence[str]) -> list[d
     if "som" in methods:
         scope = [c for c in cells if c["backlash_deg"] <= 0.2 and c["f_e"] <= 80.0]
         fail = [c for c in scope if (c["som"]["E_30"] or 0.0) < 95.0]
-        checks.append({"name": "SOM E_30 >= 95 % where backlash <= 0.2 degree and f_e <= 80 Hz",
-                       "passed": (not fail) if scope else None,
-                       "detail": f"{len(scope) - len(fail)} of {len(scope)} cells pass" + (
-                           "; failing: " + ", ".join(f"{c['f_e']:g} Hz/{c['backlash_deg']:g} deg "
-                                                     f"({c['som']['E_30']:.0f} %)" for c in fail) if fail else "")})
+        checks.append(_cell_check("SOM E_30 >= 95 % where backlash <= 0.2 degree and f_e <= 80 Hz", scope, fail,
+                                  lambda c: f"{c['som']['E_30']:.0f} %"))
     if "som" in methods and "iv4" in methods:
         scope = [c for c in cells if (c["s_N_above_1"] or 0.0) > 0.5]
         fail = [c for c in scope if not ((c["som"]["E_30"] or 0.0) > (c["iv4"]["E_30"] or 0.0))]
-        checks.append({"name": "SOM E_30 > IV4 E_30 where most systems have s_N > 1",
-                       "passed": (not fail) if scope else None,
-                       "detail": f"{len(scope) - len(fail)} of {len(scope)} cells pass" + (
-                           "; failing: " + ", ".join(f"{c['f_e']:g} Hz/{c['backlash_deg']:g} deg "
-                                                     f"(SOM {c['som']['E_30']:.0f} vs IV4 {c['iv4']['E_30']:.0f} %)"
-                                                     for c in fail) if fail else "")})
+        checks.append(_cell_check("SOM E_30 > IV4 E_30 where most systems have s_N > 1", scope, fail,
+                                  lambda c: f"SOM {c['som']['E_30']:.0f} vs IV4 {c['iv4']['E_30']:.0f} %"))
     return checks
 
 
+def _cell_check(name: str, scope: Sequence[Mapping[str, Any]], fail: Sequence[Mapping[str, Any]],
+                figure: Callable[[Mapping[str, Any]], str]) -> dict[str, Any]:
+    """A check over the grid cells ``scope`` that passes where ``fail`` is empty (``None``: no cell in
+    scope); its detail names each failing cell and its ``figure``."""
+    detail = f"{len(scope) - len(fail)} of {len(scope)} cells pass"
+    if fail:
+        detail += "; failing: " + ", ".join(f"{c['f_e']:g} Hz/{c['backlash_deg']:g} deg ({figure(c)})" for c in fail)
+    return {"name": name, "passed": (not fail) if scope else None, "detail": detail}
+
+
 def identification_checks(rows: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]:
-    """Issue 4's targets on a random population set (SOM identifier, SPEC default population):
+    """The identification's targets on a random population set (SOM identifier, SPEC default population):
     structure accuracy >= 95 % over systems at least 20 % away from every class threshold;
     over ``elastic`` and ``elastic_backlash``: ``E_30 >= 95 %`` and ``E_50 >= 99 %``; ``J_sigma``
     within 5 % for >= 95 %; backlash width within 30 % for >= 90 % of systems with ``s_N >= 0.3``;

@@ -1,4 +1,4 @@
-"""Tests of the IV4 baseline (training/iv4.py): exactness, consistency, two-mass conversion."""
+"""Tests of the IV4 baseline (training/evaluation/_iv4.py): exactness, consistency, two-mass conversion."""
 
 from __future__ import annotations
 
@@ -197,12 +197,12 @@ def test_conversion_of_exact_zoh_models(f_e: float) -> None:
     ]
     for A, B, output in cases:
         r = two_mass_from_discrete(A, B, T_S, output=output)
-        assert r["valid"], (output, r["reason"])
+        assert r.valid, (output, r.reason)
         tol = 1e-4 if output == "speed" else 1e-6  # "speed" re-estimates the integrator pole
-        assert _rel(r["f_e"], f_e) < 1e-6, (output, r["f_e"])
-        assert _rel(r["V_J"], V_J) < tol, (output, r["V_J"])
-        assert _rel(r["J_sigma"], J_sigma) < tol, (output, r["J_sigma"])
-        assert abs(r["d"] - d) < 1e-6, (output, r["d"])
+        assert _rel(r.f_e, f_e) < 1e-6, (output, r.f_e)
+        assert _rel(r.V_J, V_J) < tol, (output, r.V_J)
+        assert _rel(r.J_sigma, J_sigma) < tol, (output, r.J_sigma)
+        assert abs(r.d - d) < 1e-6, (output, r.d)
 
 
 def test_identify_linear_two_mass_rich_excitation() -> None:
@@ -215,11 +215,11 @@ def test_identify_linear_two_mass_rich_excitation() -> None:
     Ac, Bc = _two_mass_matrices(J_sigma, V_J, f_e, d)
     states = _simulate_zoh(Ac, Bc, torque, T_S)
     speed = states[:, 0] + 1e-3 * rng.standard_normal(n)  # high SNR
-    r = identify_iv4(torque, speed, T_S, torque_is_reference=True, speed_is_mean=False)
-    assert r["valid"], r["reason"]
-    assert _rel(r["f_e"], f_e) < 0.01, r["f_e"]
-    assert _rel(r["V_J"], V_J) < 0.01, r["V_J"]
-    assert _rel(r["J_sigma"], J_sigma) < 0.01, r["J_sigma"]
+    r = identify_iv4(torque, speed, T_S, torque_is_reference=True, speed_is_mean=False).estimate
+    assert r.valid, r.reason
+    assert _rel(r.f_e, f_e) < 0.01, r.f_e
+    assert _rel(r.V_J, V_J) < 0.01, r.V_J
+    assert _rel(r.J_sigma, J_sigma) < 0.01, r.J_sigma
 
 
 # ----------------------------------------------------------------------------- (d) SPEC test signal
@@ -232,11 +232,11 @@ def test_identify_linear_two_mass_rich_excitation() -> None:
 def test_identify_spec_test_signal_linear_plant(J_sigma: float, V_J: float, f_e: float, d: float) -> None:
     """SPEC test signal on an elastic plant without backlash (own linear simulator): within 10 %."""
     current, speed = _spec_test_linear(J_sigma, V_J, f_e, d, seed=5)
-    r = identify_iv4(current * 1.0, speed, T_S, T_Ei=5e-4)  # torque = K_M * current, K_M = 1
-    assert r["valid"], r["reason"]
-    assert _rel(r["f_e"], f_e) < 0.10, r["f_e"]
-    assert _rel(r["V_J"], V_J) < 0.10, r["V_J"]
-    assert _rel(r["J_sigma"], J_sigma) < 0.10, r["J_sigma"]
+    r = identify_iv4(current * 1.0, speed, T_S, T_Ei=5e-4).estimate  # torque = K_M * current, K_M = 1
+    assert r.valid, r.reason
+    assert _rel(r.f_e, f_e) < 0.10, r.f_e
+    assert _rel(r.V_J, V_J) < 0.10, r.V_J
+    assert _rel(r.J_sigma, J_sigma) < 0.10, r.J_sigma
 
 
 def _colleague_response(M_FC: float, mu_F: float):  # -> (torque [Nm], speed [rad/s], drive)
@@ -256,22 +256,22 @@ def _colleague_response(M_FC: float, mu_F: float):  # -> (torque [Nm], speed [ra
 def test_identify_with_colleague_simulator() -> None:
     """(d) SPEC test signal through ``sim.simulate_test``, elastic, no backlash: within 10 %."""
     torque, speed, drive = _colleague_response(0.0, 0.0)
-    r = identify_iv4(torque, speed, drive.T_s, T_Ei=drive.T_Ei)
-    assert _rel(r["f_e"], 30.5) < 0.10, r["f_e"]
-    assert _rel(r["V_J"], 1.77) < 0.10, r["V_J"]
-    assert _rel(r["J_sigma"], 0.044) < 0.10, r["J_sigma"]
+    r = identify_iv4(torque, speed, drive.T_s, T_Ei=drive.T_Ei).estimate
+    assert _rel(r.f_e, 30.5) < 0.10, r.f_e
+    assert _rel(r.V_J, 1.77) < 0.10, r.V_J
+    assert _rel(r.J_sigma, 0.044) < 0.10, r.J_sigma
 
 
 def test_identify_with_load_friction() -> None:
     """Load Coulomb + viscous friction: the friction regressors keep IV4 within 10 %; without
     them the linear model is off (shows the check can fail)."""
     torque, speed, drive = _colleague_response(0.4, 0.004)
-    r = identify_iv4(torque, speed, drive.T_s, T_Ei=drive.T_Ei)
-    assert _rel(r["f_e"], 30.5) < 0.10, r["f_e"]
-    assert _rel(r["V_J"], 1.77) < 0.10, r["V_J"]
-    assert _rel(r["J_sigma"], 0.044) < 0.10, r["J_sigma"]
-    bare = identify_iv4(torque, speed, drive.T_s, T_Ei=drive.T_Ei, friction=False)
-    errs = [_rel(bare[k], v) for k, v in (("f_e", 30.5), ("V_J", 1.77), ("J_sigma", 0.044))]
+    r = identify_iv4(torque, speed, drive.T_s, T_Ei=drive.T_Ei).estimate
+    assert _rel(r.f_e, 30.5) < 0.10, r.f_e
+    assert _rel(r.V_J, 1.77) < 0.10, r.V_J
+    assert _rel(r.J_sigma, 0.044) < 0.10, r.J_sigma
+    bare = identify_iv4(torque, speed, drive.T_s, T_Ei=drive.T_Ei, friction=False).estimate
+    errs = [_rel(getattr(bare, k), v) for k, v in (("f_e", 30.5), ("V_J", 1.77), ("J_sigma", 0.044))]
     assert not all(np.isfinite(e) and e < 0.10 for e in errs), errs
 
 
@@ -297,7 +297,7 @@ def test_mean_torque_rebuilds_the_interval_mean() -> None:
 
 def test_no_resonance_is_reported_not_raised() -> None:
     r = two_mass_from_discrete([1.0, -1.2, 0.35], [0.0, 1e-3, 1e-3, 1e-4], T_S, output="speed_difference")
-    assert not r["valid"] and np.isnan(r["f_e"]) and "resonance" in r["reason"]
+    assert not r.valid and np.isnan(r.f_e) and "resonance" in r.reason
 
 
 def test_input_checks() -> None:
@@ -343,6 +343,6 @@ def test_conversion_with_current_loop() -> None:
         x = Ad @ x
     B = np.convolve(A_full, h)[:5]
     r = two_mass_from_discrete(A2, B, T_S, output="speed_difference", T_Ei=T_Ei)
-    assert _rel(r["f_e"], f_e) < 1e-6 and _rel(r["V_J"], V_J) < 1e-6 and _rel(r["J_sigma"], J_sigma) < 1e-6, r
+    assert _rel(r.f_e, f_e) < 1e-6 and _rel(r.V_J, V_J) < 1e-6 and _rel(r.J_sigma, J_sigma) < 1e-6, r
     wrong = two_mass_from_discrete(A2, B[:4], T_S, output="speed_difference")  # ignoring the loop
-    assert not (np.isfinite(wrong["V_J"]) and _rel(wrong["V_J"], V_J) < 1e-3)
+    assert not (np.isfinite(wrong.V_J) and _rel(wrong.V_J, V_J) < 1e-3)
