@@ -12,7 +12,7 @@ over the last sample. Units SI.
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -81,6 +81,33 @@ def _num(value: Any, name: str) -> float | None:
     return out
 
 
+#: What :func:`mechanics_from` accepts of each parameter: (names, the test, what is expected); None passes.
+_MECHANICS_RANGES: tuple[tuple[tuple[str, ...], Callable[[float], bool], str], ...] = (
+    (("V_J", "f_e"), lambda v: v > 0, "a positive value"),
+    (("d",), lambda v: 0 <= v < 1, "0 <= d < 1"),
+    (("backlash", "M_FC", "mu_F"), lambda v: v >= 0, "a value >= 0"),
+)
+
+
+def _raw_params(params: Mapping[str, Any] | Any) -> dict[str, float | None]:
+    """The seven parameters of a dict or a one-system TwoMassParams as numbers (None: missing)."""
+    if isinstance(params, Mapping):
+        raw = {k: params.get(k) for k in sim.PARAM_NAMES}
+    else:
+        raw = {k: getattr(params, k, None) for k in sim.PARAM_NAMES}
+    return {k: _num(v, k) for k, v in raw.items()}
+
+
+def _check_mechanics(vals: Mapping[str, float | None]) -> None:
+    """ValueError naming the first parameter out of its range (``J_sigma`` required and positive)."""
+    if vals["J_sigma"] is None or vals["J_sigma"] <= 0:
+        raise ValueError(f"J_sigma: expected a positive inertia in kg m^2, received {vals['J_sigma']}")
+    for names, inside, expected in _MECHANICS_RANGES:
+        for k in names:
+            if vals[k] is not None and not inside(vals[k]):
+                raise ValueError(f"{k}: expected {expected}, received {vals[k]}")
+
+
 def mechanics_from(params: Mapping[str, Any] | Any) -> Mechanics:
     """Read ``J_sigma, V_J, f_e, d, backlash, M_FC, mu_F`` from a dict or a one-system TwoMassParams.
 
@@ -89,30 +116,14 @@ def mechanics_from(params: Mapping[str, Any] | Any) -> Mechanics:
     """
     if isinstance(params, Mechanics):
         return params
-    if isinstance(params, Mapping):
-        raw = {k: params.get(k) for k in sim.PARAM_NAMES}
-    else:
-        raw = {k: getattr(params, k, None) for k in sim.PARAM_NAMES}
-    vals = {k: _num(v, k) for k, v in raw.items()}
-    if vals["J_sigma"] is None or vals["J_sigma"] <= 0:
-        raise ValueError(f"J_sigma: expected a positive inertia in kg m^2, received {vals['J_sigma']}")
-    for k in ("V_J", "f_e"):
-        if vals[k] is not None and vals[k] <= 0:
-            raise ValueError(f"{k}: expected a positive value, received {vals[k]}")
-    if vals["d"] is not None and not 0 <= vals["d"] < 1:
-        raise ValueError(f"d: expected 0 <= d < 1, received {vals['d']}")
-    for k in ("backlash", "M_FC", "mu_F"):
-        if vals[k] is not None and vals[k] < 0:
-            raise ValueError(f"{k}: expected a value >= 0, received {vals[k]}")
+    vals = _raw_params(params)
+    _check_mechanics(vals)
     two_mass = vals["f_e"] is not None and vals["V_J"] is not None
     return Mechanics(
         J_sigma=vals["J_sigma"],
         V_J=vals["V_J"] if two_mass else None,
         f_e=vals["f_e"] if two_mass else None,
-        d=vals["d"] or 0.0,
-        backlash=vals["backlash"] or 0.0,
-        M_FC=vals["M_FC"] or 0.0,
-        mu_F=vals["mu_F"] or 0.0,
+        **{k: vals[k] or 0.0 for k in ("d", "backlash", "M_FC", "mu_F")},
     )
 
 

@@ -41,12 +41,55 @@ from ._rules import ControllerProposal, ControllerSpec
 __all__ = [
     "TuningScenario", "TuningResult", "plan_scenario", "closed_loop_cost", "response_figures", "load_estimate",
     "model_response", "tune_controller", "Gains", "loop_verdict", "LOOP_VERDICTS", "BOUNDED_VERDICTS",
-    "USABLE_VERDICTS", "UNSCORED_VERDICTS",
+    "USABLE_VERDICTS", "UNSCORED_VERDICTS", "ScenarioSizing", "SearchSettings", "SCENARIO_SIZING", "SEARCH",
 ]
 
 #: (Kp [Nm s/rad], Ti [s], T_f [s]).
 Gains = tuple[float, float, float]
 _SEGMENTS = 6  # +w, 0, -w, 0, disturbance on, off
+
+
+@dataclass(frozen=True)
+class ScenarioSizing:
+    """How :func:`plan_scenario` sizes the closed-loop experiment beyond its arguments."""
+
+    min_segment: int = 100
+    """Fewest samples of one segment (a fast loop still gets a readable step)."""
+    kick_share: float = 0.2
+    """The P-kick ``Kp w_step`` and the disturbance ``M_dist`` at most this share of the torque cap."""
+
+    def __post_init__(self) -> None:
+        if self.min_segment < 1:
+            raise ValueError(f"min_segment: expected >= 1, received {self.min_segment}")
+        if not 0 < self.kick_share <= 1:
+            raise ValueError(f"kick_share: expected in (0, 1], received {self.kick_share}")
+
+
+@dataclass(frozen=True)
+class SearchSettings:
+    """The cost landscape and the stopping rule of :func:`tune_controller`'s Nelder-Mead search."""
+
+    pareto_weight: float = 10.0
+    """A candidate worse than the proposal on the motor or the load terms pays this many times the excess."""
+    phase_deficit_per_dB: float = 10.0
+    """A candidate that misses the margins pays its phase deficit [deg] over this plus its gain deficit [dB]."""
+    unstable_penalty: float = 100.0
+    """What an unstable candidate (or one with no finite deficit) pays above ``unstable_cost``."""
+    xatol: float = 0.01
+    """The simplex stops when its points lie within this of each other in ``log`` gains ..."""
+    fatol: float = 1e-4
+    """... and their costs within this."""
+
+    def __post_init__(self) -> None:
+        for name in ("pareto_weight", "phase_deficit_per_dB", "unstable_penalty", "xatol", "fatol"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name}: expected > 0, received {getattr(self, name)!r}")
+
+
+#: How :func:`plan_scenario` sizes the experiment.
+SCENARIO_SIZING = ScenarioSizing()
+#: How :func:`tune_controller` searches.
+SEARCH = SearchSettings()
 
 
 @dataclass(frozen=True)
@@ -87,6 +130,11 @@ class TuningScenario:
     model_warn_factor: float = 8.0
     """A delivered run above this many times its model's cost gets ``loop_unlike_model`` (the 50-plant studies'
     delivered and candidate runs: at most 6.7 x, median 0.9-1.3 x; a drive applying 20 x the law's torque: 18.5 x)."""
+    not_settled_error: float = 0.5
+    """A first step that ends (mean over the last quarter of its segment) more than this share of ``w_step`` off its
+    reference does not settle: it costs ``unstable_cost``."""
+    at_cap: float = 0.99
+    """A torque reference at or above this share of the torque cap sits at the cap (``saturated_share``)."""
 
     @property
     def band(self) -> float:
@@ -166,7 +214,7 @@ def plan_scenario(proposal: ControllerProposal, extra: Sequence[Gains], config: 
     w_c = proposal.figures.get("w_c", math.nan)
     if not (math.isfinite(w_c) and w_c > 0):
         raise ValueError(f"proposal figures: expected a finite crossover w_c > 0, received {w_c}")
-    n_seg = int(min(max(settle_factor / (w_c * T_s), 100), max_samples // _SEGMENTS))
+    n_seg = int(min(max(settle_factor / (w_c * T_s), SCENARIO_SIZING.min_segment), max_samples // _SEGMENTS))
     M_cap = limits.torque_cap(config)
     unit = TuningScenario(T_s=T_s, w_step=1.0, M_dist=1.0, n_segment=n_seg, T_ref=1 / w_c,
                           dip_ref=1.0 / (mech.J_sigma * w_c), two_mass=mech.two_mass)
@@ -179,8 +227,9 @@ def plan_scenario(proposal: ControllerProposal, extra: Sequence[Gains], config: 
     pw_r, pt_r = peaks(model_response(mech, config, gains, proposal.notch, unit, 1.0, 0.0))
     pw_d, pt_d = peaks(model_response(mech, config, gains, proposal.notch, unit, 0.0, 1.0))
     half = 0.5 * limit_use
-    w_step = min(0.2 * M_cap / max(g[0] for g in gains), half * limits.w_max / pw_r, half * limits.travel / pt_r)
-    M_dist = min(0.2 * M_cap, half * limits.w_max / max(pw_d, 1e-300), half * limits.travel / max(pt_d, 1e-300))
+    kick = SCENARIO_SIZING.kick_share * M_cap
+    w_step = min(kick / max(g[0] for g in gains), half * limits.w_max / pw_r, half * limits.travel / pt_r)
+    M_dist = min(kick, half * limits.w_max / max(pw_d, 1e-300), half * limits.travel / max(pt_d, 1e-300))
     if not (math.isfinite(w_step) and w_step > 0 and math.isfinite(M_dist) and M_dist > 0):
         raise ValueError(f"scenario: the model predicts no bounded response (w_step {w_step}, M_dist {M_dist})")
     q_w = sim.speed_quantum(float(config.encoder_counts), T_s)
@@ -248,7 +297,7 @@ def _cost(w: np.ndarray, seg: np.ndarray, sc: TuningScenario, mech: Mechanics | 
     load_part = ow * (os_l - oa).clip(0) ** 2 + sc.oscillation_weight * osc_l
     excursion = np.abs(seg).max(axis=(-1, -2)) / ws
     end_error = np.abs(seg[..., 0, -max(n // 4, 4):].mean(-1) - ws) / ws
-    unstable = aborted | ~np.isfinite(w).all(-1) | (excursion > sc.divergence_factor) | (end_error > 0.5)
+    unstable = aborted | ~np.isfinite(w).all(-1) | (excursion > sc.divergence_factor) | (end_error > sc.not_settled_error)
     cost = motor + load_part
     bad = sc.unstable_cost + np.log1p(np.minimum(excursion, 1e30))
     cost = np.where(unstable | ~np.isfinite(cost), bad, cost)
@@ -319,7 +368,7 @@ def loop_verdict(speed: np.ndarray, torque_ref: np.ndarray | None, sc: TuningSce
     if not np.isfinite(w).all() or float(np.abs(w).max()) > sc.divergence_factor * sc.w_step:
         return "diverging", LOOP_VERDICTS["diverging"]
     if torque_ref is not None and len(torque_ref) and M_cap > 0:
-        share = float(np.mean(np.abs(np.asarray(torque_ref, dtype=np.float64)) >= 0.99 * M_cap))
+        share = float(np.mean(np.abs(np.asarray(torque_ref, dtype=np.float64)) >= sc.at_cap * M_cap))
         if share > sc.saturated_share:
             return "saturated", f"the torque reference sits at the torque cap {M_cap:.3g} Nm in {100 * share:.0f} % of the samples"
     tail = _segments(w, sc)[:, -max(n // 4, 4):]
@@ -399,13 +448,13 @@ def tune_controller(
             c, terms = closed_loop_cost(model_response(mech, config, [g], proposal.notch, sc)[0], sc, mech)
             cost = float(c)
             if start:  # Pareto: what is worse than the proposal on the motor or on the load pays 10x the excess
-                cost += 10 * (max(float(terms["motor"]) - start["motor"], 0.0) + max(float(terms["load"]) - start["load"], 0.0))
+                cost += SEARCH.pareto_weight * (max(float(terms["motor"]) - start["motor"], 0.0) + max(float(terms["load"]) - start["load"], 0.0))
             else:
                 start.update(motor=float(terms["motor"]), load=float(terms["load"]))
         else:
             rejected += 1
-            deficit = max(spec.min_phase_margin - m.phase_margin, 0.0) / 10 + max(spec.min_gain_margin_dB - m.gain_margin_dB, 0.0)
-            cost = sc.unstable_cost + (deficit if m.stable and math.isfinite(deficit) else 100.0)
+            deficit = max(spec.min_phase_margin - m.phase_margin, 0.0) / SEARCH.phase_deficit_per_dB + max(spec.min_gain_margin_dB - m.gain_margin_dB, 0.0)
+            cost = sc.unstable_cost + (deficit if m.stable and math.isfinite(deficit) else SEARCH.unstable_penalty)
         history.append({"Kp": g[0], "Ti": g[1], "T_f": g[2], "cost": cost, "feasible": float(ok)})
         if progress is not None:
             progress(len(history), cost)
@@ -415,7 +464,7 @@ def tune_controller(
     simplex = np.vstack([x0] + [x0 + initial_step * np.eye(len(x0))[i] for i in range(len(x0))])
     bounds = [(xi - math.log(span), xi + math.log(span)) for xi in x0]
     res = scipy.optimize.minimize(f, x0, method="Nelder-Mead", bounds=bounds,
-                                  options={"maxfev": max_evaluations, "initial_simplex": simplex, "xatol": 0.01, "fatol": 1e-4})
+                                  options={"maxfev": max_evaluations, "initial_simplex": simplex, "xatol": SEARCH.xatol, "fatol": SEARCH.fatol})
     best = min(history, key=lambda h: h["cost"])
     warnings: list[str] = []
     if not best["feasible"] or best["cost"] >= cost0:
