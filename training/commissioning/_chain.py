@@ -265,8 +265,9 @@ class ChainState:
 
 @dataclass
 class ChainRun:
-    """One run of the chain: the checked drive, the identifier, the drive's config, the user's limits, the settings, where
-    progress goes, the warnings, the stage timings [s] and the stages' :class:`ChainState`."""
+    """One run of the chain: the checked drive, the identifier, the drive's config, the user's
+    limits, the settings, where progress goes, the warnings, the stage timings [s] and the stages'
+    :class:`ChainState`."""
 
     drive: CheckedDrive
     identifier: RecordIdentifier

@@ -279,8 +279,8 @@ class CommissioningReport:
     def _runs_lines(self, runs: list[PlantRun], names: tuple[str, ...]) -> list[str]:
         if not runs or self.scenario is None:
             return []
-        sc = self.scenario
-        L = [f"7 on the drive (steps +-{sc.w_step:.3g} rad/s, disturbance {sc.M_dist:.3g} Nm, {sc.n_samples} samples; "
+        scenario = self.scenario
+        L = [f"7 on the drive (steps +-{scenario.w_step:.3g} rad/s, disturbance {scenario.M_dist:.3g} Nm, {scenario.n_samples} samples; "
              f"predicted peak {self.prediction.get('peak_speed', math.nan):.3g} rad/s, travel {self.prediction.get('travel', math.nan):.3g} rad; "
              f"the drive stops at {self.prediction.get('stop_at', math.nan):.3g} rad/s):",
              "   run       Kp      Ti [ms]  cost (motor+load)  rise [ms]  overshoot [%]  load overshoot [%]  settled"]
