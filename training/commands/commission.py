@@ -32,12 +32,16 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from training._json import dumps
 from training.commands import _progress
 from training.errors import CommissioningError, ExperimentPending, OutputExistsError, UserError, error_text, one_line
 from training.params_file import read_plants
+
+if TYPE_CHECKING:  # the command imports these lazily, when it runs
+    import sim
+    from training.commissioning import CommissioningConfig, CommissioningReport, RecordIdentifier
 
 #: Exit code when a drive got no controller, or an experiment passed a limit (the reports say which).
 EXIT_NOT_DELIVERED = 3
@@ -253,7 +257,7 @@ def _check_options(args: argparse.Namespace) -> None:
                         f"to give (no defaults); e.g. --w-limit 20 --travel-limit 5 (rad/s, rad)")
 
 
-def _settings(args: argparse.Namespace) -> Any:
+def _settings(args: argparse.Namespace) -> CommissioningConfig:
     """The chain's settings (:class:`training.commissioning.CommissioningConfig`) from the options."""
     from training.commissioning import CommissioningConfig
 
@@ -262,7 +266,7 @@ def _settings(args: argparse.Namespace) -> Any:
                                validation_mode=args.validation, drive_timeout=args.drive_timeout)
 
 
-def _user_limits(args: argparse.Namespace) -> Any:
+def _user_limits(args: argparse.Namespace) -> sim.DriveLimits:
     """The user's limits from the options (the simulator's defaults where none are given)."""
     import sim
 
@@ -270,7 +274,7 @@ def _user_limits(args: argparse.Namespace) -> Any:
                            travel=DEFAULT_TRAVEL_LIMIT if args.travel_limit is None else args.travel_limit, M_max=args.M_max)
 
 
-def _identifier(args: argparse.Namespace) -> Any:
+def _identifier(args: argparse.Namespace) -> RecordIdentifier:
     """The identifier on the maps of ``--checkpoints`` (default: the shipped ones)."""
     from training.identification import Identifier
 
@@ -294,9 +298,9 @@ class _Session:
     limits, the identifier, the TensorBoard writer (or None) and where progress goes."""
 
     args: argparse.Namespace
-    settings: Any
-    limits: Any
-    identifier: Any
+    settings: CommissioningConfig
+    limits: sim.DriveLimits
+    identifier: RecordIdentifier
     writer: Any
     say: Callable[[str], None]
 
@@ -311,7 +315,7 @@ def _build(session: _Session, name: str, make: Callable[[], Any]) -> Any:
         raise UserError(f"--drive {session.args.drive}: building drive {name!r} failed: {error_text(err)}") from None
 
 
-def _commission_drive(session: _Session, name: str, drive: Any) -> Any:
+def _commission_drive(session: _Session, name: str, drive: Any) -> CommissioningReport:
     """The chain on one drive, the drive closed after it; a fault of the drive is one line naming it."""
     from training.commissioning import commission
 
@@ -329,7 +333,7 @@ def _commission_drive(session: _Session, name: str, drive: Any) -> Any:
     return report
 
 
-def _show(session: _Session, index: int, report: Any) -> None:
+def _show(session: _Session, index: int, report: CommissioningReport) -> None:
     """One drive's report: a passed limit's line on stderr, its TensorBoard scalars, its page and its text."""
     args, writer = session.args, session.writer
     if report.breach is not None:
@@ -346,7 +350,7 @@ def _show(session: _Session, index: int, report: Any) -> None:
         print(flush=True)
 
 
-def _write_json(args: argparse.Namespace, reports: list[Any], summary: dict[str, Any] | None) -> None:
+def _write_json(args: argparse.Namespace, reports: list[CommissioningReport], summary: dict[str, Any] | None) -> None:
     """``--json``: the reports and the summary, written at once (refused where it appeared meanwhile)."""
     from som_torch import atomic_write
 
@@ -355,7 +359,7 @@ def _write_json(args: argparse.Namespace, reports: list[Any], summary: dict[str,
     atomic_write(args.json, lambda f: f.write(text), text=True)
 
 
-def _exit_code(reports: list[Any]) -> int:
+def _exit_code(reports: list[CommissioningReport]) -> int:
     """0 when every drive got a controller inside the limits; :data:`EXIT_NOT_DELIVERED` otherwise
     (the drives without one named on stderr)."""
     failed = [r.name for r in reports if r.breach is None and (r.delivered is None or not r.checks.get("within_limits", False))]
@@ -367,6 +371,8 @@ def _exit_code(reports: list[Any]) -> int:
 
 
 def run(args: argparse.Namespace) -> int:
+    """The options checked, the outputs refused where they exist, then the chain on each drive in
+    turn (its report shown as it ends), the summary, ``--json``; the exit code (module docstring)."""
     from training.commissioning import summarize, summary_text
 
     _check_options(args)
