@@ -145,6 +145,11 @@ class TuningScenario:
     def n_samples(self) -> int:
         return _SEGMENTS * self.n_segment
 
+    @property
+    def n_tail(self) -> int:
+        """The samples at the end of each segment where it should have settled: its last quarter, at least 4."""
+        return max(self.n_segment // 4, 4)
+
     def references(self) -> np.ndarray:
         """Speed reference per segment [rad/s] (``6``)."""
         return np.array([1.0, 0.0, -1.0, 0.0, 0.0, 0.0]) * self.w_step
@@ -238,6 +243,15 @@ def plan_scenario(proposal: ControllerProposal, extra: Sequence[Gains], config: 
     return scenario, {"peak_speed": pw, "travel": pt, "speed_quanta": w_step / q_w}
 
 
+#: Where a diverging run's speeds are clipped for scoring [rad/s] (finite arithmetic; it is unstable anyway).
+_CLIP = 1e30
+
+
+def _clipped(speed: np.ndarray) -> np.ndarray:
+    """``speed`` with NaN and inf replaced and every value within ``+-_CLIP``."""
+    return np.clip(np.nan_to_num(speed, nan=_CLIP, posinf=_CLIP, neginf=-_CLIP), -_CLIP, _CLIP)
+
+
 def _segments(w: np.ndarray, scenario: TuningScenario) -> np.ndarray:
     """``*batch x N`` -> ``*batch x 6 x n_segment`` (N must be the scenario's length)."""
     return w.reshape(*w.shape[:-1], _SEGMENTS, scenario.n_segment)
@@ -259,7 +273,7 @@ def closed_loop_cost(speed: np.ndarray, scenario: TuningScenario, mech: Mechanic
         w = np.concatenate([w, np.repeat(w[..., -1:], N - w.shape[-1], -1)], -1) if w.shape[-1] else np.zeros((*w.shape[:-1], N))
     w = w[..., :N]
     aborted = np.asarray(aborted, dtype=bool) | short
-    seg = _segments(np.clip(np.nan_to_num(w, nan=1e30, posinf=1e30, neginf=-1e30), -1e30, 1e30) , scenario)
+    seg = _segments(_clipped(w), scenario)
     n, ws = scenario.n_segment, scenario.w_step
     dt = scenario.T_s / scenario.T_ref
     tau = np.arange(n) * dt
@@ -271,7 +285,7 @@ def closed_loop_cost(speed: np.ndarray, scenario: TuningScenario, mech: Mechanic
         return np.max((s[..., :4, :] - refs[:4, None]) * direction[:, None], axis=(-1, -2)).clip(0) / ws
 
     def osc(s: np.ndarray) -> np.ndarray:
-        tail = s[..., -max(n // 4, 4):]
+        tail = s[..., -scenario.n_tail:]
         return ((tail - tail.mean(-1, keepdims=True)) ** 2).mean(-1).sum(-1) / ws**2
 
     with np.errstate(over="ignore", invalid="ignore"):  # a diverging run: inf terms, scored as unstable below
@@ -281,14 +295,14 @@ def closed_loop_cost(speed: np.ndarray, scenario: TuningScenario, mech: Mechanic
 def _cost(w: np.ndarray, seg: np.ndarray, scenario: TuningScenario, mech: Mechanics | None, aborted: np.ndarray, tau: np.ndarray,
           dt: float, refs: np.ndarray, direction: np.ndarray, overshoot: Callable[[np.ndarray], np.ndarray],
           osc: Callable[[np.ndarray], np.ndarray]) -> tuple[np.ndarray, dict[str, np.ndarray]]:
-    n, ws = scenario.n_segment, scenario.w_step
+    ws = scenario.w_step
     err = np.abs(seg - refs[:, None])
     itae_steps = (tau * err[..., :4, :] / ws).sum(-1).mean(-1) * dt
     itae_dist = (tau * err[..., 4:, :] / scenario.dip_ref).sum(-1).mean(-1) * dt
     os_m, osc_m = overshoot(seg), osc(seg)
     load = load_estimate(mech, w, scenario.T_s) if scenario.two_mass else None
     if load is not None:
-        ls = _segments(np.clip(np.nan_to_num(load, nan=1e30, posinf=1e30, neginf=-1e30), -1e30, 1e30), scenario)
+        ls = _segments(_clipped(load), scenario)
         os_l, osc_l = overshoot(ls), osc(ls)
     else:
         os_l = osc_l = np.zeros_like(os_m)
@@ -296,10 +310,10 @@ def _cost(w: np.ndarray, seg: np.ndarray, scenario: TuningScenario, mech: Mechan
     motor = itae_steps + scenario.load_weight * itae_dist + ow * (os_m - oa).clip(0) ** 2 + scenario.oscillation_weight * osc_m
     load_part = ow * (os_l - oa).clip(0) ** 2 + scenario.oscillation_weight * osc_l
     excursion = np.abs(seg).max(axis=(-1, -2)) / ws
-    end_error = np.abs(seg[..., 0, -max(n // 4, 4):].mean(-1) - ws) / ws
+    end_error = np.abs(seg[..., 0, -scenario.n_tail:].mean(-1) - ws) / ws
     unstable = aborted | ~np.isfinite(w).all(-1) | (excursion > scenario.divergence_factor) | (end_error > scenario.not_settled_error)
     cost = motor + load_part
-    bad = scenario.unstable_cost + np.log1p(np.minimum(excursion, 1e30))
+    bad = scenario.unstable_cost + np.log1p(np.minimum(excursion, _CLIP))
     cost = np.where(unstable | ~np.isfinite(cost), bad, cost)
     return cost, {"itae_steps": itae_steps, "itae_dist": itae_dist, "overshoot": os_m, "load_overshoot": os_l,
                   "osc": osc_m, "load_osc": osc_l, "motor": motor, "load": load_part, "unstable": unstable.astype(float)}
@@ -361,7 +375,7 @@ def loop_verdict(speed: np.ndarray, torque_ref: np.ndarray | None, scenario: Tun
     model, the first step inside the band at the end of its segment: ``settling_time`` finite);
     ``text`` says what was measured."""
     w = np.asarray(speed, dtype=np.float64)
-    N, n = scenario.n_samples, scenario.n_segment
+    N = scenario.n_samples
     if aborted or len(w) < N:
         return "stopped", LOOP_VERDICTS["stopped"]
     w = w[:N]
@@ -371,7 +385,7 @@ def loop_verdict(speed: np.ndarray, torque_ref: np.ndarray | None, scenario: Tun
         share = float(np.mean(np.abs(np.asarray(torque_ref, dtype=np.float64)) >= scenario.at_cap * M_cap))
         if share > scenario.saturated_share:
             return "saturated", f"the torque reference sits at the torque cap {M_cap:.3g} Nm in {100 * share:.0f} % of the samples"
-    tail = _segments(w, scenario)[:, -max(n // 4, 4):]
+    tail = _segments(w, scenario)[:, -scenario.n_tail:]
     swing = float(np.median(tail.std(-1)))
     if swing > max(scenario.limit_cycle_share * scenario.w_step, scenario.settle_quanta * scenario.q_w):
         return "limit_cycle", (f"the speed keeps swinging by {swing:.3g} rad/s RMS at the end of the segments "
