@@ -12,6 +12,7 @@ sim = pytest.importorskip("sim")
 
 from training.commissioning import STAGES, CommissioningConfig, RecordIdentifier, commission, mechanics_from  # noqa: E402
 from training.commissioning import _chain  # noqa: E402
+from training.commissioning._loop import LoopAnalysis  # noqa: E402
 from training.commissioning._tuning import ScenarioSizing, SearchSettings  # noqa: E402
 
 ORDER = ("excite", "identify", "validate", "guard", "permit", "design", "try", "fallback", "deliver")
@@ -31,7 +32,7 @@ def test_the_chain_is_typed_by_protocols():
     assert RecordIdentifier.identify
 
 
-@pytest.mark.parametrize("settings", [CommissioningConfig, ScenarioSizing, SearchSettings])
+@pytest.mark.parametrize("settings", [CommissioningConfig, ScenarioSizing, SearchSettings, LoopAnalysis])
 def test_settings_are_frozen_dataclasses(settings):
     assert dataclasses.is_dataclass(settings) and settings.__dataclass_params__.frozen
     with pytest.raises(dataclasses.FrozenInstanceError):
@@ -55,6 +56,8 @@ def test_settings_are_frozen_dataclasses(settings):
     (ScenarioSizing, "kick_share", 0.0),
     (SearchSettings, "pareto_weight", 0.0),
     (SearchSettings, "fatol", -1.0),
+    (LoopAnalysis, "grid_points", 1),
+    (LoopAnalysis, "settle_band", 0.0),
 ])
 def test_a_bad_setting_is_named(settings, name, value):
     with pytest.raises(ValueError, match=f"^{name}: expected"):
