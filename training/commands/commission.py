@@ -29,13 +29,19 @@ import math
 import os
 import sys
 import time
+from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from training._json import dumps
 from training.commands import _progress
 from training.errors import CommissioningError, ExperimentPending, OutputExistsError, UserError, error_text, one_line
 from training.params_file import read_plants
+
+if TYPE_CHECKING:  # the command imports these lazily, when it runs
+    import sim
+    from training.commissioning import CommissioningConfig, CommissioningReport, RecordIdentifier
 
 #: Exit code when a drive got no controller, or an experiment passed a limit (the reports say which).
 EXIT_NOT_DELIVERED = 3
@@ -228,14 +234,13 @@ def _drives(args: argparse.Namespace, limits: Any) -> tuple[list[tuple[str, Any]
             for i, (n, p, c) in enumerate(zip(names, plants, configs))], limits
 
 
-def run(args: argparse.Namespace) -> int:
-    import sim
-    from training.commissioning import CommissioningConfig, commission, summarize, summary_text
-    from training.identification import Identifier
-
+def _check_options(args: argparse.Namespace) -> None:
+    """Bad usage refused before any work: pages asked for and not drawable, a bad seed, a limit or
+    bound that is not a finite number, a drive timeout not above 0, a drive of the user's own
+    without its limits (before its module is even imported)."""
     from training._checks import finite_number, seed
 
-    if args.plots is not None:  # before any work: pages asked for and not drawable is bad usage
+    if args.plots is not None:
         from training.figures import require_plots
 
         require_plots("--plots")
@@ -247,82 +252,162 @@ def run(args: argparse.Namespace) -> int:
     if args.drive_timeout <= 0:
         raise UserError(f"--drive-timeout: expected seconds > 0, received {args.drive_timeout:g}")
     missing = [opt for opt, v in (("--w-limit", args.w_limit), ("--travel-limit", args.travel_limit)) if v is None]
-    if args.drive is not None and args.resume is None and missing:  # before the user's module is even imported
+    if args.drive is not None and args.resume is None and missing:
         raise UserError(f"--drive {args.drive}: {' and '.join(missing)} required: the limits of a drive of your own are yours "
                         f"to give (no defaults); e.g. --w-limit 20 --travel-limit 5 (rad/s, rad)")
-    config = CommissioningConfig(tune=not args.no_tune, max_map_distance_ratio=args.max_map_distance,
-                                 tune_evaluations=args.tune_evaluations, fallback=not args.no_fallback,
-                                 validation_mode=args.validation, drive_timeout=args.drive_timeout)
-    _refuse_existing("--json", [] if args.json is None else [args.json], args.overwrite)
-    limits = sim.DriveLimits(w_max=DEFAULT_W_LIMIT if args.w_limit is None else args.w_limit,
-                             travel=DEFAULT_TRAVEL_LIMIT if args.travel_limit is None else args.travel_limit, M_max=args.M_max)
-    drives, limits = _drives(args, limits)
-    pages = [] if args.plots is None else [args.plots / f"{name}.png" for name, _ in drives]
-    _refuse_existing("--plots", pages, args.overwrite)  # before any experiment
+
+
+def _settings(args: argparse.Namespace) -> CommissioningConfig:
+    """The chain's settings (:class:`training.commissioning.CommissioningConfig`) from the options."""
+    from training.commissioning import CommissioningConfig
+
+    return CommissioningConfig(tune=not args.no_tune, max_map_distance_ratio=args.max_map_distance,
+                               tune_evaluations=args.tune_evaluations, fallback=not args.no_fallback,
+                               validation_mode=args.validation, drive_timeout=args.drive_timeout)
+
+
+def _user_limits(args: argparse.Namespace) -> sim.DriveLimits:
+    """The user's limits from the options (the simulator's defaults where none are given)."""
+    import sim
+
+    return sim.DriveLimits(w_max=DEFAULT_W_LIMIT if args.w_limit is None else args.w_limit,
+                           travel=DEFAULT_TRAVEL_LIMIT if args.travel_limit is None else args.travel_limit, M_max=args.M_max)
+
+
+def _identifier(args: argparse.Namespace) -> RecordIdentifier:
+    """The identifier on the maps of ``--checkpoints`` (default: the shipped ones)."""
+    from training.identification import Identifier
+
     if args.checkpoints is not None and not args.checkpoints.is_dir():
         raise UserError(f"--checkpoints: {args.checkpoints} is not a folder")
-    identifier = Identifier.load(args.checkpoints)
-    writer = None
-    if args.logdir is not None:
-        from torch.utils.tensorboard import SummaryWriter
+    return Identifier.load(args.checkpoints)
 
-        writer = SummaryWriter(str(args.logdir))
-    n = len(drives)
-    say = (lambda msg: print(msg, file=sys.stderr, flush=True)) if _progress.wanted(args) else (lambda msg: None)
-    reports = []
-    t0 = time.perf_counter()
+
+def _writer(args: argparse.Namespace) -> Any:
+    """A TensorBoard writer on ``--logdir`` (None without it)."""
+    if args.logdir is None:
+        return None
+    from torch.utils.tensorboard import SummaryWriter
+
+    return SummaryWriter(str(args.logdir))
+
+
+@dataclass(frozen=True)
+class _Session:
+    """What every drive of one command shares: the options, the chain's settings, the user's
+    limits, the identifier, the TensorBoard writer (or None) and where progress goes."""
+
+    args: argparse.Namespace
+    settings: CommissioningConfig
+    limits: sim.DriveLimits
+    identifier: RecordIdentifier
+    writer: Any
+    say: Callable[[str], None]
+
+
+def _build(session: _Session, name: str, make: Callable[[], Any]) -> Any:
+    """The drive ``name`` from its factory; what a user's factory raises is one line naming it."""
     try:
-        for i, (name, make) in enumerate(drives):
-            say(f"[{i + 1}/{n}] {name}")
-            try:
-                drive = make()
-            except (ExperimentPending, UserError):
-                raise
-            except Exception as err:  # the user's factory: one line naming it
-                raise UserError(f"--drive {args.drive}: building drive {name!r} failed: {error_text(err)}") from None
-            try:
-                rep = commission(drive, limits, identifier=identifier, config=config, writer=writer, progress=say, name=name)
-            except CommissioningError as err:
-                _close(drive, name, config.drive_timeout, quiet=True)  # the first fault is the story
-                raise CommissioningError(f"drive {name!r}: {one_line(err)}") from None
-            except BaseException:
-                _close(drive, name, config.drive_timeout, quiet=True)
-                raise
-            _close(drive, name, config.drive_timeout)
-            reports.append(rep)
-            if rep.breach is not None:
-                print(f"twomass commission: drive {name!r}: {rep.breach.text()}", file=sys.stderr, flush=True)
-            if writer is not None:
-                for k, v in (("improvement", rep.improvement), ("refused", float(rep.refused)),
-                             ("delivered", float(rep.delivered is not None))):
-                    if v is not None:
-                        writer.add_scalar(f"commission/{k}", v, i)
-            if args.plots is not None:
-                _plot(rep, args.plots, args.overwrite)
-            if not args.quiet:
-                print(rep.to_text(), flush=True)
-                print(flush=True)
-    except ExperimentPending as pending:
-        print(str(pending), flush=True)
-        return 0
-    finally:
-        if writer is not None:
-            writer.close()
-    summary = summarize(reports, time.perf_counter() - t0) if n > 1 or args.quiet else None
-    if summary is not None:
-        print(summary_text(summary), flush=True)
-    if args.json is not None:
-        _refuse_existing("--json", [args.json], args.overwrite)  # it may have appeared while we worked
-        text = dumps({"reports": [r.to_dict() for r in reports], "summary": summary}, indent=1)
-        from som_torch import atomic_write
+        return make()
+    except (ExperimentPending, UserError):
+        raise
+    except Exception as err:  # the user's factory: one line naming it
+        raise UserError(f"--drive {session.args.drive}: building drive {name!r} failed: {error_text(err)}") from None
 
-        atomic_write(args.json, lambda f: f.write(text), text=True)
+
+def _commission_drive(session: _Session, name: str, drive: Any) -> CommissioningReport:
+    """The chain on one drive, the drive closed after it; a fault of the drive is one line naming it."""
+    from training.commissioning import commission
+
+    timeout = session.settings.drive_timeout
+    try:
+        report = commission(drive, session.limits, identifier=session.identifier, config=session.settings,
+                            writer=session.writer, progress=session.say, name=name)
+    except CommissioningError as err:
+        _close(drive, name, timeout, quiet=True)  # the first fault is the story
+        raise CommissioningError(f"drive {name!r}: {one_line(err)}") from None
+    except BaseException:
+        _close(drive, name, timeout, quiet=True)
+        raise
+    _close(drive, name, timeout)
+    return report
+
+
+def _show(session: _Session, index: int, report: CommissioningReport) -> None:
+    """One drive's report: a passed limit's line on stderr, its TensorBoard scalars, its page and its text."""
+    args, writer = session.args, session.writer
+    if report.breach is not None:
+        print(f"twomass commission: drive {report.name!r}: {report.breach.text()}", file=sys.stderr, flush=True)
+    if writer is not None:
+        for key, value in (("improvement", report.improvement), ("refused", float(report.refused)),
+                           ("delivered", float(report.delivered is not None))):
+            if value is not None:
+                writer.add_scalar(f"commission/{key}", value, index)
+    if args.plots is not None:
+        _plot(report, args.plots, args.overwrite)
+    if not args.quiet:
+        print(report.to_text(), flush=True)
+        print(flush=True)
+
+
+def _write_json(args: argparse.Namespace, reports: list[CommissioningReport], summary: dict[str, Any] | None) -> None:
+    """``--json``: the reports and the summary, written at once (refused where it appeared meanwhile)."""
+    from som_torch import atomic_write
+
+    _refuse_existing("--json", [args.json], args.overwrite)  # it may have appeared while we worked
+    text = dumps({"reports": [r.to_dict() for r in reports], "summary": summary}, indent=1)
+    atomic_write(args.json, lambda f: f.write(text), text=True)
+
+
+def _exit_code(reports: list[CommissioningReport]) -> int:
+    """0 when every drive got a controller inside the limits; :data:`EXIT_NOT_DELIVERED` otherwise
+    (the drives without one named on stderr)."""
     failed = [r.name for r in reports if r.breach is None and (r.delivered is None or not r.checks.get("within_limits", False))]
     if failed:
         print(f"twomass commission: no controller or a limit passed for: {', '.join(failed)} (exit {EXIT_NOT_DELIVERED})",
               file=sys.stderr)
         return EXIT_NOT_DELIVERED
     return EXIT_NOT_DELIVERED if any(r.breach is not None for r in reports) else 0
+
+
+def run(args: argparse.Namespace) -> int:
+    """The options checked, the outputs refused where they exist, then the chain on each drive in
+    turn (its report shown as it ends), the summary, ``--json``; the exit code (module docstring)."""
+    from training.commissioning import summarize, summary_text
+
+    _check_options(args)
+    settings = _settings(args)
+    _refuse_existing("--json", [] if args.json is None else [args.json], args.overwrite)
+    drives, limits = _drives(args, _user_limits(args))
+    _refuse_existing("--plots", [] if args.plots is None else [args.plots / f"{name}.png" for name, _ in drives],
+                     args.overwrite)  # before any experiment
+    session = _Session(args, settings, limits, _identifier(args), _writer(args), _progress_line(args))
+    reports = []
+    started = time.perf_counter()
+    try:
+        for i, (name, make) in enumerate(drives):
+            session.say(f"[{i + 1}/{len(drives)}] {name}")
+            reports.append(_commission_drive(session, name, _build(session, name, make)))
+            _show(session, i, reports[-1])
+    except ExperimentPending as pending:
+        print(str(pending), flush=True)
+        return 0
+    finally:
+        if session.writer is not None:
+            session.writer.close()
+    summary = summarize(reports, time.perf_counter() - started) if len(drives) > 1 or args.quiet else None
+    if summary is not None:
+        print(summary_text(summary), flush=True)
+    if args.json is not None:
+        _write_json(args, reports, summary)
+    return _exit_code(reports)
+
+
+def _progress_line(args: argparse.Namespace) -> Callable[[str], None]:
+    """Where progress goes: one line each on stderr where wanted (:func:`_progress.wanted`), else nowhere."""
+    if _progress.wanted(args):
+        return lambda msg: print(msg, file=sys.stderr, flush=True)
+    return lambda msg: None
 
 
 def _close(drive: Any, name: str, timeout: float, quiet: bool = False) -> None:

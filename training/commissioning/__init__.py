@@ -2,7 +2,8 @@
 propose a speed controller with guaranteed margins, fine-tune it on the identified model, run the
 candidates on the drive inside the limits, deliver, report.
 
-Rooms: ``_chain`` (the chain and its settings), ``_excitation`` (test signal E1-E9), ``_bands``
+Rooms: ``_chain`` (the chain as named stages applied in order, its settings, the identifier's
+protocol; the drive's is :class:`sim.Drive`), ``_excitation`` (test signal E1-E9), ``_bands``
 (what a test run cannot exclude), ``_validation`` (re-simulation), ``_permission`` (refusal rules
 V1-V6, warning codes), ``_law`` (the PI speed law of SPEC 8.1), ``_loop`` (linear loop analysis,
 margins, model sets), ``_rules`` (controller rules R1-R8, R7b, R7c, fallback F1), ``_tuning``
@@ -12,7 +13,7 @@ margins, model sets), ``_rules`` (controller rules R1-R8, R7b, R7c, fallback F1)
 user's limits: a passed limit ends the experiments, :class:`LimitBreach`).
 """
 
-from ._chain import CommissioningConfig, commission, drive_config, limit_checks
+from ._chain import STAGES, CommissioningConfig, RecordIdentifier, commission, drive_config, limit_checks
 from ._excitation import ExcitationResult, ExcitationRules, adapt_test_signal, measure_response
 from ._filedrive import ExperimentPending, FileDrive
 from ._guard import MEASURED_TORQUE_ALLOWANCE, LimitBreach, PassedLimit, close_drive
@@ -27,7 +28,7 @@ from ._tuning import (LOOP_VERDICTS, TuningResult, TuningScenario, closed_loop_c
 from ._validation import ValidationResult, validate_model
 
 __all__ = [
-    "commission", "CommissioningConfig", "CommissioningReport", "PlantRun", "limit_checks", "drive_config", "summarize",
+    "commission", "CommissioningConfig", "RecordIdentifier", "STAGES", "CommissioningReport", "PlantRun", "limit_checks", "drive_config", "summarize",
     "summary_text", "FileDrive", "ExperimentPending", "LimitBreach", "PassedLimit", "MEASURED_TORQUE_ALLOWANCE",
     "close_drive",
     "ExcitationRules", "ExcitationResult", "adapt_test_signal", "measure_response",

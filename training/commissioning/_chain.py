@@ -1,19 +1,24 @@
-"""The self-commissioning chain (SPEC 8, the paper's section 2) through a SPEC 8.1 drive, one
-function per stage.
+"""The self-commissioning chain (the paper's section 2) through a drive of docs/contract.md
+section 4: named stages applied in order (:data:`STAGES`), each reading what the earlier ones left
+in the run's :class:`ChainState` and adding its own.
 
-    adapt the test signal (E1-E9, drive.run_test) -> identify (shipped maps) -> validate
-    (re-simulate) -> may a controller be proposed? (V1-V6) -> propose (R1-R8, margins guaranteed)
-    or the fallback F1 -> tune on the identified model (Nelder-Mead, margins kept) -> plan the
-    closed-loop experiment inside the limits -> run the candidates on the drive
-    (drive.run_closed_loop) -> deliver the best that is not worse than the proposal -> report
+    excite    adapt the test signal on the drive (E1-E10, ``drive.run_test``)
+    identify  what the shipped maps say of the accepted test record (V1 when the identifier fails)
+    validate  re-simulate the identified model under the record's test signal
+    guard     the limits handed to the drive for the closed-loop runs (E9: less the stop headroom)
+    permit    may a model-based controller be proposed? (V1-V6)
+    design    propose (R1-R8, margins guaranteed), tune on the identified model, plan the experiment
+    try       run the candidates on the drive (``drive.run_closed_loop``) and choose one
+    fallback  the cautious F1 where no model-based loop can be delivered
+    deliver   the controller delivered, and whether its run on the drive looks like its model
 
-The chain reaches the plant only through the drive (``config``, ``run_test``,
+The chain reaches the plant only through the drive (:class:`sim.Drive`: ``config``, ``run_test``,
 ``run_closed_loop``); everything it decides comes from the records these return. Every call goes
 through :class:`training.commissioning._guard.CheckedDrive`: bounded in time, each record checked
 as it comes and held against the user's limits; the first passed limit ends the experiments (the
-report's ``breach``, nothing delivered). A drive that
-offers ``truth()`` (a simulator) gets truth-based figures in the report, apart, marked
-"simulation only"; they are never used for a decision.
+report's ``breach``, nothing delivered, the stages' results so far). A drive that offers
+``truth()`` (a simulator) gets truth-based figures in the report, apart, marked "simulation only";
+they are never used for a decision.
 """
 
 from __future__ import annotations
@@ -22,7 +27,7 @@ import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -33,15 +38,16 @@ from ._bands import f1_bands, hidden_bands, widen
 from ._excitation import ExcitationResult, ExcitationRules, adapt_test_signal, guarded_limits, measure_response, stop_headroom
 from ._guard import CONFIG_KEYS, CheckedDrive, passed_limits, record_peaks
 from ._loop import linear_plant, margins
-from ._permission import (CommissioningWarning, IdentificationFailed, IdentificationOutcome, may_propose_controller,
+from ._permission import (CommissioningWarning, IdentificationFailed, IdentificationOutcome, Permission, may_propose_controller,
                           outside_training)
 from ._report import CommissioningReport, PlantRun
 from ._rules import ControllerProposal, ControllerSpec, propose_cautious, propose_controller
-from ._tuning import (BOUNDED_VERDICTS, Gains, TuningScenario, closed_loop_cost, loop_verdict, model_response, plan_scenario,
-                      response_figures, tune_controller)
+from ._tuning import (BOUNDED_VERDICTS, Gains, TuningResult, TuningScenario, closed_loop_cost, loop_verdict, model_response,
+                      plan_scenario, response_figures, tune_controller)
 from ._validation import OSC_METRICS, VALIDATION_MODES, ValidationResult, validate_model
 
-__all__ = ["CommissioningConfig", "commission", "limit_checks", "drive_config", "check_resolution", "MIN_LIMIT_QUANTA"]
+__all__ = ["CommissioningConfig", "commission", "limit_checks", "drive_config", "check_resolution", "MIN_LIMIT_QUANTA",
+           "RecordIdentifier", "ScalarWriter", "ChainRun", "ChainState", "LoopPlan", "LoopTrial", "STAGES"]
 
 #: Identification warning codes that make the elastic parameters uncertain (rule R7c widens the spread).
 UNCERTAIN_CODES: frozenset[str] = frozenset({"unlike_training_data", "oscillation_below_quantum", "refine_partial_fit",
@@ -49,6 +55,8 @@ UNCERTAIN_CODES: frozenset[str] = frozenset({"unlike_training_data", "oscillatio
                                              "class_undecided", "backlash_from_angle"})
 #: Identification warning codes that say the oscillation is not determined at all (rule R7b as for ``stiff``).
 UNDETERMINED_CODES: frozenset[str] = frozenset({"refine_partial_fit", "oscillation_below_quantum"})
+#: The fewest samples a closed-loop experiment may be given: six segments of at least 100 samples.
+MIN_EXPERIMENT_SAMPLES: int = 600
 
 
 @dataclass(frozen=True)
@@ -74,11 +82,16 @@ class CommissioningConfig:
             means ``r_osc < osc_visible_ratio`` (SPEC 1), a lower bound on ``f_e`` per ``V_J``.
         uncertain_spread: rule R7c: the guarantee's spread of ``f_e`` and ``V_J`` when the
             identification's own quality figures say the elastic values are uncertain (a warning
-            code of :data:`UNCERTAIN_CODES`, or a map beyond its training); the damping ``d`` is
-            then halved (a lighter damped resonance).
+            code of :data:`UNCERTAIN_CODES`, or a map beyond its training).
+        uncertain_damping: rule R7c: the identified damping ``d`` is multiplied by this share (a
+            lighter damped resonance; the rule line says "halved").
         hidden_resonances: rule R7b: the guarantee of a ``stiff`` answer, or of one whose
             oscillation is not determined (:data:`UNDETERMINED_CODES`), also covers the resonances
             the test could not show (:func:`training.commissioning._bands.hidden_bands`).
+        fallback_resonance_factor: F1 also covers the identified resonance, trusted or not, from
+            ``f_e / factor`` to ``f_e * factor``.
+        min_scenario_quanta: a closed-loop speed step of fewer speed quanta warns ``scenario_small``
+            (the figures on the drive are coarse).
         drive_timeout: the longest a drive call may take [s] (a test run of six sections of up to
             10 s each on a real drive, with its upload, fits the default); past it the drive is a
             fault (:func:`training.commissioning._guard.call_drive`). None: no bound, the drive is
@@ -99,26 +112,49 @@ class CommissioningConfig:
     max_samples: int = 6000
     osc_visible_ratio: float = 20.0
     uncertain_spread: float = 0.5
+    uncertain_damping: float = 0.5
     hidden_resonances: bool = True
+    fallback_resonance_factor: float = 1.5
+    min_scenario_quanta: float = 20.0
     drive_timeout: float | None = 600.0
 
     def __post_init__(self) -> None:
-        t = self.drive_timeout
-        if t is not None and (isinstance(t, bool) or not isinstance(t, (int, float)) or not math.isfinite(t) or t <= 0):
-            raise ValueError(f"drive_timeout: expected a finite number of seconds > 0 or None, received {t!r}")
-        if self.tune_evaluations < 1 or self.max_samples < 600:
-            raise ValueError(f"tune_evaluations >= 1 and max_samples >= 600 expected, received "
-                             f"{self.tune_evaluations}, {self.max_samples}")
+        timeout = self.drive_timeout
+        if timeout is not None and (isinstance(timeout, bool) or not isinstance(timeout, (int, float))
+                                    or not math.isfinite(timeout) or timeout <= 0):
+            raise ValueError(f"drive_timeout: expected a finite number of seconds > 0 or None, received {timeout!r}")
         if self.validation_mode not in VALIDATION_MODES:
             raise ValueError(f"validation_mode: expected one of {VALIDATION_MODES}, received {self.validation_mode!r}")
         if self.osc_metric not in OSC_METRICS:
             raise ValueError(f"osc_metric: expected one of {OSC_METRICS}, received {self.osc_metric!r}")
         bound = self.max_map_distance_ratio
-        if not self.max_validation_error > 0 or (bound is not None and not bound > 0):
-            raise ValueError(f"max_validation_error > 0 and max_map_distance_ratio > 0 or None expected, "
-                             f"received {self.max_validation_error}, {bound}")
-        if not (0 < self.limit_use <= 1 and 0 < self.fallback_limit_use <= 1):
-            raise ValueError(f"limit_use, fallback_limit_use: expected in (0, 1], received {self.limit_use}, {self.fallback_limit_use}")
+        for name, ok, expected in (
+                ("tune_evaluations", self.tune_evaluations >= 1, ">= 1"),
+                ("max_samples", self.max_samples >= MIN_EXPERIMENT_SAMPLES, f">= {MIN_EXPERIMENT_SAMPLES}"),
+                ("max_validation_error", self.max_validation_error > 0, "> 0"),
+                ("max_map_distance_ratio", bound is None or bound > 0, "> 0 or None"),
+                ("limit_use", 0 < self.limit_use <= 1, "in (0, 1]"),
+                ("fallback_limit_use", 0 < self.fallback_limit_use <= 1, "in (0, 1]"),
+                ("uncertain_spread", 0 <= self.uncertain_spread < 1, "in [0, 1)"),
+                ("uncertain_damping", 0 < self.uncertain_damping <= 1, "in (0, 1]"),
+                ("fallback_resonance_factor", self.fallback_resonance_factor >= 1, ">= 1"),
+                ("min_scenario_quanta", self.min_scenario_quanta >= 0, ">= 0")):
+            if not ok:
+                raise ValueError(f"{name}: expected {expected}, received {getattr(self, name)!r}")
+
+
+class RecordIdentifier(Protocol):
+    """What the chain asks of an identifier (``training.Identifier``): the answer to one test record
+    (a result with ``ok``, ``structure``, ``parameters``, ``quality``, ``warnings``); an error it
+    raises (ValueError, RuntimeError) is refusal rule V1."""
+
+    def identify(self, record: sim.Record) -> IdentificationOutcome: ...
+
+
+class ScalarWriter(Protocol):
+    """A TensorBoard ``SummaryWriter``, as far as the chain writes to it."""
+
+    def add_scalar(self, tag: str, scalar_value: float, global_step: int) -> None: ...
 
 
 # --------------------------------------------------------------------------- the drive
@@ -175,10 +211,114 @@ def limit_checks(experiments: list[tuple[str, Any]], limits: sim.DriveLimits, co
             "peak_speed": max(r["peak_speed"] for r in runs), "peak_travel": max(r["travel"] for r in runs)}
 
 
-# --------------------------------------------------------------------------- stages
+# --------------------------------------------------------------------------- the run and its state
 
 
-def _identify(identifier: Any, record: Any) -> IdentificationOutcome:
+@dataclass(frozen=True)
+class LoopPlan:
+    """A controller ready for the drive: the ``proposal``, its candidate ``gains`` (the proposal's
+    first, then the tuned ones), the ``tuning`` that found them (None: not tuned), the closed-loop
+    experiment ``scenario`` planned for them and the model's predicted peaks (``prediction``)."""
+
+    proposal: ControllerProposal
+    gains: tuple[Gains, ...]
+    scenario: TuningScenario
+    prediction: dict[str, float]
+    tuning: TuningResult | None = None
+
+
+@dataclass(frozen=True)
+class LoopTrial:
+    """A plan's candidates on the drive (``runs``, in the plan's order) and the index of the one
+    chosen for delivery (None: none may be delivered)."""
+
+    runs: list[PlantRun]
+    chosen: int | None
+
+
+@dataclass
+class ChainState:
+    """What the stages have produced so far: the report's fields. A chain that a passed limit ends
+    reports what its state holds then."""
+
+    excitation: ExcitationResult | None = None
+    identification: IdentificationOutcome | None = None
+    validation: ValidationResult | None = None
+    permission: Permission | None = None
+    outside_training: bool | None = None
+    design: LoopPlan | None = None
+    """The model-based plan (None: refused, or no design keeps the margins)."""
+    design_trial: LoopTrial | None = None
+    fallback_reason: str | None = None
+    """Why no model-based loop is delivered (``refused``, ``margins_not_reached``, ``loop_not_settled``)."""
+    fallback: LoopPlan | None = None
+    """The fallback F1's plan (None: it did not run)."""
+    fallback_trial: LoopTrial | None = None
+    delivered: ControllerProposal | None = None
+    delivered_run: PlantRun | None = None
+
+    @property
+    def last_plan(self) -> LoopPlan | None:
+        """The plan whose experiment ran last (F1's over the design's): the report's scenario."""
+        return self.fallback if self.fallback is not None else self.design
+
+
+@dataclass
+class ChainRun:
+    """One run of the chain: the checked drive, the identifier, the drive's config, the user's
+    limits, the settings, where progress goes, the warnings, the stage timings [s] and the stages'
+    :class:`ChainState`."""
+
+    drive: CheckedDrive
+    identifier: RecordIdentifier
+    config: sim.DriveConfig
+    limits: sim.DriveLimits
+    settings: CommissioningConfig
+    say: Callable[[str], None]
+    writer: ScalarWriter | None
+    name: str
+    tag: str
+    warnings: list[CommissioningWarning] = field(default_factory=list)
+    timings: dict[str, float] = field(default_factory=dict)
+    loop_limits: sim.DriveLimits | None = None
+    """The limits handed to the drive for the closed-loop runs (E9: less the headroom after a stop)."""
+    test_log: list[dict[str, Any]] = field(default_factory=list)
+    """The test runs' log entries as they are decided (kept when a run passes a limit)."""
+    state: ChainState = field(default_factory=ChainState)
+    started: float = field(default_factory=time.perf_counter)
+    """When the run started (``time.perf_counter``)."""
+    last_lap: float = 0.0
+
+    def elapsed(self) -> float:
+        """Seconds since the run started."""
+        return time.perf_counter() - self.started
+
+    def lap(self, stage: str) -> None:
+        """Time ``stage`` took, from the previous lap (or the start)."""
+        now = time.perf_counter()
+        self.timings[stage] = now - (self.last_lap or self.started)
+        self.last_lap = now
+
+    def warn(self, code: str, text: str) -> None:
+        self.warnings.append(CommissioningWarning(code, text))
+
+    @property
+    def result(self) -> Any:
+        """The identification result (its ``parameters`` read where ``ok``)."""
+        return self.state.identification
+
+    @property
+    def excitation(self) -> ExcitationResult:
+        excitation = self.state.excitation
+        if excitation is None:
+            raise RuntimeError("the chain's stages ran out of order: no excitation yet")
+        return excitation
+
+
+# --------------------------------------------------------------------------- helpers of the stages
+
+
+def _identify(identifier: RecordIdentifier, record: sim.Record) -> IdentificationOutcome:
     """What the maps say; an error the identifier raises becomes a failure (rule V1)."""
     try:
         return identifier.identify(record)
@@ -194,50 +334,52 @@ def _model_params(result: Any) -> dict[str, float | None]:
     return out
 
 
-def _validate(result: IdentificationOutcome, config: sim.DriveConfig, record: Any,
-              cfg: CommissioningConfig) -> tuple[ValidationResult | None, tuple[CommissioningWarning, ...]]:
-    """Does the identified model reproduce the record? (None: no result, or the re-simulation
-    could not run, with a warning saying why)."""
-    if not result.ok:
-        return None, ()
-    try:
-        return validate_model(_model_params(result), config, record, mode=cfg.validation_mode,
-                              osc_metric=cfg.osc_metric), ()
-    except ValueError as err:
-        return None, (CommissioningWarning("validation_not_run", f"validation failed: {one_line(err)}"),)
-
-
-def _accepted(ex: ExcitationResult) -> dict[str, Any]:
+def _accepted(excitation: ExcitationResult) -> dict[str, Any]:
     """The log entry of the test record the identification used (the last one the drive did not stop)."""
-    kept = [e for e in ex.log if not e["aborted"]]
-    return kept[-1] if kept else ex.log[-1]
+    kept = [e for e in excitation.log if not e["aborted"]]
+    return kept[-1] if kept else excitation.log[-1]
 
 
-def _test_J(ex: ExcitationResult) -> float:
+def _test_J(excitation: ExcitationResult) -> float:
     """The one-mass inertia the accepted test run's mean acceleration gives, ``M* / accel`` [kg m^2]
     (friction makes it larger, never smaller; inf when the run had no acceleration to measure)."""
-    e = _accepted(ex)
-    return e["M_star"] / e["accel"] if e.get("accel", 0.0) > 0 else math.inf
+    entry = _accepted(excitation)
+    return entry["M_star"] / entry["accel"] if entry.get("accel", 0.0) > 0 else math.inf
 
 
-def _run_candidates(run: _Run, proposal: ControllerProposal, gains: list[Gains], sc: TuningScenario,
-                    kind: str) -> list[PlantRun]:
-    """Each gain set on the drive over ``sc`` (one experiment each), scored from its record and judged
-    (:func:`loop_verdict`) against what the identified model predicts for the same gains."""
+def _positive(x: Any) -> bool:
+    return isinstance(x, (int, float)) and math.isfinite(x) and x > 0
+
+
+def _uncertain(result: Any) -> list[str]:
+    """Why the identified elastic values are uncertain (warning codes of :data:`UNCERTAIN_CODES`,
+    ``outside_training``); empty when nothing says so."""
+    why = sorted({w.code for w in result.warnings if w.code in UNCERTAIN_CODES})
+    if result.quality.outside_training and "outside_training" not in why:
+        why.append("outside_training")
+    return why
+
+
+def _run_candidates(run: ChainRun, plan: LoopPlan, kind: str) -> list[PlantRun]:
+    """Each gain set of ``plan`` on the drive over its scenario (one experiment each), scored from its
+    record and judged (:func:`loop_verdict`) against what the identified model predicts for the same
+    gains."""
     out = []
+    proposal, scenario = plan.proposal, plan.scenario
     mech = proposal.mechanics
     cap = run.limits.torque_cap(run.config)
-    model_costs = closed_loop_cost(model_response(mech, run.config, gains, proposal.notch, sc), sc, mech)[0]
-    for i, g in enumerate(gains):
-        law = proposal.law(run.config, Kp=g[0], Ti=g[1], T_f=g[2])
-        rec = run.drive.run_closed_loop(law, sc.scenario(), run.loop_limits, f"{kind} {i}")
+    model_costs = closed_loop_cost(model_response(mech, run.config, list(plan.gains), proposal.notch, scenario), scenario,
+                                   mech)[0]
+    for i, gains in enumerate(plan.gains):
+        law = proposal.law(run.config, Kp=gains[0], Ti=gains[1], T_f=gains[2])
+        rec = run.drive.run_closed_loop(law, scenario.scenario(), run.loop_limits, f"{kind} {i}")
         stopped = bool(rec.meta.get("aborted", False))
-        w = np.asarray(rec.speed, dtype=np.float64)
-        cost, terms = closed_loop_cost(w, sc, mech, stopped)
+        speed = np.asarray(rec.speed, dtype=np.float64)
+        cost, terms = closed_loop_cost(speed, scenario, mech, stopped)
         model_cost = float(model_costs[i])
-        verdict, why = loop_verdict(w, rec.torque_ref, sc, cap, float(cost), model_cost, stopped)
-        out.append(PlantRun(gains=g, cost=float(cost), motor=float(terms["motor"]), load=float(terms["load"]),
-                            aborted=stopped, figures=response_figures(w, sc, mech), speed=w, verdict=verdict,
+        verdict, why = loop_verdict(speed, rec.torque_ref, scenario, cap, float(cost), model_cost, stopped)
+        out.append(PlantRun(gains=gains, cost=float(cost), motor=float(terms["motor"]), load=float(terms["load"]),
+                            aborted=stopped, figures=response_figures(speed, scenario, mech), speed=speed, verdict=verdict,
                             verdict_text=why, model_cost=model_cost))
         if stopped:
             run.warn("run_stopped", f"the drive stopped the closed-loop run {kind} {i} at a limit")
@@ -259,120 +401,254 @@ def _choose(runs: list[PlantRun]) -> int | None:
     return min(settled, key=lambda i: (runs[i].cost, i))
 
 
-@dataclass
-class _Run:
-    """One run of the chain: the drive, its settings, the outputs and the stage timings [s]."""
-
-    drive: CheckedDrive
-    config: sim.DriveConfig
-    limits: sim.DriveLimits
-    cfg: CommissioningConfig
-    say: Callable[[str], None]
-    writer: Any
-    name: str
-    tag: str
-    warnings: list[CommissioningWarning] = field(default_factory=list)
-    timings: dict[str, float] = field(default_factory=dict)
-    loop_limits: sim.DriveLimits | None = None
-    """The limits handed to the drive for the closed-loop runs (E9: less the headroom after a stop)."""
-    test_log: list[dict[str, Any]] = field(default_factory=list)
-    """The test runs' log entries as they are decided (kept when a run passes a limit)."""
-    known: dict[str, Any] = field(default_factory=dict)
-    """The report's fields as the stages produce them (what a report of a chain stopped at a passed
-    limit can show)."""
-    _start: float = field(default_factory=time.perf_counter)
-    _last: float = 0.0
-
-    def lap(self, stage: str) -> None:
-        now = time.perf_counter()
-        self.timings[stage] = now - (self._last or self._start)
-        self._last = now
-
-    def warn(self, code: str, text: str) -> None:
-        self.warnings.append(CommissioningWarning(code, text))
+def _design_spec(settings: CommissioningConfig, result: Any) -> ControllerSpec:
+    """The guarantee's spec of a model-based design: ``settings.spec``, its spread widened to
+    ``uncertain_spread`` where the elastic values are uncertain (R7c)."""
+    spec = settings.spec
+    if _uncertain(result) and _model_params(result)["f_e"] is not None:
+        spec = replace(spec, spread=max(spec.spread, settings.uncertain_spread))
+    return spec
 
 
-def _model_based(run: _Run, result: Any, ex: ExcitationResult) -> tuple[ControllerProposal, Any, list[PlantRun], int | None, TuningScenario, dict[str, float]] | None:
-    """Propose, tune on the identified model, run the candidates on the drive, choose; None when no
-    design keeps the margins (R7)."""
-    cfg, config = run.cfg, run.config
-    params = _model_params(result)
-    spec, hidden, notch_at, why = cfg.spec, None, None, _uncertain(result)
-    if cfg.hidden_resonances and (params["f_e"] is None or UNDETERMINED_CODES.intersection(why)):
-        hidden, notch_at = hidden_bands(_accepted(ex), float(params["J_sigma"]), config, spec.class_V_J,
-                                        f_lo=spec.class_f_e[0], min_osc_quanta=cfg.rules.min_osc_quanta)
-    if why and params["f_e"] is not None:
-        spec = replace(spec, spread=max(spec.spread, cfg.uncertain_spread))
-        params["d"] = 0.5 * float(params["d"] or 0.0)
-    proposal = propose_controller(result.structure, params, config, spec, hidden=hidden, notch_at=notch_at)
-    if why and params["f_e"] is not None:
+def _propose(run: ChainRun) -> ControllerProposal:
+    """R1-R8 on the identified model; R7b covers the resonances the test could not show, R7c an
+    uncertain identification (wider spread, lighter damping)."""
+    settings, result = run.settings, run.result
+    params, why = _model_params(result), _uncertain(result)
+    spec = _design_spec(settings, result)
+    hidden = notch_at = None
+    if settings.hidden_resonances and (params["f_e"] is None or UNDETERMINED_CODES.intersection(why)):
+        hidden, notch_at = hidden_bands(_accepted(run.excitation), float(params["J_sigma"]), run.config, spec.class_V_J,
+                                        f_lo=spec.class_f_e[0], min_osc_quanta=settings.rules.min_osc_quanta)
+    r7c = bool(why) and params["f_e"] is not None
+    if r7c:
+        params["d"] = settings.uncertain_damping * float(params["d"] or 0.0)
+    proposal = propose_controller(result.structure, params, run.config, spec, hidden=hidden, notch_at=notch_at)
+    if r7c:
         proposal = replace(proposal, rules=(f"R7c identification uncertain ({', '.join(why)}): the guarantee's spread of "
                                             f"f_e and V_J is +-{spec.spread:.0%}, d halved to {params['d']:.3g}",) + proposal.rules)
-    if not proposal.meets(cfg.spec):
-        run.warn("margins_not_reached", f"R7: {proposal.warnings[-1]}")
-        return None
-    run.lap("proposal")
-    tuning = None
+    return proposal
+
+
+def _tune(run: ChainRun, proposal: ControllerProposal) -> tuple[TuningResult | None, list[Gains]]:
+    """The tuning on the identified model and the candidate gain sets: the proposal's, the tuned
+    ones where the search found better, and their geometric mean where it keeps the margins."""
+    settings, config = run.settings, run.config
     gains: list[Gains] = [(proposal.Kp, proposal.Ti, proposal.T_f)]
-    if cfg.tune:
-        sc0, _ = plan_scenario(proposal, [], config, run.limits, limit_use=cfg.limit_use, max_samples=cfg.max_samples)
-        run.say(f"{run.name}: tuning on the identified model ({cfg.tune_evaluations} evaluations)")
-        tuning = tune_controller(proposal, config, sc0, spec, max_evaluations=cfg.tune_evaluations)
-        tc = tuning.controller
-        if tc is not proposal:
-            gains.append((tc.Kp, tc.Ti, tc.T_f))
-            mid = tuple(math.sqrt(a * b) for a, b in zip(gains[0], gains[1]))
-            if proposal.models.margins(*mid, proposal.notch).meets(cfg.spec.min_phase_margin, cfg.spec.min_gain_margin_dB):
-                gains.append(mid)
-        if run.writer is not None:
-            for i, h in enumerate(tuning.history):
-                run.writer.add_scalar(f"{run.tag}/tune/cost", h["cost"], i)
-                run.writer.add_scalar(f"{run.tag}/tune/Kp", h["Kp"], i)
+    if not settings.tune:
+        return None, gains
+    scenario, _ = plan_scenario(proposal, [], config, run.limits, limit_use=settings.limit_use,
+                                max_samples=settings.max_samples)
+    run.say(f"{run.name}: tuning on the identified model ({settings.tune_evaluations} evaluations)")
+    tuning = tune_controller(proposal, config, scenario, _design_spec(settings, run.result),
+                             max_evaluations=settings.tune_evaluations)
+    tuned = tuning.controller
+    if tuned is not proposal:
+        gains.append((tuned.Kp, tuned.Ti, tuned.T_f))
+        mid = tuple(math.sqrt(a * b) for a, b in zip(gains[0], gains[1]))
+        if proposal.models.margins(*mid, proposal.notch).meets(settings.spec.min_phase_margin, settings.spec.min_gain_margin_dB):
+            gains.append(mid)
+    if run.writer is not None:
+        for i, step in enumerate(tuning.history):
+            run.writer.add_scalar(f"{run.tag}/tune/cost", step["cost"], i)
+            run.writer.add_scalar(f"{run.tag}/tune/Kp", step["Kp"], i)
+    return tuning, gains
+
+
+def _fallback_reason(state: ChainState) -> str | None:
+    """Why no model-based loop is delivered; None when one is."""
+    if state.design_trial is not None:
+        return "loop_not_settled" if state.design_trial.chosen is None else None
+    return "refused" if not state.permission.allowed else "margins_not_reached"
+
+
+def _fallback_plan(run: ChainRun) -> LoopPlan:
+    """F1: the cautious PI on ``J_sigma`` with the highest crossover that keeps the margins on the
+    worst cases of the class the test run allows (and the identified resonance), planned on the
+    one-mass model; ``J_sigma`` the smaller of the identified and the test run's acceleration's."""
+    settings, config, result, excitation = run.settings, run.config, run.result, run.excitation
+    spec, identified_J = settings.spec, float(result.parameters.J_sigma)
+    J = min(identified_J, _test_J(excitation))
+    bands = f1_bands(_accepted(excitation), J, config, spec.class_V_J, spec.class_f_e, min_osc_quanta=settings.rules.min_osc_quanta,
+                     osc_visible_ratio=settings.osc_visible_ratio)
+    params = _model_params(result)
+    if _positive(params["f_e"]) and _positive(params["V_J"]):  # the identified resonance too, trusted or not
+        factor = settings.fallback_resonance_factor
+        widen(bands, params["V_J"], params["f_e"] / factor, params["f_e"] * factor)
+    proposal = propose_cautious(J, config, spec, bands=bands)
+    if J < identified_J:
+        proposal = replace(proposal, rules=proposal.rules + (
+            f"F1 J_sigma from the test run's acceleration (M* / accel = {J:.4g} kg m^2), "
+            f"below the identified {identified_J:.4g} kg m^2",))
+    scenario, prediction = plan_scenario(proposal, [], config, run.limits, limit_use=settings.fallback_limit_use,
+                                         max_samples=settings.max_samples)
+    return LoopPlan(proposal, ((proposal.Kp, proposal.Ti, proposal.T_f),), scenario, prediction)
+
+
+def _model_based_delivery(run: ChainRun, trial: LoopTrial) -> ControllerProposal:
+    """The controller of the chosen model-based candidate: the proposal, the tuned one, or their
+    geometric mean (T2)."""
+    design = run.state.design
+    if trial.chosen == 0:
+        return design.proposal
+    if trial.chosen == 1:
+        return design.tuning.controller
+    gains = trial.runs[trial.chosen].gains
+    return design.proposal.with_gains(run.config, *gains, rule=(
+        f"T2 on the drive: the geometric mean of the proposal's and the tuned gains: Kp {gains[0]:.4g}, Ti {gains[1]:.4g} s, "
+        f"T_f {gains[2]:.3g} s"))
+
+
+# --------------------------------------------------------------------------- the stages, in order
+
+
+def _excite(run: ChainRun) -> None:
+    """E1-E10: the test signal adapted on the drive until its response is informative."""
+    run.say(f"{run.name}: adapting the test signal")
+    excitation = adapt_test_signal(run.drive, run.limits, run.settings.rules, log=run.test_log)
+    run.state.excitation = excitation
+    if any(e["aborted"] for e in excitation.log):
+        run.warn("run_stopped", "the drive stopped a test run at a limit")
+    run.lap("excitation")
+
+
+def _identify_record(run: ChainRun) -> None:
+    """The identifier's answer to the accepted test record; none where the speed moved against the
+    torque (E10: the maps would blame the units)."""
+    excitation = run.excitation
+    if excitation.code == "speed_against_torque":
+        run.warn("speed_against_torque", excitation.reason)
+        run.state.identification = IdentificationFailed(f"not identified: {excitation.reason}")
+    else:
+        run.say(f"{run.name}: identifying")
+        run.state.identification = _identify(run.identifier, excitation.record)
+
+
+def _validate(run: ChainRun) -> None:
+    """Does the identified model reproduce the record? (None: no result, or the re-simulation could
+    not run, with a warning saying why.)"""
+    result, excitation, settings = run.result, run.excitation, run.settings
+    validation = None
+    if result.ok:
+        try:
+            validation = validate_model(_model_params(result), run.config, excitation.record, mode=settings.validation_mode,
+                                        osc_metric=settings.osc_metric)
+        except ValueError as err:
+            run.warn("validation_not_run", f"validation failed: {one_line(err)}")
+    if not excitation.informative:
+        run.warn("test_not_informative", f"test response not informative: {excitation.reason}")
+    run.lap("identification_validation")
+    run.state.validation = validation
+
+
+def _guard_loop(run: ChainRun) -> None:
+    """E9: the limits handed to the drive for the closed-loop runs, less the headroom a run gains
+    after a stop (from the smaller of the test run's and the identified inertia)."""
+    result, config, rules = run.result, run.config, run.settings.rules
+    J_loop = min(_test_J(run.excitation), float(result.parameters.J_sigma) if result.ok and _positive(result.parameters.J_sigma)
+                 else math.inf)
+    cap = run.limits.torque_cap(config)
+    headroom = stop_headroom(cap / J_loop, config, rules) if math.isfinite(J_loop) else rules.first_headroom * run.limits.w_max
+    run.loop_limits = guarded_limits(run.limits, headroom, config, rules)
+
+
+def _permit(run: ChainRun) -> None:
+    """V1-V6: may a model-based controller be proposed?"""
+    result, settings = run.result, run.settings
+    run.state.permission = may_propose_controller(result, run.state.validation, warnings=tuple(run.warnings),
+                                                  max_validation_error=settings.max_validation_error,
+                                                  max_map_distance_ratio=settings.max_map_distance_ratio)
+    run.state.outside_training = outside_training(result, settings.max_map_distance_ratio) if result.ok else None
+
+
+def _design(run: ChainRun) -> None:
+    """Where permitted: propose (R1-R8), keep it only when it meets the guarantee (R7), tune it on
+    the identified model and plan the closed-loop experiment for the candidates."""
+    if not run.state.permission.allowed:
+        return
+    settings = run.settings
+    proposal = _propose(run)
+    if not proposal.meets(settings.spec):
+        run.warn("margins_not_reached", f"R7: {proposal.warnings[-1]}")
+        return
+    run.lap("proposal")
+    tuning, gains = _tune(run, proposal)
     run.lap("tuning")
-    sc, prediction = plan_scenario(proposal, gains[1:], config, run.limits, limit_use=cfg.limit_use, max_samples=cfg.max_samples)
-    if prediction["speed_quanta"] < 20:
+    scenario, prediction = plan_scenario(proposal, gains[1:], run.config, run.limits, limit_use=settings.limit_use,
+                                         max_samples=settings.max_samples)
+    if prediction["speed_quanta"] < settings.min_scenario_quanta:
         run.warn("scenario_small", f"the scenario's speed step is {prediction['speed_quanta']:.3g} speed quanta")
     run.say(f"{run.name}: running {len(gains)} gain set(s) on the drive")
-    run.known.update(proposal=proposal, tuning=tuning, scenario=sc, prediction=prediction)
-    runs = _run_candidates(run, proposal, gains, sc, "closed loop")
+    run.state.design = LoopPlan(proposal, tuple(gains), scenario, prediction, tuning)
+
+
+def _try_design(run: ChainRun) -> None:
+    """The design's candidates on the drive; the best one not worse than the proposal is chosen."""
+    design = run.state.design
+    if design is None:
+        return
+    runs = _run_candidates(run, design, "closed loop")
     run.lap("drive_runs")
-    return proposal, tuning, runs, _choose(runs), sc, prediction
+    run.state.design_trial = trial = LoopTrial(runs, _choose(runs))
+    if trial.chosen is None:
+        run.warn("loop_not_settled", "no candidate loop settled on the drive")
 
 
-def _positive(x: Any) -> bool:
-    return isinstance(x, (int, float)) and math.isfinite(x) and x > 0
-
-
-def _uncertain(result: Any) -> list[str]:
-    """Why the identified elastic values are uncertain (warning codes of :data:`UNCERTAIN_CODES`,
-    ``outside_training``); empty when nothing says so."""
-    why = sorted({w.code for w in result.warnings if w.code in UNCERTAIN_CODES})
-    if result.quality.outside_training and "outside_training" not in why:
-        why.append("outside_training")
-    return why
-
-
-def _fallback(run: _Run, result: Any, ex: ExcitationResult) -> tuple[ControllerProposal, list[PlantRun], int | None, TuningScenario, dict[str, float]]:
-    """F1: the cautious PI on ``J_sigma`` with the highest crossover that keeps the margins on the
-    worst cases of the class the test run allows; one run on the drive, delivered when it stays
-    bounded (not stopped, not diverging: a slow loop that does not settle within the experiment is
-    slow, not unstable; its margins hold on every model of its set)."""
-    cfg, config = run.cfg, run.config
-    J = min(float(result.parameters.J_sigma), _test_J(ex))
-    bands = f1_bands(_accepted(ex), J, config, cfg.spec.class_V_J, cfg.spec.class_f_e, min_osc_quanta=cfg.rules.min_osc_quanta,
-                     osc_visible_ratio=cfg.osc_visible_ratio)
-    p = _model_params(result)
-    if _positive(p["f_e"]) and _positive(p["V_J"]):  # the identified resonance too (+-50 %), trusted or not
-        widen(bands, p["V_J"], p["f_e"] / 1.5, p["f_e"] * 1.5)
-    prop = propose_cautious(J, config, cfg.spec, bands=bands)
-    if J < float(result.parameters.J_sigma):
-        prop = replace(prop, rules=prop.rules + (f"F1 J_sigma from the test run's acceleration (M* / accel = {J:.4g} kg m^2), "
-                                                 f"below the identified {float(result.parameters.J_sigma):.4g} kg m^2",))
-    sc, prediction = plan_scenario(prop, [], config, run.limits, limit_use=cfg.fallback_limit_use, max_samples=cfg.max_samples)
-    run.known.update(fallback=prop, scenario=sc, prediction=prediction)
-    runs = _run_candidates(run, prop, [(prop.Kp, prop.Ti, prop.T_f)], sc, "fallback F1")
+def _fall_back(run: ChainRun) -> None:
+    """F1 where no model-based loop can be delivered (and the settings allow it, and the
+    identification gave an inertia): one run on the drive, chosen when it stays bounded (not
+    stopped, not diverging: a slow loop that does not settle within the experiment is slow, not
+    unstable; its margins hold on every model of its set)."""
+    state = run.state
+    state.fallback_reason = reason = _fallback_reason(state)
+    result = run.result
+    if not (reason and run.settings.fallback and result.ok and _positive(result.parameters.J_sigma)):
+        return
+    run.say(f"{run.name}: fallback F1 ({reason})")
+    state.fallback = plan = _fallback_plan(run)
+    runs = _run_candidates(run, plan, "fallback F1")
     run.lap("fallback")
-    return prop, runs, (0 if runs[0].bounded else None), sc, prediction
+    state.fallback_trial = LoopTrial(runs, 0 if runs[0].bounded else None)
+
+
+def _deliver(run: ChainRun) -> None:
+    """The delivered controller and its run (F1's where it ran, else the chosen model-based one);
+    a warning where that run costs far more than its model predicts."""
+    state = run.state
+    if state.fallback_trial is not None:
+        trial = state.fallback_trial
+        if trial.chosen is None:
+            run.warn("loop_not_settled", f"the fallback F1 did not settle on the drive either ({trial.runs[0].verdict_text}): "
+                                         f"no controller delivered")
+            return
+        state.delivered, state.delivered_run = state.fallback.proposal, trial.runs[trial.chosen]
+    elif state.design_trial is not None and state.design_trial.chosen is not None:
+        trial = state.design_trial
+        state.delivered, state.delivered_run = _model_based_delivery(run, trial), trial.runs[trial.chosen]
+    else:
+        return
+    delivered_run, scenario = state.delivered_run, state.last_plan.scenario
+    if delivered_run.cost > scenario.model_warn_factor * delivered_run.model_cost:
+        run.warn("loop_unlike_model", f"the delivered loop costs {delivered_run.cost / delivered_run.model_cost:.3g} x what "
+                                      "the identified model predicts for its gains: the margins guaranteed on the model "
+                                      "may not hold on this drive (a torque scale or K_M off? a plant unlike the model?)")
+
+
+#: The chain, in order (module docstring): each stage reads the run's state and adds its own.
+STAGES: tuple[tuple[str, Callable[[ChainRun], None]], ...] = (
+    ("excite", _excite),
+    ("identify", _identify_record),
+    ("validate", _validate),
+    ("guard", _guard_loop),
+    ("permit", _permit),
+    ("design", _design),
+    ("try", _try_design),
+    ("fallback", _fall_back),
+    ("deliver", _deliver),
+)
+
+
+# --------------------------------------------------------------------------- the chain and its report
 
 
 def _truth_checks(drive: Any, delivered: ControllerProposal | None, config: sim.DriveConfig, M_star: float) -> dict[str, Any] | None:
@@ -381,178 +657,117 @@ def _truth_checks(drive: Any, delivered: ControllerProposal | None, config: sim.
     names them). None for a drive without ``truth()``."""
     if not callable(getattr(drive, "truth", None)):
         return None
-    t = dict(drive.truth())
-    p = sim.TwoMassParams.from_dicts({k: t[k] for k in sim.PARAM_NAMES})
-    row = p.truth(config, M_star)[0]
+    truth = dict(drive.truth())
+    params = sim.TwoMassParams.from_dicts({k: truth[k] for k in sim.PARAM_NAMES})
+    row = params.truth(config, M_star)[0]
     out: dict[str, Any] = {"parameters": {k: row[k] for k in (*sim.PARAM_NAMES, "C_F", "s_N", "r_osc")},
                            "structure": row["structure"]}
     if delivered is not None:
-        plant = linear_plant({k: t[k] for k in sim.PARAM_NAMES}, config, current_loop_damping=t.get("current_loop_damping"),
-                             extra_delay=int(t.get("extra_delay", 0)))
-        m = margins(plant, delivered.Kp, delivered.Ti, delivered.T_f, delivered.notch)
-        out.update(stable=m.stable, phase_margin=m.phase_margin, gain_margin_dB=m.gain_margin_dB, w_c=m.w_c)
+        plant = linear_plant({k: truth[k] for k in sim.PARAM_NAMES}, config,
+                             current_loop_damping=truth.get("current_loop_damping"), extra_delay=int(truth.get("extra_delay", 0)))
+        found = margins(plant, delivered.Kp, delivered.Ti, delivered.T_f, delivered.notch)
+        out.update(stable=found.stable, phase_margin=found.phase_margin, gain_margin_dB=found.gain_margin_dB, w_c=found.w_c)
     return out
 
 
+def _open_run(drive: sim.Drive, limits: sim.DriveLimits, identifier: RecordIdentifier, settings: CommissioningConfig,
+              writer: ScalarWriter | None, progress: Callable[[str], None] | None, name: str, tag: str | None) -> ChainRun:
+    """The run of the chain on ``drive``: its config read, the user's limits with the torque cap,
+    the speed limit checked against the encoder's resolution, every call guarded."""
+    if not isinstance(limits, sim.DriveLimits):
+        raise TypeError(f"limits: expected sim.DriveLimits, received {type(limits).__name__}")
+    if not callable(getattr(identifier, "identify", None)):
+        raise TypeError(f"identifier: expected an object with identify(record), received {type(identifier).__name__}")
+    if not isinstance(settings, CommissioningConfig):
+        raise TypeError(f"config: expected CommissioningConfig or None, received {type(settings).__name__}")
+    config = drive_config(drive)
+    limits = limits.for_drive(config)
+    check_resolution(limits, config)
+    return ChainRun(CheckedDrive(drive, config, limits, settings.drive_timeout), identifier, config, limits, settings,
+                    progress or (lambda msg: None), writer, name, tag or name)
+
+
 def commission(
-    drive: Any,
+    drive: sim.Drive,
     limits: sim.DriveLimits,
     *,
-    identifier: Any,
+    identifier: RecordIdentifier,
     config: CommissioningConfig | None = None,
-    writer: Any = None,
+    writer: ScalarWriter | None = None,
     progress: Callable[[str], None] | None = None,
     name: str = "plant",
     tag: str | None = None,
 ) -> CommissioningReport:
-    """Run the whole chain on one drive (SPEC 8, 8.1).
+    """Run the whole chain on one drive (:data:`STAGES`, in order).
 
     Args:
-        drive: a SPEC 8.1 drive: ``config`` (``T_s``, ``K_M``, ``T_Ei``, ``encoder_counts``,
-            ``M_N``, ``M_max``), ``run_test(M_star, w_max, limits) -> sim.Record``,
-            ``run_closed_loop(law, scenario, limits) -> sim.Record`` (e.g. :class:`sim.SimulatedDrive`).
+        drive: a drive of docs/contract.md section 4 (:class:`sim.Drive`: ``config`` with ``T_s``,
+            ``K_M``, ``T_Ei``, ``encoder_counts``, ``M_N``, ``M_max``; ``run_test(M_star, w_max,
+            limits)`` and ``run_closed_loop(law, scenario, limits)``, each returning a
+            :class:`sim.Record`), e.g. :class:`sim.SimulatedDrive`.
         limits: the user's limits (:class:`sim.DriveLimits`), handed to every experiment.
-        identifier: object with ``identify(record)`` returning an identification result
-            (``training.Identifier``); an error it raises (ValueError, RuntimeError) is rule V1.
+        identifier: ``identify(record)`` returning an identification result
+            (:class:`RecordIdentifier`, e.g. ``training.Identifier``); an error it raises
+            (ValueError, RuntimeError) is rule V1.
         config: the chain's settings (:class:`CommissioningConfig`).
         writer: optional TensorBoard ``SummaryWriter``; progress: optional one-line callback.
         name, tag: report name and TensorBoard tag prefix (default: the name).
 
     Returns :class:`CommissioningReport`. A refusal is a normal outcome (the report says why); so
     is a record that shows one of the user's limits passed: the experiments end there, nothing is
-    delivered and the report's ``breach`` says which limit, by how much, in which experiment
-    (SPEC 8.2). The drive is handed ``limits`` with ``M_max`` the torque cap
-    (:meth:`sim.DriveLimits.for_drive`), or less where a run needs headroom. A drive that breaks the
-    interface (a call that raises or passes ``config.drive_timeout``, a malformed record, one that
-    contradicts the drive's config, a closed-loop record cut short) raises
-    :class:`training.errors.CommissioningError`.
+    delivered and the report's ``breach`` says which limit, by how much, in which experiment. The
+    drive is handed ``limits`` with ``M_max`` the torque cap (:meth:`sim.DriveLimits.for_drive`),
+    or less where a run needs headroom. A drive that breaks the interface (a call that raises or
+    passes ``config.drive_timeout``, a malformed record, one that contradicts the drive's config,
+    a closed-loop record cut short) raises :class:`training.errors.CommissioningError`.
     """
-    cfg = CommissioningConfig() if config is None else config
-    if not isinstance(limits, sim.DriveLimits):
-        raise TypeError(f"limits: expected sim.DriveLimits, received {type(limits).__name__}")
-    if not callable(getattr(identifier, "identify", None)):
-        raise TypeError(f"identifier: expected an object with identify(record), received {type(identifier).__name__}")
-    if not isinstance(cfg, CommissioningConfig):
-        raise TypeError(f"config: expected CommissioningConfig or None, received {type(cfg).__name__}")
-    conf = drive_config(drive)
-    limits = limits.for_drive(conf)
-    check_resolution(limits, conf)
-    run = _Run(CheckedDrive(drive, conf, limits, cfg.drive_timeout), conf, limits, cfg, progress or (lambda msg: None), writer,
-               name, tag or name)
+    settings = CommissioningConfig() if config is None else config
+    run = _open_run(drive, limits, identifier, settings, writer, progress, name, tag)
     try:
-        return _chain(run, drive, identifier)
+        for _, stage in STAGES:
+            stage(run)
     except LimitPassed:
         if run.drive.breach is None:  # not one of ours: the drive raised it
             raise
-        return _stopped(run, drive)
+        excitation, M_star = _excitation_so_far(run)
+        return _report(run, excitation, M_star)
+    return _report(run, run.excitation, float(run.excitation.log[-1]["M_star"]))
 
 
-def _chain(run: _Run, drive: Any, identifier: Any) -> CommissioningReport:
-    """The stages on ``run`` (:func:`commission`); each stage's outputs also in ``run.known``."""
-    cfg, conf, limits, name = run.cfg, run.config, run.limits, run.name
-    run.say(f"{name}: adapting the test signal")
-    ex = adapt_test_signal(run.drive, limits, cfg.rules, log=run.test_log)
-    run.known["excitation"] = ex
-    if any(e["aborted"] for e in ex.log):
-        run.warn("run_stopped", "the drive stopped a test run at a limit")
-    run.lap("excitation")
-    if ex.code == "speed_against_torque":  # E10: nothing to identify; the maps would blame the units
-        run.warn("speed_against_torque", ex.reason)
-        result: Any = IdentificationFailed(f"not identified: {ex.reason}")
-    else:
-        run.say(f"{name}: identifying")
-        result = _identify(identifier, ex.record)
-    validation, vwarn = _validate(result, conf, ex.record, cfg)
-    run.warnings.extend(vwarn)
-    if not ex.informative:
-        run.warn("test_not_informative", f"test response not informative: {ex.reason}")
-    run.lap("identification_validation")
-    run.known.update(identification=result, validation=validation)
-    J_loop = min(_test_J(ex), float(result.parameters.J_sigma) if result.ok and _positive(result.parameters.J_sigma) else math.inf)
-    cap = limits.torque_cap(conf)
-    run.loop_limits = guarded_limits(limits, stop_headroom(cap / J_loop, conf, cfg.rules) if math.isfinite(J_loop) else
-                                     cfg.rules.first_headroom * limits.w_max, conf, cfg.rules)
-    perm = may_propose_controller(result, validation, warnings=tuple(run.warnings), max_validation_error=cfg.max_validation_error,
-                                  max_map_distance_ratio=cfg.max_map_distance_ratio)
-    run.known.update(permission=perm, outside_training=outside_training(result, cfg.max_map_distance_ratio) if result.ok else None)
-    outcome = None
-    if perm.allowed:
-        outcome = _model_based(run, result, ex)
-    proposal = tuning = None
-    runs: list[PlantRun] = []
-    chosen = sc = prediction = None
-    fallback: str | None = None
-    if outcome is not None:
-        proposal, tuning, runs, chosen, sc, prediction = outcome
-        run.known["runs"] = runs
-        if chosen is None:
-            run.warn("loop_not_settled", "no candidate loop settled on the drive")
-            fallback = "loop_not_settled"
-    else:
-        fallback = "refused" if not perm.allowed else "margins_not_reached"
-    J = result.parameters.J_sigma if result.ok else None
-    f1, f1_runs, delivered, delivered_run = None, [], None, None
-    if fallback and cfg.fallback and _positive(J):
-        run.say(f"{name}: fallback F1 ({fallback})")
-        run.known["fallback_reason"] = fallback
-        f1, f1_runs, f1_chosen, sc, prediction = _fallback(run, result, ex)
-        if f1_chosen is not None:
-            delivered, delivered_run = f1, f1_runs[f1_chosen]
-        else:
-            run.warn("loop_not_settled", f"the fallback F1 did not settle on the drive either ({f1_runs[0].verdict_text}): "
-                                         f"no controller delivered")
-    elif chosen is not None:
-        delivered_run = runs[chosen]
-        if chosen == 0:
-            delivered = proposal
-        elif chosen == 1:
-            delivered = tuning.controller
-        else:
-            g = runs[chosen].gains
-            delivered = proposal.with_gains(conf, *g, rule=(
-                f"T2 on the drive: the geometric mean of the proposal's and the tuned gains: Kp {g[0]:.4g}, Ti {g[1]:.4g} s, "
-                f"T_f {g[2]:.3g} s"))
-    if delivered_run is not None and sc is not None and delivered_run.cost > sc.model_warn_factor * delivered_run.model_cost:
-        run.warn("loop_unlike_model", f"the delivered loop costs {delivered_run.cost / delivered_run.model_cost:.3g} x what "
-                                      "the identified model predicts for its gains: the margins guaranteed on the model "
-                                      "may not hold on this drive (a torque scale or K_M off? a plant unlike the model?)")
-    if prediction:
-        prediction = {**prediction, "stop_at": run.loop_limits.w_max}
-    checks = limit_checks(run.drive.experiments, limits, conf)
-    run.timings["total"] = time.perf_counter() - run._start
-    return CommissioningReport(
-        config=conf, limits=limits, excitation=ex, identification=result, validation=validation, permission=perm,
-        warnings=tuple(run.warnings), max_map_distance_ratio=cfg.max_map_distance_ratio,
-        outside_training=run.known["outside_training"],
-        proposal=proposal, tuning=tuning, fallback=f1, fallback_reason=fallback, runs=runs, fallback_runs=f1_runs,
-        delivered=delivered, delivered_run=delivered_run, scenario=sc, prediction=prediction or {}, checks=checks,
-        truth=_truth_checks(drive, delivered, conf, float(ex.log[-1]["M_star"])), timings=run.timings, name=name)
-
-
-def _stopped(run: _Run, drive: Any) -> CommissioningReport:
-    """The report of a chain that a record ended at a passed limit (``run.drive.breach``): what the
-    stages had produced, the test runs up to the one that passed it (its log entry says so), every
-    experiment's limit check; nothing delivered."""
-    breach, known, conf = run.drive.breach, run.known, run.config
+def _excitation_so_far(run: ChainRun) -> tuple[ExcitationResult, float]:
+    """For a chain that a record ended at a passed limit: the excitation (where a test run passed
+    it: the adaptation's log so far and that run, whose entry says so) and the last test run's
+    ``M_star``."""
+    breach = run.drive.breach
     tests = [(rec, req) for (kind, rec), req in zip(run.drive.experiments, run.drive.requests) if kind == "test"]
-    ex = known.get("excitation")
-    if ex is None:  # a test run passed it: the adaptation's log so far, and that run
+    excitation = run.state.excitation
+    if excitation is None:
         rec, req = tests[-1]
         entry = {"iteration": len(run.test_log), "M_star": req["M_star"], "w_max": req["w_max"], "stop_at": req["stop_at"],
-                 **measure_response(rec, conf), "decision": "stop", "reason": breach.text()}
+                 **measure_response(rec, run.config), "decision": "stop", "reason": breach.text()}
         kept = [r for r, _ in tests if not r.meta.get("aborted", False)]
-        ex = ExcitationResult(record=kept[-1] if kept else rec, records=[r for r, _ in tests], log=[*run.test_log, entry],
-                              informative=False, reason=breach.text(), code="limit_passed")
-    prediction = known.get("prediction")
+        excitation = ExcitationResult(record=kept[-1] if kept else rec, records=[r for r, _ in tests], log=[*run.test_log, entry],
+                                      informative=False, reason=breach.text(), code="limit_passed")
+    return excitation, float(tests[-1][1]["M_star"])
+
+
+def _report(run: ChainRun, excitation: ExcitationResult, M_star: float) -> CommissioningReport:
+    """The report of the run: what its stages produced (a chain stopped at a passed limit: up to
+    there, nothing delivered), every experiment's limit check, the simulation-only truth."""
+    state, plan = run.state, run.state.last_plan
+    prediction = plan.prediction if plan is not None else None
     if prediction and run.loop_limits is not None:
         prediction = {**prediction, "stop_at": run.loop_limits.w_max}
-    run.timings["total"] = time.perf_counter() - run._start
+    design, trial = state.design, state.design_trial
+    checks = limit_checks(run.drive.experiments, run.limits, run.config)
+    run.timings["total"] = run.elapsed()
     return CommissioningReport(
-        config=conf, limits=run.limits, excitation=ex, identification=known.get("identification"),
-        validation=known.get("validation"), permission=known.get("permission"), warnings=tuple(run.warnings),
-        max_map_distance_ratio=run.cfg.max_map_distance_ratio, outside_training=known.get("outside_training"),
-        proposal=known.get("proposal"), tuning=known.get("tuning"), fallback=known.get("fallback"),
-        fallback_reason=known.get("fallback_reason"), runs=known.get("runs", []), scenario=known.get("scenario"),
-        prediction=prediction or {}, checks=limit_checks(run.drive.experiments, run.limits, conf),
-        truth=_truth_checks(drive, None, conf, float(tests[-1][1]["M_star"])), timings=run.timings, name=run.name,
-        breach=breach)
+        config=run.config, limits=run.limits, excitation=excitation, identification=state.identification,
+        validation=state.validation, permission=state.permission, warnings=tuple(run.warnings),
+        max_map_distance_ratio=run.settings.max_map_distance_ratio, outside_training=state.outside_training,
+        proposal=None if design is None else design.proposal, tuning=None if design is None else design.tuning,
+        fallback=None if state.fallback is None else state.fallback.proposal, fallback_reason=state.fallback_reason,
+        runs=[] if trial is None else trial.runs, fallback_runs=[] if state.fallback_trial is None else state.fallback_trial.runs,
+        delivered=state.delivered, delivered_run=state.delivered_run, scenario=None if plan is None else plan.scenario,
+        prediction=prediction or {}, checks=checks, truth=_truth_checks(run.drive.drive, state.delivered, run.config, M_star),
+        timings=run.timings, name=run.name, breach=run.drive.breach)

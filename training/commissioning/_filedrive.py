@@ -50,6 +50,9 @@ __all__ = ["FileDrive", "ExperimentPending", "read_recording", "TORQUE_REF_TOLER
 #: How far a test recording's peak torque reference may be from the requested ``M_star`` (a share):
 #: a drive's own torque units rounded. (Its measured torque: :data:`MEASURED_TORQUE_ALLOWANCE`.)
 TORQUE_REF_TOLERANCE: float = 0.02
+#: How far a test recording's stated ``M_star`` or ``w_max`` may be from the request's (relative): the
+#: same number, written and read back.
+REQUEST_TOLERANCE: float = 1e-6
 
 
 def read_recording(path: Path, config: dict[str, Any] | None = None) -> sim.Record:
@@ -111,7 +114,7 @@ class FileDrive:
         rec = read_recording(stem, self.config)
         for key in ("M_star", "w_max"):  # a test recording names its signal: it must be the one requested
             got = rec.meta.get(key)
-            if key in request and got is not None and not math.isclose(float(got), float(request[key]), rel_tol=1e-6):
+            if key in request and got is not None and not math.isclose(float(got), float(request[key]), rel_tol=REQUEST_TOLERANCE):
                 raise CommissioningError(f"{stem}.json: {key} {float(got):.6g} is not the requested {float(request[key]):.6g} "
                                          f"({req_path}): a recording of another experiment")
         if request["kind"] == "test":

@@ -53,6 +53,8 @@ CONFIG_TOLERANCE: float = 1e-3
 #: and the independent plants' measured peaks stay within 1 % of the cap. A drive applying
 #: several times the torque asked for passes it at once.
 MEASURED_TORQUE_ALLOWANCE: float = 0.5
+#: How far the torque reference may pass the cap (relative) and still be at it: floating-point rounding.
+TORQUE_REF_ROUNDING: float = 1e-9
 #: The limits a record can show passed, with the word for the bound in the one-line text and the unit.
 LIMIT_NAMES: dict[str, tuple[str, str]] = {
     "speed": ("limit", "rad/s"),
@@ -128,7 +130,7 @@ def passed_limits(peaks: dict[str, float], limits: sim.DriveLimits, cap: float) 
     ``cap`` by more than :data:`MEASURED_TORQUE_ALLOWANCE`."""
     checks = (("speed", peaks["peak_speed"], limits.w_max, limits.w_max),
               ("travel", peaks["travel"], limits.travel, limits.travel),
-              ("torque reference", peaks["peak_torque_ref"], cap, cap * (1 + 1e-9)),
+              ("torque reference", peaks["peak_torque_ref"], cap, cap * (1 + TORQUE_REF_ROUNDING)),
               ("measured torque", peaks["peak_torque"], cap, cap * (1 + MEASURED_TORQUE_ALLOWANCE)))
     return tuple(PassedLimit(name, value, bound) for name, value, bound, beyond in checks if value > beyond)
 

@@ -12,7 +12,7 @@ over the last sample. Units SI.
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -27,7 +27,7 @@ from ._law import NotchSpec
 __all__ = [
     "Mechanics", "mechanics_from", "drive_value", "LinearPlant", "linear_plant", "loop_figures",
     "closed_loop_matrices", "constant_input_response", "frequency_grid", "Margins", "loop_margins", "margins",
-    "ModelSet", "model_set", "bode",
+    "ModelSet", "model_set", "bode", "LoopAnalysis", "ANALYSIS",
 ]
 
 
@@ -81,6 +81,33 @@ def _num(value: Any, name: str) -> float | None:
     return out
 
 
+#: What :func:`mechanics_from` accepts of each parameter: (names, the test, what is expected); None passes.
+_MECHANICS_RANGES: tuple[tuple[tuple[str, ...], Callable[[float], bool], str], ...] = (
+    (("V_J", "f_e"), lambda v: v > 0, "a positive value"),
+    (("d",), lambda v: 0 <= v < 1, "0 <= d < 1"),
+    (("backlash", "M_FC", "mu_F"), lambda v: v >= 0, "a value >= 0"),
+)
+
+
+def _raw_params(params: Mapping[str, Any] | Any) -> dict[str, float | None]:
+    """The seven parameters of a dict or a one-system TwoMassParams as numbers (None: missing)."""
+    if isinstance(params, Mapping):
+        raw = {k: params.get(k) for k in sim.PARAM_NAMES}
+    else:
+        raw = {k: getattr(params, k, None) for k in sim.PARAM_NAMES}
+    return {k: _num(v, k) for k, v in raw.items()}
+
+
+def _check_mechanics(vals: Mapping[str, float | None]) -> None:
+    """ValueError naming the first parameter out of its range (``J_sigma`` required and positive)."""
+    if vals["J_sigma"] is None or vals["J_sigma"] <= 0:
+        raise ValueError(f"J_sigma: expected a positive inertia in kg m^2, received {vals['J_sigma']}")
+    for names, inside, expected in _MECHANICS_RANGES:
+        for k in names:
+            if vals[k] is not None and not inside(vals[k]):
+                raise ValueError(f"{k}: expected {expected}, received {vals[k]}")
+
+
 def mechanics_from(params: Mapping[str, Any] | Any) -> Mechanics:
     """Read ``J_sigma, V_J, f_e, d, backlash, M_FC, mu_F`` from a dict or a one-system TwoMassParams.
 
@@ -89,30 +116,14 @@ def mechanics_from(params: Mapping[str, Any] | Any) -> Mechanics:
     """
     if isinstance(params, Mechanics):
         return params
-    if isinstance(params, Mapping):
-        raw = {k: params.get(k) for k in sim.PARAM_NAMES}
-    else:
-        raw = {k: getattr(params, k, None) for k in sim.PARAM_NAMES}
-    vals = {k: _num(v, k) for k, v in raw.items()}
-    if vals["J_sigma"] is None or vals["J_sigma"] <= 0:
-        raise ValueError(f"J_sigma: expected a positive inertia in kg m^2, received {vals['J_sigma']}")
-    for k in ("V_J", "f_e"):
-        if vals[k] is not None and vals[k] <= 0:
-            raise ValueError(f"{k}: expected a positive value, received {vals[k]}")
-    if vals["d"] is not None and not 0 <= vals["d"] < 1:
-        raise ValueError(f"d: expected 0 <= d < 1, received {vals['d']}")
-    for k in ("backlash", "M_FC", "mu_F"):
-        if vals[k] is not None and vals[k] < 0:
-            raise ValueError(f"{k}: expected a value >= 0, received {vals[k]}")
+    vals = _raw_params(params)
+    _check_mechanics(vals)
     two_mass = vals["f_e"] is not None and vals["V_J"] is not None
     return Mechanics(
         J_sigma=vals["J_sigma"],
         V_J=vals["V_J"] if two_mass else None,
         f_e=vals["f_e"] if two_mass else None,
-        d=vals["d"] or 0.0,
-        backlash=vals["backlash"] or 0.0,
-        M_FC=vals["M_FC"] or 0.0,
-        mu_F=vals["mu_F"] or 0.0,
+        **{k: vals[k] or 0.0 for k in ("d", "backlash", "M_FC", "mu_F")},
     )
 
 
@@ -279,15 +290,56 @@ def constant_input_response(A: np.ndarray, b: np.ndarray, c: np.ndarray, n: int)
         return c @ S[:m, :n]
 
 
-def frequency_grid(T_s: float, resonances: Sequence[float] = (), n: int = 600) -> np.ndarray:
-    """Angular frequencies [rad/s] for margins and Bode plots: ``n`` log-spaced points from
-    ``1e-5`` of the Nyquist frequency to just below it, dense (+-15 %, 0.2 % steps) around each
-    of ``resonances`` (a lightly damped resonance is a few per mille wide)."""
+@dataclass(frozen=True)
+class LoopAnalysis:
+    """The frequency grid of the margins and the Bode plots, and the step response of :func:`loop_figures`."""
+
+    grid_points: int = 600
+    """Log-spaced points of the frequency grid ..."""
+    grid_low: float = 1e-5
+    """... from this share of the Nyquist frequency ..."""
+    grid_high: float = 0.999
+    """... to this share (just below it)."""
+    resonance_span: float = 0.15
+    """The grid is dense within +- this (log, relative) around each resonance (a lightly damped one
+    is a few per mille wide) ..."""
+    resonance_points: int = 151
+    """... with this many points (0.2 % steps)."""
+    step_crossovers: float = 40.0
+    """The step response runs this many ``1/w_c`` ..."""
+    step_min: int = 200
+    """... at least this many samples ..."""
+    step_max: int = 100000
+    """... at most this many."""
+    settle_band: float = 0.02
+    """The step response has settled inside +- this share of its final value."""
+
+    def __post_init__(self) -> None:
+        if not 0 < self.grid_low < self.grid_high < 1:
+            raise ValueError(f"grid_low, grid_high: expected 0 < grid_low < grid_high < 1, received {self.grid_low}, {self.grid_high}")
+        for name in ("grid_points", "resonance_points", "step_min", "step_max"):
+            if getattr(self, name) < 2:
+                raise ValueError(f"{name}: expected >= 2, received {getattr(self, name)}")
+        for name in ("resonance_span", "step_crossovers", "settle_band"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name}: expected > 0, received {getattr(self, name)}")
+
+
+#: The grid and the step response the loop analysis uses.
+ANALYSIS = LoopAnalysis()
+
+
+def frequency_grid(T_s: float, resonances: Sequence[float] = (), n: int | None = None) -> np.ndarray:
+    """Angular frequencies [rad/s] for margins and Bode plots: ``n`` (default
+    ``ANALYSIS.grid_points``) log-spaced points over the Nyquist frequency's share
+    ``ANALYSIS.grid_low`` .. ``grid_high``, dense around each of ``resonances`` (:class:`LoopAnalysis`)."""
     w_ny = math.pi / T_s
-    parts = [np.logspace(math.log10(w_ny * 1e-5), math.log10(w_ny * 0.999), n)]
+    n = ANALYSIS.grid_points if n is None else n
+    parts = [np.logspace(math.log10(w_ny * ANALYSIS.grid_low), math.log10(w_ny * ANALYSIS.grid_high), n)]
+    span = ANALYSIS.resonance_span
     for w_r in resonances:
         if math.isfinite(w_r) and 0 < w_r < w_ny:
-            parts.append(w_r * np.exp(np.linspace(-0.15, 0.15, 151)))
+            parts.append(w_r * np.exp(np.linspace(-span, span, ANALYSIS.resonance_points)))
     w = np.unique(np.concatenate(parts))
     return w[w < w_ny]
 
@@ -405,14 +457,15 @@ def bode(plant: LinearPlant, Kp: float, Ti: float, T_f: float = 0.0, notch: Notc
 
 
 def _step_figures(t: np.ndarray, y: np.ndarray, final: float) -> dict[str, float]:
-    """Overshoot [%], rise time 10-90 % [s], 2 %-settling time [s] of a step response to ``final``."""
+    """Overshoot [%], rise time 10-90 % [s], settling time [s] (inside ``ANALYSIS.settle_band``) of a
+    step response to ``final``."""
     if not np.isfinite(y).all() or final == 0:
         return {"overshoot_pct": math.inf, "rise_time": math.inf, "settling_time": math.inf}
     yn = y / final
     i10 = np.argmax(yn >= 0.1) if (yn >= 0.1).any() else None
     i90 = np.argmax(yn >= 0.9) if (yn >= 0.9).any() else None
     rise = float(t[i90] - t[i10]) if i10 is not None and i90 is not None else math.inf
-    outside = np.nonzero(np.abs(yn - 1.0) > 0.02)[0]
+    outside = np.nonzero(np.abs(yn - 1.0) > ANALYSIS.settle_band)[0]
     settle = math.inf if len(outside) and outside[-1] == len(yn) - 1 else (float(t[outside[-1] + 1]) if len(outside) else 0.0)
     return {"overshoot_pct": float(max(0.0, yn.max() - 1.0) * 100.0), "rise_time": rise, "settling_time": settle}
 
@@ -449,7 +502,7 @@ def loop_figures(
     bw_idx = np.nonzero(np.abs(T_ref) < 1 / math.sqrt(2))[0]
     bandwidth = float(w[bw_idx[0]]) if len(bw_idx) else math.pi / T_s
     w_c_for_time = mg.w_c if math.isfinite(mg.w_c) and mg.w_c > 0 else 1.0 / T_s
-    n = int(min(max(40.0 / (w_c_for_time * T_s), 200), 100000))
+    n = int(min(max(ANALYSIS.step_crossovers / (w_c_for_time * T_s), ANALYSIS.step_min), ANALYSIS.step_max))
     t = np.arange(n) * T_s
     figs = _step_figures(t, constant_input_response(A, b_r, c, n), 1.0)
     yl = constant_input_response(A, b_d, c, n)

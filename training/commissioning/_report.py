@@ -279,8 +279,8 @@ class CommissioningReport:
     def _runs_lines(self, runs: list[PlantRun], names: tuple[str, ...]) -> list[str]:
         if not runs or self.scenario is None:
             return []
-        sc = self.scenario
-        L = [f"7 on the drive (steps +-{sc.w_step:.3g} rad/s, disturbance {sc.M_dist:.3g} Nm, {sc.n_samples} samples; "
+        scenario = self.scenario
+        L = [f"7 on the drive (steps +-{scenario.w_step:.3g} rad/s, disturbance {scenario.M_dist:.3g} Nm, {scenario.n_samples} samples; "
              f"predicted peak {self.prediction.get('peak_speed', math.nan):.3g} rad/s, travel {self.prediction.get('travel', math.nan):.3g} rad; "
              f"the drive stops at {self.prediction.get('stop_at', math.nan):.3g} rad/s):",
              "   run       Kp      Ti [ms]  cost (motor+load)  rise [ms]  overshoot [%]  load overshoot [%]  settled"]
@@ -373,6 +373,37 @@ def _ms(v: float) -> str:
 # --------------------------------------------------------------------------- many drives
 
 
+def _refusals(reports: list[CommissioningReport]) -> dict[str, int]:
+    """How many drives each refusal rule refused, by its code."""
+    by_rule: dict[str, int] = {}
+    for report in reports:
+        if report.refused:
+            by_rule[report.permission.rule] = by_rule.get(report.permission.rule, 0) + 1
+    return by_rule
+
+
+def _improvements(delivered: list[CommissioningReport]) -> dict[str, Any]:
+    """The median and the worst improvement over the model-based deliveries whose proposal settled,
+    and the drive of the worst (None where there is none)."""
+    found = [(r.improvement, r.name) for r in delivered if r.improvement is not None]
+    worst = min(found) if found else (None, None)
+    return {"median_improvement": statistics.median(i for i, _ in found) if found else None,
+            "worst_improvement": worst[0], "worst_plant": worst[1]}
+
+
+def _truth_figures(reports: list[CommissioningReport], delivered: list[CommissioningReport]) -> dict[str, Any]:
+    """Simulation only: identified structure against the true class, the delivered loops stable on
+    the true linear model and their smallest margins there."""
+    truths = [r.truth for r in delivered if r.truth is not None and "stable" in r.truth]
+    return {
+        "structure_correct": sum(r.truth is not None and r.identified_structure == r.truth["structure"] for r in reports),
+        "with_truth": sum(r.truth is not None for r in reports),
+        "true_stable": sum(bool(t["stable"]) for t in truths),
+        "true_min_phase_margin": min((t["phase_margin"] for t in truths), default=None),
+        "true_min_gain_margin_dB": min((t["gain_margin_dB"] for t in truths), default=None),
+    }
+
+
 def summarize(reports: list[CommissioningReport], wall_s: float) -> dict[str, Any]:
     """Figures over many drives: refusals by rule code, limits kept in every experiment, the drives
     whose experiments ended at a passed limit (``stopped_at_limit``, names), delivered
@@ -380,14 +411,8 @@ def summarize(reports: list[CommissioningReport], wall_s: float) -> dict[str, An
     the F1 crossovers; with simulated drives the truth checks (stable, margins on the true linear
     model). ``wall_s``: the time the caller measured over the drives [s] (``summary_text`` calls it
     the chain time)."""
-    by_rule: dict[str, int] = {}
-    for r in reports:
-        if r.refused:
-            by_rule[r.permission.rule] = by_rule.get(r.permission.rule, 0) + 1
+    by_rule = _refusals(reports)
     delivered = [r for r in reports if r.delivered is not None]
-    imps = [(r.improvement, r.name) for r in delivered if r.improvement is not None]
-    worst = min(imps) if imps else (None, None)
-    truths = [r.truth for r in delivered if r.truth is not None and "stable" in r.truth]
     return {
         "plants": len(reports),
         "delivered": len(delivered),
@@ -398,14 +423,8 @@ def summarize(reports: list[CommissioningReport], wall_s: float) -> dict[str, An
         "refused_by_rule": by_rule,
         "within_limits": sum(bool(r.checks.get("within_limits")) for r in reports),
         "stopped_at_limit": [r.name for r in reports if r.breach is not None],
-        "median_improvement": statistics.median(i for i, _ in imps) if imps else None,
-        "worst_improvement": worst[0],
-        "worst_plant": worst[1],
-        "structure_correct": sum(r.truth is not None and r.identified_structure == r.truth["structure"] for r in reports),
-        "with_truth": sum(r.truth is not None for r in reports),
-        "true_stable": sum(bool(t["stable"]) for t in truths),
-        "true_min_phase_margin": min((t["phase_margin"] for t in truths), default=None),
-        "true_min_gain_margin_dB": min((t["gain_margin_dB"] for t in truths), default=None),
+        **_improvements(delivered),
+        **_truth_figures(reports, delivered),
         "wall_s": wall_s,
     }
 

@@ -41,12 +41,55 @@ from ._rules import ControllerProposal, ControllerSpec
 __all__ = [
     "TuningScenario", "TuningResult", "plan_scenario", "closed_loop_cost", "response_figures", "load_estimate",
     "model_response", "tune_controller", "Gains", "loop_verdict", "LOOP_VERDICTS", "BOUNDED_VERDICTS",
-    "USABLE_VERDICTS", "UNSCORED_VERDICTS",
+    "USABLE_VERDICTS", "UNSCORED_VERDICTS", "ScenarioSizing", "SearchSettings", "SCENARIO_SIZING", "SEARCH",
 ]
 
 #: (Kp [Nm s/rad], Ti [s], T_f [s]).
 Gains = tuple[float, float, float]
 _SEGMENTS = 6  # +w, 0, -w, 0, disturbance on, off
+
+
+@dataclass(frozen=True)
+class ScenarioSizing:
+    """How :func:`plan_scenario` sizes the closed-loop experiment beyond its arguments."""
+
+    min_segment: int = 100
+    """Fewest samples of one segment (a fast loop still gets a readable step)."""
+    kick_share: float = 0.2
+    """The P-kick ``Kp w_step`` and the disturbance ``M_dist`` at most this share of the torque cap."""
+
+    def __post_init__(self) -> None:
+        if self.min_segment < 1:
+            raise ValueError(f"min_segment: expected >= 1, received {self.min_segment}")
+        if not 0 < self.kick_share <= 1:
+            raise ValueError(f"kick_share: expected in (0, 1], received {self.kick_share}")
+
+
+@dataclass(frozen=True)
+class SearchSettings:
+    """The cost landscape and the stopping rule of :func:`tune_controller`'s Nelder-Mead search."""
+
+    pareto_weight: float = 10.0
+    """A candidate worse than the proposal on the motor or the load terms pays this many times the excess."""
+    phase_deficit_per_dB: float = 10.0
+    """A candidate that misses the margins pays its phase deficit [deg] over this plus its gain deficit [dB]."""
+    unstable_penalty: float = 100.0
+    """What an unstable candidate (or one with no finite deficit) pays above ``unstable_cost``."""
+    xatol: float = 0.01
+    """The simplex stops when its points lie within this of each other in ``log`` gains ..."""
+    fatol: float = 1e-4
+    """... and their costs within this."""
+
+    def __post_init__(self) -> None:
+        for name in ("pareto_weight", "phase_deficit_per_dB", "unstable_penalty", "xatol", "fatol"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name}: expected > 0, received {getattr(self, name)!r}")
+
+
+#: How :func:`plan_scenario` sizes the experiment.
+SCENARIO_SIZING = ScenarioSizing()
+#: How :func:`tune_controller` searches.
+SEARCH = SearchSettings()
 
 
 @dataclass(frozen=True)
@@ -87,6 +130,11 @@ class TuningScenario:
     model_warn_factor: float = 8.0
     """A delivered run above this many times its model's cost gets ``loop_unlike_model`` (the 50-plant studies'
     delivered and candidate runs: at most 6.7 x, median 0.9-1.3 x; a drive applying 20 x the law's torque: 18.5 x)."""
+    not_settled_error: float = 0.5
+    """A first step that ends (mean over the last quarter of its segment) more than this share of ``w_step`` off its
+    reference does not settle: it costs ``unstable_cost``."""
+    at_cap: float = 0.99
+    """A torque reference at or above this share of the torque cap sits at the cap (``saturated_share``)."""
 
     @property
     def band(self) -> float:
@@ -96,6 +144,11 @@ class TuningScenario:
     @property
     def n_samples(self) -> int:
         return _SEGMENTS * self.n_segment
+
+    @property
+    def n_tail(self) -> int:
+        """The samples at the end of each segment where it should have settled: its last quarter, at least 4."""
+        return max(self.n_segment // 4, 4)
 
     def references(self) -> np.ndarray:
         """Speed reference per segment [rad/s] (``6``)."""
@@ -126,16 +179,16 @@ def load_estimate(mech: Mechanics | None, speed: np.ndarray, T_s: float) -> np.n
     return scipy.signal.lfilter(b, a, speed, axis=-1)
 
 
-def model_response(mech: Mechanics, config: Any, gains: Sequence[Gains], notch: Any, sc: TuningScenario,
+def model_response(mech: Mechanics, config: Any, gains: Sequence[Gains], notch: Any, scenario: TuningScenario,
                    w_step: float | None = None, M_dist: float | None = None) -> np.ndarray:
     """The measured motor speed ``B x N`` [rad/s] of each gain set on the linear model of ``mech``
-    (:func:`closed_loop_matrices`: the law without its torque clamp) over ``sc``'s scenario (its
+    (:func:`closed_loop_matrices`: the law without its torque clamp) over the experiment ``scenario`` (its
     ``w_step`` and ``M_dist`` replaced where given)."""
     plant = linear_plant(mech, config)
-    n, m = sc.n_segment, sc.n_samples
-    refs = sc.references() / sc.w_step * (sc.w_step if w_step is None else w_step)
+    n, m = scenario.n_segment, scenario.n_samples
+    refs = scenario.references() / scenario.w_step * (scenario.w_step if w_step is None else w_step)
     dist = np.zeros(_SEGMENTS)
-    dist[4] = sc.M_dist if M_dist is None else M_dist
+    dist[4] = scenario.M_dist if M_dist is None else M_dist
     out = np.zeros((len(gains), m))
     for j, (Kp, Ti, T_f) in enumerate(gains):
         A, b_r, b_d, c, _ = closed_loop_matrices(plant, Kp, Ti, T_f, notch)
@@ -166,7 +219,7 @@ def plan_scenario(proposal: ControllerProposal, extra: Sequence[Gains], config: 
     w_c = proposal.figures.get("w_c", math.nan)
     if not (math.isfinite(w_c) and w_c > 0):
         raise ValueError(f"proposal figures: expected a finite crossover w_c > 0, received {w_c}")
-    n_seg = int(min(max(settle_factor / (w_c * T_s), 100), max_samples // _SEGMENTS))
+    n_seg = int(min(max(settle_factor / (w_c * T_s), SCENARIO_SIZING.min_segment), max_samples // _SEGMENTS))
     M_cap = limits.torque_cap(config)
     unit = TuningScenario(T_s=T_s, w_step=1.0, M_dist=1.0, n_segment=n_seg, T_ref=1 / w_c,
                           dip_ref=1.0 / (mech.J_sigma * w_c), two_mass=mech.two_mass)
@@ -179,24 +232,34 @@ def plan_scenario(proposal: ControllerProposal, extra: Sequence[Gains], config: 
     pw_r, pt_r = peaks(model_response(mech, config, gains, proposal.notch, unit, 1.0, 0.0))
     pw_d, pt_d = peaks(model_response(mech, config, gains, proposal.notch, unit, 0.0, 1.0))
     half = 0.5 * limit_use
-    w_step = min(0.2 * M_cap / max(g[0] for g in gains), half * limits.w_max / pw_r, half * limits.travel / pt_r)
-    M_dist = min(0.2 * M_cap, half * limits.w_max / max(pw_d, 1e-300), half * limits.travel / max(pt_d, 1e-300))
+    kick = SCENARIO_SIZING.kick_share * M_cap
+    w_step = min(kick / max(g[0] for g in gains), half * limits.w_max / pw_r, half * limits.travel / pt_r)
+    M_dist = min(kick, half * limits.w_max / max(pw_d, 1e-300), half * limits.travel / max(pt_d, 1e-300))
     if not (math.isfinite(w_step) and w_step > 0 and math.isfinite(M_dist) and M_dist > 0):
         raise ValueError(f"scenario: the model predicts no bounded response (w_step {w_step}, M_dist {M_dist})")
     q_w = sim.speed_quantum(float(config.encoder_counts), T_s)
-    sc = replace(unit, w_step=float(w_step), M_dist=float(M_dist), dip_ref=M_dist / (mech.J_sigma * w_c), q_w=q_w)
-    pw, pt = peaks(model_response(mech, config, gains, proposal.notch, sc))
-    return sc, {"peak_speed": pw, "travel": pt, "speed_quanta": w_step / q_w}
+    scenario = replace(unit, w_step=float(w_step), M_dist=float(M_dist), dip_ref=M_dist / (mech.J_sigma * w_c), q_w=q_w)
+    pw, pt = peaks(model_response(mech, config, gains, proposal.notch, scenario))
+    return scenario, {"peak_speed": pw, "travel": pt, "speed_quanta": w_step / q_w}
 
 
-def _segments(w: np.ndarray, sc: TuningScenario) -> np.ndarray:
+#: Where a diverging run's speeds are clipped for scoring [rad/s] (finite arithmetic; it is unstable anyway).
+_CLIP = 1e30
+
+
+def _clipped(speed: np.ndarray) -> np.ndarray:
+    """``speed`` with NaN and inf replaced and every value within ``+-_CLIP``."""
+    return np.clip(np.nan_to_num(speed, nan=_CLIP, posinf=_CLIP, neginf=-_CLIP), -_CLIP, _CLIP)
+
+
+def _segments(w: np.ndarray, scenario: TuningScenario) -> np.ndarray:
     """``*batch x N`` -> ``*batch x 6 x n_segment`` (N must be the scenario's length)."""
-    return w.reshape(*w.shape[:-1], _SEGMENTS, sc.n_segment)
+    return w.reshape(*w.shape[:-1], _SEGMENTS, scenario.n_segment)
 
 
-def closed_loop_cost(speed: np.ndarray, sc: TuningScenario, mech: Mechanics | None = None,
+def closed_loop_cost(speed: np.ndarray, scenario: TuningScenario, mech: Mechanics | None = None,
                      aborted: Any = False) -> tuple[np.ndarray, dict[str, np.ndarray]]:
-    """Cost ``*batch`` of measured motor speeds ``*batch x N`` [rad/s] over ``sc`` (module docstring);
+    """Cost ``*batch`` of measured motor speeds ``*batch x N`` [rad/s] over ``scenario`` (module docstring);
     ``aborted``: the drive stopped the run (bool ``*batch``). A run shorter than the scenario (the
     drive stopped it) is padded with its last value and counts as stopped.
 
@@ -204,17 +267,17 @@ def closed_loop_cost(speed: np.ndarray, sc: TuningScenario, mech: Mechanics | No
     load_osc, motor, load, unstable`` (``motor`` + ``load`` = cost of a settled run).
     """
     w = np.asarray(speed, dtype=np.float64)
-    N = sc.n_samples
+    N = scenario.n_samples
     short = w.shape[-1] < N
     if short:
         w = np.concatenate([w, np.repeat(w[..., -1:], N - w.shape[-1], -1)], -1) if w.shape[-1] else np.zeros((*w.shape[:-1], N))
     w = w[..., :N]
     aborted = np.asarray(aborted, dtype=bool) | short
-    seg = _segments(np.clip(np.nan_to_num(w, nan=1e30, posinf=1e30, neginf=-1e30), -1e30, 1e30) , sc)
-    n, ws = sc.n_segment, sc.w_step
-    dt = sc.T_s / sc.T_ref
+    seg = _segments(_clipped(w), scenario)
+    n, ws = scenario.n_segment, scenario.w_step
+    dt = scenario.T_s / scenario.T_ref
     tau = np.arange(n) * dt
-    refs = sc.references()
+    refs = scenario.references()
     prev = np.concatenate([[0.0], refs[:-1]])
     direction = np.sign(refs - prev)[:4]
 
@@ -222,51 +285,51 @@ def closed_loop_cost(speed: np.ndarray, sc: TuningScenario, mech: Mechanics | No
         return np.max((s[..., :4, :] - refs[:4, None]) * direction[:, None], axis=(-1, -2)).clip(0) / ws
 
     def osc(s: np.ndarray) -> np.ndarray:
-        tail = s[..., -max(n // 4, 4):]
+        tail = s[..., -scenario.n_tail:]
         return ((tail - tail.mean(-1, keepdims=True)) ** 2).mean(-1).sum(-1) / ws**2
 
     with np.errstate(over="ignore", invalid="ignore"):  # a diverging run: inf terms, scored as unstable below
-        return _cost(w, seg, sc, mech, aborted, tau, dt, refs, direction, overshoot, osc)
+        return _cost(w, seg, scenario, mech, aborted, tau, dt, refs, direction, overshoot, osc)
 
 
-def _cost(w: np.ndarray, seg: np.ndarray, sc: TuningScenario, mech: Mechanics | None, aborted: np.ndarray, tau: np.ndarray,
+def _cost(w: np.ndarray, seg: np.ndarray, scenario: TuningScenario, mech: Mechanics | None, aborted: np.ndarray, tau: np.ndarray,
           dt: float, refs: np.ndarray, direction: np.ndarray, overshoot: Callable[[np.ndarray], np.ndarray],
           osc: Callable[[np.ndarray], np.ndarray]) -> tuple[np.ndarray, dict[str, np.ndarray]]:
-    n, ws = sc.n_segment, sc.w_step
+    ws = scenario.w_step
     err = np.abs(seg - refs[:, None])
     itae_steps = (tau * err[..., :4, :] / ws).sum(-1).mean(-1) * dt
-    itae_dist = (tau * err[..., 4:, :] / sc.dip_ref).sum(-1).mean(-1) * dt
+    itae_dist = (tau * err[..., 4:, :] / scenario.dip_ref).sum(-1).mean(-1) * dt
     os_m, osc_m = overshoot(seg), osc(seg)
-    load = load_estimate(mech, w, sc.T_s) if sc.two_mass else None
+    load = load_estimate(mech, w, scenario.T_s) if scenario.two_mass else None
     if load is not None:
-        ls = _segments(np.clip(np.nan_to_num(load, nan=1e30, posinf=1e30, neginf=-1e30), -1e30, 1e30), sc)
+        ls = _segments(_clipped(load), scenario)
         os_l, osc_l = overshoot(ls), osc(ls)
     else:
         os_l = osc_l = np.zeros_like(os_m)
-    ow, oa = sc.overshoot_weight, sc.overshoot_allowed
-    motor = itae_steps + sc.load_weight * itae_dist + ow * (os_m - oa).clip(0) ** 2 + sc.oscillation_weight * osc_m
-    load_part = ow * (os_l - oa).clip(0) ** 2 + sc.oscillation_weight * osc_l
+    ow, oa = scenario.overshoot_weight, scenario.overshoot_allowed
+    motor = itae_steps + scenario.load_weight * itae_dist + ow * (os_m - oa).clip(0) ** 2 + scenario.oscillation_weight * osc_m
+    load_part = ow * (os_l - oa).clip(0) ** 2 + scenario.oscillation_weight * osc_l
     excursion = np.abs(seg).max(axis=(-1, -2)) / ws
-    end_error = np.abs(seg[..., 0, -max(n // 4, 4):].mean(-1) - ws) / ws
-    unstable = aborted | ~np.isfinite(w).all(-1) | (excursion > sc.divergence_factor) | (end_error > 0.5)
+    end_error = np.abs(seg[..., 0, -scenario.n_tail:].mean(-1) - ws) / ws
+    unstable = aborted | ~np.isfinite(w).all(-1) | (excursion > scenario.divergence_factor) | (end_error > scenario.not_settled_error)
     cost = motor + load_part
-    bad = sc.unstable_cost + np.log1p(np.minimum(excursion, 1e30))
+    bad = scenario.unstable_cost + np.log1p(np.minimum(excursion, _CLIP))
     cost = np.where(unstable | ~np.isfinite(cost), bad, cost)
     return cost, {"itae_steps": itae_steps, "itae_dist": itae_dist, "overshoot": os_m, "load_overshoot": os_l,
                   "osc": osc_m, "load_osc": osc_l, "motor": motor, "load": load_part, "unstable": unstable.astype(float)}
 
 
-def response_figures(speed: np.ndarray, sc: TuningScenario, mech: Mechanics | None = None) -> dict[str, float]:
+def response_figures(speed: np.ndarray, scenario: TuningScenario, mech: Mechanics | None = None) -> dict[str, float]:
     """Figures of one run ``N`` [rad/s]: first step ``rise_time`` (10-90 %) [s], ``overshoot_pct``,
-    ``settling_time`` (inside ``sc.band``: 5 % of ``w_step``, at least 3 speed quanta) [s]; ``load_overshoot_pct`` (estimated load speed, two-mass);
+    ``settling_time`` (inside ``scenario.band``: 5 % of ``w_step``, at least 3 speed quanta) [s]; ``load_overshoot_pct`` (estimated load speed, two-mass);
     disturbance ``dist_peak`` [rad/s] (largest speed change) and ``dist_recovery_time`` [s] (back
     inside the band). inf where a run never got there."""
     w = np.asarray(speed, dtype=np.float64)
-    if len(w) < sc.n_samples or not np.isfinite(w).all():
+    if len(w) < scenario.n_samples or not np.isfinite(w).all():
         return {k: math.inf for k in ("rise_time", "overshoot_pct", "settling_time", "load_overshoot_pct",
                                       "dist_peak", "dist_recovery_time")}
-    seg = _segments(w[:sc.n_samples], sc)
-    T_s, r = sc.T_s, sc.w_step
+    seg = _segments(w[:scenario.n_samples], scenario)
+    T_s, r = scenario.T_s, scenario.w_step
     y = seg[0] / r
 
     def first(mask: np.ndarray) -> float:
@@ -276,14 +339,14 @@ def response_figures(speed: np.ndarray, sc: TuningScenario, mech: Mechanics | No
         idx = np.nonzero(out)[0]
         return math.inf if len(idx) and idx[-1] == len(out) - 1 else (float(idx[-1] + 1) * T_s if len(idx) else 0.0)
 
-    load = load_estimate(mech, w[:sc.n_samples], T_s) if sc.two_mass else None
+    load = load_estimate(mech, w[:scenario.n_samples], T_s) if scenario.two_mass else None
     return {
         "rise_time": first(y >= 0.9) - first(y >= 0.1),
         "overshoot_pct": float(max(0.0, y.max() - 1.0) * 100.0),
-        "settling_time": settle(np.abs(y - 1) * r > sc.band),
-        "load_overshoot_pct": float(max(0.0, _segments(load, sc)[0].max() / r - 1.0) * 100.0) if load is not None else math.nan,
+        "settling_time": settle(np.abs(y - 1) * r > scenario.band),
+        "load_overshoot_pct": float(max(0.0, _segments(load, scenario)[0].max() / r - 1.0) * 100.0) if load is not None else math.nan,
         "dist_peak": float(np.abs(seg[4]).max()),
-        "dist_recovery_time": settle(np.abs(seg[4]) > sc.band),
+        "dist_recovery_time": settle(np.abs(seg[4]) > scenario.band),
     }
 
 
@@ -305,34 +368,34 @@ BOUNDED_VERDICTS: frozenset[str | None] = USABLE_VERDICTS | {"not_settled"}
 UNSCORED_VERDICTS: frozenset[str | None] = frozenset({"stopped", "diverging"})
 
 
-def loop_verdict(speed: np.ndarray, torque_ref: np.ndarray | None, sc: TuningScenario, M_cap: float, cost: float,
+def loop_verdict(speed: np.ndarray, torque_ref: np.ndarray | None, scenario: TuningScenario, M_cap: float, cost: float,
                  model_cost: float, aborted: bool) -> tuple[str | None, str]:
     """Did a measured run settle? ``(code, text)``: ``code`` a key of :data:`LOOP_VERDICTS` (the first
     that applies, in its order), None when it settled (not saturated, no limit cycle, not unlike its
     model, the first step inside the band at the end of its segment: ``settling_time`` finite);
     ``text`` says what was measured."""
     w = np.asarray(speed, dtype=np.float64)
-    N, n = sc.n_samples, sc.n_segment
+    N = scenario.n_samples
     if aborted or len(w) < N:
         return "stopped", LOOP_VERDICTS["stopped"]
     w = w[:N]
-    if not np.isfinite(w).all() or float(np.abs(w).max()) > sc.divergence_factor * sc.w_step:
+    if not np.isfinite(w).all() or float(np.abs(w).max()) > scenario.divergence_factor * scenario.w_step:
         return "diverging", LOOP_VERDICTS["diverging"]
     if torque_ref is not None and len(torque_ref) and M_cap > 0:
-        share = float(np.mean(np.abs(np.asarray(torque_ref, dtype=np.float64)) >= 0.99 * M_cap))
-        if share > sc.saturated_share:
+        share = float(np.mean(np.abs(np.asarray(torque_ref, dtype=np.float64)) >= scenario.at_cap * M_cap))
+        if share > scenario.saturated_share:
             return "saturated", f"the torque reference sits at the torque cap {M_cap:.3g} Nm in {100 * share:.0f} % of the samples"
-    tail = _segments(w, sc)[:, -max(n // 4, 4):]
+    tail = _segments(w, scenario)[:, -scenario.n_tail:]
     swing = float(np.median(tail.std(-1)))
-    if swing > max(sc.limit_cycle_share * sc.w_step, sc.settle_quanta * sc.q_w):
+    if swing > max(scenario.limit_cycle_share * scenario.w_step, scenario.settle_quanta * scenario.q_w):
         return "limit_cycle", (f"the speed keeps swinging by {swing:.3g} rad/s RMS at the end of the segments "
-                               f"({100 * swing / sc.w_step:.0f} % of the step {sc.w_step:.3g} rad/s)")
-    if cost >= sc.unstable_cost:
+                               f"({100 * swing / scenario.w_step:.0f} % of the step {scenario.w_step:.3g} rad/s)")
+    if cost >= scenario.unstable_cost:
         return "not_settled", "the first step ends more than half a step off its reference"
-    if math.isfinite(model_cost) and model_cost > 0 and cost > sc.model_cost_factor * model_cost:
+    if math.isfinite(model_cost) and model_cost > 0 and cost > scenario.model_cost_factor * model_cost:
         return "unlike_model", f"measured cost {cost:.4g} is {cost / model_cost:.3g} x the model's {model_cost:.4g}"
-    if not math.isfinite(response_figures(w, sc)["settling_time"]):
-        return "slow", f"the first step is not inside +-{sc.band:.3g} rad/s of its reference by the end of its segment"
+    if not math.isfinite(response_figures(w, scenario)["settling_time"]):
+        return "slow", f"the first step is not inside +-{scenario.band:.3g} rad/s of its reference by the end of its segment"
     return None, "settled"
 
 
@@ -361,7 +424,7 @@ class TuningResult:
 def tune_controller(
     proposal: ControllerProposal,
     config: Any,
-    sc: TuningScenario,
+    scenario: TuningScenario,
     spec: ControllerSpec,
     *,
     max_evaluations: int = 30,
@@ -372,7 +435,7 @@ def tune_controller(
     """Nelder-Mead on ``log([Kp, Ti(, T_f)])`` from ``proposal`` on its identified linear model.
 
     A candidate that misses the guarantee (``spec``'s margins on the proposal's model set) is not
-    a solution: it costs ``sc.unstable_cost`` plus its deficit, so the simplex moves back; the
+    a solution: it costs ``scenario.unstable_cost`` plus its deficit, so the simplex moves back; the
     result always keeps the margins (else the proposal is kept). A candidate worse than the
     proposal on the motor terms or on the (estimated) load terms pays ten times the excess: the
     search looks for gains that are better on both, as the delivery on the drive demands. ``span``: each gain stays within
@@ -387,35 +450,38 @@ def tune_controller(
     rejected = 0
     start: dict[str, float] = {}  # the proposal's motor and load terms
 
-    def gains(x: np.ndarray) -> Gains:
+    def gains_at(x: np.ndarray) -> Gains:
         return float(math.exp(x[0])), float(math.exp(x[1])), float(math.exp(x[2])) if use_f else proposal.T_f
 
-    def f(x: np.ndarray) -> float:
+    def cost_at(x: np.ndarray) -> float:
         nonlocal rejected
-        g = gains(x)
-        m = models.margins(*g, proposal.notch)
-        ok = m.meets(spec.min_phase_margin, spec.min_gain_margin_dB)
-        if ok:
-            c, terms = closed_loop_cost(model_response(mech, config, [g], proposal.notch, sc)[0], sc, mech)
-            cost = float(c)
-            if start:  # Pareto: what is worse than the proposal on the motor or on the load pays 10x the excess
-                cost += 10 * (max(float(terms["motor"]) - start["motor"], 0.0) + max(float(terms["load"]) - start["load"], 0.0))
+        gains = gains_at(x)
+        worst = models.margins(*gains, proposal.notch)
+        feasible = worst.meets(spec.min_phase_margin, spec.min_gain_margin_dB)
+        if feasible:
+            model_cost, terms = closed_loop_cost(model_response(mech, config, [gains], proposal.notch, scenario)[0], scenario, mech)
+            cost = float(model_cost)
+            if start:  # Pareto: what is worse than the proposal on the motor or on the load pays for the excess
+                cost += SEARCH.pareto_weight * (max(float(terms["motor"]) - start["motor"], 0.0)
+                                                + max(float(terms["load"]) - start["load"], 0.0))
             else:
                 start.update(motor=float(terms["motor"]), load=float(terms["load"]))
         else:
             rejected += 1
-            deficit = max(spec.min_phase_margin - m.phase_margin, 0.0) / 10 + max(spec.min_gain_margin_dB - m.gain_margin_dB, 0.0)
-            cost = sc.unstable_cost + (deficit if m.stable and math.isfinite(deficit) else 100.0)
-        history.append({"Kp": g[0], "Ti": g[1], "T_f": g[2], "cost": cost, "feasible": float(ok)})
+            deficit = (max(spec.min_phase_margin - worst.phase_margin, 0.0) / SEARCH.phase_deficit_per_dB
+                       + max(spec.min_gain_margin_dB - worst.gain_margin_dB, 0.0))
+            cost = scenario.unstable_cost + (deficit if worst.stable and math.isfinite(deficit) else SEARCH.unstable_penalty)
+        history.append({"Kp": gains[0], "Ti": gains[1], "T_f": gains[2], "cost": cost, "feasible": float(feasible)})
         if progress is not None:
             progress(len(history), cost)
         return cost
 
-    cost0 = f(x0)
+    cost0 = cost_at(x0)
     simplex = np.vstack([x0] + [x0 + initial_step * np.eye(len(x0))[i] for i in range(len(x0))])
     bounds = [(xi - math.log(span), xi + math.log(span)) for xi in x0]
-    res = scipy.optimize.minimize(f, x0, method="Nelder-Mead", bounds=bounds,
-                                  options={"maxfev": max_evaluations, "initial_simplex": simplex, "xatol": 0.01, "fatol": 1e-4})
+    res = scipy.optimize.minimize(cost_at, x0, method="Nelder-Mead", bounds=bounds,
+                                  options={"maxfev": max_evaluations, "initial_simplex": simplex, "xatol": SEARCH.xatol,
+                                           "fatol": SEARCH.fatol})
     best = min(history, key=lambda h: h["cost"])
     warnings: list[str] = []
     if not best["feasible"] or best["cost"] >= cost0:
@@ -427,4 +493,4 @@ def tune_controller(
             f"T1 Nelder-Mead on the identified model: Kp {proposal.Kp:.4g} -> {best['Kp']:.4g}, Ti {proposal.Ti:.4g} -> "
             f"{best['Ti']:.4g}, T_f {proposal.T_f:.3g} -> {best['T_f']:.3g}; model cost {cost0:.4g} -> {best_cost:.4g}"))
     return TuningResult(controller=cand, proposal=proposal, cost_proposal=cost0, cost_tuned=best_cost, history=history,
-                        scenario=sc, n_evaluations=len(history), rejected=rejected, message=str(res.message), warnings=warnings)
+                        scenario=scenario, n_evaluations=len(history), rejected=rejected, message=str(res.message), warnings=warnings)

@@ -134,22 +134,26 @@ def _simulated_speed(p: Any, drive: Any, mode: str, torque_ref: np.ndarray | Non
     if signal is None:
         if "M_star" not in meta or "w_max" not in meta:
             raise ValueError("mode='switching' needs signal= or record meta with M_star and w_max")
-        signal = sim.TestSignalConfig(M_star=float(meta["M_star"]), w_max=float(meta["w_max"]),
-                                      timeout=float(meta.get("timeout", 10.0)), tail=float(meta.get("tail", 0.05)))
+        signal = sim.TestSignalConfig(M_star=float(meta["M_star"]), w_max=float(meta["w_max"]),  # the test's own defaults
+                                      **{k: float(meta[k]) for k in ("timeout", "tail") if k in meta})
     resp = sim.simulate_test(p, drive, signal, seed=seed)
     w_sim = _one(resp.speed)
     L = _get(resp, "length")
     return w_sim if L is None else w_sim[: int(torch.as_tensor(L).reshape(-1)[0])]
 
 
+#: The moving-average window [s] that separates the oscillating part where no ``f_e`` is identified.
+NO_RESONANCE_WINDOW: float = 0.01
+
+
 def _oscillation_error(a: np.ndarray, b: np.ndarray, f_e: Any, drive: Any, osc_min_quanta: float,
                        osc_metric: str) -> float | None:
     """Error of the oscillating parts (speed minus its moving average over one period of ``f_e``,
-    else 10 ms) of the model ``a`` against the measurement ``b`` (both ``m``); None when the
+    else :data:`NO_RESONANCE_WINDOW`) of the model ``a`` against the measurement ``b`` (both ``m``); None when the
     measured oscillation is below ``osc_min_quanta`` speed quanta rms."""
     f_e = float(f_e.reshape(-1)[0]) if isinstance(f_e, torch.Tensor) else (None if f_e is None else float(f_e))
     m = len(b)
-    W = int(round(1.0 / (f_e * float(drive.T_s)))) if f_e else int(round(0.01 / float(drive.T_s)))
+    W = int(round(1.0 / (f_e * float(drive.T_s)))) if f_e else int(round(NO_RESONANCE_WINDOW / float(drive.T_s)))
     W = int(min(max(W, 3), max(m // 4, 3)))
     hp_b = b - _moving_average(b, W)
     hp_a = a - _moving_average(a, W)
