@@ -410,6 +410,13 @@ class ExcitationRun:
     deficits: Deficits
     model: PeakModel
 
+    @classmethod
+    def of(cls, plan: RunPlan, figures: RunFigures, guarded: sim.DriveLimits, limits: sim.DriveLimits, M_cap: float,
+           headroom: Headroom, previous_stopped: RunFigures | None, config: Any, rules: ExcitationRules) -> ExcitationRun:
+        """The run with its deficits (E2) and its peak model (E6)."""
+        return cls(plan, figures, guarded, limits.w_max, M_cap, headroom, previous_stopped, config, rules,
+                   Deficits.of(figures, rules), PeakModel.of(figures, plan.w_max, rules))
+
     def raised_torque(self, M_ceiling: float) -> float:
         """E3, E5: one step more torque, at most the cap and ``M_ceiling``."""
         return min(self.plan.M_star * self.rules.factor, self.M_cap, M_ceiling)
@@ -511,11 +518,11 @@ def e8_stopped_by_drive(run: ExcitationRun, decision: RuleDecision) -> RuleDecis
     if not run.figures.aborted:
         return decision
     rules, plan, M_start = run.rules, run.plan, run.rules.M_star_start * run.M_cap
-    step = rules.factor ** rules.stopped_ceiling_exponent
+    ceiling_step = rules.factor ** rules.stopped_ceiling_exponent
     M_next = max(plan.M_star / rules.factor, min(plan.M_star, M_start))
     decided = decision.planned(M_star=M_next, w_max=plan.w_max / rules.factor,
-                               w_ceiling=min(decision.plan.w_ceiling, plan.w_max / step),
-                               M_ceiling=min(decision.plan.M_ceiling, max(plan.M_star / step, M_next)))
+                               w_ceiling=min(decision.plan.w_ceiling, plan.w_max / ceiling_step),
+                               M_ceiling=min(decision.plan.M_ceiling, max(plan.M_star / ceiling_step, M_next)))
     return replace(decided, verdict=RUN_AGAIN, decision=_changes(run, decided.plan, speed_always=True),
                    reason="stopped by the drive at a limit")
 
@@ -632,7 +639,7 @@ def e7_limits_reached(run: ExcitationRun, decision: RuleDecision) -> RuleDecisio
 
 
 def run_again(run: ExcitationRun, decision: RuleDecision) -> RuleDecision:
-    """Runs always (last): run again with the plan the rules decided."""
+    """Last, runs always: run again with the plan the rules decided (the log names the changes and the deficits)."""
     return replace(decision, verdict=RUN_AGAIN, decision=_changes(run, decision.plan), reason=", ".join(run.deficits.names()))
 
 
@@ -720,10 +727,10 @@ def adapt_test_signal(drive: Any, limits: sim.DriveLimits, rules: ExcitationRule
         record = drive.run_test(plan.M_star, plan.w_max, guarded)
         records.append(record)
         figures = measure_run(record, config, rules)
-        kept += [] if figures.aborted else [record]
+        if not figures.aborted:
+            kept.append(record)
         headroom = headroom.learned(plan, figures)
-        run = ExcitationRun(plan, figures, guarded, limits.w_max, M_cap, headroom, stopped, config, rules,
-                            Deficits.of(figures, rules), PeakModel.of(figures, plan.w_max, rules))
+        run = ExcitationRun.of(plan, figures, guarded, limits, M_cap, headroom, stopped, config, rules)
         decision = judge_run(run)
         log.append(_log_entry(iteration, run, decision))
         if decision.verdict != RUN_AGAIN:

@@ -344,7 +344,7 @@ def _concept(T_f: float, notch: NotchSpec | None) -> str:
 
 
 def r7_model_set(inputs: DesignInputs, design: Design) -> Design:
-    """R7 and R7b, run always: the design as a proposal with its figures and its margins on the
+    """R7 and R7b, runs always: the design as a proposal with its figures and its margins on the
     guarantee's model set (R7b: with the resonances a ``stiff`` answer cannot exclude)."""
     mech, drive, hidden = inputs.mechanics, inputs.drive, inputs.hidden
     models = robust_models(mech, drive, inputs.spec, hidden=hidden)
