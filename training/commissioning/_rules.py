@@ -449,24 +449,30 @@ def propose_controller(
     return design.chosen
 
 
+def _alternative(prop: ControllerProposal, drive: Any, T_f: float, notch: NotchSpec | None) -> ControllerProposal:
+    """``prop`` with the speed low-pass ``T_f`` [s] and ``notch`` instead of its own (an R8 line says which)."""
+    what = (f"speed low-pass T_f {T_f:.3g} s" if T_f > 0 else "no speed low-pass") + \
+        (f", notch at {notch.f_n:.4g} Hz (D_z {notch.D_z:.3g}, D_p {notch.D_p:g})" if notch is not None else "")
+    return replace(prop, concept=_concept(T_f, notch), T_f=T_f, notch=notch, margins=prop.models.margins(prop.Kp, prop.Ti, T_f, notch),
+                   figures=loop_figures(prop.mechanics, drive, prop.Kp, prop.Ti, T_f, notch),
+                   rules=prop.rules + (f"R8 alternative: {what}",))
+
+
 def _alternatives(prop: ControllerProposal, best: ControllerProposal, inputs: DesignInputs, f_0: float | None,
                   D_z: float, filters: tuple[float, ...]) -> ControllerProposal:
-    """R8: the design with the speed low-pass ``T_f`` [s] of ``filters`` (0: none)
-    instead of its own, with a wide notch at the resonance ``f_0`` [Hz] (``D_p = wide_notch_width``:
-    the spread of ``f_e`` stays inside it), or both, each through R7; the highest crossover that
-    keeps the margins wins."""
-    spec, drive, T_s = inputs.spec, inputs.drive, inputs.T_s
-    notch = NotchSpec(f_n=f_0, D_z=D_z, D_p=spec.wide_notch_width) if f_0 is not None and f_0 < spec.notch_max_share / T_s else None
+    """R8: the design with the speed low-pass ``T_f`` [s] of ``filters`` (0: none) instead of its
+    own, with a wide notch at the resonance ``f_0`` [Hz] (``D_p = wide_notch_width``: the spread of
+    ``f_e`` stays inside it), or both, each through R7; the highest crossover that keeps the margins
+    wins (``best``: R7's)."""
+    spec, drive = inputs.spec, inputs.drive
+    resolvable = f_0 is not None and f_0 < spec.notch_max_share / inputs.T_s
+    wide = NotchSpec(f_n=f_0, D_z=D_z, D_p=spec.wide_notch_width) if resolvable else None
     tried = {(prop.T_f, prop.notch)}
-    for T_f, nt in [(T_f, nt) for T_f in (*filters, prop.T_f) for nt in (prop.notch, notch)]:
-        if (T_f, nt) in tried:
+    for T_f, notch in [(T_f, notch) for T_f in (*filters, prop.T_f) for notch in (prop.notch, wide)]:
+        if (T_f, notch) in tried:
             continue
-        tried.add((T_f, nt))
-        what = (f"speed low-pass T_f {T_f:.3g} s" if T_f > 0 else "no speed low-pass") + \
-            (f", notch at {nt.f_n:.4g} Hz (D_z {nt.D_z:.3g}, D_p {nt.D_p:g})" if nt is not None else "")
-        alt = replace(prop, concept=_concept(T_f, nt), T_f=T_f, notch=nt, margins=prop.models.margins(prop.Kp, prop.Ti, T_f, nt),
-                      figures=loop_figures(prop.mechanics, drive, prop.Kp, prop.Ti, T_f, nt), rules=prop.rules + (f"R8 alternative: {what}",))
-        alt = _back_off(alt, drive, spec)
+        tried.add((T_f, notch))
+        alt = _back_off(_alternative(prop, drive, T_f, notch), drive, spec)
         if alt.meets(spec) and (not best.meets(spec) or alt.figures["w_c"] > best.figures["w_c"]):
             best = alt
     return best
