@@ -354,6 +354,16 @@ class Deficits:
         return cls(timed_out=figures.timed_out, short=figures.samples_min < rules.min_section_samples,
                    small=figures.range_quanta < rules.min_range_quanta, hidden=figures.osc_quanta < rules.min_osc_quanta)
 
+    @property
+    def any(self) -> bool:
+        """Something is missing."""
+        return self.timed_out or self.short or self.small or self.hidden
+
+    @property
+    def only_hidden(self) -> bool:
+        """Only the oscillation is missing."""
+        return self.hidden and not (self.timed_out or self.short or self.small)
+
     def names(self) -> tuple[str, ...]:
         """The deficits in words, in a fixed order (the log's reason)."""
         named = (("section timed out", self.timed_out), ("sections too short", self.short),
@@ -614,7 +624,7 @@ def e6_prediction(run: ExcitationRun, decision: RuleDecision) -> RuleDecision:
 
 def e7_informative(run: ExcitationRun, decision: RuleDecision) -> RuleDecision:
     """E7, runs when nothing is missing: accept."""
-    if run.deficits.names():
+    if run.deficits.any:
         return decision
     return decision.ended("informative", "informative")
 
@@ -622,8 +632,7 @@ def e7_informative(run: ExcitationRun, decision: RuleDecision) -> RuleDecision:
 def e7_stiff_at_cap(run: ExcitationRun, decision: RuleDecision) -> RuleDecision:
     """E7, runs when only the oscillation is missing at the torque cap: stiff or weakly coupled
     mechanics; accept."""
-    deficits = run.deficits
-    if not deficits.hidden or deficits.timed_out or deficits.short or deficits.small or run.plan.M_star < run.M_cap:
+    if not run.deficits.only_hidden or run.plan.M_star < run.M_cap:
         return decision
     return decision.ended("informative", "informative (oscillation not visible at the torque cap: stiff or weakly coupled)")
 
