@@ -17,16 +17,47 @@ Units SI, frequencies in Hz.
 from __future__ import annotations
 
 import math
-from typing import Any
+from dataclasses import dataclass
+from typing import Any, NamedTuple
 
 import numpy as np
 
-__all__ = ["ringing_amplitude", "f1_bands", "hidden_bands"]
+from ._settings import POSITIVE, Interval, check_settings
 
-#: The spectrum's resolution ``1 / longest_section`` [Hz] counted this many times either side of ``f_osc``.
-F_OSC_RESOLUTIONS = 2.0
-#: Relative width of F1's band around ``f_osc`` (``f_osc / w .. f_osc * w``).
-F_OSC_WIDTH = 1.5
+__all__ = ["BandSettings", "HiddenResonances", "ringing_amplitude", "f1_bands", "hidden_bands", "widen"]
+
+
+@dataclass(frozen=True)
+class BandSettings:
+    """How wide the bands of what a test run cannot exclude are; checked on construction."""
+
+    f_osc_resolutions: float = 2.0
+    """F1: the spectrum's resolution ``1 / longest_section`` [Hz] counted this many times either side of ``f_osc``."""
+    f_osc_width: float = 1.5
+    """F1: relative width of the band around ``f_osc`` (``f_osc / w .. f_osc * w``)."""
+    min_periods: float = 3.0
+    """F1: fewer periods of ``f_osc`` in the longest section leave its lower end open (from the class's lowest)."""
+    grid_points: int = 400
+    """Frequencies of the log grid on which the ringing is compared with what the test resolves."""
+    peak_factor: float = 4.0
+    """R7b: a visible oscillation's amplitude as this many times its RMS (a damped ringing shows less RMS than its amplitude)."""
+    peak_width: float = 1.2
+    """R7b: relative width of the band around a visible oscillation the answer left out."""
+    nyquist_share: float = 0.45
+    """R7b: the bands end at this share of the sampling frequency (beyond it the measurement aliases)."""
+
+    def __post_init__(self) -> None:
+        check_settings(self, {"f_osc_resolutions": POSITIVE, "f_osc_width": Interval(1.0), "min_periods": POSITIVE,
+                              "grid_points": Interval(2, integer=True), "peak_factor": POSITIVE, "peak_width": Interval(1.0),
+                              "nyquist_share": Interval(0.0, 0.5, open_low=True)})
+
+
+class HiddenResonances(NamedTuple):
+    """:func:`hidden_bands`' answer: ``bands`` (``V_J -> (f_lo, f_hi)`` [Hz]) and ``notch_at``, the
+    visible resonance [Hz] the answer left out (a notch may sit there), or None."""
+
+    bands: dict[float, tuple[float, float]]
+    notch_at: float | None
 
 
 def ringing_amplitude(f: np.ndarray, V_J: float, J_sigma: float, M_step: float, config: Any) -> np.ndarray:
@@ -37,10 +68,11 @@ def ringing_amplitude(f: np.ndarray, V_J: float, J_sigma: float, M_step: float, 
     return V_J * M_step / (J_sigma * w) / np.hypot(1.0, w * T_Ei) * np.abs(np.sinc(w * T_s / (2 * math.pi)))
 
 
-def _unseen_from(V_J: float, J_sigma: float, M_step: float, amplitude: float, config: Any, f_lo: float, f_top: float) -> float:
-    """The lowest frequency [Hz] in ``[f_lo, f_top]`` from which a resonance of ``V_J`` rings below
-    ``amplitude`` [rad/s] up to ``f_top``."""
-    f = np.geomspace(f_lo, f_top, 400)
+def _unseen_from(V_J: float, J_sigma: float, M_step: float, amplitude: float, config: Any, f_lo: float, f_top: float,
+                 points: int) -> float:
+    """The lowest frequency [Hz] of ``points`` log-spaced in ``[f_lo, f_top]`` from which a resonance
+    of ``V_J`` rings below ``amplitude`` [rad/s] up to ``f_top``."""
+    f = np.geomspace(f_lo, f_top, points)
     seen = np.nonzero(ringing_amplitude(f, V_J, J_sigma, M_step, config) >= amplitude)[0]
     return float(f[min(seen[-1] + 1, len(f) - 1)]) if len(seen) else f_lo
 
@@ -52,25 +84,26 @@ def widen(bands: dict[float, tuple[float, float]], V_J: float, lo: float, hi: fl
 
 
 def f1_bands(entry: dict[str, Any], J_sigma: float, config: Any, class_V_J: tuple[float, ...], class_f_e: tuple[float, float],
-             *, min_osc_quanta: float, osc_visible_ratio: float) -> dict[float, tuple[float, float]]:
+             *, min_osc_quanta: float, osc_visible_ratio: float,
+             settings: BandSettings | None = None) -> dict[float, tuple[float, float]]:
     """F1's eigenfrequency band [Hz] per inertia ratio from one test run's figures ``entry``
     (``osc_quanta``, ``f_osc``, ``longest_section``, ``M_star``): a visible oscillation: ``(f_osc -
     2/T) / 1.5 .. (f_osc + 2/T) * 1.5`` with ``T`` the longest section (from the class's lowest
-    when fewer than 3 periods fit in it); below resolution: from where a resonance rings below
-    ``osc_visible_ratio`` speed quanta up to the class's highest."""
+    when fewer than 3 periods fit in it; :class:`BandSettings`); below resolution: from where a
+    resonance rings below ``osc_visible_ratio`` speed quanta up to the class's highest."""
+    settings = settings or BandSettings()
     lo, hi = class_f_e
     if entry["osc_quanta"] >= min_osc_quanta and entry["f_osc"] > 0:
         f, T = entry["f_osc"], entry["longest_section"]
-        df = F_OSC_RESOLUTIONS / T if T > 0 else f
-        band = (max((f - df) / F_OSC_WIDTH, lo) if f * T >= 3 else lo, (f + df) * F_OSC_WIDTH)
+        df = settings.f_osc_resolutions / T if T > 0 else f
+        band = (max((f - df) / settings.f_osc_width, lo) if f * T >= settings.min_periods else lo, (f + df) * settings.f_osc_width)
         return {v: band for v in class_V_J}
     amp = osc_visible_ratio * float(config.q_w)
-    return {v: (_unseen_from(v, J_sigma, entry["M_star"], amp, config, lo, hi), hi) for v in class_V_J}
+    return {v: (_unseen_from(v, J_sigma, entry["M_star"], amp, config, lo, hi, settings.grid_points), hi) for v in class_V_J}
 
 
 def hidden_bands(entry: dict[str, Any], J_sigma: float, config: Any, class_V_J: tuple[float, ...], *, f_lo: float,
-                 min_osc_quanta: float, peak_factor: float = 4.0, peak_width: float = 1.2,
-                 nyquist_share: float = 0.45) -> tuple[dict[float, tuple[float, float]], float | None]:
+                 min_osc_quanta: float, settings: BandSettings | None = None) -> HiddenResonances:
     """The resonances a ``stiff`` answer cannot exclude, from the accepted test run's figures
     ``entry`` (``M_star``, ``osc_quanta``, ``f_osc``): per inertia ratio of ``class_V_J`` the band
     [Hz] from where a resonance rings below ``sqrt(2) max(osc_quanta, min_osc_quanta)`` speed quanta
@@ -80,16 +113,18 @@ def hidden_bands(entry: dict[str, Any], J_sigma: float, config: Any, class_V_J: 
     f_osc * peak_width`` is added at the inertia ratio its amplitude allows (RMS x ``peak_factor``:
     a damped ringing shows less RMS than its amplitude), at most the class's largest.
 
-    Returns ``(bands, f_osc or None)``: ``V_J -> (f_lo, f_hi)`` and the visible resonance (a notch may sit there).
+    Returns :class:`HiddenResonances` (it unpacks as ``bands, notch_at``); ``nyquist_share``,
+    ``peak_factor`` and ``peak_width`` from :class:`BandSettings`.
     """
-    f_top = nyquist_share / float(config.T_s)
+    settings = settings or BandSettings()
+    f_top = settings.nyquist_share / float(config.T_s)
     osc, q_w, M = float(entry["osc_quanta"]), float(config.q_w), float(entry["M_star"])
-    amp = math.sqrt(2.0) * max(osc, min_osc_quanta) * q_w
-    bands = {v: (_unseen_from(v, J_sigma, M, amp, config, f_lo, f_top), f_top) for v in class_V_J}
+    amp = math.sqrt(2.0) * max(osc, min_osc_quanta) * q_w  # the amplitude of a sustained ringing of that RMS
+    bands = {v: (_unseen_from(v, J_sigma, M, amp, config, f_lo, f_top, settings.grid_points), f_top) for v in class_V_J}
     f_osc = float(entry.get("f_osc", 0.0))
     if not (osc >= min_osc_quanta and f_lo <= f_osc < f_top):
-        return bands, None
+        return HiddenResonances(bands, None)
     ring_per_V_J = float(ringing_amplitude(np.array([f_osc]), 1.0, J_sigma, M, config)[0])
-    V_J = min(peak_factor * osc * q_w / ring_per_V_J, max(class_V_J))
-    widen(bands, V_J, f_osc / peak_width, min(f_osc * peak_width, f_top))
-    return bands, f_osc
+    V_J = min(settings.peak_factor * osc * q_w / ring_per_V_J, max(class_V_J))
+    widen(bands, V_J, f_osc / settings.peak_width, min(f_osc * settings.peak_width, f_top))
+    return HiddenResonances(bands, f_osc)

@@ -2,15 +2,20 @@
 
 Start small, run the six-section test through the drive (``drive.run_test``, SPEC 8.1), judge from
 the returned record only (measured motor speed, the drive's own torque reference and section
-counter, the timeout flags; no truth)
-whether it is informative, and raise ``M_star`` and/or ``w_max`` by factor-2 steps until it is,
-never beyond the user's limits (:class:`sim.DriveLimits`: torque ``M_max``, speed ``w_max``, travel
-``travel``). The travel and the peak speed of the next run are predicted from the
-current one before it runs (travel ~ ``w_max^2 J / M_star``), so a step that would cross a limit
-is shortened first; a run the drive stopped at a limit is never accepted (E8). Rules E1-E9 in
-docs/commissioning.md.
+counter, the timeout flags; no truth) whether it is informative, and raise ``M_star`` and/or
+``w_max`` by factor-2 steps until it is, never beyond the user's limits (:class:`sim.DriveLimits`:
+torque ``M_max``, speed ``w_max``, travel ``travel``). The travel and the peak speed of the next run
+are predicted from the current one before it runs (travel ~ ``w_max^2 J / M_star``), so a step that
+would cross a limit is shortened first; a run the drive stopped at a limit is never accepted (E8).
+Rules in docs/commissioning.md:
 
-Measured figures per run (all from the response):
+* E1 :func:`first_plan`: the first run, small;
+* E2 :class:`Deficits`: what a run lacks to be informative;
+* E9 :class:`Headroom`, :func:`guarded_limits`: the limits handed to the drive for each run;
+* E3-E8, E10, in the order :data:`EXCITATION_RULES` applies them to each run
+  (:func:`judge_run`): the first that settles the run (stop, accept, or run again) ends the pass.
+
+Measured figures per run (:class:`RunFigures`, all from the response):
 
 * ``samples_min``: fewest samples in any of the six sections (STEP 2 needs ``>= min_section_samples``),
 * ``timed_out``: a section ended by its safety timeout (not by its speed condition),
@@ -22,7 +27,9 @@ Measured figures per run (all from the response):
 * ``f_osc`` [Hz]: the dominant frequency of the oscillating part (summed power spectra of the
   sections), ``longest_section`` [s] (for the fallback F1's eigenfrequency band),
 * ``accel`` [rad/s^2]: the larger mean acceleration of sections I and IV (``M*`` over it is a
-  one-mass inertia that friction only makes larger; for the headroom after a stop and F1).
+  one-mass inertia that friction only makes larger; for the headroom after a stop and F1),
+* ``along_torque_quanta``: the speed gained in the direction of the torque reference [``q_w``]
+  (negative: against it; E10).
 
 Headroom (E9): the drive stops at its limit and the plant runs on: each run hands the drive the
 user's limits less the speed a run can gain after the stop (:func:`stop_headroom`, from ``accel``
@@ -33,7 +40,8 @@ share ``first_headroom`` of the speed limit), and plans inside those.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from collections.abc import Callable
+from dataclasses import dataclass, field, fields, replace
 from typing import Any
 
 import numpy as np
@@ -41,6 +49,7 @@ import numpy as np
 import sim
 
 from ._guard import record_peaks
+from ._settings import NON_NEGATIVE, POSITIVE, SHARE, Interval, check_settings
 
 #: How the test-signal adaptation ended (:attr:`ExcitationResult.code`).
 EXCITATION_ENDS: dict[str, str] = {
@@ -52,53 +61,102 @@ EXCITATION_ENDS: dict[str, str] = {
     "limit_passed": "a run's record showed one of the user's limits passed: no further run (SPEC 8.2)",
 }
 
-__all__ = ["EXCITATION_ENDS", "ExcitationRules", "ExcitationResult", "measure_response", "adapt_test_signal", "stop_headroom", "guarded_limits"]
+#: :attr:`RuleDecision.verdict` of a run that is not the last: run again with the decided plan.
+RUN_AGAIN = "run_again"
+
+__all__ = ["EXCITATION_ENDS", "EXCITATION_RULES", "ExcitationRules", "ExcitationResult", "RunFigures", "RunPlan", "Deficits",
+           "Headroom", "ExcitationRun", "RuleDecision", "measure_run", "measure_response", "first_plan", "judge_run",
+           "adapt_test_signal", "stop_headroom", "guarded_limits"]
 
 
 @dataclass(frozen=True)
 class ExcitationRules:
-    """Rule constants (docs/commissioning.md, E1-E9).
-
-    ``M_star_start``: first ``M_star`` as a fraction of the torque cap. ``w_max_start`` [rad/s]:
-    first ``w_max`` (further bounded by ``0.1 w_limit`` and by the travel of an inertia
-    ``J_prior_max`` [kg m^2]). ``factor``: raise step. ``min_section_samples``,
-    ``min_range_quanta``, ``min_osc_quanta``: what "informative" means. ``speed_margin``,
-    ``travel_margin``: fractions of the limits a predicted run may use. ``max_iterations``.
-    Headroom after a stop (E9, :func:`stop_headroom`): ``coast_factor``, ``delay_allowance``
-    [samples of dead time the drive may have beyond its own], ``first_headroom`` (share of the
-    speed limit for the first run). ``swing_allowance``: E6 plans the next peak at ``w_max' (1 +
-    swing_allowance)`` at least: once a section lasts longer than half a period of a soft mode, the
-    load swings the motor on after section I (the torque is 0 there, a stop changes nothing) by far
-    more than the short runs before showed. ``against_quanta``: E10 stops when a run's speed moves
-    against the torque reference by more than this many speed quanta (summed over the samples at
-    more than half the peak torque reference). ``repeat_tolerance``: E8b stops when a stopped run's
-    peak speed and travel repeat the previous stopped run's within this share.
-    """
+    """The test-signal rules' settings (docs/commissioning.md, E1-E10); checked on construction."""
 
     M_star_start: float = 0.1
+    """E1: the first ``M_star`` as a share of the torque cap (small: the plant is unknown)."""
     w_max_start: float = 5.0
+    """E1: the first ``w_max`` [rad/s] at most."""
+    first_speed_share: float = 0.1
+    """E1: the first ``w_max`` at most this share of the user's speed limit."""
     J_prior_max: float = 1.0
+    """E1: the largest inertia [kg m^2] assumed before the first run bounds its travel."""
+    first_travel_share: float = 0.25
+    """E1: the first run's predicted travel may use this share of the usable travel."""
+    first_travel_factor: float = 3.0
+    """E1: the first run's travel taken as this many times ``w_max^2 J / M_star`` (sections II-VI)."""
     factor: float = 2.0
+    """E3-E8: the raise (and lowering) step of ``M_star`` and ``w_max``."""
     min_section_samples: int = 40
+    """E2: fewest samples per section that STEP 2 can fit."""
     min_range_quanta: float = 400.0
+    """E2: smallest speed range [speed quanta] that resolves the response."""
     min_osc_quanta: float = 2.0
+    """E2: smallest RMS oscillation [speed quanta] that counts as visible."""
     speed_margin: float = 0.9
+    """E6: share of the speed limit (less the headroom) a predicted peak may use."""
     travel_margin: float = 0.8
+    """E1, E6: share of the travel handed to the drive a predicted run may use."""
     max_iterations: int = 10
+    """E7: most test runs."""
     coast_factor: float = 2.0
+    """E9: the speed gained after a stop counted this many times (a slower current loop, friction)."""
     swing_allowance: float = 1.0
+    """E6: the next peak planned at ``w_max' (1 + swing_allowance)`` at least: a soft mode swings the
+    load on after section I by far more than the short runs before showed."""
+    overshoot_weight: float = 2.0
+    """E6: the overshoot beyond ``w_max`` counted this many times (it depends on the phase at the
+    switch, not only on ``M_star``)."""
+    min_raise_exponent: float = 0.1
+    """E6c: a raise of ``w_max`` below ``factor^min_raise_exponent`` is no progress."""
+    lower_torque_exponent: float = 0.5
+    """E4b: less torque when the limits keep ``w_max`` below ``factor^lower_torque_exponent`` of this run's."""
+    stopped_ceiling_exponent: float = 0.5
+    """E8: no later run above ``factor^-stopped_ceiling_exponent`` of a stopped one's ``M_star`` and ``w_max``."""
     delay_allowance: int = 1
+    """E9: samples of dead time the drive may have beyond its own two."""
     first_headroom: float = 0.25
+    """E9: the first run's headroom as a share of the speed limit (nothing measured yet)."""
+    max_guard_share: float = 0.5
+    """E9: the headroom takes at most this share of the speed limit, the stop's run-on at most this
+    share of the travel limit."""
     against_quanta: float = 10.0
+    """E10: stop when the speed moves against the torque reference by more than this [speed quanta]."""
+    torque_on_share: float = 0.5
+    """E10: the samples whose torque reference is at least this share of its peak are summed."""
     repeat_tolerance: float = 0.02
+    """E8b: stop when a stopped run's peak speed and travel repeat the previous stopped run's within this share."""
+    change_tolerance: float = 1e-9
+    """E7: a relative change of ``M_star`` and ``w_max`` at most this is none (the limits are reached)."""
+    fit_min_samples: int = 8
+    """E2: sections with fewer samples are left out of the oscillating part (no quadratic fit)."""
+    spectrum_padding: int = 4
+    """E2: the sections' spectra are zero-padded to this many times the longest (``f_osc``'s grid)."""
+
+    def __post_init__(self) -> None:
+        check_settings(self, _RULE_INTERVALS)
+
+
+_RULE_INTERVALS: dict[str, Interval] = {
+    "M_star_start": SHARE, "w_max_start": POSITIVE, "first_speed_share": SHARE, "J_prior_max": POSITIVE,
+    "first_travel_share": SHARE, "first_travel_factor": POSITIVE, "factor": Interval(1.0, open_low=True),
+    "min_section_samples": Interval(1, integer=True), "min_range_quanta": NON_NEGATIVE, "min_osc_quanta": NON_NEGATIVE,
+    "speed_margin": SHARE, "travel_margin": SHARE, "max_iterations": Interval(1, integer=True), "coast_factor": NON_NEGATIVE,
+    "swing_allowance": NON_NEGATIVE, "overshoot_weight": NON_NEGATIVE, "min_raise_exponent": NON_NEGATIVE,
+    "lower_torque_exponent": NON_NEGATIVE, "stopped_ceiling_exponent": NON_NEGATIVE,
+    "delay_allowance": Interval(0, integer=True), "first_headroom": Interval(0.0, 1.0), "max_guard_share": SHARE,
+    "against_quanta": NON_NEGATIVE, "torque_on_share": SHARE, "repeat_tolerance": NON_NEGATIVE,
+    "change_tolerance": NON_NEGATIVE, "fit_min_samples": Interval(3, integer=True), "spectrum_padding": Interval(1, integer=True),
+}
 
 
 @dataclass
 class ExcitationResult:
     """``record``: the last test record that the drive did not stop (else the last one); ``records``:
     every test record;
-    ``log``: one dict per run (``iteration, M_star, w_max``, the measured figures of
-    :func:`measure_response`, ``decision``, ``reason``); ``informative``: the final run passed."""
+    ``log``: one dict per run (``iteration, M_star, w_max, stop_at``, the measured figures of
+    :class:`RunFigures`, ``predicted_peak_speed, predicted_travel`` where E6 planned a next run,
+    ``decision``, ``reason``); ``informative``: the final run passed."""
 
     record: Any
     records: list[Any] = field(default_factory=list)
@@ -109,67 +167,137 @@ class ExcitationResult:
     """How the adaptation ended: a key of :data:`EXCITATION_ENDS`."""
 
 
-def _dominant_frequency(resid: list[np.ndarray], T_s: float) -> float:
+# --------------------------------------------------------------------------- measuring one run
+
+
+@dataclass(frozen=True)
+class RunFigures:
+    """The measured figures of one test run (module docstring); from the record alone, no truth."""
+
+    along_torque_quanta: float
+    samples_per_section: tuple[int, ...]
+    samples_min: int
+    timed_out: bool
+    aborted: bool
+    range_quanta: float
+    osc_quanta: float
+    f_osc: float
+    longest_section: float
+    accel: float
+    peak_speed: float
+    travel: float
+    peak_torque_ref: float
+    peak_torque: float
+    duration: float
+
+    def as_dict(self) -> dict[str, Any]:
+        """The figures as the keys of a log entry (``samples_per_section`` a list)."""
+        out = {f.name: getattr(self, f.name) for f in fields(self)}
+        out["samples_per_section"] = list(self.samples_per_section)
+        return out
+
+
+def _dominant_frequency(resid: list[np.ndarray], T_s: float, padding: int) -> float:
     """The frequency [Hz] of the largest summed power of the sections' oscillating parts (each
     zero-padded to one length; 0 when there is nothing to analyse)."""
     if not resid:
         return 0.0
-    n = 1 << int(math.ceil(math.log2(max(len(r) for r in resid) * 4)))
+    n = 1 << int(math.ceil(math.log2(max(len(r) for r in resid) * padding)))
     power = sum(np.abs(np.fft.rfft(r * np.hanning(len(r)), n)) ** 2 for r in resid)
-    f = np.fft.rfftfreq(n, T_s)
-    return float(f[1 + int(np.argmax(power[1:]))])
+    freqs = np.fft.rfftfreq(n, T_s)
+    return float(freqs[1 + int(np.argmax(power[1:]))])
 
 
-def measure_response(record: Any, config: Any) -> dict[str, Any]:
-    """Measured figures of one test record (see module docstring); uses no truth.
+def _oscillating_parts(speed: np.ndarray, section: np.ndarray | None, min_samples: int) -> list[np.ndarray]:
+    """Per section with at least ``min_samples`` samples, the speed less its quadratic fit."""
+    parts: list[np.ndarray] = []
+    if section is None:
+        return parts
+    for k in range(1, 7):
+        idx = np.nonzero(section == k)[0]
+        if len(idx) >= min_samples:
+            t = (idx - idx[0]).astype(np.float64)
+            coef = np.polyfit(t, speed[idx], 2)
+            parts.append(speed[idx] - np.polyval(coef, t))
+    return parts
+
+
+def _mean_acceleration(speed: np.ndarray, section: np.ndarray | None, T_s: float) -> float:
+    """The larger mean acceleration [rad/s^2] of sections I and IV (0 without sections)."""
+    accel = 0.0
+    if section is None:
+        return accel
+    for k in (1, 4):
+        idx = np.nonzero(section == k)[0]
+        if len(idx) >= 2:
+            accel = max(accel, abs(float(speed[idx[-1]] - speed[idx[0]])) / ((len(idx) - 1) * T_s))
+    return accel
+
+
+def _along_torque(record: Any, speed: np.ndarray, q_w: float, on_share: float) -> float:
+    """The speed gained in the direction of the torque reference [``q_w``], summed over the samples
+    whose reference is at least ``on_share`` of its peak (NaN without a reference)."""
+    if record.torque_ref is None or len(record.torque_ref) != len(speed):
+        return math.nan
+    torque = np.asarray(record.torque_ref, dtype=np.float64)
+    peak = np.abs(torque).max()
+    on = np.abs(torque[:-1]) >= on_share * float(peak) if peak > 0 else np.zeros(len(speed) - 1, dtype=bool)
+    return float(np.sum(np.sign(torque[:-1][on]) * np.diff(speed)[on])) / q_w
+
+
+def measure_run(record: Any, config: Any, rules: ExcitationRules | None = None) -> RunFigures:
+    """The measured figures of one test record (:class:`RunFigures`); uses no truth.
 
     ``record``: a :class:`sim.Record` (``speed`` ``N`` [rad/s], ``section`` ``N`` (1..6, 0 = tail),
     optional ``torque_ref``, ``current``/``torque``; ``meta``: optional ``timed_out`` (six flags)
     and ``aborted``). ``config``: the drive's ``T_s``, ``K_M``, ``encoder_counts``.
     """
+    rules = rules or ExcitationRules()
     T_s = float(config.T_s)
     q_w = sim.speed_quantum(float(config.encoder_counts), T_s)
-    w = np.asarray(record.speed, dtype=np.float64)
-    if len(w) < 2 or not np.isfinite(w).all():
+    speed = np.asarray(record.speed, dtype=np.float64)
+    if len(speed) < 2 or not np.isfinite(speed).all():
         raise ValueError("record: expected a finite speed with at least 2 samples")
-    sec = None if record.section is None else np.asarray(record.section)
-    counts = [int((sec == k).sum()) for k in range(1, 7)] if sec is not None else [0] * 6
-    resid: list[np.ndarray] = []
-    if sec is not None:
-        for k in range(1, 7):
-            idx = np.nonzero(sec == k)[0]
-            if len(idx) >= 8:
-                t = (idx - idx[0]).astype(np.float64)
-                coef = np.polyfit(t, w[idx], 2)
-                resid.append(w[idx] - np.polyval(coef, t))
-    osc = float(np.sqrt(np.mean(np.concatenate(resid) ** 2))) / q_w if resid else 0.0
-    accel = 0.0
-    if sec is not None:
-        for k in (1, 4):
-            idx = np.nonzero(sec == k)[0]
-            if len(idx) >= 2:
-                accel = max(accel, abs(float(w[idx[-1]] - w[idx[0]])) / ((len(idx) - 1) * T_s))
+    section = None if record.section is None else np.asarray(record.section)
+    counts = tuple(int((section == k).sum()) for k in range(1, 7)) if section is not None else (0,) * 6
+    parts = _oscillating_parts(speed, section, rules.fit_min_samples)
     meta = record.meta or {}
-    along = math.nan  # speed gained in the direction of the torque reference [q_w] (negative: against it)
-    if record.torque_ref is not None and len(record.torque_ref) == len(w):
-        M = np.asarray(record.torque_ref, dtype=np.float64)
-        on = np.abs(M[:-1]) >= 0.5 * float(np.abs(M).max()) if np.abs(M).max() > 0 else np.zeros(len(w) - 1, dtype=bool)
-        along = float(np.sum(np.sign(M[:-1][on]) * np.diff(w)[on])) / q_w
-    peaks = record_peaks(record, T_s, float(config.K_M))
-    return {
-        "along_torque_quanta": along,
-        "samples_per_section": counts,
-        "samples_min": min(counts),
-        "timed_out": bool(np.any(meta.get("timed_out", False))),
-        "aborted": bool(meta.get("aborted", False)),
-        "range_quanta": float((w.max() - w.min()) / q_w),
-        "osc_quanta": osc,
-        "f_osc": _dominant_frequency(resid, T_s),
-        "longest_section": max(counts) * T_s,
-        "accel": accel,
-        **peaks,
-        "duration": len(w) * T_s,
-    }
+    return RunFigures(
+        along_torque_quanta=_along_torque(record, speed, q_w, rules.torque_on_share),
+        samples_per_section=counts, samples_min=min(counts),
+        timed_out=bool(np.any(meta.get("timed_out", False))), aborted=bool(meta.get("aborted", False)),
+        range_quanta=float((speed.max() - speed.min()) / q_w),
+        osc_quanta=float(np.sqrt(np.mean(np.concatenate(parts) ** 2))) / q_w if parts else 0.0,
+        f_osc=_dominant_frequency(parts, T_s, rules.spectrum_padding), longest_section=max(counts) * T_s,
+        accel=_mean_acceleration(speed, section, T_s), **record_peaks(record, T_s, float(config.K_M)),
+        duration=len(speed) * T_s)
+
+
+def measure_response(record: Any, config: Any) -> dict[str, Any]:
+    """The measured figures of one test record as a log entry's keys (:func:`measure_run`)."""
+    return measure_run(record, config).as_dict()
+
+
+# --------------------------------------------------------------------------- E1, E9: the plan and the limits of a run
+
+
+@dataclass(frozen=True)
+class RunPlan:
+    """A test run's ``M_star`` [Nm] and ``w_max`` [rad/s], with the ceilings earlier runs set on both."""
+
+    M_star: float
+    w_max: float
+    M_ceiling: float = math.inf
+    w_ceiling: float = math.inf
+
+
+def first_plan(limits: sim.DriveLimits, M_cap: float, rules: ExcitationRules) -> RunPlan:
+    """E1: start small; the first travel is bounded by an a-priori inertia bound
+    (``w^2 J / M*`` x ``first_travel_factor``)."""
+    M_star = rules.M_star_start * M_cap
+    w_travel = math.sqrt(rules.travel_margin * rules.first_travel_share * limits.travel * M_star
+                         / (rules.first_travel_factor * rules.J_prior_max))
+    return RunPlan(M_star, min(rules.w_max_start, rules.first_speed_share * limits.w_max, w_travel))
 
 
 def stop_headroom(accel: float, config: Any, rules: ExcitationRules) -> float:
@@ -182,20 +310,413 @@ def stop_headroom(accel: float, config: Any, rules: ExcitationRules) -> float:
 
 def guarded_limits(limits: sim.DriveLimits, headroom: float, config: Any, rules: ExcitationRules) -> sim.DriveLimits:
     """The limits handed to the drive for one experiment: the user's speed limit less ``headroom``
-    [rad/s] (at most half of it), the travel less what the stop's delays let the plant run on."""
-    w = limits.w_max - min(headroom, 0.5 * limits.w_max)
+    [rad/s] (at most ``max_guard_share`` of it), the travel less what the stop's delays let the
+    plant run on (at most ``max_guard_share`` of it)."""
+    w = limits.w_max - min(headroom, rules.max_guard_share * limits.w_max)
     t_stop = stop_headroom(1.0, config, rules)  # the stop's delay [s]: the headroom per unit acceleration
-    return sim.DriveLimits(w_max=w, travel=max(limits.travel - limits.w_max * t_stop, 0.5 * limits.travel), M_max=limits.M_max)
+    return sim.DriveLimits(w_max=w, travel=max(limits.travel - limits.w_max * t_stop, rules.max_guard_share * limits.travel),
+                           M_max=limits.M_max)
+
+
+@dataclass(frozen=True)
+class Headroom:
+    """E9: what a stop can add, per Nm of ``M_star``, learned from the runs so far (0: nothing yet)."""
+
+    accel_per_M: float = 0.0
+    over_per_M: float = 0.0
+
+    def at(self, M_star: float, w_limit: float, config: Any, rules: ExcitationRules) -> float:
+        """The headroom [rad/s] of a run at ``M_star`` below the user's speed limit ``w_limit``."""
+        if self.accel_per_M == 0.0:
+            return rules.first_headroom * w_limit
+        return stop_headroom(self.accel_per_M * M_star, config, rules) + self.over_per_M * M_star
+
+    def learned(self, plan: RunPlan, figures: RunFigures) -> Headroom:
+        """With the run ``plan`` measured as ``figures`` (its overshoot only when the drive did not stop it)."""
+        over = self.over_per_M if figures.aborted else max(self.over_per_M, max(figures.peak_speed - plan.w_max, 0.0) / plan.M_star)
+        return Headroom(max(self.accel_per_M, figures.accel / plan.M_star), over)
+
+
+# --------------------------------------------------------------------------- E2, E6: what a run lacks, what the next one will do
+
+
+@dataclass(frozen=True)
+class Deficits:
+    """E2: what keeps a run from being informative."""
+
+    timed_out: bool
+    short: bool
+    small: bool
+    hidden: bool
+
+    @classmethod
+    def of(cls, figures: RunFigures, rules: ExcitationRules) -> Deficits:
+        return cls(timed_out=figures.timed_out, short=figures.samples_min < rules.min_section_samples,
+                   small=figures.range_quanta < rules.min_range_quanta, hidden=figures.osc_quanta < rules.min_osc_quanta)
+
+    @property
+    def any(self) -> bool:
+        """Something is missing."""
+        return self.timed_out or self.short or self.small or self.hidden
+
+    @property
+    def only_hidden(self) -> bool:
+        """Only the oscillation is missing."""
+        return self.hidden and not (self.timed_out or self.short or self.small)
+
+    def names(self) -> tuple[str, ...]:
+        """The deficits in words, in a fixed order (the log's reason)."""
+        named = (("section timed out", self.timed_out), ("sections too short", self.short),
+                 ("speed range too small", self.small), ("oscillation not visible", self.hidden))
+        return tuple(name for name, on in named if on)
+
+
+@dataclass(frozen=True)
+class PeakModel:
+    """E6: the figures of one run the next run's peak speed and travel are predicted from.
+
+    ``over`` [rad/s]: the overshoot beyond ``w_max``, ``overshoot_weight`` times; ``travel_per``:
+    travel over ``w_max^2`` (travel ~ ``w_max^2 J / M_star``); ``travel_per_peak``: travel over the
+    peak squared (E6d: where ``w_max`` lies below what the encoder resolves, the speed runs on to the
+    first quanta it shows and the travel follows the peak); ``run_on`` [rad/s]: the peak beyond ``w_max``.
+    """
+
+    over: float
+    travel_per: float
+    travel_per_peak: float
+    run_on: float
+
+    @classmethod
+    def of(cls, figures: RunFigures, w_max: float, rules: ExcitationRules) -> PeakModel:
+        has_travel = figures.travel > 0  # the travel sums the speed: then the peak > 0
+        return cls(over=rules.overshoot_weight * max(figures.peak_speed - w_max, 0.0),
+                   travel_per=figures.travel / w_max**2 if has_travel else 0.0,
+                   travel_per_peak=figures.travel / figures.peak_speed**2 if has_travel else 0.0,
+                   run_on=max(figures.peak_speed - w_max, 0.0))
+
+
+@dataclass(frozen=True)
+class Prediction:
+    """E6: the next run's predicted peak speed [rad/s] and travel [rad]."""
+
+    peak_speed: float
+    travel: float
+
+
+@dataclass(frozen=True)
+class ExcitationRun:
+    """One test run as the rules see it: its plan, the limits the drive had, what it measured, what
+    the runs so far taught (the headroom includes this run) and the previous stopped run's figures."""
+
+    plan: RunPlan
+    figures: RunFigures
+    guarded: sim.DriveLimits
+    w_limit: float
+    M_cap: float
+    headroom: Headroom
+    previous_stopped: RunFigures | None
+    config: Any
+    rules: ExcitationRules
+    deficits: Deficits
+    model: PeakModel
+
+    @classmethod
+    def of(cls, plan: RunPlan, figures: RunFigures, guarded: sim.DriveLimits, limits: sim.DriveLimits, M_cap: float,
+           headroom: Headroom, previous_stopped: RunFigures | None, config: Any, rules: ExcitationRules) -> ExcitationRun:
+        """The run with its deficits (E2) and its peak model (E6)."""
+        return cls(plan, figures, guarded, limits.w_max, M_cap, headroom, previous_stopped, config, rules,
+                   Deficits.of(figures, rules), PeakModel.of(figures, plan.w_max, rules))
+
+    def raised_torque(self, M_ceiling: float) -> float:
+        """E3, E5: one step more torque, at most the cap and ``M_ceiling``."""
+        return min(self.plan.M_star * self.rules.factor, self.M_cap, M_ceiling)
+
+    def travel_gain(self, M_new: float) -> float:
+        """The travel's factor at ``M_new``: the benefit of more torque counted with exponent 1/2
+        only (friction and the coasting section II do not scale): conservative."""
+        return math.sqrt(self.plan.M_star / M_new)
+
+    def travel_cap(self, M_new: float) -> float:
+        """The largest ``w_max'`` whose predicted travel (both models) fits below the travel at which
+        the drive stops the run (inf: nothing measured; <= 0: none at ``M_new``)."""
+        model = self.model
+        if model.travel_per == 0.0:
+            return math.inf
+        room = self.rules.travel_margin * self.guarded.travel / self.travel_gain(M_new)
+        return min(math.sqrt(room / model.travel_per), math.sqrt(room / model.travel_per_peak) - model.run_on * M_new / self.plan.M_star)
+
+    def speed_cap(self, M_new: float, w_ceiling: float) -> float:
+        """The largest ``w_max'`` whose predicted peak ``w_max' + max(swing w_max', over)`` and travel fit."""
+        rules = self.rules
+        room = rules.speed_margin * (self.w_limit - self.headroom.at(M_new, self.w_limit, self.config, rules))
+        speed = min(room / (1 + rules.swing_allowance), max(room - self.model.over * M_new / self.plan.M_star, 0.0), w_ceiling)
+        return min(speed, self.travel_cap(M_new))
+
+    def predicted(self, w_next: float, M_next: float) -> Prediction:
+        model, M_star = self.model, self.plan.M_star
+        return Prediction(w_next + max(self.rules.swing_allowance * w_next, model.over * M_next / M_star),
+                          max(model.travel_per * w_next**2, model.travel_per_peak * (w_next + model.run_on * M_next / M_star)**2)
+                          * self.travel_gain(M_next))
+
+
+# --------------------------------------------------------------------------- E3-E8, E10: the rules
+
+
+@dataclass(frozen=True)
+class RuleDecision:
+    """What the rules decided so far: the next run's plan and, once a rule settles the run, the
+    ``verdict`` (:data:`RUN_AGAIN` or a key of :data:`EXCITATION_ENDS`), the log's ``decision`` and
+    ``reason``, and E6's prediction of the next run."""
+
+    plan: RunPlan
+    verdict: str = ""
+    decision: str = ""
+    reason: str = ""
+    prediction: Prediction | None = None
+
+    def planned(self, **changes: float) -> RuleDecision:
+        """With the next run's plan changed."""
+        return replace(self, plan=replace(self.plan, **changes))
+
+    def ended(self, code: str, reason: str) -> RuleDecision:
+        """Settled: the adaptation ends with ``code`` (accepted when informative)."""
+        return replace(self, verdict=code, decision="accept" if code == "informative" else "stop", reason=reason)
+
+
+ExcitationRule = Callable[[ExcitationRun, RuleDecision], RuleDecision]
+
+
+def _changes(run: ExcitationRun, plan: RunPlan, *, speed_always: bool = False) -> str:
+    """The log's decision: the changes of ``M_star`` and ``w_max`` from ``run``'s plan to ``plan``."""
+    old = run.plan
+    parts = [f"M_star {old.M_star:.4g} -> {plan.M_star:.4g} Nm"] if plan.M_star != old.M_star else []
+    if speed_always or plan.w_max != old.w_max:
+        parts.append(f"w_max {old.w_max:.4g} -> {plan.w_max:.4g} rad/s")
+    return "; ".join(parts)
+
+
+def e10_speed_against_torque(run: ExcitationRun, decision: RuleDecision) -> RuleDecision:
+    """E10, runs when the speed moved against the torque reference by more than ``against_quanta``:
+    a reversed motor or encoder sign; no rule can make such a run informative: stop."""
+    along = run.figures.along_torque_quanta
+    if not along < -run.rules.against_quanta:
+        return decision
+    return decision.ended("speed_against_torque", f"the speed moved against the torque reference ({-along:.0f} "
+                                                  f"speed quanta): motor or encoder sign reversed?")
+
+
+def _repeats(now: RunFigures, before: RunFigures, tolerance: float) -> bool:
+    """Whether ``now``'s peak speed and travel equal ``before``'s within the share ``tolerance``."""
+    return all(abs(a - b) <= tolerance * max(abs(b), 1e-300)
+               for a, b in ((now.peak_speed, before.peak_speed), (now.travel, before.travel)))
+
+
+def e8b_stopped_run_repeated(run: ExcitationRun, decision: RuleDecision) -> RuleDecision:
+    """E8b, runs when the drive stopped this run and the previous stopped run with the same peak
+    speed and travel: a smaller test changed nothing, the limit is passed before the signal matters: stop."""
+    now, before = run.figures, run.previous_stopped
+    if not now.aborted or before is None or not _repeats(now, before, run.rules.repeat_tolerance):
+        return decision
+    return decision.ended("run_repeated", f"the drive stopped the run at a limit again with the same peak speed "
+                                          f"{now.peak_speed:.4g} rad/s and travel {now.travel:.4g} rad: a smaller test "
+                                          f"signal changes nothing")
+
+
+def e8_stopped_by_drive(run: ExcitationRun, decision: RuleDecision) -> RuleDecision:
+    """E8, runs when the drive stopped this run at a limit: never accepted; half the speed target and
+    the torque (not below E1's start), no later run above ``factor^-stopped_ceiling_exponent`` of this one."""
+    if not run.figures.aborted:
+        return decision
+    rules, plan, M_start = run.rules, run.plan, run.rules.M_star_start * run.M_cap
+    ceiling_step = rules.factor ** rules.stopped_ceiling_exponent
+    M_next = max(plan.M_star / rules.factor, min(plan.M_star, M_start))
+    decided = decision.planned(M_star=M_next, w_max=plan.w_max / rules.factor,
+                               w_ceiling=min(decision.plan.w_ceiling, plan.w_max / ceiling_step),
+                               M_ceiling=min(decision.plan.M_ceiling, max(plan.M_star / ceiling_step, M_next)))
+    return replace(decided, verdict=RUN_AGAIN, decision=_changes(run, decided.plan, speed_always=True),
+                   reason="stopped by the drive at a limit")
+
+
+def e3_section_timed_out(run: ExcitationRun, decision: RuleDecision) -> RuleDecision:
+    """E3, runs when a section did not reach its speed (timed out): more torque."""
+    if not run.deficits.timed_out:
+        return decision
+    return decision.planned(M_star=run.raised_torque(decision.plan.M_ceiling))
+
+
+def e4_short_or_small(run: ExcitationRun, decision: RuleDecision) -> RuleDecision:
+    """E4, runs when the sections are too short or the speed range too small: a higher ``w_max``."""
+    if not (run.deficits.short or run.deficits.small):
+        return decision
+    return decision.planned(w_max=run.plan.w_max * run.rules.factor)
+
+
+def e5_oscillation_hidden(run: ExcitationRun, decision: RuleDecision) -> RuleDecision:
+    """E5, runs when the oscillation is below resolution and no section timed out: the oscillation
+    grows with ``M_star``, raise it."""
+    if not run.deficits.hidden or run.deficits.timed_out:
+        return decision
+    return decision.planned(M_star=run.raised_torque(decision.plan.M_ceiling))
+
+
+def e3b_torque_at_cap(run: ExcitationRun, decision: RuleDecision) -> RuleDecision:
+    """E3b, runs when a section timed out and the torque cannot rise: a lower speed target instead."""
+    if not (run.deficits.timed_out and decision.plan.M_star <= run.plan.M_star):
+        return decision
+    return decision.planned(w_max=run.plan.w_max / run.rules.factor)
+
+
+def e6b_torque_for_speed(run: ExcitationRun, decision: RuleDecision) -> RuleDecision:
+    """E6b, runs when E4 wants more speed than the limits allow at the planned torque, below the
+    torque cap: travel ~ ``w_max^2 / M_star``, so one step more torque when it allows more speed."""
+    plan = decision.plan
+    wants_speed = run.deficits.short or run.deficits.small
+    if not (wants_speed and run.speed_cap(plan.M_star, plan.w_ceiling) < plan.w_max and plan.M_star < run.M_cap):
+        return decision
+    M_up = min(plan.M_star * run.rules.factor, run.M_cap, plan.M_ceiling)
+    if run.speed_cap(M_up, plan.w_ceiling) > run.speed_cap(plan.M_star, plan.w_ceiling):
+        return decision.planned(M_star=M_up)
+    return decision
+
+
+def e4b_less_torque_longer_sections(run: ExcitationRun, decision: RuleDecision) -> RuleDecision:
+    """E4b, runs when the sections are too short (nothing else missing), the limits keep ``w_max``
+    from rising and ``M_star`` can step down above E1's start: less torque makes the sections longer
+    (and the headroom after a stop smaller); no later raise above it."""
+    rules, plan, deficits = run.rules, decision.plan, run.deficits
+    if not deficits.short or deficits.hidden or deficits.timed_out:
+        return decision
+    M_lower = run.plan.M_star / rules.factor
+    if run.speed_cap(plan.M_star, plan.w_ceiling) < run.plan.w_max * rules.factor**rules.lower_torque_exponent \
+            and M_lower >= rules.M_star_start * run.M_cap:
+        return decision.planned(M_star=M_lower, M_ceiling=M_lower)
+    return decision
+
+
+def e6d_torque_past_travel(run: ExcitationRun, decision: RuleDecision) -> RuleDecision:
+    """E6d, runs when more torque alone would run past the travel limit (none fits at the planned
+    torque, some at this run's): keep this run's torque."""
+    M_star = run.plan.M_star
+    if decision.plan.M_star > M_star and run.travel_cap(decision.plan.M_star) <= 0.0 < run.travel_cap(M_star):
+        return decision.planned(M_star=M_star)
+    return decision
+
+
+def e6_speed_within_limits(run: ExcitationRun, decision: RuleDecision) -> RuleDecision:
+    """E6, runs always: the planned ``w_max`` at most what the predicted peak and travel allow (may
+    lower it: the limits come first)."""
+    plan = decision.plan
+    return decision.planned(w_max=min(plan.w_max, run.speed_cap(plan.M_star, plan.w_ceiling)))
+
+
+def e6c_no_small_raise(run: ExcitationRun, decision: RuleDecision) -> RuleDecision:
+    """E6c, runs when ``w_max`` alone would rise by less than ``factor^min_raise_exponent``: no progress, keep it."""
+    rules, w_max, plan = run.rules, run.plan.w_max, decision.plan
+    if w_max < plan.w_max < w_max * rules.factor**rules.min_raise_exponent and plan.M_star <= run.plan.M_star:
+        return decision.planned(w_max=w_max)
+    return decision
+
+
+def e6_prediction(run: ExcitationRun, decision: RuleDecision) -> RuleDecision:
+    """E6, runs always: the next run's predicted peak speed and travel, for the log."""
+    return replace(decision, prediction=run.predicted(decision.plan.w_max, decision.plan.M_star))
+
+
+def e7_informative(run: ExcitationRun, decision: RuleDecision) -> RuleDecision:
+    """E7, runs when nothing is missing: accept."""
+    if run.deficits.any:
+        return decision
+    return decision.ended("informative", "informative")
+
+
+def e7_stiff_at_cap(run: ExcitationRun, decision: RuleDecision) -> RuleDecision:
+    """E7, runs when only the oscillation is missing at the torque cap: stiff or weakly coupled
+    mechanics; accept."""
+    if not run.deficits.only_hidden or run.plan.M_star < run.M_cap:
+        return decision
+    return decision.ended("informative", "informative (oscillation not visible at the torque cap: stiff or weakly coupled)")
+
+
+def e7_limits_reached(run: ExcitationRun, decision: RuleDecision) -> RuleDecision:
+    """E7, runs when the rules changed neither ``M_star`` nor ``w_max`` (or left no speed): stop."""
+    old, new, tolerance = run.plan, decision.plan, run.rules.change_tolerance
+    changed = abs(new.M_star - old.M_star) > tolerance * old.M_star or abs(new.w_max - old.w_max) > tolerance * old.w_max
+    if not changed or new.w_max <= 0:
+        return decision.ended("limits_reached", f"limits reached before the response was informative: "
+                                                f"{', '.join(run.deficits.names())}")
+    return decision
+
+
+def run_again(run: ExcitationRun, decision: RuleDecision) -> RuleDecision:
+    """Last, runs always: run again with the plan the rules decided (the log names the changes and the deficits)."""
+    return replace(decision, verdict=RUN_AGAIN, decision=_changes(run, decision.plan), reason=", ".join(run.deficits.names()))
+
+
+#: The rules applied to each run, in this order; the first to settle the run ends the pass (:func:`judge_run`).
+EXCITATION_RULES: tuple[ExcitationRule, ...] = (
+    e10_speed_against_torque,
+    e8b_stopped_run_repeated,
+    e8_stopped_by_drive,
+    e3_section_timed_out,
+    e4_short_or_small,
+    e5_oscillation_hidden,
+    e3b_torque_at_cap,
+    e6b_torque_for_speed,
+    e4b_less_torque_longer_sections,
+    e6d_torque_past_travel,
+    e6_speed_within_limits,
+    e6c_no_small_raise,
+    e6_prediction,
+    e7_informative,
+    e7_stiff_at_cap,
+    e7_limits_reached,
+    run_again,
+)
+
+
+def judge_run(run: ExcitationRun) -> RuleDecision:
+    """:data:`EXCITATION_RULES` on ``run``, from its own plan, up to the first that settles it."""
+    decision = RuleDecision(run.plan)
+    for rule in EXCITATION_RULES:
+        decision = rule(run, decision)
+        if decision.verdict:
+            break
+    return decision
+
+
+# --------------------------------------------------------------------------- the adaptation
+
+
+def _checked(drive: Any, limits: Any, rules: Any) -> ExcitationRules:
+    """``rules`` (default :class:`ExcitationRules`) after checking the types of the inputs."""
+    rules = rules or ExcitationRules()
+    if not isinstance(limits, sim.DriveLimits) or not isinstance(rules, ExcitationRules):
+        raise TypeError(f"limits, rules: expected sim.DriveLimits, ExcitationRules, received "
+                        f"{type(limits).__name__}, {type(rules).__name__}")
+    if not callable(getattr(drive, "run_test", None)):
+        raise TypeError(f"drive: expected a SPEC 8.1 drive with run_test(M_star, w_max, limits), received {type(drive).__name__}")
+    return rules
+
+
+def _log_entry(iteration: int, run: ExcitationRun, decision: RuleDecision) -> dict[str, Any]:
+    """One run's log entry (:attr:`ExcitationResult.log`)."""
+    entry: dict[str, Any] = {"iteration": iteration, "M_star": run.plan.M_star, "w_max": run.plan.w_max,
+                             "stop_at": run.guarded.w_max, **run.figures.as_dict()}
+    if decision.prediction is not None:
+        entry["predicted_peak_speed"] = decision.prediction.peak_speed
+        entry["predicted_travel"] = decision.prediction.travel
+    entry.update(decision=decision.decision, reason=decision.reason)
+    return entry
 
 
 def adapt_test_signal(drive: Any, limits: sim.DriveLimits, rules: ExcitationRules | None = None, *,
                       log: list[dict[str, Any]] | None = None) -> ExcitationResult:
-    """Adapt ``M_star`` and ``w_max`` until the test record is informative (rules E1-E9).
+    """Adapt ``M_star`` and ``w_max`` until the test record is informative (rules E1-E10).
 
     Args:
         drive: a SPEC 8.1 drive (``config``, ``run_test(M_star, w_max, limits) -> Record``).
         limits: the user's limits (torque, speed, travel), handed to every run.
-        rules: rule constants.
+        rules: rule settings.
         log: a list each run's log entry is appended to as it is decided (the result's ``log``), so
             that a caller keeps the entries of the runs before one whose ``run_test`` raised.
 
@@ -203,164 +724,29 @@ def adapt_test_signal(drive: Any, limits: sim.DriveLimits, rules: ExcitationRule
     limits by prediction; the log records the measured peaks of each run and whether the drive
     stopped it at a limit).
     """
-    rules = rules or ExcitationRules()
-    if not isinstance(limits, sim.DriveLimits) or not isinstance(rules, ExcitationRules):
-        raise TypeError(f"limits, rules: expected sim.DriveLimits, ExcitationRules, received "
-                        f"{type(limits).__name__}, {type(rules).__name__}")
-    if not callable(getattr(drive, "run_test", None)):
-        raise TypeError(f"drive: expected a SPEC 8.1 drive with run_test(M_star, w_max, limits), received {type(drive).__name__}")
-    if rules.factor <= 1 or rules.max_iterations < 1:
-        raise ValueError(f"rules: expected factor > 1 and max_iterations >= 1, received {rules.factor}, {rules.max_iterations}")
+    rules = _checked(drive, limits, rules)
     config = drive.config
-    w_limit, travel_limit = limits.w_max, limits.travel
     M_cap = limits.torque_cap(config)
-    # E1: start small; the first travel is bounded by an a-priori inertia bound (w^2 J / M* x 3)
-    M_star = rules.M_star_start * M_cap
-    w_travel0 = math.sqrt(rules.travel_margin * 0.25 * travel_limit * M_star / (3.0 * rules.J_prior_max))
-    w_max = min(rules.w_max_start, 0.1 * w_limit, w_travel0)
+    plan, headroom, stopped = first_plan(limits, M_cap, rules), Headroom(), None
     log = [] if log is None else log
     records: list[Any] = []
-    w_ceiling = M_ceiling = math.inf
-    informative, reason, code = False, "", ""
-    accel_per_M = over_per_M = 0.0  # E9: what a stop can add, per Nm of M*, from the runs so far
-
-    def headroom(M: float) -> float:
-        if accel_per_M == 0.0:
-            return rules.first_headroom * w_limit
-        return stop_headroom(accel_per_M * M, config, rules) + over_per_M * M
-
-    for it in range(rules.max_iterations):
-        guarded = guarded_limits(limits, headroom(M_star), config, rules)
-        rec = drive.run_test(M_star, w_max, guarded)
-        records.append(rec)
-        m = measure_response(rec, config)
-        entry: dict[str, Any] = {"iteration": it, "M_star": M_star, "w_max": w_max, "stop_at": guarded.w_max, **m}
-        accel_per_M = max(accel_per_M, m["accel"] / M_star)
-        if not m["aborted"]:
-            over_per_M = max(over_per_M, max(m["peak_speed"] - w_max, 0.0) / M_star)
-        if m["along_torque_quanta"] < -rules.against_quanta:
-            # E10: the speed moves against the torque reference: a reversed motor or encoder sign; no
-            # rule can make such a run informative, and every further run would go the wrong way
-            code, reason = "speed_against_torque", (f"the speed moved against the torque reference ({-m['along_torque_quanta']:.0f} "
-                                                    f"speed quanta): motor or encoder sign reversed?")
-            entry.update(decision="stop", reason=reason)
-            log.append(entry)
+    kept: list[Any] = []  # the records the drive did not stop
+    for iteration in range(rules.max_iterations):
+        guarded = guarded_limits(limits, headroom.at(plan.M_star, limits.w_max, config, rules), config, rules)
+        record = drive.run_test(plan.M_star, plan.w_max, guarded)
+        records.append(record)
+        figures = measure_run(record, config, rules)
+        if not figures.aborted:
+            kept.append(record)
+        headroom = headroom.learned(plan, figures)
+        run = ExcitationRun.of(plan, figures, guarded, limits, M_cap, headroom, stopped, config, rules)
+        decision = judge_run(run)
+        log.append(_log_entry(iteration, run, decision))
+        if decision.verdict != RUN_AGAIN:
+            code, reason = decision.verdict, decision.reason
             break
-        if m["aborted"]:
-            prev = next((e for e in reversed(log) if e["aborted"]), None)
-            if prev is not None and all(abs(m[k] - prev[k]) <= rules.repeat_tolerance * max(abs(prev[k]), 1e-300)
-                                        for k in ("peak_speed", "travel")):
-                # E8b: a smaller test changed nothing: the limit is passed before the signal matters
-                code, reason = "run_repeated", (f"the drive stopped the run at a limit again with the same peak speed "
-                                                f"{m['peak_speed']:.4g} rad/s and travel {m['travel']:.4g} rad: a smaller test "
-                                                f"signal changes nothing")
-                entry.update(decision="stop", reason=reason)
-                log.append(entry)
-                break
-            # E8: the drive stopped the run at a limit: never accepted; half the speed target and the
-            # torque (not below E1's start), no later run above factor^-0.5 of the stopped one's
-            w_next = w_max / rules.factor
-            M_next = max(M_star / rules.factor, min(M_star, rules.M_star_start * M_cap))
-            w_ceiling = min(w_ceiling, w_max / math.sqrt(rules.factor))
-            M_ceiling = min(M_ceiling, max(M_star / math.sqrt(rules.factor), M_next))
-            parts = [f"M_star {M_star:.4g} -> {M_next:.4g} Nm"] if M_next != M_star else []
-            entry.update(decision="; ".join(parts + [f"w_max {w_max:.4g} -> {w_next:.4g} rad/s"]),
-                         reason="stopped by the drive at a limit")
-            log.append(entry)
-            w_max, M_star = w_next, M_next
-            continue
-        # E2: what is missing
-        short = m["samples_min"] < rules.min_section_samples
-        small = m["range_quanta"] < rules.min_range_quanta
-        hidden = m["osc_quanta"] < rules.min_osc_quanta
-        want_M, want_w = False, False
-        if m["timed_out"]:
-            want_M = True  # E3: a section did not reach its speed: more torque
-        if short or small:
-            want_w = True  # E4: sections too short / speed range too small: higher w_max
-        if hidden and not m["timed_out"]:
-            want_M = True  # E5: oscillation below resolution: r_osc ~ M_star, raise it
-        M_next = min(M_star * rules.factor, M_cap, M_ceiling) if want_M else M_star
-        w_next = w_max * rules.factor if want_w else w_max
-        if m["timed_out"] and M_next <= M_star:
-            w_next = w_max / rules.factor  # E3b: torque at its cap: lower the speed target instead
-        # E6: predict the next run's peak speed and travel from this one; shorten the step
-        # the overshoot beyond w_max (an elastic mode swinging on after section I) depends on the
-        # phase at the switch, not only on M*: counted twice; at least the swing allowance
-        over = 2.0 * max(m["peak_speed"] - w_max, 0.0)
-        # travel ~ w_max^2 J / M_star; the benefit of a larger M_star is counted with exponent
-        # 1/2 only (friction and the coasting section II do not scale): conservative
-        travel_per = m["travel"] / w_max**2 if m["travel"] > 0 else 0.0
-        # E6d: travel ~ peak^2 as well, the peak w_max' + (peak - w_max) M'/M_star: where w_max lies
-        # below what the encoder resolves, the speed runs on to the first quanta it shows (a peak
-        # many times w_max, growing with M_star) and the travel follows the peak, not w_max
-        travel_per_peak = m["travel"] / m["peak_speed"]**2 if m["travel"] > 0 else 0.0  # the travel sums the speed: peak > 0
-        run_on = max(m["peak_speed"] - w_max, 0.0)
-
-        def travel_gain(M_new: float) -> float:
-            return math.sqrt(M_star / M_new)
-
-        def travel_cap(M_new: float) -> float:
-            """The largest w_max' whose predicted travel (both models) fits; <= 0: none at M_new."""
-            if travel_per == 0.0:
-                return math.inf
-            # the travel at which the drive stops the run (it coasts on from there; guarded_limits' travel
-            # does not depend on the headroom, so not on M_new): the plan stays below it
-            room = rules.travel_margin * guarded.travel / travel_gain(M_new)
-            return min(math.sqrt(room / travel_per), math.sqrt(room / travel_per_peak) - run_on * M_new / M_star)
-
-        def cap(M_new: float) -> float:
-            """The largest w_max' whose predicted peak w_max' + max(swing w_max', over) and travel fit."""
-            room = rules.speed_margin * (w_limit - headroom(M_new))
-            speed = min(room / (1 + rules.swing_allowance), max(room - over * M_new / M_star, 0.0), w_ceiling)
-            return min(speed, travel_cap(M_new))
-
-        if want_w and cap(M_next) < w_next and M_next < M_cap:
-            # E6b: travel ~ w_max^2 / M_star: more torque buys speed range within the same travel
-            M_up = min(M_next * rules.factor, M_cap, M_ceiling)
-            M_next = M_up if cap(M_up) > cap(M_next) else M_next
-        if short and not (hidden or m["timed_out"]) and cap(M_next) < w_max * rules.factor**0.5 \
-                and M_star / rules.factor >= rules.M_star_start * M_cap:
-            # E4b: the limits keep w_max from rising: less torque makes the sections longer (and
-            # the headroom after a stop smaller); no later raise above it
-            M_next = M_ceiling = M_star / rules.factor
-        if M_next > M_star and travel_cap(M_next) <= 0.0 < travel_cap(M_star):
-            M_next = M_star  # E6d: more torque alone would run past the travel limit
-        w_next = min(w_next, cap(M_next))  # may lower w_max: the limits come first
-        if w_max < w_next < w_max * rules.factor**0.1 and M_next <= M_star:
-            w_next = w_max  # E6c: a raise of less than factor^0.1 is no progress
-        entry["predicted_peak_speed"] = w_next + max(rules.swing_allowance * w_next, over * M_next / M_star)
-        entry["predicted_travel"] = max(travel_per * w_next**2, travel_per_peak * (w_next + run_on * M_next / M_star)**2) \
-            * travel_gain(M_next)
-        problems = [p for p, on in (("section timed out", m["timed_out"]), ("sections too short", short),
-                                    ("speed range too small", small), ("oscillation not visible", hidden)) if on]
-        if not problems:
-            informative, reason, code = True, "informative", "informative"
-            entry.update(decision="accept", reason=reason)
-            log.append(entry)
-            break
-        if hidden and not (m["timed_out"] or short or small) and M_star >= M_cap:
-            # E7: oscillation still below resolution at the torque cap: stiff or weakly coupled mechanics
-            informative, reason, code = True, "informative (oscillation not visible at the torque cap: stiff or weakly coupled)", "informative"
-            entry.update(decision="accept", reason=reason)
-            log.append(entry)
-            break
-        changed = abs(M_next - M_star) > 1e-9 * M_star or abs(w_next - w_max) > 1e-9 * w_max
-        if not changed or w_next <= 0:
-            code, reason = "limits_reached", f"limits reached before the response was informative: {', '.join(problems)}"
-            entry.update(decision="stop", reason=reason)
-            log.append(entry)
-            break
-        parts = []
-        if M_next != M_star:
-            parts.append(f"M_star {M_star:.4g} -> {M_next:.4g} Nm")
-        if w_next != w_max:
-            parts.append(f"w_max {w_max:.4g} -> {w_next:.4g} rad/s")
-        entry.update(decision="; ".join(parts), reason=", ".join(problems))
-        log.append(entry)
-        M_star, w_max = M_next, w_next
+        plan, stopped = decision.plan, figures if figures.aborted else stopped
     else:
         code, reason = "max_iterations", f"no informative response after {rules.max_iterations} runs"
-    kept = [r for r, e in zip(records, log) if not e["aborted"]]
-    return ExcitationResult(record=kept[-1] if kept else records[-1], records=records, log=log, informative=informative,
-                            reason=reason, code=code)
+    return ExcitationResult(record=kept[-1] if kept else records[-1], records=records, log=log,
+                            informative=code == "informative", reason=reason, code=code)

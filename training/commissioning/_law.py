@@ -65,11 +65,12 @@ def _positive(value: Any, name: str) -> float:
 
 
 def _gain(value: Any, name: str, positive: bool) -> np.ndarray:
-    a = _array(value, name)
-    bad = (a <= 0) if positive else (a < 0)
-    if not np.isfinite(a).all() or bad.any():
+    """``value`` as a float64 array of finite values > 0 (``positive``) or >= 0; else a one-line error naming it."""
+    values = _array(value, name)
+    bad = (values <= 0) if positive else (values < 0)
+    if not np.isfinite(values).all() or bad.any():
         raise ValueError(f"{name}: expected finite values {'> 0' if positive else '>= 0'}, received {value}")
-    return a
+    return values
 
 
 class PISpeedLaw:
@@ -101,10 +102,10 @@ class PISpeedLaw:
     @property
     def params(self) -> dict[str, Any]:
         """What a drive loads into its own controller (SI units; arrays as lists)."""
-        n = self.notch
+        notch = self.notch
         return {"type": "PI", "Kp": self.Kp.tolist(), "Ti": self.Ti.tolist(), "T_f": self.T_f.tolist(),
                 "T_s": self.T_s, "M_max": self.M_max,
-                "notch": None if n is None else {"f_n": n.f_n, "D_z": n.D_z, "D_p": n.D_p}}
+                "notch": None if notch is None else {"f_n": notch.f_n, "D_z": notch.D_z, "D_p": notch.D_p}}
 
     def reset(self) -> None:
         zero = np.zeros(self.shape)
