@@ -2,15 +2,17 @@
 propose a speed controller with guaranteed margins, fine-tune it on the identified model, run the
 candidates on the drive inside the limits, deliver, report.
 
-Rooms: ``_chain`` (the chain as named stages applied in order, its settings, the identifier's
-protocol; the drive's is :class:`sim.Drive`), ``_excitation`` (test signal E1-E9), ``_bands``
-(what a test run cannot exclude), ``_validation`` (re-simulation), ``_permission`` (refusal rules
-V1-V6, warning codes), ``_law`` (the PI speed law of SPEC 8.1), ``_loop`` (linear loop analysis,
-margins, model sets), ``_rules`` (controller rules R1-R8, R7b, R7c, fallback F1), ``_tuning``
-(scenario, cost, Nelder-Mead), ``_report`` (one drive's report, the summary over many),
-``_filedrive`` (a drive that exchanges experiments as files with a person at a real drive),
-``_guard`` (every drive call bounded in time, every record checked at once and held against the
-user's limits: a passed limit ends the experiments, :class:`LimitBreach`).
+Rooms: ``_chain`` (the chain as named stages applied in order, :data:`STAGES`; its settings; the
+identifier's protocol, :class:`RecordIdentifier`; the drive's is :class:`sim.Drive`),
+``_excitation`` (test signal E1-E10, the rules applied in the order of ``EXCITATION_RULES``),
+``_bands`` (what a test run cannot exclude), ``_validation`` (re-simulation), ``_permission``
+(refusal rules V1-V6, warning codes), ``_law`` (the PI speed law of SPEC 8.1), ``_loop`` (linear
+loop analysis, margins, model sets), ``_rules`` (controller rules R1-R8, R7b, R7c in the order of
+``CONTROLLER_RULES``, fallback F1), ``_tuning`` (scenario, cost, Nelder-Mead), ``_report`` (one
+drive's report, the summary over many), ``_filedrive`` (a drive that exchanges experiments as files
+with a person at a real drive), ``_guard`` (every drive call bounded in time, every record checked
+at once and held against the user's limits: a passed limit ends the experiments,
+:class:`LimitBreach`). docs/design.md lists the stages and rules in order.
 """
 
 from ._chain import STAGES, CommissioningConfig, RecordIdentifier, commission, drive_config, limit_checks
