@@ -162,3 +162,59 @@ def test_no_function_is_too_complex() -> None:
     """A function a newcomer can change without rereading the rest: at most MAX_COMPLEXITY decisions."""
     over = {name: c for name, c in _complexities().items() if c > MAX_COMPLEXITY}
     assert not over, f"functions above complexity {MAX_COMPLEXITY}: {over}"
+
+
+#: Class names that hold tuned numbers: each is a frozen dataclass (settings cannot drift while in use).
+SETTINGS_SUFFIXES = ("Settings", "Config", "Policy", "Rules", "Tolerances", "Spec", "Bounds", "Sizing")
+
+
+def test_settings_are_frozen_dataclasses() -> None:
+    loose = []
+    for path in sorted(p for pkg in PACKAGES for p in (REPO / pkg).rglob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            if isinstance(node, ast.ClassDef) and node.name.endswith(SETTINGS_SUFFIXES):
+                frozen = any(isinstance(d, ast.Call) and ast.unparse(d.func).endswith("dataclass")
+                             and any(k.arg == "frozen" and getattr(k.value, "value", False) for k in d.keywords)
+                             for d in node.decorator_list)
+                if not frozen:
+                    loose.append(f"{path.relative_to(REPO)}:{node.name}")
+    assert not loose, f"settings classes that are not frozen dataclasses: {loose}"
+
+
+def test_the_refinement_stages_register() -> None:
+    """Every stage module of the refinement is in the registry, runs in the pipeline, and keeps its
+    frozen settings in the RefineConfig field of its name."""
+    import dataclasses
+
+    from training.identification._refine import _pipeline
+    from training.identification._refine._config import RefineConfig
+
+    modules = {p.stem for p in (REPO / "training/identification/_refine").glob("_*.py")
+               if "STAGE = " in p.read_text() or "STAGE: " in p.read_text()}
+    assert {f"_{name}" for name in _pipeline.STAGES} == modules
+    assert sorted(_pipeline.PIPELINE) == sorted(_pipeline.STAGES)
+    config = RefineConfig()
+    for name, stage in _pipeline.STAGES.items():
+        assert stage.name == name and stage.runs_when and "\n" not in stage.runs_when
+        assert dataclasses.is_dataclass(stage.settings) and stage.settings.__dataclass_params__.frozen
+        assert isinstance(getattr(config, name), stage.settings)
+
+
+def test_the_rule_lists_name_their_rules() -> None:
+    """The commissioning's chain stages and rules, and the identifier's steps, are named functions in
+    one list each; a rule's docstring starts with its code (or ``Last``) and says when it runs."""
+    import re
+
+    from training.commissioning._chain import STAGES
+    from training.commissioning._excitation import EXCITATION_RULES
+    from training.commissioning._rules import CONTROLLER_RULES
+    from training.identification._assembly import ADJUSTMENTS
+    from training.identification._policy import REFINED_WHEN
+
+    names = [name for name, _ in STAGES]
+    assert len(set(names)) == len(names) and all(callable(step) for _, step in STAGES)
+    for rules, code in ((EXCITATION_RULES, "E"), (CONTROLLER_RULES, "R")):
+        for rule in rules:
+            assert re.match(rf"({code}\d+\w*|Last)\b[^.]*\bruns\b", (rule.__doc__ or "").strip()), rule.__name__
+    for steps in (ADJUSTMENTS, REFINED_WHEN):
+        assert all(callable(step) and step.__doc__ for step in steps)

@@ -65,6 +65,13 @@ def _terminate(pool: ProcessPoolExecutor) -> None:
     """Cancel ``pool``'s queued tasks and end its workers now (SIGTERM), waiting until they have.
     Python 3.14 has ``terminate_workers``; before it the executor's process table is the only handle."""
     workers = list((getattr(pool, "_processes", None) or {}).values())  # to wait for them
+    # Before Python 3.12 the pool's manager thread, seeing its workers gone, joins the thread that
+    # feeds their task pipe; that thread can sit in a write to the full pipe forever, and the process
+    # never exits (seen with tasks queued at the signal). Nothing will read the pipe: do not wait for
+    # it, and say so before the workers end (the manager thread acts as soon as they do).
+    call_queue = getattr(pool, "_call_queue", None)
+    if call_queue is not None:
+        call_queue.cancel_join_thread()
     if hasattr(pool, "terminate_workers"):
         pool.terminate_workers()
     else:
