@@ -11,9 +11,9 @@ from collections.abc import Mapping
 from dataclasses import dataclass, fields
 from typing import Any, Protocol
 
-__all__ = ["Constraint", "Interval", "Pair", "Values", "OneOf", "OrNone", "InstanceOf", "POSITIVE", "NON_NEGATIVE",
-           "SHARE", "REAL",
-           "NON_NEGATIVE_OR_INF", "POSITIVE_OR_INF", "REAL_OR_INF", "INTEGER", "COUNT", "AT_LEAST_ONE", "FLAG", "check_settings"]
+__all__ = ["Constraint", "Interval", "Values", "Pair", "OneOf", "OrNone", "InstanceOf", "POSITIVE", "NON_NEGATIVE", "SHARE",
+           "REAL", "NON_NEGATIVE_OR_INF", "POSITIVE_OR_INF", "REAL_OR_INF", "INTEGER", "COUNT", "AT_LEAST_ONE", "FLAG",
+           "check_settings"]
 
 
 class Constraint(Protocol):
@@ -32,8 +32,8 @@ Bound = float | str
 
 @dataclass(frozen=True)
 class Interval:
-    """The finite values ``low .. high`` a setting may take; ``open_low``/``open_high`` exclude the
-    ends; ``integer``: whole numbers only; ``finite``: False lets ``inf`` in too (a threshold that
+    """The values ``low .. high`` a setting may take (finite ones: ``open_low``/``open_high`` exclude the
+    ends; ``integer``: whole numbers only; ``finite``: False lets ``inf`` in too, a threshold that
     switches its rule off). An end may name another field of the settings (its value there is the
     bound, :meth:`on`)."""
 
@@ -62,14 +62,16 @@ class Interval:
         return bool(above and below)
 
     def text(self) -> str:
-        """``a finite number in (0, 1]``, ``an integer >= 1``, ``an integer >= elites``, ..."""
-        kind = "an integer" if self.integer else "a finite number" if self.finite else "a number (inf allowed)"
+        """``a finite number in (0, 1]``, ``an integer >= elites``, ``a number >= 0 or inf``, ..."""
+        kind = "an integer" if self.integer else "a finite number" if self.finite else "a number"
         low, high = (end if isinstance(end, str) else f"{end:g}" for end in (self.low, self.high))
         if self.high == math.inf:
-            return kind if self.low == -math.inf else f"{kind} {'>' if self.open_low else '>='} {low}"
-        if self.low == -math.inf:
-            return f"{kind} {'<' if self.open_high else '<='} {high}"
-        return f"{kind} in {'(' if self.open_low else '['}{low}, {high}{')' if self.open_high else ']'}"
+            text = kind if self.low == -math.inf else f"{kind} {'>' if self.open_low else '>='} {low}"
+        elif self.low == -math.inf:
+            text = f"{kind} {'<' if self.open_high else '<='} {high}"
+        else:
+            text = f"{kind} in {'(' if self.open_low else '['}{low}, {high}{')' if self.open_high else ']'}"
+        return text if self.finite else f"{text} or inf"
 
 
 #: ``> 0``.
@@ -135,7 +137,7 @@ class OneOf:
     options: tuple[Any, ...]
 
     def holds(self, value: Any) -> bool:
-        return any(value == option and type(value) is type(option) for option in self.options)
+        return value in self.options
 
     def text(self) -> str:
         return f"one of {self.options}"
