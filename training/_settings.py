@@ -64,14 +64,16 @@ class Interval:
     def text(self) -> str:
         """``a finite number in (0, 1]``, ``an integer >= elites``, ``a number >= 0 or inf``, ..."""
         kind = "an integer" if self.integer else "a finite number" if self.finite else "a number"
+        return f"{kind}{self._range()}{'' if self.finite else ' or inf'}"
+
+    def _range(self) -> str:
+        """`` in (0, 1]``, `` >= 1``, ... (empty where both ends are open-ended)."""
         low, high = (end if isinstance(end, str) else f"{end:g}" for end in (self.low, self.high))
         if self.high == math.inf:
-            text = kind if self.low == -math.inf else f"{kind} {'>' if self.open_low else '>='} {low}"
-        elif self.low == -math.inf:
-            text = f"{kind} {'<' if self.open_high else '<='} {high}"
-        else:
-            text = f"{kind} in {'(' if self.open_low else '['}{low}, {high}{')' if self.open_high else ']'}"
-        return text if self.finite else f"{text} or inf"
+            return "" if self.low == -math.inf else f" {'>' if self.open_low else '>='} {low}"
+        if self.low == -math.inf:
+            return f" {'<' if self.open_high else '<='} {high}"
+        return f" in {'(' if self.open_low else '['}{low}, {high}{')' if self.open_high else ']'}"
 
 
 #: ``> 0``.
