@@ -28,7 +28,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from sim import S_N_ELASTIC
-from training._settings import AT_LEAST_ONE, COUNT, NON_NEGATIVE_OR_INF, POSITIVE, POSITIVE_OR_INF, Values, check_settings
+from training._settings import (AT_LEAST_ONE, COUNT, NON_NEGATIVE_OR_INF, POSITIVE, POSITIVE_OR_INF, Values,
+                                check_settings)
 from training.identification._envelope import SPEC_ENVELOPE
 from training.identification._refine._problem import RefineProblem
 from training.identification._refine._replay import replay_drive, simulate, trend_basis

@@ -9,7 +9,8 @@ from dataclasses import dataclass
 import numpy as np
 
 import sim
-from training._settings import AT_LEAST_ONE, COUNT, NON_NEGATIVE, NON_NEGATIVE_OR_INF, REAL_OR_INF, Values, check_settings
+from training._settings import (AT_LEAST_ONE, COUNT, NON_NEGATIVE, NON_NEGATIVE_OR_INF, REAL_OR_INF, Values,
+                                check_settings)
 from training.identification._refine._explore import grid_search
 from training.identification._refine._problem import RefineProblem
 from training.identification._refine._search import Score, Scored, SearchSettings, own_rng

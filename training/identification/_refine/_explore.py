@@ -8,7 +8,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from training._settings import AT_LEAST_ONE, COUNT, NON_NEGATIVE, NON_NEGATIVE_OR_INF, POSITIVE, POSITIVE_OR_INF, Values, check_settings
+from training._settings import (AT_LEAST_ONE, COUNT, NON_NEGATIVE, NON_NEGATIVE_OR_INF, POSITIVE, POSITIVE_OR_INF,
+                                Values, check_settings)
 from training.identification._refine._problem import RefineProblem
 from training.identification._refine._search import Score, Scored, SearchSettings, cem, log10_s_N_grid, scored
 from training.identification._refine._space import HIGH, LOW

@@ -10,7 +10,8 @@ from dataclasses import dataclass
 import numpy as np
 
 import sim
-from training._settings import AT_LEAST_ONE, COUNT, NON_NEGATIVE, NON_NEGATIVE_OR_INF, POSITIVE, REAL, Values, check_settings
+from training._settings import (AT_LEAST_ONE, COUNT, NON_NEGATIVE, NON_NEGATIVE_OR_INF, POSITIVE, REAL, Values,
+                                check_settings)
 from training.identification._envelope import SPEC_ENVELOPE
 from training.identification._one_mass import SECTION_PERIODS
 from training.identification._refine._problem import RefineProblem

@@ -8,7 +8,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from training._settings import COUNT, Interval, NON_NEGATIVE_OR_INF, POSITIVE, POSITIVE_OR_INF, Values, check_settings
+from training._settings import COUNT, NON_NEGATIVE_OR_INF, POSITIVE, POSITIVE_OR_INF, Interval, Values, check_settings
 from training.identification._refine._free import FreeSettings, free_bounds, one_mass_values
 from training.identification._refine._problem import RefineProblem, Refined
 from training.identification._refine._replay import (BatchSettings, detrend_basis, detrended, detrended_energy,

@@ -56,7 +56,7 @@ class BatchSettings:
 
     def __post_init__(self) -> None:
         check_settings(self, {"window_models": AT_LEAST_ONE, "record_models": AT_LEAST_ONE, "length_ratio": SHARE,
-                                 "led_samples": AT_LEAST_ONE, "led_lanes": AT_LEAST_ONE})
+                              "led_samples": AT_LEAST_ONE, "led_lanes": AT_LEAST_ONE})
 
 
 def detrend_basis(segments: np.ndarray) -> list[tuple[int, int, np.ndarray]]:

@@ -36,7 +36,7 @@ class RetrySettings:
 
     def __post_init__(self) -> None:
         check_settings(self, {"residual": NON_NEGATIVE_OR_INF, "above": NON_NEGATIVE_OR_INF, "damping": SHARE,
-                                 "same_model": NON_NEGATIVE_OR_INF})
+                              "same_model": NON_NEGATIVE_OR_INF})
 
 
 def retried(p: RefineProblem, polishing: Polishing, i: int, settings: RetrySettings) -> bool:

@@ -10,7 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from training._settings import Interval, NON_NEGATIVE, NON_NEGATIVE_OR_INF, Values, check_settings
+from training._settings import NON_NEGATIVE, NON_NEGATIVE_OR_INF, Interval, Values, check_settings
 from training.identification._refine._space import HIGH, LOW
 
 #: Scores a batch of records' candidates: ``{record: C x D}`` -> ``{record: (cost C, candidates as scored)}``.
