@@ -22,7 +22,8 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from ._settings import POSITIVE, Interval, check_settings
+from training._settings import POSITIVE, Interval, check_settings
+from training.errors import CommissioningError
 
 __all__ = ["BandSettings", "HiddenResonances", "ringing_amplitude", "f1_bands", "hidden_bands", "widen"]
 
@@ -49,7 +50,7 @@ class BandSettings:
     def __post_init__(self) -> None:
         check_settings(self, {"f_osc_resolutions": POSITIVE, "f_osc_width": Interval(1.0), "min_periods": POSITIVE,
                               "grid_points": Interval(2, integer=True), "peak_factor": POSITIVE, "peak_width": Interval(1.0),
-                              "nyquist_share": Interval(0.0, 0.5, open_low=True)})
+                              "nyquist_share": Interval(0.0, 0.5, open_low=True)}, CommissioningError)
 
 
 class HiddenResonances(NamedTuple):

@@ -32,6 +32,8 @@ from typing import Any, Protocol
 import numpy as np
 
 import sim
+from training._settings import (AT_LEAST_ONE, FLAG, NON_NEGATIVE_OR_INF, POSITIVE, POSITIVE_OR_INF, SHARE, InstanceOf,
+                                Interval, OneOf, OrNone, check_settings)
 from training.errors import CommissioningError, LimitPassed, one_line
 
 from ._bands import f1_bands, hidden_bands, widen
@@ -119,28 +121,15 @@ class CommissioningConfig:
     drive_timeout: float | None = 600.0
 
     def __post_init__(self) -> None:
-        timeout = self.drive_timeout
-        if timeout is not None and (isinstance(timeout, bool) or not isinstance(timeout, (int, float))
-                                    or not math.isfinite(timeout) or timeout <= 0):
-            raise ValueError(f"drive_timeout: expected a finite number of seconds > 0 or None, received {timeout!r}")
-        if self.validation_mode not in VALIDATION_MODES:
-            raise ValueError(f"validation_mode: expected one of {VALIDATION_MODES}, received {self.validation_mode!r}")
-        if self.osc_metric not in OSC_METRICS:
-            raise ValueError(f"osc_metric: expected one of {OSC_METRICS}, received {self.osc_metric!r}")
-        bound = self.max_map_distance_ratio
-        for name, ok, expected in (
-                ("tune_evaluations", self.tune_evaluations >= 1, ">= 1"),
-                ("max_samples", self.max_samples >= MIN_EXPERIMENT_SAMPLES, f">= {MIN_EXPERIMENT_SAMPLES}"),
-                ("max_validation_error", self.max_validation_error > 0, "> 0"),
-                ("max_map_distance_ratio", bound is None or bound > 0, "> 0 or None"),
-                ("limit_use", 0 < self.limit_use <= 1, "in (0, 1]"),
-                ("fallback_limit_use", 0 < self.fallback_limit_use <= 1, "in (0, 1]"),
-                ("uncertain_spread", 0 <= self.uncertain_spread < 1, "in [0, 1)"),
-                ("uncertain_damping", 0 < self.uncertain_damping <= 1, "in (0, 1]"),
-                ("fallback_resonance_factor", self.fallback_resonance_factor >= 1, ">= 1"),
-                ("min_scenario_quanta", self.min_scenario_quanta >= 0, ">= 0")):
-            if not ok:
-                raise ValueError(f"{name}: expected {expected}, received {getattr(self, name)!r}")
+        check_settings(self, {
+            "spec": InstanceOf(ControllerSpec), "rules": InstanceOf(ExcitationRules), "tune": FLAG,
+            "validation_mode": OneOf(VALIDATION_MODES), "osc_metric": OneOf(OSC_METRICS),
+            "max_validation_error": POSITIVE_OR_INF, "max_map_distance_ratio": OrNone(POSITIVE_OR_INF),
+            "tune_evaluations": AT_LEAST_ONE, "fallback": FLAG, "limit_use": SHARE, "fallback_limit_use": SHARE,
+            "max_samples": Interval(MIN_EXPERIMENT_SAMPLES, integer=True), "osc_visible_ratio": NON_NEGATIVE_OR_INF,
+            "uncertain_spread": Interval(0.0, 1.0, open_high=True), "uncertain_damping": SHARE, "hidden_resonances": FLAG,
+            "fallback_resonance_factor": Interval(1.0, finite=False), "min_scenario_quanta": NON_NEGATIVE_OR_INF,
+            "drive_timeout": OrNone(POSITIVE)})
 
 
 class RecordIdentifier(Protocol):

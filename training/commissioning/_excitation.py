@@ -47,9 +47,10 @@ from typing import Any
 import numpy as np
 
 import sim
+from training._settings import NON_NEGATIVE, POSITIVE, SHARE, Interval, check_settings
+from training.errors import CommissioningError
 
 from ._guard import record_peaks
-from ._settings import NON_NEGATIVE, POSITIVE, SHARE, Interval, check_settings
 
 #: How the test-signal adaptation ended (:attr:`ExcitationResult.code`).
 EXCITATION_ENDS: dict[str, str] = {
@@ -134,7 +135,7 @@ class ExcitationRules:
     """E2: the sections' spectra are zero-padded to this many times the longest (``f_osc``'s grid)."""
 
     def __post_init__(self) -> None:
-        check_settings(self, _RULE_INTERVALS)
+        check_settings(self, _RULE_INTERVALS, CommissioningError)
 
 
 _RULE_INTERVALS: dict[str, Interval] = {

@@ -21,6 +21,7 @@ import scipy.linalg
 import torch
 
 import sim
+from training._settings import POSITIVE_OR_INF, Interval, check_settings
 
 from ._law import NotchSpec
 
@@ -315,14 +316,12 @@ class LoopAnalysis:
     """The step response has settled inside +- this share of its final value."""
 
     def __post_init__(self) -> None:
-        if not 0 < self.grid_low < self.grid_high < 1:
-            raise ValueError(f"grid_low, grid_high: expected 0 < grid_low < grid_high < 1, received {self.grid_low}, {self.grid_high}")
-        for name in ("grid_points", "resonance_points", "step_min", "step_max"):
-            if getattr(self, name) < 2:
-                raise ValueError(f"{name}: expected >= 2, received {getattr(self, name)}")
-        for name in ("resonance_span", "step_crossovers", "settle_band"):
-            if not getattr(self, name) > 0:
-                raise ValueError(f"{name}: expected > 0, received {getattr(self, name)}")
+        check_settings(self, {  # grid_low first: grid_high's bound
+            "grid_low": Interval(0.0, 1.0, open_low=True, open_high=True),
+            "grid_high": Interval("grid_low", 1.0, open_low=True, open_high=True),
+            "grid_points": Interval(2, integer=True), "resonance_span": POSITIVE_OR_INF,
+            "resonance_points": Interval(2, integer=True), "step_crossovers": POSITIVE_OR_INF,
+            "step_min": Interval(2, integer=True), "step_max": Interval(2, integer=True), "settle_band": POSITIVE_OR_INF})
 
 
 #: The grid and the step response the loop analysis uses.

@@ -23,11 +23,11 @@ from typing import Any
 import numpy as np
 
 import sim
+from training._settings import FLAG, NON_NEGATIVE, POSITIVE, SHARE, Constraint, Interval, Pair, Values, check_settings
 from training.errors import CommissioningError
 
 from ._law import NotchSpec, PISpeedLaw
 from ._loop import Margins, Mechanics, ModelSet, drive_value, loop_figures, mechanics_from, model_set
-from ._settings import NON_NEGATIVE, POSITIVE, SHARE, Interval, check_settings
 
 __all__ = ["ControllerSpec", "ControllerProposal", "DesignInputs", "Design", "CONTROLLER_RULES", "propose_controller",
            "propose_cautious", "robust_models"]
@@ -112,22 +112,10 @@ class ControllerSpec:
     """F1: the lowest crossover tried [rad/s]."""
 
     def __post_init__(self) -> None:
-        check_settings(self, _SPEC_INTERVALS)
-        for name, interval, wanted in _SPEC_TUPLES:
-            values = getattr(self, name)
-            if not isinstance(values, tuple) or not values or not all(interval.holds(v) for v in values):
-                raise CommissioningError(f"ControllerSpec.{name}: expected a non-empty tuple of finite numbers {wanted}, "
-                                         f"received {values!r}")
-        if len(self.anti_resonance_ratio) != 5:
-            raise CommissioningError(f"ControllerSpec.anti_resonance_ratio: expected 5 numbers, received {self.anti_resonance_ratio!r}")
-        if len(self.class_f_e) != 2 or not self.class_f_e[0] < self.class_f_e[1]:
-            raise CommissioningError(f"ControllerSpec.class_f_e: expected a band (low, high), received {self.class_f_e!r}")
+        check_settings(self, _SPEC_CONSTRAINTS, CommissioningError)
 
 
-_SPEC_TUPLES: tuple[tuple[str, Interval, str], ...] = (
-    ("anti_resonance_ratio", POSITIVE, "> 0"), ("class_f_e", POSITIVE, "> 0"), ("class_V_J", POSITIVE, "> 0"),
-    ("alternative_filters_elastic", NON_NEGATIVE, ">= 0"), ("alternative_filters_hidden", NON_NEGATIVE, ">= 0"))
-_SPEC_INTERVALS: dict[str, Interval] = {
+_SPEC_CONSTRAINTS: dict[str, Constraint] = {
     "a": Interval(1.0, open_low=True), "a_backlash": Interval(1.0, open_low=True), "min_phase_margin": Interval(0.0, 90.0),
     "min_gain_margin_dB": NON_NEGATIVE, "spread": Interval(0.0, 1.0, open_high=True), "current_loop_damping": POSITIVE,
     "extra_delay": Interval(0, integer=True), "backoff": Interval(0.0, 1.0, open_low=True, open_high=True),
@@ -135,7 +123,9 @@ _SPEC_INTERVALS: dict[str, Interval] = {
     "notch_max_share": Interval(0.0, 0.5, open_low=True, open_high=True), "notch_min_depth": NON_NEGATIVE, "notch_width": POSITIVE,
     "notch_w_A_share": POSITIVE, "alternative_below": SHARE, "wide_notch_depth": NON_NEGATIVE, "wide_notch_width": POSITIVE,
     "class_d": NON_NEGATIVE, "class_points_per_decade": POSITIVE, "class_min_points": Interval(1, integer=True),
-    "class_single_width": Interval(1.0), "f1_steps": Interval(1, integer=True), "f1_w_c_min": POSITIVE,
+    "class_single_width": Interval(1.0), "f1_steps": Interval(1, integer=True), "f1_w_c_min": POSITIVE, "allow_notch": FLAG,
+    "anti_resonance_ratio": Values(POSITIVE, 5), "class_f_e": Pair(POSITIVE), "class_V_J": Values(POSITIVE, empty=False),
+    "alternative_filters_elastic": Values(NON_NEGATIVE, empty=False), "alternative_filters_hidden": Values(NON_NEGATIVE, empty=False),
 }
 
 

@@ -34,6 +34,7 @@ import scipy.optimize
 import scipy.signal
 
 import sim
+from training._settings import AT_LEAST_ONE, POSITIVE_OR_INF, SHARE, check_settings
 
 from ._loop import Mechanics, closed_loop_matrices, linear_plant
 from ._rules import ControllerProposal, ControllerSpec
@@ -59,10 +60,7 @@ class ScenarioSizing:
     """The P-kick ``Kp w_step`` and the disturbance ``M_dist`` at most this share of the torque cap."""
 
     def __post_init__(self) -> None:
-        if self.min_segment < 1:
-            raise ValueError(f"min_segment: expected >= 1, received {self.min_segment}")
-        if not 0 < self.kick_share <= 1:
-            raise ValueError(f"kick_share: expected in (0, 1], received {self.kick_share}")
+        check_settings(self, {"min_segment": AT_LEAST_ONE, "kick_share": SHARE})
 
 
 @dataclass(frozen=True)
@@ -81,9 +79,8 @@ class SearchSettings:
     """... and their costs within this."""
 
     def __post_init__(self) -> None:
-        for name in ("pareto_weight", "phase_deficit_per_dB", "unstable_penalty", "xatol", "fatol"):
-            if not getattr(self, name) > 0:
-                raise ValueError(f"{name}: expected > 0, received {getattr(self, name)!r}")
+        check_settings(self, {"pareto_weight": POSITIVE_OR_INF, "phase_deficit_per_dB": POSITIVE_OR_INF,
+                              "unstable_penalty": POSITIVE_OR_INF, "xatol": POSITIVE_OR_INF, "fatol": POSITIVE_OR_INF})
 
 
 #: How :func:`plan_scenario` sizes the experiment.

@@ -25,10 +25,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from sim import SECTION_LEVELS, SECTION_NAMES, Record
+from training._settings import POSITIVE, SHARE, check_settings
 from training.identification._drive import DriveValues, settled_bounds
 from training.identification._result import IdentWarning
 from training.identification._sections import SectionSplit, law_end, torque_amplitude
-from training.identification._settings import check_positive
 
 __all__ = ["consistency_warnings", "torque_scale_hint", "ConsistencyTolerances", "TOLERANCES"]
 
@@ -49,7 +49,8 @@ class ConsistencyTolerances:
     law_lags: float = 2.0
 
     def __post_init__(self) -> None:
-        check_positive(self, at_most_one=("torque_scale", "start_share"))
+        check_settings(self, {"torque_scale": SHARE, "start_quanta": POSITIVE, "start_share": SHARE,
+                              "clip_quanta": POSITIVE, "law_lags": POSITIVE})
 
 
 #: The consistency checks' tolerances.

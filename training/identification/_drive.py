@@ -24,10 +24,10 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from sim import DriveConfig, Record, speed_quantum, time_scale
+from training._settings import POSITIVE, check_settings
 from training.identification._plausibility import BOUNDS, on_grid
 from training.identification._result import IdentWarning
 from training.identification._sections import SectionSplit, diff_noise
-from training.identification._settings import check_positive
 
 #: The SPEC reference drive: its encoder and current loop are assumed where a record gives neither
 #: (with a warning).
@@ -51,7 +51,8 @@ class DriveEstimates:
     min_samples: int = 32
 
     def __post_init__(self) -> None:
-        check_positive(self)
+        check_settings(self, {"settle_lags": POSITIVE, "finer_encoder": POSITIVE, "quantum_spread": POSITIVE,
+                              "min_counts": POSITIVE, "min_samples": POSITIVE})
 
 
 #: The drive estimates' thresholds.

@@ -36,10 +36,10 @@ from typing import Any
 from sim import EnvelopeRanges, PopulationRanges, time_scale
 from sim._values import shown
 from som_torch import CheckpointError, atomic_write
+from training._settings import POSITIVE, SHARE, check_settings
 from training._json import dumps
 from training.errors import error_text
 from training.identification._result import IdentWarning
-from training.identification._settings import check_positive
 
 FORMAT = "twomass-envelope/1"
 FILE_NAME = "envelope.json"
@@ -71,7 +71,8 @@ class EnvelopeTolerances:
     current_noise_slack: float = 1.1
 
     def __post_init__(self) -> None:
-        check_positive(self, at_most_one=("relative",))
+        check_settings(self, {"noise_spread": POSITIVE, "relative": SHARE, "d_slack": POSITIVE,
+                              "current_noise_slack": POSITIVE})
 
     def slack(self, quantity: str) -> float:
         """The factor beyond a range's ends from which ``quantity`` lies outside (1: none)."""

@@ -31,9 +31,9 @@ import numpy as np
 
 from sim import S_N_ELASTIC, SECTION_LEVELS, W_E_T_EI_STIFF, gap_width
 
+from training._settings import POSITIVE, check_settings
 from training.identification._envelope import SPEC_ENVELOPE
 from training.identification._result import IdentWarning, Parameters
-from training.identification._settings import check_positive
 
 
 
@@ -51,7 +51,8 @@ class AnswerLimits:
     J_sigma_ratio: float = 2.0
 
     def __post_init__(self) -> None:
-        check_positive(self)
+        check_settings(self, {"backlash_visible_quanta": POSITIVE, "backlash_visible_counts": POSITIVE,
+                              "backlash_negligible": POSITIVE, "J_sigma_ratio": POSITIVE})
 
 
 #: The limits of the answers.

@@ -48,9 +48,9 @@ from typing import Any
 import numpy as np
 from scipy import signal as _signal
 
+from training._settings import POSITIVE, check_settings
 from training._checks import as_signal
 from training.identification._result import IdentWarning
-from training.identification._settings import check_positive
 
 __all__ = ["OneMassFit", "SectionFit", "FORMULATIONS", "fit_one_mass", "speed_from_position", "section_bounds"]
 
@@ -333,7 +333,9 @@ class OneMassTrust:
     section_periods: float = 2.0
 
     def __post_init__(self) -> None:
-        check_positive(self)
+        check_settings(self, {"collinear_inflation": POSITIVE, "uninformative_residual": POSITIVE,
+                              "trajectory_residual": POSITIVE, "short_sections_residual": POSITIVE,
+                              "section_periods": POSITIVE})
 
 
 #: STEP 2's trust thresholds.

@@ -51,9 +51,9 @@ import numpy as np
 
 from sim import Record, speed_quantum
 from sim.records import any_timed_out
+from training._settings import POSITIVE, SHARE, Pair, check_settings
 from training.identification._result import IdentWarning
 from training.identification._sections import incomplete_run
-from training.identification._settings import check_positive
 
 __all__ = ["check_record", "unit_warnings", "PlausibilityBounds", "BOUNDS"]
 
@@ -90,7 +90,11 @@ class PlausibilityBounds:
     resolution: float = 0.5
 
     def __post_init__(self) -> None:
-        check_positive(self, at_most_one=("min_correlation", "quantized_share", "on_grid"))
+        check_settings(self, {
+            "T_s_max": POSITIVE, "T_Ei_max": POSITIVE, "T_s_over_T_Ei_max": POSITIVE, "torque_ratio": Pair(POSITIVE),
+            "torque_over_M_max": POSITIVE, "speed_ratio": Pair(POSITIVE), "accel_window": POSITIVE,
+            "glitch_samples": POSITIVE, "J_range": Pair(POSITIVE), "min_correlation": SHARE, "quantized_share": SHARE,
+            "on_grid": SHARE, "resolution": POSITIVE})
 
 
 #: The plausibility checks' bounds.

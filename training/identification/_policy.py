@@ -15,11 +15,11 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 from sim import STRUCTURE_CLASSES, class_index, two_mass_derived
+from training._settings import POSITIVE, SHARE, check_settings
 from training.identification._analysis import Analysis
 from training.identification._envelope import Finding
 from training.identification._limits import backlash_negligible, speed_resolution
 from training.identification._refine import Refined
-from training.identification._settings import check_positive
 
 #: The classes with a backlash (their width is identified).
 BACKLASH_CLASSES = ("elastic_backlash", "stiff_backlash")
@@ -45,7 +45,9 @@ class IdentificationPolicy:
     start_s_N_floor: float = 1e-3
 
     def __post_init__(self) -> None:
-        check_positive(self, at_most_one=("stiff_sure", "class_margin", "damping_cap"))
+        check_settings(self, {
+            "visible_quanta": POSITIVE, "stiff_sure": SHARE, "class_evidence": POSITIVE, "partial_fit_residual": POSITIVE,
+            "class_margin": SHARE, "damping_cap": SHARE, "start_s_N_floor": POSITIVE})
 
 
 @dataclass(frozen=True)

@@ -40,8 +40,8 @@ import numpy as np
 from scipy.ndimage import median_filter
 
 from sim import SECTION_LEVELS, SECTION_NAMES, SPEED_RETURN, Record
+from training._settings import POSITIVE, check_settings
 from training._checks import as_signal
-from training.identification._settings import check_positive
 
 __all__ = ["SectionSplit", "SectionRules", "RULES", "SPEC_TAIL",
            "detect_sections", "sections_from_column", "diff_noise", "law_end", "torque_amplitude",
@@ -91,7 +91,11 @@ class SectionRules:
     settle_lags: float = 3.0
 
     def __post_init__(self) -> None:
-        check_positive(self)
+        check_settings(self, {
+            "min_run": POSITIVE, "noisy": POSITIVE, "level_tolerance": POSITIVE, "level_sigmas": POSITIVE,
+            "class_tolerance": POSITIVE, "amplitude_percentile": POSITIVE, "amplitude_share": POSITIVE,
+            "smooth_sigmas": POSITIVE, "smooth_share": POSITIVE, "saturated_samples": POSITIVE, "saturated_part": POSITIVE,
+            "saturated_span": POSITIVE, "saturated_torque": POSITIVE, "settle_lags": POSITIVE})
 
 
 #: The section detection's thresholds.

@@ -60,7 +60,7 @@ def test_settings_are_frozen_dataclasses(settings):
     (LoopAnalysis, "settle_band", 0.0),
 ])
 def test_a_bad_setting_is_named(settings, name, value):
-    with pytest.raises(ValueError, match=f"^{name}: expected"):
+    with pytest.raises(ValueError, match=rf"^{settings.__name__}\.{name}: expected"):
         settings(**{name: value})
 
 

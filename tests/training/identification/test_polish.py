@@ -149,5 +149,5 @@ def test_each_answer_is_the_same_whatever_the_others():
 
 
 def test_a_negative_iteration_count_is_refused():
-    with pytest.raises(ValueError, match=r"PolishSettings\.iterations: expected >= 0"):
+    with pytest.raises(ValueError, match=r"PolishSettings\.iterations: expected an integer >= 0"):
         PolishSettings(iterations=-1)

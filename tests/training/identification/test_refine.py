@@ -78,17 +78,17 @@ def test_a_small_gap_on_a_slowly_sampled_drive_is_found():
 
 
 def test_bad_config_is_rejected():
-    with pytest.raises(ValueError, match=r"SearchSettings\.candidates: expected >= elites"):
+    with pytest.raises(ValueError, match=r"SearchSettings\.candidates: expected an integer >= elites, received 4"):
         SearchSettings(candidates=4, elites=8)
-    with pytest.raises(ValueError, match=r"ExploreSettings\.window_samples: expected >= 0"):
+    with pytest.raises(ValueError, match=r"ExploreSettings\.window_samples: expected an integer >= 0"):
         ExploreSettings(window_samples=-1)
-    with pytest.raises(ValueError, match=r"RescueSettings\.grid_f_e: expected >= 1"):
+    with pytest.raises(ValueError, match=r"RescueSettings\.grid_f_e: expected an integer >= 1"):
         RescueSettings(grid_f_e=0)
     with pytest.raises(ValueError, match=r"RescueSettings\.rounds"):
         RescueSettings(rounds=-1)
-    with pytest.raises(ValueError, match=r"FreeSettings\.spread: expected 3 values"):
+    with pytest.raises(ValueError, match=r"FreeSettings\.spread: expected a tuple of 3 values"):
         FreeSettings(spread=(0.1, 0.1))  # the two-coordinate free stage's
-    with pytest.raises(ValueError, match=r"PolishSettings\.gap_seeds: expected every value above 0.002"):
+    with pytest.raises(ValueError, match=r"PolishSettings\.gap_seeds: expected a tuple, each a finite number > 0.002"):
         PolishSettings(gap_seeds=(0.001, 0.01))  # no gap at all by the search's floor
     with pytest.raises(TypeError, match=r"RefineConfig\.polish: expected PolishSettings"):
         RefineConfig(polish=FreeSettings())

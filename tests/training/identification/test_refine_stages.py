@@ -58,5 +58,5 @@ def test_the_config_takes_only_the_stages_own_settings():
     assert RefineConfig() == RefineConfig(seed=0)
     with pytest.raises(TypeError, match=r"RefineConfig\.rescue: expected RescueSettings"):
         RefineConfig(rescue=ClimbSettings())
-    with pytest.raises(TypeError, match=r"RefineConfig\.seed: expected int"):
+    with pytest.raises(TypeError, match=r"RefineConfig\.seed: expected an integer, received True"):
         RefineConfig(seed=True)

@@ -40,7 +40,7 @@ def test_every_field_is_checked_and_named(settings):
 def test_a_range_must_rise_and_a_share_stay_below_one():
     with pytest.raises(ValueError, match=r"^PlausibilityBounds\.speed_ratio: expected a pair"):
         PlausibilityBounds(speed_ratio=(3.0, 0.3))
-    with pytest.raises(ValueError, match=r"^IdentificationPolicy\.stiff_sure: expected a number in \(0, 1\]"):
+    with pytest.raises(ValueError, match=r"^IdentificationPolicy\.stiff_sure: expected a finite number in \(0, 1\], received 1\.5"):
         IdentificationPolicy(stiff_sure=1.5)
     with pytest.raises(ValueError, match=r"^SectionRules\.noisy: expected a finite number > 0, received nan"):
         SectionRules(noisy=float("nan"))

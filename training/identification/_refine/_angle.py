@@ -28,8 +28,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from sim import S_N_ELASTIC
+from training._settings import (AT_LEAST_ONE, COUNT, NON_NEGATIVE_OR_INF, POSITIVE, POSITIVE_OR_INF, Values,
+                                check_settings)
 from training.identification._envelope import SPEC_ENVELOPE
-from training.identification._refine._checks import above, at_least
 from training.identification._refine._problem import RefineProblem
 from training.identification._refine._replay import replay_drive, simulate, trend_basis
 from training.identification._refine._search import SearchSettings, cem_one, product_grid
@@ -60,9 +61,10 @@ class AngleSettings:
     samples: int = 4000
 
     def __post_init__(self) -> None:
-        at_least(self, 1, "grid_f_e", "samples")
-        at_least(self, 0, "rounds", "win", "s_N_clear", "side_margin")
-        above(self, 0.0, "grid_top")
+        check_settings(self, {
+            "grid_f_e": AT_LEAST_ONE, "grid_top": POSITIVE_OR_INF, "grid_V_J": Values(POSITIVE), "grid_s_N": Values(POSITIVE),
+            "grid_d": NON_NEGATIVE_OR_INF, "rounds": COUNT, "side_margin": NON_NEGATIVE_OR_INF, "win": NON_NEGATIVE_OR_INF,
+            "s_N_clear": NON_NEGATIVE_OR_INF, "samples": AT_LEAST_ONE})
 
 
 @dataclass(frozen=True)

@@ -7,7 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from training.identification._refine._checks import at_least
+from training._settings import AT_LEAST_ONE, check_settings
 from training.identification._refine._problem import RefineProblem
 from training.identification._refine._replay import BatchSettings, detrend_basis, detrended_energy, packed_errors
 from training.identification._refine._stage import Stage
@@ -22,7 +22,7 @@ class ChooseSettings:
     finalists: int = 12  # the winning window search's best models that compete
 
     def __post_init__(self) -> None:
-        at_least(self, 1, "finalists")
+        check_settings(self, {"finalists": AT_LEAST_ONE})
 
 
 @dataclass(frozen=True)

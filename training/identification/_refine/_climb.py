@@ -9,7 +9,8 @@ from dataclasses import dataclass
 import numpy as np
 
 import sim
-from training.identification._refine._checks import at_least
+from training._settings import (AT_LEAST_ONE, COUNT, NON_NEGATIVE, NON_NEGATIVE_OR_INF, REAL_OR_INF, Values,
+                                check_settings)
 from training.identification._refine._explore import grid_search
 from training.identification._refine._problem import RefineProblem
 from training.identification._refine._search import Score, Scored, SearchSettings, own_rng
@@ -45,8 +46,10 @@ class ClimbSettings:
     stream: int = 2  # its random stream: where it loses, the later searches draw as without it
 
     def __post_init__(self) -> None:
-        at_least(self, 1, "grid_f_e")
-        at_least(self, 0, "rounds", "span", "switch_win")
+        check_settings(self, {
+            "offset": REAL_OR_INF, "span": NON_NEGATIVE_OR_INF, "grid_f_e": AT_LEAST_ONE, "grid_s_N": Values(NON_NEGATIVE),
+            "after": REAL_OR_INF, "above": NON_NEGATIVE_OR_INF, "min_s_N": NON_NEGATIVE_OR_INF, "rounds": COUNT,
+            "switch_win": NON_NEGATIVE_OR_INF, "stream": COUNT})
 
 
 def climbs(p: RefineProblem, theta0: np.ndarray, best: np.ndarray, settings: ClimbSettings) -> bool:

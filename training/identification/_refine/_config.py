@@ -5,6 +5,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass, fields
 
+from training._settings import INTEGER, InstanceOf, check_settings
+
 from training.identification._refine._angle import AngleSettings
 from training.identification._refine._choose import ChooseSettings
 from training.identification._refine._climb import ClimbSettings
@@ -42,8 +44,5 @@ class RefineConfig:
     seed: int = 0  # every search starts from this seed
 
     def __post_init__(self) -> None:
-        for field in fields(self):
-            value, expected = getattr(self, field.name), type(field.default)  # a stage's settings class; int
-            if not isinstance(value, expected) or isinstance(value, bool):
-                raise TypeError(f"RefineConfig.{field.name}: expected {expected.__name__}, "
-                                f"received {type(value).__name__}")
+        stages = {field.name: InstanceOf(type(field.default)) for field in fields(self) if field.name != "seed"}
+        check_settings(self, {**stages, "seed": INTEGER}, error=TypeError)

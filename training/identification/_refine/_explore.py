@@ -8,7 +8,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from training.identification._refine._checks import above, at_least, sized
+from training._settings import (AT_LEAST_ONE, COUNT, NON_NEGATIVE, NON_NEGATIVE_OR_INF, POSITIVE, POSITIVE_OR_INF,
+                                Values, check_settings)
 from training.identification._refine._problem import RefineProblem
 from training.identification._refine._search import Score, Scored, SearchSettings, cem, log10_s_N_grid, scored
 from training.identification._refine._space import HIGH, LOW
@@ -40,10 +41,10 @@ class ExploreSettings:
     gain_range: tuple[float, float] = (0.25, 4.0)  # each candidate's best gain kept within this (its V_J x it)
 
     def __post_init__(self) -> None:
-        at_least(self, 1, "grid_f_e", "window_min")
-        at_least(self, 0, "rounds", "window_samples", "window_max", "grid_span")
-        above(self, 0.0, "window_periods")
-        sized(self, "gain_range", 2, "lowest and highest gain")
+        check_settings(self, {
+            "grid_f_e": AT_LEAST_ONE, "grid_s_N": Values(NON_NEGATIVE), "grid_span": NON_NEGATIVE_OR_INF, "rounds": COUNT,
+            "window_periods": POSITIVE_OR_INF, "window_max": NON_NEGATIVE_OR_INF, "window_samples": COUNT,
+            "window_min": AT_LEAST_ONE, "gain_range": Values(POSITIVE, 2, "lowest and highest gain")})
 
 
 def explore_windows(p: RefineProblem, settings: ExploreSettings) -> ScoreWindows:

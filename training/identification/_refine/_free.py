@@ -10,9 +10,10 @@ from dataclasses import dataclass
 import numpy as np
 
 import sim
+from training._settings import (AT_LEAST_ONE, COUNT, NON_NEGATIVE, NON_NEGATIVE_OR_INF, POSITIVE, REAL, Values,
+                                check_settings)
 from training.identification._envelope import SPEC_ENVELOPE
 from training.identification._one_mass import SECTION_PERIODS
-from training.identification._refine._checks import at_least, sized
 from training.identification._refine._problem import RefineProblem
 from training.identification._refine._replay import DIVERGED, simulate
 from training.identification._refine._search import SearchSettings, cem_one, own_rng
@@ -58,11 +59,11 @@ class FreeSettings:
     stream: int = 3  # the second search's random stream
 
     def __post_init__(self) -> None:
-        at_least(self, 0, "periods", "rounds", "win", "J_sigma_decades", "friction_cap")
-        at_least(self, 1, "f_e_per_octave", "envelope_V_J")
-        sized(self, "spread", 3, "log10 J_sigma, M_FC, mu_F")
-        sized(self, "friction_start", 2, "M_FC, mu_F")
-        sized(self, "f_e_octaves", 2, "lowest and highest octave")
+        check_settings(self, {
+            "periods": NON_NEGATIVE_OR_INF, "rounds": COUNT, "spread": Values(NON_NEGATIVE, 3, "log10 J_sigma, M_FC, mu_F"),
+            "win": NON_NEGATIVE_OR_INF, "J_sigma_decades": NON_NEGATIVE_OR_INF, "friction_cap": NON_NEGATIVE_OR_INF,
+            "friction_start": Values(NON_NEGATIVE, 2, "M_FC, mu_F"), "f_e_octaves": Values(REAL, 2, "lowest and highest octave"),
+            "f_e_per_octave": AT_LEAST_ONE, "V_J_factors": Values(POSITIVE), "envelope_V_J": AT_LEAST_ONE, "stream": COUNT})
 
 
 @dataclass(frozen=True)

@@ -8,7 +8,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from training.identification._refine._checks import above, at_least, each_above, sized
+from training._settings import COUNT, NON_NEGATIVE_OR_INF, POSITIVE, POSITIVE_OR_INF, Interval, Values, check_settings
 from training.identification._refine._free import FreeSettings, free_bounds, one_mass_values
 from training.identification._refine._problem import RefineProblem, Refined
 from training.identification._refine._replay import (BatchSettings, detrend_basis, detrended, detrended_energy,
@@ -52,11 +52,11 @@ class PolishSettings:
     diagonal_floor: float = 1e-12  # the damping's diagonal at least this x its largest (a coordinate the error misses)
 
     def __post_init__(self) -> None:
-        at_least(self, 0, "iterations", "tolerance", "win", "diagonal_floor")
-        above(self, 0.0, "samples_per_period")
-        sized(self, "steps", 4, "log10 f_e, log10 V_J, d, log10 s_N")
-        sized(self, "free_steps", 3, "log10 J_sigma, M_FC, mu_F")
-        each_above(self, "gap_seeds", 10.0 ** NO_GAP)
+        check_settings(self, {
+            "iterations": COUNT, "tolerance": NON_NEGATIVE_OR_INF, "steps": Values(POSITIVE, 4, "log10 f_e, log10 V_J, d, log10 s_N"),
+            "damping": Values(POSITIVE), "win": NON_NEGATIVE_OR_INF, "samples_per_period": POSITIVE_OR_INF,
+            "free_steps": Values(POSITIVE, 3, "log10 J_sigma, M_FC, mu_F"),
+            "gap_seeds": Values(Interval(10.0 ** NO_GAP, open_low=True)), "diagonal_floor": NON_NEGATIVE_OR_INF})
 
 
 def _scored(p: RefineProblem, f_e: float, settings: PolishSettings) -> Scoring:

@@ -7,7 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from training.identification._refine._checks import at_least
+from training._settings import COUNT, NON_NEGATIVE_OR_INF, REAL, Values, check_settings
 from training.identification._refine._search import Score, Scored, SearchSettings, cem, scored
 from training.identification._refine._space import HIGH, LOW
 from training.identification._refine._stage import Stage
@@ -33,7 +33,7 @@ class RattleSettings:
     finalists: int = 4  # its best models that join the finalists
 
     def __post_init__(self) -> None:
-        at_least(self, 0, "rounds", "finalists")
+        check_settings(self, {"min_s_N": NON_NEGATIVE_OR_INF, "shift": Values(REAL), "rounds": COUNT, "finalists": COUNT})
 
 
 def rattles(best: np.ndarray, windows: ScoreWindows, settings: RattleSettings) -> bool:

@@ -14,7 +14,7 @@ import torch
 
 import sim
 from sim.replay import replay_speed
-from training.identification._refine._checks import above, at_least, within
+from training._settings import AT_LEAST_ONE, POSITIVE_OR_INF, SHARE, check_settings
 from training.identification._refine._problem import RefineProblem
 
 #: The speed error [rad/s] a diverged model's samples read (NaN, +-inf), and the bound above which
@@ -33,8 +33,7 @@ class Accuracy:
     minimum: int = 1  # substeps per sample at least
 
     def __post_init__(self) -> None:
-        above(self, 0.0, "w_0_dt")
-        at_least(self, 1, "minimum")
+        check_settings(self, {"w_0_dt": POSITIVE_OR_INF, "minimum": AT_LEAST_ONE})
 
 
 #: The refinement's replay accuracy (:class:`Accuracy`).
@@ -56,9 +55,8 @@ class BatchSettings:
     led_lanes: int = 64  # ... but at least this many lanes per replay
 
     def __post_init__(self) -> None:
-        at_least(self, 1, "window_models", "record_models", "led_samples", "led_lanes")
-        within(self, "length_ratio", 0.0, 1.0)
-        above(self, 0.0, "length_ratio")
+        check_settings(self, {"window_models": AT_LEAST_ONE, "record_models": AT_LEAST_ONE, "length_ratio": SHARE,
+                              "led_samples": AT_LEAST_ONE, "led_lanes": AT_LEAST_ONE})
 
 
 def detrend_basis(segments: np.ndarray) -> list[tuple[int, int, np.ndarray]]:

@@ -7,8 +7,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from training._settings import AT_LEAST_ONE, COUNT, NON_NEGATIVE, NON_NEGATIVE_OR_INF, POSITIVE, Values, check_settings
 from training.identification._envelope import SPEC_ENVELOPE
-from training.identification._refine._checks import at_least
 from training.identification._refine._problem import RefineProblem
 from training.identification._refine._replay import quantization_energy
 from training.identification._refine._search import (Score, Scored, SearchSettings, cem, log10_s_N_grid, own_rng,
@@ -42,8 +42,9 @@ class RescueSettings:
     stream: int = 1  # its random stream: where it loses, the later searches draw as without it
 
     def __post_init__(self) -> None:
-        at_least(self, 1, "grid_f_e")
-        at_least(self, 0, "rounds", "above", "signal", "switch_win")
+        check_settings(self, {
+            "above": NON_NEGATIVE_OR_INF, "signal": NON_NEGATIVE_OR_INF, "grid_f_e": AT_LEAST_ONE, "grid_V_J": Values(POSITIVE),
+            "grid_s_N": Values(NON_NEGATIVE), "rounds": COUNT, "switch_win": NON_NEGATIVE_OR_INF, "stream": COUNT})
 
 
 def rescues(p: RefineProblem, windows: ScoreWindows, cost: float, settings: RescueSettings) -> bool:

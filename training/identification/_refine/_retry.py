@@ -7,7 +7,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from training.identification._refine._checks import at_least, within
+from training._settings import NON_NEGATIVE_OR_INF, SHARE, check_settings
 from training.identification._refine._polish import (Lane, Polishing, PolishSettings, descend, gap_seeded, maps_lane,
                                                      measured_energy)
 from training.identification._refine._problem import RefineProblem
@@ -35,8 +35,8 @@ class RetrySettings:
     same_model: float = 1e-12  # not from the maps' answer where the chosen model is it (within this)
 
     def __post_init__(self) -> None:
-        at_least(self, 0, "residual", "above", "same_model")
-        within(self, "damping", 0.0, 1.0)
+        check_settings(self, {"residual": NON_NEGATIVE_OR_INF, "above": NON_NEGATIVE_OR_INF, "damping": SHARE,
+                              "same_model": NON_NEGATIVE_OR_INF})
 
 
 def retried(p: RefineProblem, polishing: Polishing, i: int, settings: RetrySettings) -> bool:

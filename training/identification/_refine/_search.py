@@ -10,7 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from training.identification._refine._checks import at_least, not_below_field, sized
+from training._settings import NON_NEGATIVE, NON_NEGATIVE_OR_INF, Interval, Values, check_settings
 from training.identification._refine._space import HIGH, LOW
 
 #: Scores a batch of records' candidates: ``{record: C x D}`` -> ``{record: (cost C, candidates as scored)}``.
@@ -32,10 +32,10 @@ class SearchSettings:
     floor: float = 0.02  # ... and never below this x the first spread (it keeps moving)
 
     def __post_init__(self) -> None:
-        at_least(self, 2, "elites")
-        not_below_field(self, "candidates", "elites")
-        sized(self, "spread", 4, "log10 f_e, log10 V_J, d, log10 s_N")
-        at_least(self, 0.0, "elite_weight", "memory", "floor")
+        check_settings(self, {  # elites first: the candidates' bound
+            "elites": Interval(2, integer=True), "candidates": Interval("elites", integer=True),
+            "spread": Values(NON_NEGATIVE, 4, "log10 f_e, log10 V_J, d, log10 s_N"), "elite_weight": NON_NEGATIVE_OR_INF,
+            "memory": NON_NEGATIVE_OR_INF, "floor": NON_NEGATIVE_OR_INF})
 
 
 @dataclass(frozen=True)
