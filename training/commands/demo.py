@@ -136,6 +136,8 @@ def print_result(label: str, truth: dict[str, Any], res: Any, n_samples: int, T_
     if poor:
         notes.append(f"poorly determined by this test run: {', '.join(poor)} (value varies by more than "
                      f"{100 * POORLY_DETERMINED:.0f} % between noise draws of the same plant)")
+    if q.stiff_mode_note is not None:
+        print(f"  note: {q.stiff_mode_note}", file=out)
     print("  warnings: " + ("; ".join(notes) or "none"), file=out)
 
 

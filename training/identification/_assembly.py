@@ -84,7 +84,7 @@ def assemble(evidence: RecordEvidence, judge: Judge) -> IdentificationResult:
     draft = _maps_draft(evidence)
     for step in ADJUSTMENTS:
         draft = step(evidence, draft, judge)
-    return IdentificationResult(draft.structure, draft.parameters, _quality(evidence, draft), draft.warnings,
+    return IdentificationResult(draft.structure, draft.parameters, _quality(evidence, draft, judge.policy), draft.warnings,
                                 evidence.name)
 
 
@@ -307,8 +307,9 @@ def _below_quantum(analysis: Analysis) -> IdentWarning:
                                                      "rms: elastic parameters uncertain")
 
 
-def _quality(evidence: RecordEvidence, draft: Draft) -> Quality:
-    """The result's quality figures (the refinement's and the angle's only where they ran)."""
+def _quality(evidence: RecordEvidence, draft: Draft, policy: IdentificationPolicy) -> Quality:
+    """The result's quality figures (the refinement's and the angle's only where they ran; the mode
+    a stiff answer's record shows only where it shows one)."""
     analysis, answer, refined, gap = evidence.analysis, evidence.maps, evidence.refined, evidence.gap
     refinement = ({} if refined is None else dict(maps_structure=answer.structure, refine_residual=refined.residual,
                                                   refine_start_residual=refined.start_residual,
@@ -322,4 +323,20 @@ def _quality(evidence: RecordEvidence, draft: Draft) -> Quality:
         section_flags=analysis.section_flags,
         maps_estimate={"f_e": answer.f_e, "V_J": answer.V_J, "d": answer.d, "s_N": answer.s_N},
         outside_envelope={f.quantity: f.to_dict() for f in draft.findings}, backlash_upper_bound=draft.backlash_bound,
-        **refinement, **angle)
+        **refinement, **angle, **_stiff_mode(analysis, draft.structure, policy))
+
+
+def _stiff_mode(analysis: Analysis, structure: str, policy: IdentificationPolicy) -> dict[str, float | str]:
+    """A stiff answer whose record still shows a mode (the oscillation fit explains at least
+    ``policy.mode_fit_r2`` of ``w_osc``): that mode, and why the class rule leaves it out: above the
+    current loop's bandwidth (``w T_Ei >= 1``: the speed loop cannot act on it), else too small for
+    the encoder to resolve its elastic values."""
+    if structure not in ("stiff", "stiff_backlash") or analysis.feature("r2_fit") < policy.mode_fit_r2:
+        return {}
+    f_mode = 10.0 ** analysis.feature("log10_f_fit")
+    if 2.0 * math.pi * f_mode * analysis.T_Ei >= CLASS_THRESHOLDS["w_e_T_Ei"][0]:
+        why = "above the current loop's bandwidth: the speed loop cannot act on it"
+    else:
+        why = (f"only {analysis.osc_quanta:.2g} speed quanta rms: too small for the encoder to resolve "
+               "its elastic values")
+    return {"stiff_mode_Hz": f_mode, "stiff_mode_note": f"a mode near {f_mode:.3g} Hz, {why}"}

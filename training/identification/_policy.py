@@ -43,11 +43,15 @@ class IdentificationPolicy:
     damping_cap: float = 0.9
     #: the smallest ``s_N`` the refinement starts from (its coordinate is ``log10 s_N``).
     start_s_N_floor: float = 1e-3
+    #: the share of ``w_osc``'s variance the oscillation fit must explain for a stiff answer to name
+    #: the mode its record shows (``Quality.stiff_mode_Hz``): at and above it, every such fit on the
+    #: matrix drives' records put the mode within 2 % of the true one.
+    mode_fit_r2: float = 0.3
 
     def __post_init__(self) -> None:
         check_settings(self, {
             "visible_quanta": POSITIVE, "stiff_sure": SHARE, "class_evidence": POSITIVE, "partial_fit_residual": POSITIVE,
-            "class_margin": SHARE, "damping_cap": SHARE, "start_s_N_floor": POSITIVE})
+            "class_margin": SHARE, "damping_cap": SHARE, "start_s_N_floor": POSITIVE, "mode_fit_r2": SHARE})
 
 
 @dataclass(frozen=True)

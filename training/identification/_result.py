@@ -108,6 +108,8 @@ class Quality:
     refined_s_N: float | None = None  # the refined normalized backlash
     angle_ratio: float | None = None  # where the angle showed a gap: its angle error over the best gapless model's
     backlash_upper_bound: float | None = None  # [rad] the widest backlash the record cannot show, where it matters
+    stiff_mode_Hz: float | None = None  # [Hz] a stiff answer: the mode its record still shows (the oscillation fit's)
+    stiff_mode_note: str | None = None  # why that mode does not make the answer elastic, in words
 
     def to_dict(self) -> dict[str, Any]:
         out: dict[str, Any] = {}
