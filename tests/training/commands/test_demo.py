@@ -92,7 +92,7 @@ def test_demo_flags_a_poorly_determined_parameter_and_explains_its_figures():
         ok, structure, warnings = True, "elastic", ()
         parameters = types.SimpleNamespace(**{k: truth[k] for k in PARAMETER_NAMES})
         quality = types.SimpleNamespace(structure_probabilities={"elastic": 0.9}, map_distance_ratio={"f_e": 0.3},
-                                        osc_quanta=13.8, one_mass_rel_residual=0.003)
+                                        osc_quanta=13.8, one_mass_rel_residual=0.003, stiff_mode_note=None)
 
     other = types.SimpleNamespace(ok=True, parameters=types.SimpleNamespace(**{**vars(Res.parameters), "d": 0.03}))
     spread = demo.spreads([Res(), other])
