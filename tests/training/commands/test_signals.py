@@ -173,6 +173,12 @@ class Interrupted:
     left: list[str]  # the command lines of processes it started that outlived it
 
 
+def _as_from_a_terminal() -> None:
+    """The child's signals as a shell's foreground command has them: a test suite run as a background
+    job (``pytest &`` in a script) inherits SIGINT ignored, which the command rightly keeps."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def interrupt(argv: list[str], ready: Callable[[set[int]], bool], sig: int, tmp_path: Path) -> Interrupted:
     """Run ``twomass argv``, send ``sig`` once ``ready(its live descendants)`` (SIGINT to its process
     group), and wait for it and every process it started to end."""
@@ -180,7 +186,7 @@ def interrupt(argv: list[str], ready: Callable[[set[int]], bool], sig: int, tmp_
     seen: set[int] = set()
     with open(err_path, "w") as err:
         proc = subprocess.Popen(TWOMASS + argv, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=err,
-                                start_new_session=True)
+                                start_new_session=True, preexec_fn=_as_from_a_terminal)
     try:
         deadline = time.monotonic() + START_TIMEOUT
         while True:
