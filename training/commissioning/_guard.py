@@ -243,13 +243,13 @@ def check_record(rec: Any, config: sim.DriveConfig, what: str, where: str) -> si
 class CheckedDrive:
     """The user's drive with every call bounded by ``timeout`` [s] (None: none), each returned record
     checked (:func:`check_record`) and held against the user's ``limits`` (their ``M_max`` the
-    torque cap, :meth:`sim.DriveLimits.for_drive`). ``experiments``: ``(kind, record)`` per
+    torque cap: ``limits`` as :meth:`sim.DriveLimits.for_drive` made them). ``experiments``: ``(kind, record)`` per
     experiment; ``requests``: what each asked for (``M_star``, ``w_max``, ``stop_at``: the speed
     limit handed to the drive); ``breach``: the :class:`LimitBreach` that ended the experiments."""
 
     def __init__(self, drive: Any, config: sim.DriveConfig, limits: sim.DriveLimits, timeout: float | None) -> None:
         self.drive, self.config, self.timeout = drive, config, timeout
-        self.limits = limits.for_drive(config)
+        self.limits = limits  # already the drive's (for_drive): the chain hands them so
         self.experiments: list[tuple[str, sim.Record]] = []
         self.requests: list[dict[str, Any]] = []
         self.breach: LimitBreach | None = None
