@@ -38,6 +38,7 @@ from training.errors import CommissioningError, LimitPassed, one_line
 
 from ._bands import f1_bands, hidden_bands, widen
 from ._excitation import ExcitationResult, ExcitationRules, adapt_test_signal, guarded_limits, measure_response, stop_headroom
+from ._frf import MeasuredResponse
 from ._guard import CONFIG_KEYS, CheckedDrive, passed_limits, record_peaks
 from ._loop import linear_plant, margins
 from ._permission import (CommissioningWarning, IdentificationFailed, IdentificationOutcome, Permission, may_propose_controller,
@@ -238,6 +239,8 @@ class ChainState:
     design: LoopPlan | None = None
     """The model-based plan (None: refused, or no design keeps the margins)."""
     design_trial: LoopTrial | None = None
+    measured: MeasuredResponse | None = None
+    """The plant's frequency response measured on the drive (None: not measured)."""
     fallback_reason: str | None = None
     """Why no model-based loop is delivered (``refused``, ``margins_not_reached``, ``loop_not_settled``)."""
     fallback: LoopPlan | None = None
