@@ -44,7 +44,8 @@ from ._loop import linear_plant, margins
 from ._permission import (CommissioningWarning, IdentificationFailed, IdentificationOutcome, Permission, may_propose_controller,
                           outside_training)
 from ._report import CommissioningReport, PlantRun
-from ._rules import ControllerProposal, ControllerSpec, propose_cautious, propose_controller
+from ._design import elastic_doubts
+from ._rules import ControllerProposal, ControllerSpec, propose_cautious, propose_controller, uncertainty_set
 from ._tuning import (BOUNDED_VERDICTS, Gains, TuningResult, TuningScenario, closed_loop_cost, loop_verdict, model_response,
                       plan_scenario, response_figures, tune_controller)
 from ._validation import OSC_METRICS, VALIDATION_MODES, ValidationResult, validate_model
@@ -52,7 +53,9 @@ from ._validation import OSC_METRICS, VALIDATION_MODES, ValidationResult, valida
 __all__ = ["CommissioningConfig", "commission", "limit_checks", "drive_config", "check_resolution", "MIN_LIMIT_QUANTA",
            "RecordIdentifier", "ScalarWriter", "ChainRun", "ChainState", "LoopPlan", "LoopTrial", "STAGES"]
 
-#: Identification warning codes that make the elastic parameters uncertain (rule R7c widens the spread).
+#: Identification warning codes that make the elastic parameters uncertain (rule R7c widens the set;
+#: ``outside_envelope`` and ``drive_outside_training`` only where a finding concerns more than
+#: friction and torque levels: :func:`training.commissioning._design.elastic_doubts`).
 UNCERTAIN_CODES: frozenset[str] = frozenset({"unlike_training_data", "oscillation_below_quantum", "refine_partial_fit",
                                              "implausible_output", "drive_outside_training", "outside_envelope",
                                              "class_undecided", "backlash_from_angle"})
@@ -332,11 +335,20 @@ def _accepted(excitation: ExcitationResult) -> dict[str, Any]:
     return kept[-1] if kept else excitation.log[-1]
 
 
-def _test_J(excitation: ExcitationResult) -> float:
+def _test_J(excitation: ExcitationResult, *, trusted: bool = False) -> float:
     """The one-mass inertia the accepted test run's mean acceleration gives, ``M* / accel`` [kg m^2]
-    (friction makes it larger, never smaller; inf when the run had no acceleration to measure)."""
+    (friction makes it larger, never smaller; inf when the run had no acceleration to measure).
+
+    ``trusted``: the one inertia of the test run a design may rest on (F1): only where the run
+    accelerated the load too, i.e. its longest section holds at least one period of the
+    oscillation it shows (or it shows none); else inf (a run that moved the motor alone gives
+    ``J_M``, and a loop designed on it is slower than it states)."""
     entry = _accepted(excitation)
-    return entry["M_star"] / entry["accel"] if entry.get("accel", 0.0) > 0 else math.inf
+    if not entry.get("accel", 0.0) > 0:
+        return math.inf
+    if trusted and entry.get("f_osc", 0.0) > 0 and entry.get("f_osc", 0.0) * entry.get("longest_section", 0.0) < 1.0:
+        return math.inf
+    return entry["M_star"] / entry["accel"]
 
 
 def _positive(x: Any) -> bool:
@@ -344,12 +356,9 @@ def _positive(x: Any) -> bool:
 
 
 def _uncertain(result: Any) -> list[str]:
-    """Why the identified elastic values are uncertain (warning codes of :data:`UNCERTAIN_CODES`,
-    ``outside_training``); empty when nothing says so."""
-    why = sorted({w.code for w in result.warnings if w.code in UNCERTAIN_CODES})
-    if result.quality.outside_training and "outside_training" not in why:
-        why.append("outside_training")
-    return why
+    """Why the identified elastic values are uncertain (warning codes of :data:`UNCERTAIN_CODES`
+    that concern them, ``outside_training``: :func:`elastic_doubts`); empty when nothing says so."""
+    return elastic_doubts(result, UNCERTAIN_CODES)
 
 
 def _run_candidates(run: ChainRun, plan: LoopPlan, kind: str) -> list[PlantRun]:
@@ -394,17 +403,16 @@ def _choose(runs: list[PlantRun]) -> int | None:
 
 
 def _design_spec(settings: CommissioningConfig, result: Any) -> ControllerSpec:
-    """The guarantee's spec of a model-based design: ``settings.spec``, its spread widened to
-    ``uncertain_spread`` where the elastic values are uncertain (R7c)."""
-    spec = settings.spec
-    if _uncertain(result) and _model_params(result)["f_e"] is not None:
-        spec = replace(spec, spread=max(spec.spread, settings.uncertain_spread))
-    return spec
+    """The guarantee's spec of a model-based design: ``settings.spec`` (an uncertain identification
+    widens the design's set, R7c in :func:`_propose`, not the margins)."""
+    return settings.spec
 
 
 def _propose(run: ChainRun) -> ControllerProposal:
-    """R1-R8 on the identified model; R7b covers the resonances the test could not show, R7c an
-    uncertain identification (wider spread, lighter damping)."""
+    """The optimized design (R4-R7) on the uncertainty set of the identified model; R7b covers the
+    resonances the test could not show unless the frequency response was measured (then the
+    measurement stands in for them), R7c an identification whose elastic values are uncertain
+    (wider spread, lighter damping)."""
     settings, result = run.settings, run.result
     params, why = _model_params(result), _uncertain(result)
     spec = _design_spec(settings, result)
@@ -415,10 +423,13 @@ def _propose(run: ChainRun) -> ControllerProposal:
     r7c = bool(why) and params["f_e"] is not None
     if r7c:
         params["d"] = settings.uncertain_damping * float(params["d"] or 0.0)
-    proposal = propose_controller(result.structure, params, run.config, spec, hidden=hidden, notch_at=notch_at)
+    uncertainty = uncertainty_set(params, spec, structure=result.structure, hidden=hidden, measured=run.state.measured,
+                                  spread=settings.uncertain_spread if r7c else None, doubts=tuple(why))
+    proposal = propose_controller(result.structure, params, run.config, spec, notch_at=notch_at, uncertainty=uncertainty)
     if r7c:
-        proposal = replace(proposal, rules=(f"R7c identification uncertain ({', '.join(why)}): the guarantee's spread of "
-                                            f"f_e and V_J is +-{spec.spread:.0%}, d halved to {params['d']:.3g}",) + proposal.rules)
+        proposal = replace(proposal, rules=(f"R7c identification uncertain ({', '.join(why)}): the set's f_e +-"
+                                            f"{uncertainty.f_e_spread:.0%}, V_J +-{uncertainty.V_J_spread:.0%}, "
+                                            f"d halved to {params['d']:.3g}",) + proposal.rules)
     return proposal
 
 
@@ -455,12 +466,13 @@ def _fallback_reason(state: ChainState) -> str | None:
 
 
 def _fallback_plan(run: ChainRun) -> LoopPlan:
-    """F1: the cautious PI on ``J_sigma`` with the highest crossover that keeps the margins on the
-    worst cases of the class the test run allows (and the identified resonance), planned on the
-    one-mass model; ``J_sigma`` the smaller of the identified and the test run's acceleration's."""
+    """F1: the cautious law on ``J_sigma`` optimized over the worst cases of the class the test run
+    allows (and the identified resonance), planned on the one-mass model, stating the lowest
+    crossover over that set; ``J_sigma`` the smaller of the identified and the test run's
+    acceleration's where the run accelerated the load (:func:`_test_J` with ``trusted``)."""
     settings, config, result, excitation = run.settings, run.config, run.result, run.excitation
     spec, identified_J = settings.spec, float(result.parameters.J_sigma)
-    J = min(identified_J, _test_J(excitation))
+    J = min(identified_J, _test_J(excitation, trusted=True))
     bands = f1_bands(_accepted(excitation), J, config, spec.class_V_J, spec.class_f_e, min_osc_quanta=settings.rules.min_osc_quanta,
                      osc_visible_ratio=settings.osc_visible_ratio)
     params = _model_params(result)

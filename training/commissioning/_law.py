@@ -17,7 +17,10 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["NotchSpec", "PISpeedLaw"]
+__all__ = ["NotchSpec", "PISpeedLaw", "as_notches", "MAX_NOTCHES"]
+
+#: The most notches the law applies in series (SPEC 8.1: up to two).
+MAX_NOTCHES: int = 2
 
 
 @dataclass(frozen=True)
@@ -42,6 +45,20 @@ class NotchSpec:
             return np.array([c * c + 2 * D * w_n * c + w_n**2, 2 * (w_n**2 - c * c), c * c - 2 * D * w_n * c + w_n**2])
         b, a = poly(self.D_z), poly(self.D_p)
         return b / a[0], a / a[0]
+
+
+def as_notches(notch: Any) -> tuple[NotchSpec, ...]:
+    """The law's notches in series from ``notch``: None (none), one :class:`NotchSpec`, or a tuple
+    or list of at most :data:`MAX_NOTCHES` of them; else a one-line error naming ``notch``."""
+    if notch is None:
+        return ()
+    if isinstance(notch, NotchSpec):
+        return (notch,)
+    if isinstance(notch, (tuple, list)) and all(isinstance(n, NotchSpec) for n in notch):
+        if len(notch) > MAX_NOTCHES:
+            raise ValueError(f"notch: expected at most {MAX_NOTCHES} notches, received {len(notch)}")
+        return tuple(notch)
+    raise TypeError(f"notch: expected None, a NotchSpec or a tuple of up to {MAX_NOTCHES}, received {type(notch).__name__}")
 
 
 def _array(value: Any, name: str) -> np.ndarray:
@@ -78,39 +95,39 @@ class PISpeedLaw:
 
         w_f = a w_f + (1-a) w_meas,  a = exp(-T_s/T_f)   (T_f = 0: w_f = w_meas; first sample: w_f = w_meas)
         I   = I + Kp T_s/Ti e        (not while the output saturates in the sign of e)
-        u   = Kp e + I;  v = notch(u);  M_ref = clamp(v, -M_max, M_max)
+        u   = Kp e + I;  v = notch_2(notch_1(u));  M_ref = clamp(v, -M_max, M_max)
 
     Args:
         Kp [Nm s/rad], Ti [s], T_f [s] (0: no low-pass): floats, or arrays ``B`` (broadcast).
-        T_s: sample time [s]. M_max: torque limit [Nm] (finite real numbers > 0). notch: optional
-        :class:`NotchSpec`. ``step`` takes numbers, numpy arrays or CPU torch tensors.
+        T_s: sample time [s]. M_max: torque limit [Nm] (finite real numbers > 0). notch: None, a
+        :class:`NotchSpec` or a tuple of up to two, applied in series (:attr:`notches`; ``notch``
+        is the first or None). ``step`` takes numbers, numpy arrays or CPU torch tensors.
     """
 
     def __init__(self, Kp: Any, Ti: Any, *, T_s: float, M_max: float, T_f: Any = 0.0,
-                 notch: NotchSpec | None = None) -> None:
+                 notch: NotchSpec | tuple[NotchSpec, ...] | None = None) -> None:
         self.Kp, self.Ti, self.T_f = _gain(Kp, "Kp", True), _gain(Ti, "Ti", True), _gain(T_f, "T_f", False)
         T_s, M_max = _positive(T_s, "T_s"), _positive(M_max, "M_max")
-        if notch is not None and not isinstance(notch, NotchSpec):
-            raise TypeError(f"notch: expected NotchSpec or None, received {type(notch).__name__}")
-        self.T_s, self.M_max, self.notch = T_s, M_max, notch
+        self.notches = as_notches(notch)
+        self.notch = self.notches[0] if self.notches else None
+        self.T_s, self.M_max = T_s, M_max
         self.shape = np.broadcast_shapes(self.Kp.shape, self.Ti.shape, self.T_f.shape)
         self._ki = self.Kp * self.T_s / self.Ti
         self._a = np.where(self.T_f > 0, np.exp(-self.T_s / np.maximum(self.T_f, 1e-300)), 0.0)
-        self._nb, self._na = notch.coefficients(self.T_s) if notch is not None else (None, None)
+        self._biquads = [n.coefficients(self.T_s) for n in self.notches]
         self.reset()
 
     @property
     def params(self) -> dict[str, Any]:
         """What a drive loads into its own controller (SI units; arrays as lists)."""
-        notch = self.notch
+        each = [{"f_n": n.f_n, "D_z": n.D_z, "D_p": n.D_p} for n in self.notches]
         return {"type": "PI", "Kp": self.Kp.tolist(), "Ti": self.Ti.tolist(), "T_f": self.T_f.tolist(),
-                "T_s": self.T_s, "M_max": self.M_max,
-                "notch": None if notch is None else {"f_n": notch.f_n, "D_z": notch.D_z, "D_p": notch.D_p}}
+                "T_s": self.T_s, "M_max": self.M_max, "notch": each[0] if each else None, "notches": each}
 
     def reset(self) -> None:
         zero = np.zeros(self.shape)
         self._I, self._wf = zero.copy(), zero.copy()
-        self._u1, self._u2, self._v1, self._v2 = zero.copy(), zero.copy(), zero.copy(), zero.copy()
+        self._hist = [[zero.copy() for _ in range(4)] for _ in self.notches]  # per notch: u1, u2, v1, v2
         self._started = False
 
     def step(self, w_meas: Any, w_ref: Any) -> Any:
@@ -128,10 +145,10 @@ class PISpeedLaw:
         u_try = pe + I_try
         self._I = np.where((np.abs(u_try) > self.M_max) & (u_try * e > 0), self._I, I_try)
         u = pe + self._I
-        if self._nb is not None:
-            b, a = self._nb, self._na
-            v = b[0] * u + b[1] * self._u1 + b[2] * self._u2 - a[1] * self._v1 - a[2] * self._v2
-            self._u2, self._u1, self._v2, self._v1 = self._u1, u, self._v1, v
+        for (b, a), hist in zip(self._biquads, self._hist):
+            u1, u2, v1, v2 = hist
+            v = b[0] * u + b[1] * u1 + b[2] * u2 - a[1] * v1 - a[2] * v2
+            hist[:] = [u, u1, v, v1]
             u = v
         out = np.clip(u, -self.M_max, self.M_max)
         return float(out) if out.ndim == 0 else out

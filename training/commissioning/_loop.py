@@ -23,12 +23,17 @@ import torch
 import sim
 from training._settings import POSITIVE_OR_INF, Interval, check_settings
 
-from ._law import NotchSpec
+from ._frf import MeasuredResponse
+from ._law import NotchSpec, as_notches
+
+#: The law's notch argument: None, one :class:`NotchSpec`, or a tuple of up to two in series.
+Notches = NotchSpec | tuple[NotchSpec, ...] | None
 
 __all__ = [
     "Mechanics", "mechanics_from", "drive_value", "LinearPlant", "linear_plant", "loop_figures",
     "closed_loop_matrices", "constant_input_response", "frequency_grid", "Margins", "loop_margins", "margins",
-    "ModelSet", "model_set", "bode", "LoopAnalysis", "ANALYSIS",
+    "margin_arrays", "load_peak_dB", "reference_to_load", "controller_parts", "ModelSet", "model_set", "bode",
+    "LoopAnalysis", "ANALYSIS", "Notches",
 ]
 
 
@@ -157,12 +162,25 @@ class LinearPlant:
     T_s: float
     resonances: tuple[float, ...] = ()
 
-    def speed_response(self, z: np.ndarray) -> np.ndarray:
-        """Frequency response ``M_ref -> w_meas`` at complex ``z`` (array ``F``), incl. both delays."""
+    def _state_response(self, z: np.ndarray) -> np.ndarray:
+        """``(z I - Ad)^-1 Bd`` at complex ``z`` (array ``F``): the state per unit applied torque, ``(F, n)``."""
         n = self.Ad.shape[0]
         zI = z[:, None, None] * np.eye(n)[None] - self.Ad[None]
-        g = np.einsum("i,fi->f", self.Cd, np.linalg.solve(zI, np.broadcast_to(self.Bd, (len(z), n))[..., None])[..., 0])
-        return (g + self.Dd) / (z * z * self.T_s)
+        return np.linalg.solve(zI, np.broadcast_to(self.Bd, (len(z), n))[..., None])[..., 0]
+
+    def speed_response(self, z: np.ndarray) -> np.ndarray:
+        """Frequency response ``M_ref -> w_meas`` at complex ``z`` (array ``F``), incl. both delays."""
+        return self.responses(z)[0]
+
+    def load_response(self, z: np.ndarray) -> np.ndarray:
+        """Frequency response ``M_ref -> w_L`` (the load speed, :attr:`Lw`) at complex ``z``, incl.
+        the computation delay (``M_ref`` of sample ``k`` acts from ``k+1``)."""
+        return self.responses(z)[1]
+
+    def responses(self, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(speed_response(z), load_response(z))`` from one solve."""
+        X = self._state_response(z)
+        return (X @ self.Cd + self.Dd) / (z * z * self.T_s), (X @ self.Lw) / z
 
 
 def _current_loop(T_Ei: float, damping: float | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -224,54 +242,71 @@ def linear_plant(mech: Mechanics | Mapping[str, Any], drive: Any, *, current_loo
     return LinearPlant(Ad=Ad, Bd=Bd, Cd=Cd, Dd=Dd, Lw=cL, T_s=T_s, resonances=res)
 
 
-def _controller_response(Kp: float, Ti: float, T_f: float, notch: NotchSpec | None, T_s: float, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(C(z) N(z), F(z)): PI + notch on the error path, low-pass on the feedback path."""
-    C = Kp + Kp * T_s / Ti * z / (z - 1.0)
-    if notch is not None:
-        b, a = notch.coefficients(T_s)
-        zi = 1.0 / z
-        C = C * (b[0] + b[1] * zi + b[2] * zi * zi) / (1.0 + a[1] * zi + a[2] * zi * zi)
-    if T_f > 0:
-        a_f = math.exp(-T_s / T_f)
-        F = (1 - a_f) * z / (z - a_f)
-    else:
-        F = np.ones_like(z)
-    return C, F
+def controller_parts(T_s: float, z: np.ndarray, *, Ti: Any = None, T_f: Any = None,
+                     notch: Notches = None) -> dict[str, np.ndarray]:
+    """The law's parts as frequency responses at complex ``z`` (each broadcast against ``z``; ``Ti``
+    and ``T_f`` may be arrays with a trailing axis of length 1): ``"pi"`` the PI at ``Kp = 1``
+    (``1 + T_s/Ti z/(z-1)``), ``"lowpass"`` the speed low-pass ``F`` (1 where ``T_f = 0``),
+    ``"notch"`` the notches in series (1 without). Only the parts asked for are computed."""
+    out: dict[str, np.ndarray] = {}
+    if Ti is not None:
+        out["pi"] = 1.0 + T_s / np.asarray(Ti, dtype=np.float64) * z / (z - 1.0)
+    if T_f is not None:
+        T_f = np.asarray(T_f, dtype=np.float64)
+        a_f = np.where(T_f > 0, np.exp(-T_s / np.maximum(T_f, 1e-300)), 0.0)
+        out["lowpass"] = (1 - a_f) * z / (z - a_f)
+    N = np.ones_like(z)
+    zi = 1.0 / z
+    for one in as_notches(notch):
+        b, a = one.coefficients(T_s)
+        N = N * (b[0] + b[1] * zi + b[2] * zi * zi) / (1.0 + a[1] * zi + a[2] * zi * zi)
+    out["notch"] = N
+    return out
+
+
+def _controller_response(Kp: float, Ti: float, T_f: float, notch: Notches, T_s: float, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(C(z) N(z), F(z)): PI + notches on the error path, low-pass on the feedback path."""
+    parts = controller_parts(T_s, z, Ti=Ti, T_f=T_f, notch=notch)
+    return Kp * parts["pi"] * parts["notch"], parts["lowpass"]
 
 
 def closed_loop_matrices(plant: LinearPlant, Kp: float, Ti: float, T_f: float,
-                         notch: NotchSpec | None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+                         notch: Notches) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Closed loop of the (unclamped) law on ``plant`` as ``s[k+1] = A s + b_r r + b_d M_dist``, the
     disturbance added to the torque reference as a drive injects it (SPEC 8.1).
 
-    State ``s = [x, u_applied, dphi_prev, w_f, I, u1, u2, v1, v2]``; outputs ``w_meas[k] = c s[k]``,
-    ``w_L[k] = c_L s[k]``. Built by applying one linear sample of the law (same order as
-    :class:`PISpeedLaw`) to unit vectors, so model and law cannot drift apart. Returns
-    ``(A, b_r, b_d, c, c_L)``.
+    State ``s = [x, u_applied, dphi_prev, w_f, I, (u1, u2, v1, v2) per notch]`` (one pass-through
+    stage without a notch); outputs ``w_meas[k] = c s[k]``, ``w_L[k] = c_L s[k]``. Built by applying
+    one linear sample of the law (same order as :class:`PISpeedLaw`) to unit vectors, so model and
+    law cannot drift apart. Returns ``(A, b_r, b_d, c, c_L)``.
     """
-    n = plant.Ad.shape[0]
-    ki, a_f = Kp * plant.T_s / Ti, (math.exp(-plant.T_s / T_f) if T_f > 0 else 0.0)
-    b, a = notch.coefficients(plant.T_s) if notch is not None else (np.array([1.0, 0, 0]), np.array([1.0, 0, 0]))
+    n, T_s = plant.Ad.shape[0], plant.T_s
+    ki, a_f = Kp * T_s / Ti, (math.exp(-T_s / T_f) if T_f > 0 else 0.0)
+    stages = [one.coefficients(T_s) for one in as_notches(notch)] or [(np.array([1.0, 0, 0]), np.array([1.0, 0, 0]))]
+    m = n + 4 + 4 * len(stages)
 
     def one(s: np.ndarray, r: float, d: float) -> np.ndarray:
-        x, u_app, dphi_prev, wf, I, u1, u2, v1, v2 = s[:n], *s[n:]
-        w = dphi_prev / plant.T_s
-        wf = a_f * wf + (1 - a_f) * w
+        """One sample of the loop on the columns of ``s`` (``(m, B)``)."""
+        x, (u_app, dphi_prev, wf, I) = s[:n], s[n:n + 4]
+        wf = a_f * wf + (1 - a_f) * dphi_prev / T_s
         e = r - wf
         I = I + ki * e
         u = Kp * e + I
-        v = b[0] * u + b[1] * u1 + b[2] * u2 - a[1] * v1 - a[2] * v2
+        history = []
+        for (b, a), (u1, u2, v1, v2) in zip(stages, s[n + 4:].reshape(len(stages), 4, -1)):
+            v = b[0] * u + b[1] * u1 + b[2] * u2 - a[1] * v1 - a[2] * v2
+            history += [u, u1, v, v1]
+            u = v
         dphi = plant.Cd @ x + plant.Dd * u_app
-        x_new = plant.Ad @ x + plant.Bd * u_app
-        return np.concatenate([x_new, [v + d, dphi, wf, I, u, u1, v, v1]])
+        x_new = plant.Ad @ x + np.outer(plant.Bd, u_app)
+        return np.vstack([x_new, u + d, dphi, wf, I, *history])
 
-    m = n + 8
-    A = np.stack([one(col, 0.0, 0.0) for col in np.eye(m)], axis=1)
-    zero = np.zeros(m)
+    A = one(np.eye(m), 0.0, 0.0)
+    zero = np.zeros((m, 1))
     c = np.zeros(m)
-    c[n + 1] = 1.0 / plant.T_s
-    c_L = np.concatenate([plant.Lw, np.zeros(8)])
-    return A, one(zero, 1.0, 0.0), one(zero, 0.0, 1.0), c, c_L
+    c[n + 1] = 1.0 / T_s
+    c_L = np.concatenate([plant.Lw, np.zeros(m - n)])
+    return A, one(zero, 1.0, 0.0)[:, 0], one(zero, 0.0, 1.0)[:, 0], c, c_L
 
 
 def constant_input_response(A: np.ndarray, b: np.ndarray, c: np.ndarray, n: int) -> np.ndarray:
@@ -360,33 +395,63 @@ class Margins:
         return self.stable and self.phase_margin >= min_phase_margin and self.gain_margin_dB >= min_gain_margin_dB
 
 
-def loop_margins(L: np.ndarray, w: np.ndarray, stable: bool, model: str = "nominal") -> Margins:
-    """:class:`Margins` of an open-loop frequency response ``L`` on the grid ``w`` [rad/s] (each
-    crossing interpolated linearly in log magnitude and phase between its two grid points)."""
+def margin_arrays(L: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Phase margin [deg], gain margin [dB] and first gain crossover [rad/s] of open-loop frequency
+    responses ``L`` (``(..., F)``) on the grid ``w`` (``F``, or broadcast to ``L``), one per leading
+    index (:class:`Margins` says what each is); every crossing interpolated linearly in log
+    frequency, log magnitude and phase between its two grid points; none: ``inf``, ``inf``, ``nan``."""
     lm = np.log(np.maximum(np.abs(L), 1e-300))
-    ph = np.unwrap(np.angle(L))
+    ph = np.unwrap(np.angle(L), axis=-1)
+    lw = np.log(np.broadcast_to(w, L.shape))
+    l0, l1, p0, p1, w0, w1 = lm[..., :-1], lm[..., 1:], ph[..., :-1], ph[..., 1:], lw[..., :-1], lw[..., 1:]
+    cross = (l0 >= 0) != (l1 >= 0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        frac = np.where(cross, -l0 / np.where(cross, l1 - l0, 1.0), 0.0)
+        phase = p0 + frac * (p1 - p0)
+        off = np.abs(phase - 2 * math.pi * np.round(phase / (2 * math.pi)))  # distance from 0 mod 360 deg
+        pm = np.where(cross, 180.0 - np.degrees(off), np.inf).min(axis=-1)
+        down = cross & (l0 >= 0)
+        first = np.argmax(down, axis=-1)[..., None]
+        w_c = np.where(down.any(axis=-1), np.exp(np.take_along_axis(w0 + frac * (w1 - w0), first, axis=-1)[..., 0]), np.nan)
+        # crossings of the negative real axis: phase through -180 deg (mod 360), above the first crossover
+        k = np.floor((ph + math.pi) / (2 * math.pi))
+        k0, k1 = k[..., :-1], k[..., 1:]
+        axis = (k0 != k1) & (w0 > np.log(np.where(np.isfinite(w_c), w_c, 0.0))[..., None])
+        target = np.maximum(k0, k1) * 2 * math.pi - math.pi
+        at = l0 + (target - p0) / np.where(axis, p1 - p0, 1.0) * (l1 - l0)
+        gm = np.where(axis, np.abs(20 * at / math.log(10)), np.inf).min(axis=-1)
+    return pm, gm, w_c
 
-    def at(i: int, frac: float) -> tuple[float, float, float]:
-        return (float(w[i] * (w[i + 1] / w[i]) ** frac), float(lm[i] + frac * (lm[i + 1] - lm[i])),
-                float(ph[i] + frac * (ph[i + 1] - ph[i])))
 
-    cross = np.nonzero((lm[:-1] >= 0) != (lm[1:] >= 0))[0]
-    pts = [at(i, -lm[i] / (lm[i + 1] - lm[i])) for i in cross]
-    down = [p for i, p in zip(cross, pts) if lm[i] >= 0]
-    w_c = down[0][0] if down else math.nan
-    pm = min((180.0 - abs(math.degrees(math.remainder(p[2], 2 * math.pi))) for p in pts), default=math.inf)
-    # crossings of the negative real axis: phase through -180 deg (mod 360)
-    k = np.floor((ph + math.pi) / (2 * math.pi))
-    gms = []
-    for i in np.nonzero(k[:-1] != k[1:])[0]:
-        target = (max(k[i], k[i + 1])) * 2 * math.pi - math.pi
-        _, m, _ = at(i, (target - ph[i]) / (ph[i + 1] - ph[i]))
-        if w[i] > (w_c if math.isfinite(w_c) else 0.0):
-            gms.append(abs(20 * m / math.log(10)))
-    return Margins(float(pm), float(min(gms, default=math.inf)), float(w_c), bool(stable), model)
+def loop_margins(L: np.ndarray, w: np.ndarray, stable: bool, model: str = "nominal") -> Margins:
+    """:class:`Margins` of an open-loop frequency response ``L`` on the grid ``w`` [rad/s] (:func:`margin_arrays`)."""
+    pm, gm, w_c = margin_arrays(L, w)
+    return Margins(float(pm), float(gm), float(w_c), bool(stable), model)
 
 
-def margins(plant: LinearPlant, Kp: float, Ti: float, T_f: float = 0.0, notch: NotchSpec | None = None, *,
+def _to_load(C: np.ndarray, F: np.ndarray, G: np.ndarray, G_L: np.ndarray) -> np.ndarray:
+    """``C N G_L / (1 + C N F G)`` from the law's parts ``C`` (PI and notches), ``F`` and the plant's ``G``, ``G_L``."""
+    return C * G_L / (1.0 + C * F * G)
+
+
+def reference_to_load(plant: LinearPlant, Kp: float, Ti: float, T_f: float = 0.0, notch: Notches = None, *,
+                      w: np.ndarray | None = None) -> np.ndarray:
+    """The closed loop's response from the speed reference to the load speed, ``T_rL = C N G_L /
+    (1 + C N F G)`` (``G_L`` :meth:`LinearPlant.load_response`, ``G`` the measured speed's) on the
+    grid ``w`` [rad/s] (default :func:`frequency_grid`)."""
+    w = frequency_grid(plant.T_s, plant.resonances) if w is None else w
+    z = np.exp(1j * w * plant.T_s)
+    C, F = _controller_response(Kp, Ti, T_f, notch, plant.T_s, z)
+    return _to_load(C, F, plant.speed_response(z), plant.load_response(z))
+
+
+def load_peak_dB(plant: LinearPlant, Kp: float, Ti: float, T_f: float = 0.0, notch: Notches = None) -> float:
+    """The peak of :func:`reference_to_load` [dB]: above 0 dB the load overshoots the reference
+    (SPEC 8.2: at most 6 dB, the load must not ring)."""
+    return float(20 * np.log10(np.abs(reference_to_load(plant, Kp, Ti, T_f, notch)).max()))
+
+
+def margins(plant: LinearPlant, Kp: float, Ti: float, T_f: float = 0.0, notch: Notches = None, *,
             w: np.ndarray | None = None, model: str = "nominal", response: np.ndarray | None = None) -> Margins:
     """:class:`Margins` of the PI law on ``plant`` (poles from :func:`closed_loop_matrices`);
     ``response``: the plant's ``speed_response`` on the grid ``w``, where already computed."""
@@ -401,26 +466,59 @@ def margins(plant: LinearPlant, Kp: float, Ti: float, T_f: float = 0.0, notch: N
 @dataclass(frozen=True)
 class ModelSet:
     """The models a delivered loop must keep its margins on: the identified mechanics and its
-    plausible spread (``f_e``, ``V_J`` x (1 -+ spread)), each with the current loop as a
-    second-order lag and extra samples of delay, plus the identified model as it is."""
+    plausible spread, each with the current loop as a second-order lag and extra samples of delay,
+    plus the identified model as it is (``plants``, named by ``labels``); and, where the plant's
+    frequency response was measured, that response at its trusted frequencies (``measured``: a
+    non-parametric model; its margins count, its stability is judged on the parametric models).
+    ``load_checked``: per plant, whether its reference-to-load peak counts (default: every one)."""
 
     plants: tuple[LinearPlant, ...]
     labels: tuple[str, ...]
-    _responses: list[tuple[np.ndarray, np.ndarray]] = field(default_factory=list, compare=False, repr=False)
+    measured: MeasuredResponse | None = None
+    load_checked: tuple[bool, ...] | None = None
+    _responses: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = field(default_factory=list, compare=False, repr=False)
 
-    def margins(self, Kp: float, Ti: float, T_f: float = 0.0, notch: NotchSpec | None = None) -> Margins:
-        """The worst margins over the set (any unstable model: ``stable`` False)."""
-        if not self._responses:  # each plant's frequency response, once (it does not depend on the law)
+    #: The label of the measured response among the models.
+    MEASURED = "measured frequency response"
+
+    def responses(self) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+        """Per plant its grid ``w`` [rad/s] (:func:`frequency_grid`), speed and load responses
+        (computed once: they do not depend on the law)."""
+        if not self._responses:
             for p in self.plants:
                 w = frequency_grid(p.T_s, p.resonances)
-                self._responses.append((w, p.speed_response(np.exp(1j * w * p.T_s))))
-        each = [margins(p, Kp, Ti, T_f, notch, model=lab, w=w, response=P)
-                for p, lab, (w, P) in zip(self.plants, self.labels, self._responses)]
+                self._responses.append((w, *p.responses(np.exp(1j * w * p.T_s))))
+        return self._responses
+
+    def each(self, Kp: float, Ti: float, T_f: float = 0.0, notch: Notches = None) -> list[Margins]:
+        """The margins on every model (the plants', then the measured response's)."""
+        out = [margins(p, Kp, Ti, T_f, notch, model=lab, w=w, response=G)
+               for p, lab, (w, G, _) in zip(self.plants, self.labels, self.responses())]
+        if self.measured is not None:
+            z = np.exp(1j * self.measured.w * self.measured.T_s)
+            C, F = _controller_response(Kp, Ti, T_f, notch, self.measured.T_s, z)
+            out.append(loop_margins(C * F * self.measured.G, self.measured.w, True, self.MEASURED))
+        return out
+
+    def margins(self, Kp: float, Ti: float, T_f: float = 0.0, notch: Notches = None) -> Margins:
+        """The worst margins over the set (any unstable model: ``stable`` False); ``w_c`` the first
+        model's (the identified one), ``model`` the worst model's label."""
+        each = self.each(Kp, Ti, T_f, notch)
         worst_pm = min(each, key=lambda m: m.phase_margin)
         worst_gm = min(each, key=lambda m: m.gain_margin_dB)
         unstable = [m for m in each if not m.stable]
         worst = unstable[0] if unstable else (worst_pm if worst_pm.phase_margin - 40 <= worst_gm.gain_margin_dB - 6 else worst_gm)
         return Margins(worst_pm.phase_margin, worst_gm.gain_margin_dB, each[0].w_c, not unstable, worst.model)
+
+    def load_peaks_dB(self, Kp: float, Ti: float, T_f: float = 0.0, notch: Notches = None) -> np.ndarray:
+        """The peak of the reference-to-load response [dB] on every plant whose load counts
+        (:func:`reference_to_load`; ``-inf`` on the others)."""
+        out = []
+        checked = self.load_checked or (True,) * len(self.plants)
+        for p, load, (w, G, G_L) in zip(self.plants, checked, self.responses()):
+            C, F = _controller_response(Kp, Ti, T_f, notch, p.T_s, np.exp(1j * w * p.T_s))
+            out.append(20 * np.log10(np.abs(_to_load(C, F, G, G_L)).max()) if load else -np.inf)
+        return np.array(out)
 
 
 def model_set(mechanics: Sequence[Mechanics | Mapping[str, Any]], drive: Any, *, spread: float = 0.3,
@@ -444,7 +542,7 @@ def model_set(mechanics: Sequence[Mechanics | Mapping[str, Any]], drive: Any, *,
     return ModelSet(tuple(plants), tuple(labels))
 
 
-def bode(plant: LinearPlant, Kp: float, Ti: float, T_f: float = 0.0, notch: NotchSpec | None = None) -> dict[str, np.ndarray]:
+def bode(plant: LinearPlant, Kp: float, Ti: float, T_f: float = 0.0, notch: Notches = None) -> dict[str, np.ndarray]:
     """Open-loop Bode data of the law on ``plant``: ``w`` [rad/s], ``mag_dB``, ``phase_deg``."""
     w = frequency_grid(plant.T_s, plant.resonances)
     z = np.exp(1j * w * plant.T_s)
@@ -475,7 +573,7 @@ def loop_figures(
     Kp: float,
     Ti: float,
     T_f: float = 0.0,
-    notch: NotchSpec | None = None,
+    notch: Notches = None,
 ) -> dict[str, float]:
     """Expected closed-loop figures of a PI design on the exact sampled linear model (SPEC 1's
     first-order current loop, no extra delay).

@@ -18,8 +18,9 @@ from training.commissioning._excitation import (EXCITATION_RULES, RUN_AGAIN, Exc
                                                 e8_stopped_by_drive, e10_speed_against_torque, judge_run, measure_response,
                                                 measure_run)
 from training.commissioning._loop import Mechanics  # noqa: E402
-from training.commissioning._rules import (CONTROLLER_RULES, ControllerSpec, Design, DesignInputs, r1_sum_time_constant,  # noqa: E402
-                                           r2_symmetric_optimum, r3_elastic_limit, r4_notch)
+from training.commissioning._design import DesignSearch  # noqa: E402
+from training.commissioning._rules import (CONTROLLER_RULES, ControllerSpec, Design, DesignInputs,  # noqa: E402
+                                           r4_notch_frequencies, r6_backlash, uncertainty_set)
 from training.errors import CommissioningError  # noqa: E402
 
 DRIVE = sim.DriveConfig()
@@ -29,7 +30,7 @@ LIMITS = sim.DriveLimits(w_max=20.0, travel=5.0)
 def test_rules_apply_in_the_documented_order():
     assert [r.__name__.split("_")[0] for r in EXCITATION_RULES] == [
         "e10", "e8b", "e8", "e3", "e4", "e5", "e3b", "e6b", "e4b", "e6d", "e6", "e6c", "e6", "e7", "e7", "e7", "run"]
-    assert [r.__name__.split("_")[0] for r in CONTROLLER_RULES] == ["r1", "r2", "r6", "r3", "r4", "r5", "r7", "r4b", "r7", "r8"]
+    assert [r.__name__.split("_")[0] for r in CONTROLLER_RULES] == ["r6", "r7", "r4", "r5"]
     for rule in EXCITATION_RULES + CONTROLLER_RULES:  # each says when it runs: "E3, runs when ..."
         assert re.match(r"[\w ]+, runs (when|for|always)", rule.__doc__), rule.__name__
 
@@ -39,9 +40,11 @@ def test_rules_apply_in_the_documented_order():
     (lambda: ExcitationRules(max_iterations=0), "max_iterations"),
     (lambda: ExcitationRules(min_section_samples=40.5), "min_section_samples"),
     (lambda: ExcitationRules(speed_margin=math.nan), "speed_margin"),
-    (lambda: ControllerSpec(backoff=1.0), "backoff"),
+    (lambda: ControllerSpec(f_e_spread=1.0), "f_e_spread"),
     (lambda: ControllerSpec(class_f_e=(500.0, 5.0)), "class_f_e"),
-    (lambda: ControllerSpec(alternative_filters_hidden=(0.0, -2.0)), "alternative_filters_hidden"),
+    (lambda: ControllerSpec(d_scale=(2.0, 0.5)), "d_scale"),
+    (lambda: DesignSearch(ti_ratios=(2.0, -3.0)), "ti_ratios"),
+    (lambda: DesignSearch(level_ratio=1.0), "level_ratio"),
     (lambda: BandSettings(nyquist_share=0.6), "nyquist_share"),
 ])
 def test_settings_name_the_failing_field(settings, field):
@@ -50,7 +53,7 @@ def test_settings_name_the_failing_field(settings, field):
 
 
 def test_settings_are_frozen():
-    for settings in (ExcitationRules(), ControllerSpec(), BandSettings()):
+    for settings in (ExcitationRules(), ControllerSpec(), BandSettings(), DesignSearch()):
         assert dataclasses.is_dataclass(settings)
         with pytest.raises(dataclasses.FrozenInstanceError):
             settings.factor = 3.0  # type: ignore[misc]
@@ -106,30 +109,26 @@ def test_measured_figures_as_the_log_keys():
     assert as_log["samples_per_section"] == list(figures.samples_per_section) and as_log["peak_speed"] == figures.peak_speed
 
 
-def _designed(structure: str, mech: Mechanics, spec: ControllerSpec) -> tuple[DesignInputs, Design]:
-    inputs = DesignInputs(structure, mech, DRIVE, DRIVE.T_s, DRIVE.T_Ei, spec)
-    return inputs, r2_symmetric_optimum(inputs, r1_sum_time_constant(inputs, Design()))
+def _inputs(structure: str, mech: Mechanics, spec: ControllerSpec, **kw) -> DesignInputs:
+    return DesignInputs(structure, mech, DRIVE, DRIVE.T_s, DRIVE.T_Ei, spec,
+                        uncertainty_set(mech, spec, structure=structure, **kw), kw.get("notch_at"))
 
 
-def test_elastic_limit_and_notch_by_hand():
-    """R3 limits the crossover to a share of the anti-resonance; where that costs more than
-    notch_gain_factor, R4 puts a notch at the resonance instead (w_c at most notch_w_A_share w_A)."""
+def test_notch_frequencies_and_the_decoupled_motor_by_hand():
+    """R4 offers the identified resonance f_0 as a notch frequency (none for a stiff answer); R6 puts
+    a backlash plant's motor alone, J_sigma / (1 + V_J), into the set (the gap open)."""
     spec = ControllerSpec()
-    soft = Mechanics(0.05, V_J=1.0, f_e=20.0, d=0.01)  # w_A far below the symmetric optimum: a notch pays
-    inputs, design = _designed("elastic", soft, spec)
-    assert design.T_sigma == pytest.approx(DRIVE.T_Ei + 2 * DRIVE.T_s + spec.speed_filter_samples * DRIVE.T_s)
-    limited = r3_elastic_limit(inputs, design)
-    assert limited.w_lim == pytest.approx(spec.anti_resonance_ratio[2] * soft.w_A)  # V_J 1: the middle ratio
-    assert design.w_c > spec.notch_gain_factor * limited.w_lim and limited.w_c == design.w_c
-    notched = r4_notch(inputs, limited)
-    assert notched.notch is not None and notched.notch.f_n == pytest.approx(soft.derived.w_0 / (2 * math.pi))
-    assert notched.w_c == pytest.approx(spec.notch_w_A_share * soft.w_A) and notched.rules[-1].startswith("R4 notch")
-    stiffer = Mechanics(0.05, V_J=1.0, f_e=100.0, d=0.01)  # the limit costs less than notch_gain_factor: no notch
-    inputs, design = _designed("elastic", stiffer, spec)
-    limited = r3_elastic_limit(inputs, design)
-    assert limited.w_c == limited.w_lim < design.w_c and r4_notch(inputs, limited) is limited
-    inputs, design = _designed("stiff", Mechanics(0.05), spec)
-    assert r3_elastic_limit(inputs, design) is design and r4_notch(inputs, design) is design
+    soft = Mechanics(0.05, V_J=1.0, f_e=20.0, d=0.01)
+    found = r4_notch_frequencies(_inputs("elastic", soft, spec), Design())
+    assert found.notch_at == (pytest.approx(soft.derived.w_0 / (2 * math.pi)),) and found.rules[-1].startswith("R4")
+    stiff = _inputs("stiff", Mechanics(0.05), spec)
+    assert r4_notch_frequencies(stiff, Design()) == Design() and r6_backlash(stiff, Design()) == Design()
+    backlash = _inputs("elastic_backlash", soft, spec)
+    noted = r6_backlash(backlash, Design())
+    motor = [m for m, label in backlash.uncertainty.members() if label.startswith("decoupled motor")]
+    assert noted.rules[-1].startswith("R6") and len(motor) == 1 and not motor[0].two_mass
+    assert motor[0].J_sigma == pytest.approx(0.05 / 2.0)
+    assert not any(label.startswith("decoupled") for _, label in _inputs("elastic", soft, spec).uncertainty.members())
 
 
 def test_hidden_resonances_unpack_as_before():

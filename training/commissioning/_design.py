@@ -1,0 +1,498 @@
+"""Design by optimization: the speed loop of SPEC 8.1's structure (PI, speed low-pass, up to two
+notches) with the largest crossover ``w_c`` that keeps, on every model of an uncertainty set, the
+closed loop stable, the phase margin, the gain margin and the reference-to-load peak (SPEC 8.2).
+
+:class:`UncertaintySet` is what the design must hold on: the identified mechanic and its plausible
+spread, the current-loop and delay variants, the decoupled motor of a backlash plant, the
+resonances a test run cannot exclude, or, where it was measured, the plant's frequency response.
+:func:`optimize_loop` searches the law's parameters over it (the search is described there).
+
+Units SI: torque [Nm], speed [rad/s], ``Kp`` [Nm s/rad], ``Ti``, ``T_f``, ``T_s`` [s], frequencies [Hz].
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, replace
+from typing import Any
+
+import numpy as np
+
+from training._settings import AT_LEAST_ONE, COUNT, NON_NEGATIVE, POSITIVE, REAL_OR_INF, Interval, Values, check_settings
+from training.errors import CommissioningError
+
+from ._frf import MeasuredResponse
+from ._law import MAX_NOTCHES, NotchSpec
+from ._loop import (LinearPlant, Mechanics, ModelSet, closed_loop_matrices, controller_parts, drive_value, linear_plant,
+                    margin_arrays)
+
+__all__ = ["UncertaintySet", "DesignSearch", "SEARCH", "OptimizedLoop", "optimize_loop", "elastic_doubts",
+           "measured_peaks", "trusted_response", "NON_ELASTIC_QUANTITIES"]
+
+#: Quantities of the identification's envelope findings (``quality.outside_envelope``) that say
+#: nothing about the elastic parameters: friction relative to the test's torque, the torque levels
+#: (torque and inertia scale together; they do not enter the maps' features). A finding on one of
+#: these alone does not widen the set.
+NON_ELASTIC_QUANTITIES: frozenset[str] = frozenset({"M_FC_over_M_star", "M_N", "M_max_over_M_N", "M_star_over_M_max"})
+#: The warning codes whose meaning rests on an envelope finding (which quantity: ``quality.outside_envelope``).
+_ENVELOPE_CODES: frozenset[str] = frozenset({"outside_envelope", "drive_outside_training"})
+
+
+def elastic_doubts(result: Any, codes: Iterable[str]) -> list[str]:
+    """Why the identified elastic values are uncertain: the warning codes of ``result`` in ``codes``
+    (an envelope code only where a finding of ``result.quality.outside_envelope`` concerns more
+    than :data:`NON_ELASTIC_QUANTITIES`), and ``outside_training`` where the quality says so."""
+    findings = set(getattr(result.quality, "outside_envelope", None) or {})
+    elastic_findings = bool(findings - NON_ELASTIC_QUANTITIES) or not findings
+    why = sorted({w.code for w in result.warnings if w.code in set(codes)
+                  and (w.code not in _ENVELOPE_CODES or elastic_findings)})
+    if result.quality.outside_training and "outside_training" not in why:
+        why.append("outside_training")
+    return why
+
+
+def trusted_response(measured: MeasuredResponse, min_coherence: float) -> MeasuredResponse | None:
+    """The measured response at the frequencies whose coherence reaches ``min_coherence`` (None: none)."""
+    keep = np.asarray(measured.coherence) >= min_coherence
+    if keep.sum() < 2:
+        return None
+    return MeasuredResponse(w=np.asarray(measured.w)[keep], G=np.asarray(measured.G)[keep],
+                            coherence=np.asarray(measured.coherence)[keep], T_s=float(measured.T_s))
+
+
+def measured_peaks(measured: MeasuredResponse, J_sigma: float, *, min_ratio: float, most: int = MAX_NOTCHES) -> tuple[float, ...]:
+    """Resonance peaks [Hz] the measured response shows: local maxima of ``|G| J_sigma w`` (the
+    response over the one-mass inertia's, 1 where the plant moves as one mass) above ``min_ratio``,
+    the ``most`` highest, lowest frequency first."""
+    w = np.asarray(measured.w)
+    ratio = np.abs(measured.G) * J_sigma * w
+    inner = np.nonzero((ratio[1:-1] > ratio[:-2]) & (ratio[1:-1] >= ratio[2:]) & (ratio[1:-1] >= min_ratio))[0] + 1
+    top = sorted(inner, key=lambda i: -ratio[i])[:most]
+    return tuple(float(w[i] / (2 * math.pi)) for i in sorted(top))
+
+
+@dataclass(frozen=True)
+class UncertaintySet:
+    """The plants a design must hold on (SPEC 8.2's "every model of the uncertainty set").
+
+    Until the identification reports calibrated intervals, an interim set of documented relative
+    half-widths (``f_e_spread``, ``V_J_spread``; ``d_scale`` the damping's factors, low and high),
+    all around the identified ``mechanics``; ``doubts``: why it was widened (rule R7c). Each
+    member is taken with the SPEC's first-order current loop and with ``current_loop_damping``'s
+    second-order lag plus ``extra_delay`` samples of dead time. ``decoupled_motor``: a backlash
+    plant's motor alone while the gap is open (one mass ``J_sigma / (1 + V_J)``, rule R6).
+    ``hidden``: resonances a test run cannot exclude (``V_J -> (f_lo, f_hi)`` [Hz], rule R7b,
+    at damping ``hidden_d``), replaced by ``measured`` (the trusted part of the plant's measured
+    frequency response) where there is one.
+    """
+
+    mechanics: Mechanics
+    f_e_spread: float = 0.1
+    V_J_spread: float = 0.25
+    d_scale: tuple[float, float] = (0.5, 2.0)
+    current_loop_damping: float = 1 / math.sqrt(2)
+    extra_delay: int = 1
+    decoupled_motor: bool = False
+    hidden: dict[float, tuple[float, float]] | None = None
+    hidden_d: float = 0.005
+    hidden_points_per_decade: float = 8.0
+    hidden_min_points: int = 5
+    measured: MeasuredResponse | None = None
+    doubts: tuple[str, ...] = ()
+
+    def members(self) -> list[tuple[Mechanics, str]]:
+        """The mechanics of the set with their labels: the identified one first, the spread's
+        corners at the low damping, the damping's range at the identified ``f_e`` and ``V_J``, the
+        decoupled motor, the hidden resonances (none where a response was measured)."""
+        m = self.mechanics
+        out = [(m, _label(m))]
+        if m.two_mass:
+            d_lo, d_hi = (m.d * s for s in self.d_scale)
+            for sf, sv in itertools.product((1 - self.f_e_spread, 1.0, 1 + self.f_e_spread),
+                                            (1 - self.V_J_spread, 1.0, 1 + self.V_J_spread)):
+                out.append((replace(m, f_e=m.f_e * sf, V_J=m.V_J * sv, d=min(d_lo, 0.999)), ""))
+            out.append((replace(m, d=min(d_hi, 0.999)), ""))
+            if self.decoupled_motor:
+                out.append((Mechanics(m.J_sigma / (1.0 + m.V_J), mu_F=m.mu_F), "decoupled motor (backlash gap open)"))
+        if self.hidden and self.measured is None:
+            out += [(h, f"hidden resonance {_label(h)}") for h in _hidden_mechanics(m.J_sigma, self.hidden, self.hidden_d,
+                                                                          self.hidden_points_per_decade, self.hidden_min_points)]
+        return [(mm, lab or _label(mm)) for mm, lab in out]
+
+    def models(self, drive: Any) -> ModelSet:
+        """The :class:`ModelSet`: the identified mechanic as it is first (the design's nominal
+        model), then every member with each current-loop variant; the measured response last.
+        The load peak counts on the identified mechanic's members, not on the hidden resonances:
+        those sit at the envelope's lowest damping, a worst case for stability; a load held below
+        6 dB there would bind any loop to a fiftieth of their anti-resonance, whatever the plant."""
+        plants, labels, checked = [linear_plant(self.mechanics, drive)], [_label(self.mechanics)], [True]
+        variant = f", 2nd-order current loop, +{self.extra_delay} sample delay"
+        for i, (mech, label) in enumerate(self.members()):
+            load = not label.startswith("hidden resonance")
+            if i:
+                plants.append(linear_plant(mech, drive))
+                labels.append(label)
+                checked.append(load)
+            plants.append(linear_plant(mech, drive, current_loop_damping=self.current_loop_damping, extra_delay=self.extra_delay))
+            labels.append(label + variant)
+            checked.append(load)
+        return ModelSet(tuple(plants), tuple(labels), self.measured, tuple(checked))
+
+    def describe(self) -> str:
+        """One line: what the set holds."""
+        m, parts = self.mechanics, []
+        if m.two_mass:
+            parts.append(f"f_e +-{self.f_e_spread:.0%}, V_J +-{self.V_J_spread:.0%}, d x{self.d_scale[0]:g}..{self.d_scale[1]:g}")
+        if self.decoupled_motor:
+            parts.append(f"the decoupled motor J_sigma/(1+V_J) = {m.J_sigma / (1 + m.V_J):.4g} kg m^2")
+        if self.hidden and self.measured is None:
+            parts.append("hidden resonances " + ", ".join(f"V_J {v:g}: {lo:.3g}..{hi:.3g} Hz" for v, (lo, hi) in self.hidden.items()))
+        if self.measured is not None:
+            parts.append(f"the measured response at {len(self.measured.w)} frequencies")
+        parts.append(f"each with the 1st-order current loop and a 2nd-order one (D {self.current_loop_damping:.3g}) "
+                     f"+{self.extra_delay} sample delay")
+        return "; ".join(parts)
+
+
+def _label(m: Mechanics) -> str:
+    return (f"f_e {m.f_e:.3g} Hz, V_J {m.V_J:.3g}, d {m.d:.3g}" if m.two_mass else f"J_sigma {m.J_sigma:.3g}")
+
+
+#: A band of hidden resonances no wider than this ratio is one eigenfrequency.
+_SINGLE_WIDTH = 1.01
+
+
+def _hidden_mechanics(J_sigma: float, bands: dict[float, tuple[float, float]], d: float, per_decade: float,
+                      min_points: int) -> list[Mechanics]:
+    """Two-mass mechanics on ``J_sigma`` at damping ``d``, per inertia ratio of ``bands`` at
+    ``per_decade`` eigenfrequencies per decade (at least ``min_points``) across its band [Hz]."""
+    out = []
+    for v, (f_lo, f_hi) in bands.items():
+        if f_lo <= f_hi:
+            n = max(min_points, math.ceil(per_decade * math.log10(f_hi / f_lo)) + 1)
+            f_es = np.geomspace(f_lo, f_hi, n) if f_hi > f_lo * _SINGLE_WIDTH else np.array([f_lo])
+            out += [Mechanics(J_sigma, V_J=v, f_e=float(f), d=d) for f in f_es]
+    return out
+
+
+@dataclass(frozen=True)
+class DesignSearch:
+    """How :func:`optimize_loop` searches (every value documented: what and why)."""
+
+    ti_ratios: tuple[float, ...] = (2.0, 3.0, 4.5, 7.0)
+    """``Ti w_c`` tried (the PI's phase lag at the crossover ``atan(1/ratio)``: 27..8 deg); the smallest feasible wins a tie."""
+    filter_samples: tuple[float, ...] = (0.0, 1.0, 3.0)
+    """Speed low-pass ``T_f`` tried, in samples (0: none; a low-pass damps resonances above the crossover)."""
+    notch_depths: tuple[float, ...] = (0.02, 0.1, 0.3)
+    """Notch ``D_z`` tried (at least the mechanic's damping; the gain at the centre is ``D_z / D_p``)."""
+    notch_widths: tuple[float, ...] = (0.3, 0.7, 1.2)
+    """Notch ``D_p`` tried (wide: covers an uncertain resonance)."""
+    notch_max_share: float = 0.4
+    """Notches only below this share of the sampling frequency (resolvable, little warped)."""
+    level_ratio: float = 1.25
+    """The descending grid of target crossovers steps by this factor ..."""
+    bisections: int = 5
+    """... then this many bisections (in log) between the first feasible level and the one above."""
+    keep_shapes: int = 12
+    """Shapes carried into the bisection: the feasible ones with the most slack."""
+    w_c_min: float = 0.5
+    """The lowest target crossover [rad/s]."""
+    max_load_peak_dB: float = 6.0
+    """SPEC 8.2: the reference-to-load peak on every plant of the set [dB] (the load must not ring)."""
+
+    def __post_init__(self) -> None:
+        check_settings(self, {
+            "ti_ratios": Values(POSITIVE, empty=False), "filter_samples": Values(NON_NEGATIVE, empty=False),
+            "notch_depths": Values(POSITIVE, empty=False), "notch_widths": Values(POSITIVE, empty=False),
+            "notch_max_share": Interval(0.0, 0.5, open_low=True, open_high=True), "level_ratio": Interval(1.0, open_low=True),
+            "bisections": COUNT, "keep_shapes": AT_LEAST_ONE, "w_c_min": POSITIVE, "max_load_peak_dB": REAL_OR_INF},
+            CommissioningError)
+
+
+#: The search :func:`optimize_loop` uses by default.
+SEARCH = DesignSearch()
+
+
+@dataclass(frozen=True)
+class OptimizedLoop:
+    """:func:`optimize_loop`'s answer: the law (``Kp``, ``Ti``, ``T_f``, ``notches``) and its first
+    crossover ``w_c`` [rad/s] on the nominal model; ``found`` whether every constraint holds on
+    every model (else the lowest gain tried); the worst phase margin [deg], gain margin [dB],
+    load peak [dB] over the set and the models they occur on; ``lowest_w_c`` the lowest first
+    crossover over the set's models; ``limited_by``: what bounds ``w_c`` (the constraint, the
+    model, one step above); ``evaluations``: law shapes x models evaluated."""
+
+    Kp: float
+    Ti: float
+    T_f: float
+    notches: tuple[NotchSpec, ...]
+    w_c: float
+    found: bool
+    phase_margin: float
+    gain_margin_dB: float
+    load_peak_dB: float
+    worst_model: str
+    lowest_w_c: float
+    limited_by: str
+    evaluations: int
+
+
+@dataclass
+class _Model:
+    """One model of the set as the search sees it: grid ``w``, ``z``, responses ``G``, ``G_L``
+    (None: the measured response, no load), its plant (None: measured), label, and the law's
+    notch and low-pass responses on its grid per option."""
+
+    label: str
+    T_s: float
+    w: np.ndarray
+    z: np.ndarray
+    G: np.ndarray
+    G_L: np.ndarray | None
+    plant: LinearPlant | None
+    N: np.ndarray
+    F: np.ndarray
+    kills: int = 0
+
+
+def _notch_options(freqs: Sequence[float], d: float, T_s: float, search: DesignSearch) -> list[tuple[NotchSpec, ...]]:
+    """No notch; one at each frequency of ``freqs`` [Hz] per depth and width; two (one per
+    frequency, or a staggered pair around one) per depth and width."""
+    f_ok = [f for f in freqs if 0 < f < search.notch_max_share / T_s]
+    grid = [(max(dz, d), dp) for dz in search.notch_depths for dp in search.notch_widths if max(dz, d) < dp]
+    out: list[tuple[NotchSpec, ...]] = [()]
+    out += [(NotchSpec(f, dz, dp),) for f in f_ok for dz, dp in grid]
+    pairs = list(itertools.combinations(f_ok, 2)) or [(f / 1.15, min(f * 1.15, 0.999 * search.notch_max_share / T_s)) for f in f_ok[:1]]
+    out += [(NotchSpec(a, dz, dp), NotchSpec(b, dz, dp)) for a, b in pairs[:1] for dz, dp in grid]
+    return out
+
+
+def _shapes(T_s: float, notch_options: list[tuple[NotchSpec, ...]], search: DesignSearch) -> list[tuple[int, int, int]]:
+    """Every (ti_ratio, filter, notch option) index triple, in the order a tie is decided: fewer
+    notches, smaller ``Ti w_c``, less filter first."""
+    return sorted(itertools.product(range(len(search.ti_ratios)), range(len(search.filter_samples)), range(len(notch_options))),
+                  key=lambda s: (len(notch_options[s[2]]), s[0], s[1], s[2]))
+
+
+def _prepare(models: ModelSet, T_s: float, notch_options: list[tuple[NotchSpec, ...]], search: DesignSearch) -> list[_Model]:
+    """Each model's grid and responses, with the notch and low-pass options' responses on it."""
+    T_fs = np.array(search.filter_samples) * T_s
+    out = []
+    for plant, label, checked, (w, G, G_L) in zip(models.plants, models.labels, models.load_checked or (True,) * len(models.plants),
+                                                 models.responses()):
+        z = np.exp(1j * w * plant.T_s)
+        out.append(_Model(label, T_s, w, z, G, G_L if checked else None, plant,
+                          np.array([controller_parts(T_s, z, notch=n)["notch"] for n in notch_options]),
+                          controller_parts(T_s, z, T_f=T_fs[:, None])["lowpass"]))
+    if models.measured is not None:
+        m = models.measured
+        z = np.exp(1j * m.w * m.T_s)
+        out.append(_Model(ModelSet.MEASURED, T_s, m.w, z, m.G, None, None,
+                          np.array([controller_parts(T_s, z, notch=n)["notch"] for n in notch_options]),
+                          controller_parts(T_s, z, T_f=T_fs[:, None])["lowpass"]))
+    return out
+
+
+@dataclass(frozen=True)
+class _Check:
+    """The constraints of a batch of shapes on one model: ``ok`` per shape, and the figures."""
+
+    ok: np.ndarray
+    pm: np.ndarray
+    gm: np.ndarray
+    peak: np.ndarray
+    w_c: np.ndarray
+
+
+def _check(model: _Model, Kp: np.ndarray, ti: np.ndarray, fi: np.ndarray, ni: np.ndarray, w_c: float,
+           search: DesignSearch, pm_min: float, gm_min: float) -> _Check:
+    """Phase and gain margins and the load peak of the shapes (``Kp``, indices into the options) on ``model``."""
+    Ti = np.asarray(search.ti_ratios)[ti] / w_c
+    C = Kp[:, None] * controller_parts(model.T_s, model.z, Ti=Ti[:, None])["pi"] * model.N[ni]
+    L = C * model.F[fi] * model.G
+    pm, gm, wc = margin_arrays(L, model.w)
+    if model.G_L is not None:
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+            peak = 20 * np.log10(np.abs(C * model.G_L / (1.0 + L)).max(axis=-1))
+    else:
+        peak = np.full(len(Kp), -np.inf)
+    ok = (pm >= pm_min) & (gm >= gm_min) & (peak <= search.max_load_peak_dB)
+    return _Check(ok, pm, gm, peak, wc)
+
+
+@dataclass
+class _Context:
+    """What every level of the search shares: the models, the options, the nominal plant, the bounds."""
+
+    models: list[_Model]
+    notch_options: list[tuple[NotchSpec, ...]]
+    shapes: np.ndarray  # (S, 3) indices: ti_ratio, filter, notch option
+    J_sigma: float
+    T_s: float
+    search: DesignSearch
+    pm_min: float
+    gm_min: float
+    evaluations: int = 0
+
+    def law(self, shape: np.ndarray, w_c: float) -> tuple[float, float, float, tuple[NotchSpec, ...]]:
+        """``(Kp, Ti, T_f, notches)`` of one shape at the target crossover ``w_c``."""
+        Kp = float(self.gains(shape[None], w_c)[0])
+        ti, fi, ni = (int(i) for i in shape)
+        return Kp, self.search.ti_ratios[ti] / w_c, self.search.filter_samples[fi] * self.T_s, self.notch_options[ni]
+
+    def gains(self, shapes: np.ndarray, w_r: float) -> np.ndarray:
+        """``Kp`` per shape at the rigid-body crossover ``w_r``: ``J_sigma w_r`` (the crossover of the
+        one mass ``J_sigma``; the same for every shape, so that a level is one gain)."""
+        return np.full(len(shapes), self.J_sigma * w_r)
+
+
+@dataclass(frozen=True)
+class _Level:
+    """One rigid-body crossover's outcome (``w_c``: the level): the shapes (indices into the
+    context's) that keep every constraint (``feasible``, most slack first), the stable one with
+    the highest first crossover on the nominal model (``chosen``, None: none; ``crossover`` its
+    crossover [rad/s]), and per shape the first failing model and constraint (``why``)."""
+
+    w_c: float
+    feasible: np.ndarray
+    chosen: int | None
+    why: dict[int, str]
+    crossover: float = math.nan
+
+
+def _slack(chk: _Check, pm_min: float, gm_min: float, max_peak: float) -> np.ndarray:
+    """How far the shapes keep from the constraints (in units of 10 deg, 3 dB, 3 dB)."""
+    return np.minimum(np.minimum((chk.pm - pm_min) / 10.0, (chk.gm - gm_min) / 3.0), (max_peak - chk.peak) / 3.0)
+
+
+def _failure(chk: _Check, i: int, pm_min: float, gm_min: float, max_peak: float, label: str) -> str:
+    """Which constraint shape ``i`` of ``chk`` misses on the model ``label``, in words."""
+    if not chk.pm[i] >= pm_min:
+        return f"PM {chk.pm[i]:.1f} deg < {pm_min:g} on {label}"
+    if not chk.gm[i] >= gm_min:
+        return f"GM {chk.gm[i]:.1f} dB < {gm_min:g} on {label}"
+    return f"load peak {chk.peak[i]:.1f} dB > {max_peak:g} on {label}"
+
+
+def _stable(ctx: _Context, shape: np.ndarray, w_c: float) -> str | None:
+    """None when the closed loop of ``shape`` at ``w_c`` is stable on every plant of the set, else
+    the first plant it is not stable on."""
+    Kp, Ti, T_f, notches = ctx.law(shape, w_c)
+    for m in ctx.models:
+        if m.plant is not None:
+            A = closed_loop_matrices(m.plant, Kp, Ti, T_f, notches)[0]
+            if not np.abs(np.linalg.eigvals(A)).max() < 1.0:
+                return f"unstable on {m.label}"
+    return None
+
+
+def _level(ctx: _Context, candidates: np.ndarray, w_c: float) -> _Level:
+    """The ``candidates`` (indices into ``ctx.shapes``) at the target crossover ``w_c``: each model
+    in turn (the one that rejected most so far first) drops the shapes that miss a constraint on
+    it; the survivors, in the order of preference, are checked for closed-loop stability."""
+    s, max_peak = ctx.search, ctx.search.max_load_peak_dB
+    shapes = ctx.shapes[candidates]
+    Kp = ctx.gains(shapes, w_c)
+    alive = np.ones(len(candidates), dtype=bool)
+    slack, crossover = np.full(len(candidates), np.inf), np.full(len(candidates), np.nan)
+    why: dict[int, str] = {}
+    for model in sorted(ctx.models, key=lambda m: -m.kills):
+        idx = np.nonzero(alive)[0]
+        if not len(idx):
+            break
+        sub = shapes[idx]
+        chk = _check(model, Kp[idx], sub[:, 0], sub[:, 1], sub[:, 2], w_c, s, ctx.pm_min, ctx.gm_min)
+        ctx.evaluations += len(idx)
+        slack[idx] = np.minimum(slack[idx], _slack(chk, ctx.pm_min, ctx.gm_min, max_peak))
+        if model is ctx.models[0]:
+            crossover[idx] = chk.w_c
+        for j in np.nonzero(~chk.ok)[0]:
+            why[int(candidates[idx[j]])] = _failure(chk, j, ctx.pm_min, ctx.gm_min, max_peak, model.label)
+        model.kills += int((~chk.ok).sum())
+        alive[idx[~chk.ok]] = False
+    ok = np.nonzero(alive)[0]
+    chosen = None
+    # the highest nominal crossover first; a tie to the order of preference (candidates index it)
+    for i in sorted(ok, key=lambda i: (-np.round(np.nan_to_num(crossover[i]), 6), candidates[i])):
+        unstable = _stable(ctx, ctx.shapes[candidates[i]], w_c)
+        if unstable is None:
+            chosen = int(candidates[i])
+            break
+        why[int(candidates[i])] = unstable
+        alive[i] = False
+    feasible = candidates[np.nonzero(alive)[0][np.argsort(-slack[alive])]]
+    return _Level(w_c, feasible, chosen, why, float(crossover[list(candidates).index(chosen)]) if chosen is not None else math.nan)
+
+
+def _search(ctx: _Context, w_top: float) -> tuple[_Level | None, _Level | None]:
+    """The descending grid of target crossovers from ``w_top`` to the first level with a stable
+    feasible shape, then bisection (in log) between it and the level above on the shapes with most
+    slack. Returns the best feasible level and the infeasible one just above it (None: the top
+    itself was feasible, or nothing was)."""
+    s = ctx.search
+    every = np.arange(len(ctx.shapes))
+    w_c, above = w_top, None
+    while w_c >= s.w_c_min:
+        level = _level(ctx, every, w_c)
+        if level.chosen is not None:
+            break
+        above, w_c = level, w_c / s.level_ratio
+    else:
+        return None, above
+    if above is None:
+        return level, None
+    for _ in range(s.bisections):
+        mid = math.sqrt(level.w_c * above.w_c)
+        keep = np.union1d(level.feasible[:s.keep_shapes], [level.chosen])
+        trial = _level(ctx, keep, mid)
+        if trial.chosen is not None:
+            level = trial
+        else:
+            above = trial
+    return level, above
+
+
+def optimize_loop(models: ModelSet, drive: Any, *, J_sigma: float, notch_at: Sequence[float] = (), d: float = 0.0,
+                  min_phase_margin: float, min_gain_margin_dB: float, search: DesignSearch = SEARCH) -> OptimizedLoop:
+    """The law with the largest first crossover on ``models``' first (nominal) model that keeps, on
+    every model of the set, the closed loop stable, PM >= ``min_phase_margin``, GM >=
+    ``min_gain_margin_dB`` and, on the plants whose load counts (:attr:`ModelSet.load_checked`),
+    the reference-to-load peak <= ``search.max_load_peak_dB``.
+
+    The search: the gain ``Kp = J_sigma w_r`` descends by ``search.level_ratio`` from the
+    rigid-body crossover ``w_r = 1.5 / (T_Ei + 2 T_s)`` (above what the current loop and the
+    sampling allow); per level every shape (``Ti = ratio / w_r`` over ``search.ti_ratios``,
+    ``T_f`` of ``search.filter_samples``, no notch, one notch at each of ``notch_at`` [Hz] or two,
+    over ``search.notch_depths`` (at least ``d``) and ``search.notch_widths``) is held against the
+    constraints model by model (the one that rejected most so far first), vectorized over the
+    shapes; the first level with a stable feasible shape ends the descent, ``search.bisections``
+    bisections in log between it and the level above refine it on the ``search.keep_shapes``
+    shapes with most slack. At the final level the stable feasible shape with the highest first
+    crossover on the nominal model wins (a tie: fewer notches, the smaller ``Ti w_r``, the
+    smaller ``T_f``).
+    """
+    T_s, T_Ei = drive_value(drive, "T_s"), drive_value(drive, "T_Ei")
+    notch_options = _notch_options(notch_at, d, T_s, search)
+    shapes = np.array(_shapes(T_s, notch_options, search), dtype=np.int64)
+    ctx = _Context(_prepare(models, T_s, notch_options, search), notch_options, shapes, J_sigma, T_s, search,
+                   min_phase_margin, min_gain_margin_dB)
+    best, above = _search(ctx, 1.5 / (T_Ei + 2 * T_s))
+    found = best is not None
+    w_r = best.w_c if found else search.w_c_min
+    shape = shapes[best.chosen] if found else shapes[0]
+    Kp, Ti, T_f, notches = ctx.law(shape, w_r)
+    each = models.each(Kp, Ti, T_f, notches)
+    peaks = models.load_peaks_dB(Kp, Ti, T_f, notches)
+    worst = min(each, key=lambda m: (m.stable, min(m.phase_margin - min_phase_margin, m.gain_margin_dB - min_gain_margin_dB)))
+    crossovers = [m.w_c for m in each if math.isfinite(m.w_c)]
+    if not found:
+        limited = "no gain down to the search's lowest keeps the constraints"
+    elif above is None:
+        limited = "the search's highest gain (the current loop and the sampling)"
+    else:
+        limited = f"Kp x {above.w_c / best.w_c:.3g}: " + above.why.get(int(best.chosen), "every shape misses a constraint")
+    return OptimizedLoop(Kp, Ti, T_f, notches, each[0].w_c, found, min(m.phase_margin for m in each),
+                         min(m.gain_margin_dB for m in each), float(peaks.max(initial=-math.inf)), worst.model,
+                         min(crossovers, default=math.nan), limited, ctx.evaluations)
