@@ -421,15 +421,15 @@ def _propose(run: ChainRun) -> ControllerProposal:
         hidden, notch_at = hidden_bands(_accepted(run.excitation), float(params["J_sigma"]), run.config, spec.class_V_J,
                                         f_lo=spec.class_f_e[0], min_osc_quanta=settings.rules.min_osc_quanta)
     r7c = bool(why) and params["f_e"] is not None
-    if r7c:
-        params["d"] = settings.uncertain_damping * float(params["d"] or 0.0)
     uncertainty = uncertainty_set(params, spec, structure=result.structure, hidden=hidden, measured=run.state.measured,
-                                  spread=settings.uncertain_spread if r7c else None, doubts=tuple(why))
+                                  spread=settings.uncertain_spread if r7c else None,
+                                  damping=settings.uncertain_damping if r7c else None, doubts=tuple(why))
     proposal = propose_controller(result.structure, params, run.config, spec, notch_at=notch_at, uncertainty=uncertainty)
     if r7c:
+        low = uncertainty.d_scale[0]
         proposal = replace(proposal, rules=(f"R7c identification uncertain ({', '.join(why)}): the set's f_e +-"
                                             f"{uncertainty.f_e_spread:.0%}, V_J +-{uncertainty.V_J_spread:.0%}, "
-                                            f"d halved to {params['d']:.3g}",) + proposal.rules)
+                                            f"d from x{low:g} ({low * float(params['d'] or 0.0):.3g})",) + proposal.rules)
     return proposal
 
 

@@ -181,19 +181,19 @@ def _hidden_mechanics(J_sigma: float, bands: dict[float, tuple[float, float]], d
 class DesignSearch:
     """How :func:`optimize_loop` searches (every value documented: what and why)."""
 
-    ti_ratios: tuple[float, ...] = (2.0, 3.0, 4.5, 7.0)
-    """``Ti w_c`` tried (the PI's phase lag at the crossover ``atan(1/ratio)``: 27..8 deg); the smallest feasible wins a tie."""
-    filter_samples: tuple[float, ...] = (0.0, 1.0, 3.0)
+    ti_ratios: tuple[float, ...] = (3.0, 6.0)
+    """``Ti w_r`` tried (the PI's phase lag at the crossover ``atan(1/ratio)``: 18 and 9.5 deg); the smaller wins a tie."""
+    filter_samples: tuple[float, ...] = (0.0, 2.0)
     """Speed low-pass ``T_f`` tried, in samples (0: none; a low-pass damps resonances above the crossover)."""
-    notch_depths: tuple[float, ...] = (0.02, 0.1, 0.3)
+    notch_depths: tuple[float, ...] = (0.05, 0.3)
     """Notch ``D_z`` tried (at least the mechanic's damping; the gain at the centre is ``D_z / D_p``)."""
-    notch_widths: tuple[float, ...] = (0.3, 0.7, 1.2)
+    notch_widths: tuple[float, ...] = (0.5, 1.2)
     """Notch ``D_p`` tried (wide: covers an uncertain resonance)."""
     notch_max_share: float = 0.4
     """Notches only below this share of the sampling frequency (resolvable, little warped)."""
     level_ratio: float = 1.25
     """The descending grid of target crossovers steps by this factor ..."""
-    bisections: int = 5
+    bisections: int = 4
     """... then this many bisections (in log) between the first feasible level and the one above."""
     keep_shapes: int = 12
     """Shapes carried into the bisection: the feasible ones with the most slack."""

@@ -350,7 +350,7 @@ def _design_lines(title: str, p: ControllerProposal) -> list[str]:
 
 
 def _controller_text(p: ControllerProposal) -> str:
-    notch = "" if p.notch is None else f", notch f_n {p.notch.f_n:.4g} Hz (D_z {p.notch.D_z:.3g}, D_p {p.notch.D_p:.3g})"
+    notch = "".join(f", notch f_n {n.f_n:.4g} Hz (D_z {n.D_z:.3g}, D_p {n.D_p:.3g})" for n in p.notches)
     return (f"{p.concept}, Kp {p.Kp:.4g} Nm s/rad, Ti {p.Ti * 1e3:.4g} ms, T_f {p.T_f * 1e3:.3g} ms{notch}; "
             f"w_c {p.figures['w_c']:.4g} rad/s, PM {p.margins.phase_margin:.1f} deg, GM {p.margins.gain_margin_dB:.1f} dB (guarantee set)")
 

@@ -93,6 +93,11 @@ _SPEC_CONSTRAINTS: dict[str, Constraint] = {
 }
 
 
+#: The load peak is read on the frequency grid (0.2 % steps at a resonance): a gain set the tuning
+#: moved keeps the 6 dB within this much [dB], below what the grid resolves of a light resonance.
+LOAD_PEAK_TOLERANCE_DB: float = 0.1
+
+
 @dataclass(frozen=True)
 class ControllerProposal:
     """A speed-controller concept and its parameters, with the expected figures and the rules used.
@@ -137,7 +142,7 @@ class ControllerProposal:
 
     def meets(self, spec: ControllerSpec) -> bool:
         """The guarantee: ``spec``'s margins on every model of the set, and the load peak where known."""
-        peak_ok = not self.load_peak_dB > self.max_load_peak_dB
+        peak_ok = not self.load_peak_dB > self.max_load_peak_dB + LOAD_PEAK_TOLERANCE_DB
         return self.margins.meets(spec.min_phase_margin, spec.min_gain_margin_dB) and peak_ok
 
     def with_gains(self, config: Any, Kp: float, Ti: float, T_f: float, rule: str) -> ControllerProposal:
@@ -167,14 +172,17 @@ def _finite_or_none(x: float) -> float | None:
 
 def uncertainty_set(mechanics: Any, spec: ControllerSpec, *, structure: str = "stiff",
                     hidden: dict[float, tuple[float, float]] | None = None, measured: MeasuredResponse | None = None,
-                    spread: float | None = None, doubts: tuple[str, ...] = ()) -> UncertaintySet:
-    """The interim :class:`UncertaintySet` of ``spec`` around ``mechanics``: ``spread`` (rule R7c)
-    widens ``f_e`` and ``V_J`` to at least that; a backlash ``structure`` adds the decoupled motor
+                    spread: float | None = None, damping: float | None = None, doubts: tuple[str, ...] = ()) -> UncertaintySet:
+    """The interim :class:`UncertaintySet` of ``spec`` around ``mechanics``: ``spread`` and
+    ``damping`` (rule R7c) widen ``f_e`` and ``V_J`` to at least that relative half-width and the
+    damping's low factor to at most ``damping``; a backlash ``structure`` adds the decoupled motor
     (R6); ``hidden`` (R7b) unless ``measured`` (its trusted part, coherence >= ``spec.min_coherence``)."""
     m = mechanics_from(mechanics)
     trusted = trusted_response(measured, spec.min_coherence) if measured is not None else None
     wide = 0.0 if spread is None else spread
-    return UncertaintySet(m, f_e_spread=max(spec.f_e_spread, wide), V_J_spread=max(spec.V_J_spread, wide), d_scale=spec.d_scale,
+    d_low = spec.d_scale[0] if damping is None else min(spec.d_scale[0], damping)
+    return UncertaintySet(m, f_e_spread=max(spec.f_e_spread, wide), V_J_spread=max(spec.V_J_spread, wide),
+                          d_scale=(d_low, spec.d_scale[1]),
                           current_loop_damping=spec.current_loop_damping, extra_delay=spec.extra_delay,
                           decoupled_motor=structure in _BACKLASH and m.two_mass, hidden=hidden, hidden_d=spec.class_d,
                           hidden_points_per_decade=spec.class_points_per_decade, hidden_min_points=spec.class_min_points,

@@ -41,7 +41,7 @@ def test_chain_on_a_stiff_plant(stub):
     ident = stub("stiff", ONE_MASS)
     rep = commission(sim.SimulatedDrive(STIFF), LIMITS, identifier=ident, config=FAST)
     assert "truth" not in ident.records[0].meta and rep.validation.passed
-    assert rep.proposal.structure == "stiff" and any(r.startswith("R2") for r in rep.proposal.rules)
+    assert rep.proposal.structure == "stiff" and any(r.startswith("R5") for r in rep.proposal.rules)
     # R7b: the resonances the test cannot exclude are in the guarantee (the plant's own 400 Hz, V_J 0.5 one too)
     assert any(r.startswith("R7b") for r in rep.proposal.rules)
     assert any(lab.startswith("hidden resonance") for lab in rep.delivered.models.labels)
@@ -52,7 +52,7 @@ def test_chain_on_a_stiff_plant(stub):
 
 def test_chain_on_an_elastic_plant_counts_the_load(stub):
     rep = commission(sim.SimulatedDrive(ELASTIC), LIMITS, identifier=stub("elastic", ELASTIC), config=FAST)
-    assert any(r.startswith("R3") for r in rep.proposal.rules) and rep.scenario.two_mass
+    assert any(r.startswith("R4") for r in rep.proposal.rules) and rep.scenario.two_mass
     assert all(r.load > 0 for r in rep.runs)  # the estimated load side is scored
     _check_delivered(rep)
     assert rep.delivered_run.motor <= rep.runs[0].motor and rep.delivered_run.load <= rep.runs[0].load
@@ -81,13 +81,13 @@ def test_chain_on_an_independent_plant_in_another_process():
 
 
 def test_uncertain_identification_widens_the_guarantee(stub):
-    """R7c: a warning code that says the elastic values are uncertain widens the spread to +-50 % and
-    halves the damping; one that says the oscillation is not reproduced adds the hidden resonances."""
+    """R7c: a warning code that says the elastic values are uncertain widens the set to +-50 % and
+    half the damping; one that says the oscillation is not reproduced adds the hidden resonances."""
     warn = (("unlike_training_data", "record unlike the training data of the f_e map"),)
     rep = commission(sim.SimulatedDrive(ELASTIC), LIMITS, identifier=stub("elastic", ELASTIC, warnings=warn), config=FAST)
     assert rep.proposal.rules[0].startswith("R7c identification uncertain (unlike_training_data)")
     assert f"f_e {ELASTIC['f_e'] * 1.5:.3g} Hz" in " ".join(rep.proposal.models.labels)
-    assert rep.proposal.mechanics.d == pytest.approx(0.5 * ELASTIC["d"])
+    assert f"d {0.5 * ELASTIC['d']:.3g}" in " ".join(rep.proposal.models.labels)  # the set's damping from x0.5
     assert not any(r.startswith("R7b") for r in rep.proposal.rules)
     _check_delivered(rep)
     warn = (("refine_partial_fit", "the refined model reproduces only part of the measured oscillation"),)
@@ -102,13 +102,13 @@ def test_refusal_without_and_with_the_fallback(stub):
     assert "4 REFUSED [V3]" in rep.to_text() and "8 delivered: none (V3)" in rep.to_text()
     rep = commission(sim.SimulatedDrive(ELASTIC), LIMITS, identifier=ident, config=FAST)
     assert rep.fallback is not None and rep.fallback_reason == "refused" and rep.delivered is rep.fallback
-    assert rep.fallback.rules[0].startswith("F1") and rep.fallback.figures["w_c"] > 20  # not a fixed 3 rad/s
+    assert rep.fallback.rules[0].startswith("F1") and rep.fallback.figures["w_c"] > 15  # not a fixed 3 rad/s
     assert rep.improvement is None  # no percentage against a fallback
     _check_delivered(rep)
     d = rep.to_dict()
     assert d["permission"]["rule"] == "V3" and set(d["fallback"]["rule_codes"]) == {"F1"}
     # the stub's J_sigma is 1.5x the truth: F1 rests on the test run's own (smaller) inertia
-    assert "from the test run's acceleration" in rep.fallback.rules[-1] and rep.fallback.Kp < 1.5 * ELASTIC["J_sigma"] * rep.fallback.figures["w_c"]
+    assert "from the test run's acceleration" in rep.fallback.rules[-1] and rep.fallback.Kp < 1.5 * ELASTIC["J_sigma"] * rep.fallback.figures["w_c_nominal"]
 
 
 def test_identifier_error_is_refused_by_V1():
@@ -174,9 +174,8 @@ def sim_law(params):
     """A drive's own controller loaded from the law's parameters (as a real drive would)."""
     from training.commissioning import NotchSpec, PISpeedLaw
 
-    n = params["notch"]
     return PISpeedLaw(params["Kp"], params["Ti"], T_s=params["T_s"], M_max=params["M_max"], T_f=params["T_f"],
-                      notch=None if n is None else NotchSpec(**n))
+                      notch=tuple(NotchSpec(**n) for n in params["notches"]))
 
 
 def test_command_rejects_bad_input(tmp_path, capsys):
