@@ -16,15 +16,17 @@ at once and held against the user's limits: a passed limit ends the experiments,
 """
 
 from ._chain import STAGES, CommissioningConfig, RecordIdentifier, commission, drive_config, limit_checks
+from ._design import DesignSearch, UncertaintySet, optimize_loop
 from ._excitation import ExcitationResult, ExcitationRules, adapt_test_signal, measure_response
 from ._filedrive import ExperimentPending, FileDrive
 from ._guard import MEASURED_TORQUE_ALLOWANCE, LimitBreach, PassedLimit, close_drive
 from ._law import NotchSpec, PISpeedLaw
-from ._loop import LinearPlant, Margins, Mechanics, ModelSet, bode, linear_plant, loop_figures, margins, mechanics_from, model_set
+from ._loop import (LinearPlant, Margins, Mechanics, ModelSet, bode, linear_plant, load_peak_dB, loop_figures, margins, mechanics_from,
+                    model_set, reference_to_load)
 from ._permission import (BLOCKING_WARNING_CODES, COMMISSIONING_WARNING_CODES, REFUSAL_RULES, CommissioningWarning,
                           Permission, may_propose_controller)
 from ._report import CommissioningReport, PlantRun, summarize, summary_text
-from ._rules import ControllerProposal, ControllerSpec, propose_cautious, propose_controller, robust_models
+from ._rules import ControllerProposal, ControllerSpec, propose_cautious, propose_controller, robust_models, uncertainty_set
 from ._tuning import (LOOP_VERDICTS, TuningResult, TuningScenario, closed_loop_cost, load_estimate, loop_verdict, plan_scenario,
                       tune_controller)
 from ._validation import ValidationResult, validate_model
@@ -39,5 +41,6 @@ __all__ = [
     "ControllerSpec", "ControllerProposal", "propose_controller", "propose_cautious", "robust_models", "PISpeedLaw",
     "NotchSpec", "Mechanics", "mechanics_from", "LinearPlant", "linear_plant", "loop_figures", "Margins", "margins",
     "ModelSet", "model_set", "bode", "tune_controller", "TuningResult", "TuningScenario", "plan_scenario",
-    "closed_loop_cost", "load_estimate", "loop_verdict", "LOOP_VERDICTS",
+    "closed_loop_cost", "load_estimate", "loop_verdict", "LOOP_VERDICTS", "UncertaintySet", "uncertainty_set", "DesignSearch",
+    "optimize_loop", "load_peak_dB", "reference_to_load",
 ]

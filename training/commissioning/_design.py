@@ -26,7 +26,7 @@ from training.errors import CommissioningError
 from ._frf import MeasuredResponse
 from ._law import MAX_NOTCHES, NotchSpec
 from ._loop import (LinearPlant, Mechanics, ModelSet, closed_loop_matrices, controller_parts, drive_value, linear_plant,
-                    margin_arrays)
+                    load_transfer, margin_arrays)
 
 __all__ = ["UncertaintySet", "DesignSearch", "SEARCH", "OptimizedLoop", "optimize_loop", "elastic_doubts",
            "measured_peaks", "trusted_response", "NON_ELASTIC_QUANTITIES"]
@@ -269,7 +269,7 @@ def _notch_options(freqs: Sequence[float], d: float, T_s: float, search: DesignS
     return out
 
 
-def _shapes(T_s: float, notch_options: list[tuple[NotchSpec, ...]], search: DesignSearch) -> list[tuple[int, int, int]]:
+def _shapes(notch_options: list[tuple[NotchSpec, ...]], search: DesignSearch) -> list[tuple[int, int, int]]:
     """Every (ti_ratio, filter, notch option) index triple, in the order a tie is decided: fewer
     notches, smaller ``Ti w_c``, less filter first."""
     return sorted(itertools.product(range(len(search.ti_ratios)), range(len(search.filter_samples)), range(len(notch_options))),
@@ -315,7 +315,7 @@ def _check(model: _Model, Kp: np.ndarray, ti: np.ndarray, fi: np.ndarray, ni: np
     pm, gm, wc = margin_arrays(L, model.w)
     if model.G_L is not None:
         with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-            peak = 20 * np.log10(np.abs(C * model.G_L / (1.0 + L)).max(axis=-1))
+            peak = 20 * np.log10(np.abs(load_transfer(C, model.F[fi], model.G, model.G_L)).max(axis=-1))
     else:
         peak = np.full(len(Kp), -np.inf)
     ok = (pm >= pm_min) & (gm >= gm_min) & (peak <= search.max_load_peak_dB)
@@ -475,7 +475,7 @@ def optimize_loop(models: ModelSet, drive: Any, *, J_sigma: float, notch_at: Seq
     """
     T_s, T_Ei = drive_value(drive, "T_s"), drive_value(drive, "T_Ei")
     notch_options = _notch_options(notch_at, d, T_s, search)
-    shapes = np.array(_shapes(T_s, notch_options, search), dtype=np.int64)
+    shapes = np.array(_shapes(notch_options, search), dtype=np.int64)
     ctx = _Context(_prepare(models, T_s, notch_options, search), notch_options, shapes, J_sigma, T_s, search,
                    min_phase_margin, min_gain_margin_dB)
     best, above = _search(ctx, 1.5 / (T_Ei + 2 * T_s))

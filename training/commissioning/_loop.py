@@ -32,7 +32,7 @@ Notches = NotchSpec | tuple[NotchSpec, ...] | None
 __all__ = [
     "Mechanics", "mechanics_from", "drive_value", "LinearPlant", "linear_plant", "loop_figures",
     "closed_loop_matrices", "constant_input_response", "frequency_grid", "Margins", "loop_margins", "margins",
-    "margin_arrays", "load_peak_dB", "reference_to_load", "controller_parts", "ModelSet", "model_set", "bode",
+    "margin_arrays", "load_peak_dB", "reference_to_load", "load_transfer", "controller_parts", "ModelSet", "model_set", "bode",
     "LoopAnalysis", "ANALYSIS", "Notches",
 ]
 
@@ -429,8 +429,9 @@ def loop_margins(L: np.ndarray, w: np.ndarray, stable: bool, model: str = "nomin
     return Margins(float(pm), float(gm), float(w_c), bool(stable), model)
 
 
-def _to_load(C: np.ndarray, F: np.ndarray, G: np.ndarray, G_L: np.ndarray) -> np.ndarray:
-    """``C N G_L / (1 + C N F G)`` from the law's parts ``C`` (PI and notches), ``F`` and the plant's ``G``, ``G_L``."""
+def load_transfer(C: np.ndarray, F: np.ndarray, G: np.ndarray, G_L: np.ndarray) -> np.ndarray:
+    """``C N G_L / (1 + C N F G)`` from the law's parts ``C`` (PI and notches), ``F`` and the plant's
+    ``G``, ``G_L`` (arrays broadcast): the reference-to-load-speed response."""
     return C * G_L / (1.0 + C * F * G)
 
 
@@ -442,7 +443,7 @@ def reference_to_load(plant: LinearPlant, Kp: float, Ti: float, T_f: float = 0.0
     w = frequency_grid(plant.T_s, plant.resonances) if w is None else w
     z = np.exp(1j * w * plant.T_s)
     C, F = _controller_response(Kp, Ti, T_f, notch, plant.T_s, z)
-    return _to_load(C, F, plant.speed_response(z), plant.load_response(z))
+    return load_transfer(C, F, plant.speed_response(z), plant.load_response(z))
 
 
 def load_peak_dB(plant: LinearPlant, Kp: float, Ti: float, T_f: float = 0.0, notch: Notches = None) -> float:
@@ -517,7 +518,7 @@ class ModelSet:
         checked = self.load_checked or (True,) * len(self.plants)
         for p, load, (w, G, G_L) in zip(self.plants, checked, self.responses()):
             C, F = _controller_response(Kp, Ti, T_f, notch, p.T_s, np.exp(1j * w * p.T_s))
-            out.append(20 * np.log10(np.abs(_to_load(C, F, G, G_L)).max()) if load else -np.inf)
+            out.append(20 * np.log10(np.abs(load_transfer(C, F, G, G_L)).max()) if load else -np.inf)
         return np.array(out)
 
 
