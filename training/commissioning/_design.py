@@ -32,10 +32,11 @@ __all__ = ["UncertaintySet", "DesignSearch", "SEARCH", "OptimizedLoop", "optimiz
            "measured_peaks", "trusted_response", "NON_ELASTIC_QUANTITIES"]
 
 #: Quantities of the identification's envelope findings (``quality.outside_envelope``) that say
-#: nothing about the elastic parameters: friction relative to the test's torque, the torque levels
+#: nothing about the elastic parameters: friction relative to the test's torque, the normalized
+#: backlash, the torque levels
 #: (torque and inertia scale together; they do not enter the maps' features). A finding on one of
 #: these alone does not widen the set.
-NON_ELASTIC_QUANTITIES: frozenset[str] = frozenset({"M_FC_over_M_star", "M_N", "M_max_over_M_N", "M_star_over_M_max"})
+NON_ELASTIC_QUANTITIES: frozenset[str] = frozenset({"M_FC_over_M_star", "s_N", "M_N", "M_max_over_M_N", "M_star_over_M_max"})
 #: The warning codes whose meaning rests on an envelope finding (which quantity: ``quality.outside_envelope``).
 _ENVELOPE_CODES: frozenset[str] = frozenset({"outside_envelope", "drive_outside_training"})
 
@@ -181,10 +182,11 @@ def _hidden_mechanics(J_sigma: float, bands: dict[float, tuple[float, float]], d
 class DesignSearch:
     """How :func:`optimize_loop` searches (every value documented: what and why)."""
 
-    ti_ratios: tuple[float, ...] = (3.0, 6.0)
-    """``Ti w_r`` tried (the PI's phase lag at the crossover ``atan(1/ratio)``: 18 and 9.5 deg); the smaller wins a tie."""
-    filter_samples: tuple[float, ...] = (0.0, 2.0)
-    """Speed low-pass ``T_f`` tried, in samples (0: none; a low-pass damps resonances above the crossover)."""
+    ti_ratios: tuple[float, ...] = (3.0, 7.0)
+    """``Ti w_r`` tried (the PI's phase lag at the crossover ``atan(1/ratio)``: 18 and 8 deg); the smaller wins a tie."""
+    filter_samples: tuple[float, ...] = (0.0, 2.0, 4.0, 8.0, 16.0)
+    """Speed low-pass ``T_f`` tried, in samples (0: none; a low-pass gain-stabilizes resonances above the crossover:
+    a stiff answer's hidden ones are held at 90 rad/s with 16 samples, 25 with 2)."""
     notch_depths: tuple[float, ...] = (0.05, 0.3)
     """Notch ``D_z`` tried (at least the mechanic's damping; the gain at the centre is ``D_z / D_p``)."""
     notch_widths: tuple[float, ...] = (0.5, 1.2)
