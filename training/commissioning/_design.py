@@ -80,9 +80,10 @@ class UncertaintySet:
 
     Until the identification reports calibrated intervals, an interim set of documented relative
     half-widths (``f_e_spread``, ``V_J_spread``; ``d_scale`` the damping's factors, low and high),
-    all around the identified ``mechanics``; ``doubts``: why it was widened (rule R7c). Each
-    member is taken with the SPEC's first-order current loop and with ``current_loop_damping``'s
-    second-order lag plus ``extra_delay`` samples of dead time. ``decoupled_motor``: a backlash
+    all around the identified ``mechanics``; ``doubts``: why it was widened (rule R7c). The
+    identified mechanic is taken with the SPEC's first-order current loop, every member with
+    ``current_loop_damping``'s second-order lag plus ``extra_delay`` samples of dead time (the
+    hidden resonances with both). ``decoupled_motor``: a backlash
     plant's motor alone while the gap is open (one mass ``J_sigma / (1 + V_J)``, rule R6).
     ``hidden``: resonances a test run cannot exclude (``V_J -> (f_lo, f_hi)`` [Hz], rule R7b,
     at damping ``hidden_d``), replaced by ``measured`` (the trusted part of the plant's measured
@@ -124,7 +125,9 @@ class UncertaintySet:
 
     def models(self, drive: Any) -> ModelSet:
         """The :class:`ModelSet`: the identified mechanic as it is first (the design's nominal
-        model), then every member with each current-loop variant; the measured response last.
+        model), then every member with the second-order current loop and the extra delay (the
+        pessimistic variant for the spread), the hidden resonances also as they are (a light
+        resonance high up is gain-stabilized less by the first-order loop); the measured response last.
         The load peak counts on the identified mechanic's members, not on the hidden resonances:
         those sit at the envelope's lowest damping, a worst case for stability; a load held below
         6 dB there would bind any loop to a fiftieth of their anti-resonance, whatever the plant."""
@@ -132,7 +135,7 @@ class UncertaintySet:
         variant = f", 2nd-order current loop, +{self.extra_delay} sample delay"
         for i, (mech, label) in enumerate(self.members()):
             load = not label.startswith("hidden resonance")
-            if i:
+            if i and not load:
                 plants.append(linear_plant(mech, drive))
                 labels.append(label)
                 checked.append(load)
@@ -152,8 +155,7 @@ class UncertaintySet:
             parts.append("hidden resonances " + ", ".join(f"V_J {v:g}: {lo:.3g}..{hi:.3g} Hz" for v, (lo, hi) in self.hidden.items()))
         if self.measured is not None:
             parts.append(f"the measured response at {len(self.measured.w)} frequencies")
-        parts.append(f"each with the 1st-order current loop and a 2nd-order one (D {self.current_loop_damping:.3g}) "
-                     f"+{self.extra_delay} sample delay")
+        parts.append(f"each with a 2nd-order current loop (D {self.current_loop_damping:.3g}) +{self.extra_delay} sample delay")
         return "; ".join(parts)
 
 
