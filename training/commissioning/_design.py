@@ -16,7 +16,7 @@ import itertools
 import math
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, replace
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -74,6 +74,15 @@ def measured_peaks(measured: MeasuredResponse, J_sigma: float, *, min_ratio: flo
     return tuple(float(w[i] / (2 * math.pi)) for i in sorted(top))
 
 
+class Member(NamedTuple):
+    """One mechanic of an :class:`UncertaintySet`: its ``mechanics``, ``label``, and whether it is
+    a ``hidden`` resonance (a worst case of what a test cannot exclude, not the identified plant)."""
+
+    mechanics: Mechanics
+    label: str
+    hidden: bool = False
+
+
 @dataclass(frozen=True)
 class UncertaintySet:
     """The plants a design must hold on (SPEC 8.2's "every model of the uncertainty set").
@@ -104,24 +113,26 @@ class UncertaintySet:
     measured: MeasuredResponse | None = None
     doubts: tuple[str, ...] = ()
 
-    def members(self) -> list[tuple[Mechanics, str]]:
-        """The mechanics of the set with their labels: the identified one first, the spread's
-        corners at the low damping, the damping's range at the identified ``f_e`` and ``V_J``, the
-        decoupled motor, the hidden resonances (none where a response was measured)."""
+    def members(self) -> list[Member]:
+        """The mechanics of the set: the identified one first, the spread's corners at the low
+        damping, the damping's range at the identified ``f_e`` and ``V_J``, the decoupled motor,
+        the hidden resonances (none where a response was measured)."""
         m = self.mechanics
-        out = [(m, _label(m))]
+        out = [Member(m, _label(m))]
         if m.two_mass:
             d_lo, d_hi = (m.d * s for s in self.d_scale)
             for sf, sv in itertools.product((1 - self.f_e_spread, 1.0, 1 + self.f_e_spread),
                                             (1 - self.V_J_spread, 1.0, 1 + self.V_J_spread)):
-                out.append((replace(m, f_e=m.f_e * sf, V_J=m.V_J * sv, d=min(d_lo, 0.999)), ""))
-            out.append((replace(m, d=min(d_hi, 0.999)), ""))
+                corner = replace(m, f_e=m.f_e * sf, V_J=m.V_J * sv, d=min(d_lo, 0.999))
+                out.append(Member(corner, _label(corner)))
+            out.append(Member(replace(m, d=min(d_hi, 0.999)), _label(replace(m, d=min(d_hi, 0.999)))))
             if self.decoupled_motor:
-                out.append((Mechanics(m.J_sigma / (1.0 + m.V_J), mu_F=m.mu_F), "decoupled motor (backlash gap open)"))
+                out.append(Member(Mechanics(m.J_sigma / (1.0 + m.V_J), mu_F=m.mu_F), "decoupled motor (backlash gap open)"))
         if self.hidden and self.measured is None:
-            out += [(h, f"hidden resonance {_label(h)}") for h in _hidden_mechanics(m.J_sigma, self.hidden, self.hidden_d,
-                                                                          self.hidden_points_per_decade, self.hidden_min_points)]
-        return [(mm, lab or _label(mm)) for mm, lab in out]
+            out += [Member(h, f"hidden resonance {_label(h)}", hidden=True)
+                    for h in _hidden_mechanics(m.J_sigma, self.hidden, self.hidden_d, self.hidden_points_per_decade,
+                                               self.hidden_min_points)]
+        return out
 
     def models(self, drive: Any) -> ModelSet:
         """The :class:`ModelSet`: the identified mechanic as it is first (the design's nominal
@@ -133,9 +144,9 @@ class UncertaintySet:
         6 dB there would bind any loop to a fiftieth of their anti-resonance, whatever the plant."""
         plants, labels, checked = [linear_plant(self.mechanics, drive)], [_label(self.mechanics)], [True]
         variant = f", 2nd-order current loop, +{self.extra_delay} sample delay"
-        for i, (mech, label) in enumerate(self.members()):
-            load = not label.startswith("hidden resonance")
-            if i and not load:
+        for i, (mech, label, hidden) in enumerate(self.members()):
+            load = not hidden
+            if i and hidden:
                 plants.append(linear_plant(mech, drive))
                 labels.append(label)
                 checked.append(load)
@@ -393,7 +404,7 @@ def _stable(ctx: _Context, shape: np.ndarray, w_c: float) -> str | None:
 
 
 def _level(ctx: _Context, candidates: np.ndarray, w_c: float) -> _Level:
-    """The ``candidates`` (indices into ``ctx.shapes``) at the target crossover ``w_c``: each model
+    """The ``candidates`` (indices into ``ctx.shapes``) at the rigid-body crossover ``w_c``: each model
     in turn (the one that rejected most so far first) drops the shapes that miss a constraint on
     it; the survivors, in the order of preference, are checked for closed-loop stability."""
     s, max_peak = ctx.search, ctx.search.max_load_peak_dB

@@ -125,10 +125,10 @@ def test_notch_frequencies_and_the_decoupled_motor_by_hand():
     assert r4_notch_frequencies(stiff, Design()) == Design() and r6_backlash(stiff, Design()) == Design()
     backlash = _inputs("elastic_backlash", soft, spec)
     noted = r6_backlash(backlash, Design())
-    motor = [m for m, label in backlash.uncertainty.members() if label.startswith("decoupled motor")]
+    motor = [m for m, label, _ in backlash.uncertainty.members() if label.startswith("decoupled motor")]
     assert noted.rules[-1].startswith("R6") and len(motor) == 1 and not motor[0].two_mass
     assert motor[0].J_sigma == pytest.approx(0.05 / 2.0)
-    assert not any(label.startswith("decoupled") for _, label in _inputs("elastic", soft, spec).uncertainty.members())
+    assert not any(label.startswith("decoupled") for _, label, _ in _inputs("elastic", soft, spec).uncertainty.members())
 
 
 def test_hidden_resonances_unpack_as_before():
