@@ -8,7 +8,8 @@ identifier's protocol, :class:`RecordIdentifier`; the drive's is :class:`sim.Dri
 ``_bands`` (what a test run cannot exclude), ``_validation`` (re-simulation), ``_permission``
 (refusal rules V1-V6, warning codes), ``_law`` (the PI speed law of SPEC 8.1), ``_loop`` (linear
 loop analysis, margins, model sets), ``_rules`` (controller rules R1-R8, R7b, R7c in the order of
-``CONTROLLER_RULES``, fallback F1), ``_tuning`` (scenario, cost, Nelder-Mead), ``_report`` (one
+``CONTROLLER_RULES``, fallback F1), ``_frf`` (the frequency-response experiment on the running loop,
+:class:`MeasuredResponse`), ``_tuning`` (scenario, cost, Nelder-Mead), ``_report`` (one
 drive's report, the summary over many), ``_filedrive`` (a drive that exchanges experiments as files
 with a person at a real drive), ``_guard`` (every drive call bounded in time, every record checked
 at once and held against the user's limits: a passed limit ends the experiments,
@@ -18,6 +19,7 @@ at once and held against the user's limits: a passed limit ends the experiments,
 from ._chain import STAGES, CommissioningConfig, RecordIdentifier, commission, drive_config, limit_checks
 from ._excitation import ExcitationResult, ExcitationRules, adapt_test_signal, measure_response
 from ._filedrive import ExperimentPending, FileDrive
+from ._frf import FRF_SETTINGS, FRFSettings, MeasuredResponse
 from ._guard import MEASURED_TORQUE_ALLOWANCE, LimitBreach, PassedLimit, close_drive
 from ._law import NotchSpec, PISpeedLaw
 from ._loop import LinearPlant, Margins, Mechanics, ModelSet, bode, linear_plant, loop_figures, margins, mechanics_from, model_set
@@ -25,8 +27,8 @@ from ._permission import (BLOCKING_WARNING_CODES, COMMISSIONING_WARNING_CODES, R
                           Permission, may_propose_controller)
 from ._report import CommissioningReport, PlantRun, summarize, summary_text
 from ._rules import ControllerProposal, ControllerSpec, propose_cautious, propose_controller, robust_models
-from ._tuning import (LOOP_VERDICTS, TuningResult, TuningScenario, closed_loop_cost, load_estimate, loop_verdict, plan_scenario,
-                      tune_controller)
+from ._tuning import (LOOP_VERDICTS, TuningResult, TuningScenario, closed_loop_cost, load_estimate, load_peak_dB, loop_verdict,
+                      plan_scenario, tune_controller)
 from ._validation import ValidationResult, validate_model
 
 __all__ = [
@@ -39,5 +41,6 @@ __all__ = [
     "ControllerSpec", "ControllerProposal", "propose_controller", "propose_cautious", "robust_models", "PISpeedLaw",
     "NotchSpec", "Mechanics", "mechanics_from", "LinearPlant", "linear_plant", "loop_figures", "Margins", "margins",
     "ModelSet", "model_set", "bode", "tune_controller", "TuningResult", "TuningScenario", "plan_scenario",
-    "closed_loop_cost", "load_estimate", "loop_verdict", "LOOP_VERDICTS",
+    "closed_loop_cost", "load_estimate", "loop_verdict", "LOOP_VERDICTS", "load_peak_dB",
+    "MeasuredResponse", "FRFSettings", "FRF_SETTINGS",
 ]

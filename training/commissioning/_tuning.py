@@ -36,12 +36,12 @@ import scipy.signal
 import sim
 from training._settings import AT_LEAST_ONE, POSITIVE_OR_INF, SHARE, check_settings
 
-from ._loop import Mechanics, closed_loop_matrices, linear_plant
+from ._loop import Mechanics, closed_loop_matrices, frequency_grid, linear_plant
 from ._rules import ControllerProposal, ControllerSpec
 
 __all__ = [
     "TuningScenario", "TuningResult", "plan_scenario", "closed_loop_cost", "response_figures", "load_estimate",
-    "model_response", "tune_controller", "Gains", "loop_verdict", "LOOP_VERDICTS", "BOUNDED_VERDICTS",
+    "model_response", "load_peak_dB", "tune_controller", "Gains", "loop_verdict", "LOOP_VERDICTS", "BOUNDED_VERDICTS",
     "USABLE_VERDICTS", "UNSCORED_VERDICTS", "ScenarioSizing", "SearchSettings", "SCENARIO_SIZING", "SEARCH",
 ]
 
@@ -199,6 +199,23 @@ def model_response(mech: Mechanics, config: Any, gains: Sequence[Gains], notch: 
                     y[k:] = np.inf
                     break
     return out
+
+
+def load_peak_dB(mech: Mechanics, config: Any, Kp: float, Ti: float, T_f: float, notch: Any) -> float | None:
+    """The reference-to-load-speed peak [dB] of the law on the linear model of ``mech``: the largest
+    ``|c_L (zI - A)^-1 b_r|`` of :func:`closed_loop_matrices` over the frequency grid (the load must
+    not ring: SPEC 8.2 bounds it by 6 dB); None for one-mass mechanics, inf for an unstable loop."""
+    if not mech.two_mass:
+        return None
+    plant = linear_plant(mech, config)
+    A, b_r, _, _, c_L = closed_loop_matrices(plant, Kp, Ti, T_f, notch)
+    if np.abs(np.linalg.eigvals(A)).max() >= 1.0:
+        return math.inf
+    w = frequency_grid(plant.T_s, plant.resonances)
+    z = np.exp(1j * w * plant.T_s)
+    eye = np.eye(A.shape[0])
+    H = np.array([c_L @ np.linalg.solve(zk * eye - A, b_r) for zk in z])
+    return float(20 * np.log10(np.abs(H).max()))
 
 
 def plan_scenario(proposal: ControllerProposal, extra: Sequence[Gains], config: Any, limits: sim.DriveLimits, *,

@@ -222,3 +222,76 @@ def test_the_chain_reads_identification_codes_only():
 
     assert UNCERTAIN_CODES <= set(WARNING_CODES) and UNDETERMINED_CODES <= UNCERTAIN_CODES
     assert "class_undecided" in UNCERTAIN_CODES
+
+
+#: The chain with the frequency-response experiment (short periods: 3.9 Hz lines at 4 kHz).
+MEASURING = replace(FAST, measure_response=True, frf=replace(FAST.frf, period=1024))
+
+
+@pytest.fixture(scope="module")
+def measured_stiff():
+    """A ``stiff`` answer on the plant with a real 400 Hz mode (V_J 0.5, d 0.05), measured."""
+    from conftest import StubIdentifier
+    return commission(sim.SimulatedDrive(STIFF), LIMITS, identifier=StubIdentifier("stiff", ONE_MASS), config=MEASURING)
+
+
+def test_the_measure_stage_finds_the_mode_a_stiff_answer_lacks(measured_stiff):
+    rep = measured_stiff
+    m = rep.measured
+    assert m is not None and m.model is not None
+    assert [round(r / (2 * np.pi) / 400.0, 1) for r in m.resonances] == [1.0]  # within 5 %
+    kinds = [r["kind"] for r in rep.checks["runs"]]
+    assert "frequency response" in kinds and rep.checks["within_limits"]
+    frf_run = rep.checks["runs"][kinds.index("frequency response")]
+    assert not frf_run["aborted"] and frf_run["peak_speed"] < 0.5 * LIMITS.w_max
+    assert rep.redesign_reason  # what the redesign made of it, in one line
+    _check_delivered(rep)
+    assert "7b frequency response" in rep.to_text()
+    out = rep.to_dict()
+    assert out["frequency_response"]["resonances_Hz"][0] == pytest.approx(400.0, rel=0.05)
+    assert out["redesign"]["reason"] == rep.redesign_reason
+
+
+def test_a_redesign_is_run_and_delivered_only_where_not_worse(stub, monkeypatch):
+    """With a design that the measurement changes (here: a larger gain), the new law runs on the
+    drive; it is delivered when it settled and is not worse than the first (settling time and
+    disturbance dip per Nm), else the first design stays."""
+    from training.commissioning import _chain
+
+    first = _chain._propose
+    calls = []
+
+    def propose(run):
+        calls.append(run.state.measured)
+        proposal = first(run)
+        return proposal if run.state.measured is None else proposal.with_gains(
+            run.config, proposal.Kp * 1.2, proposal.Ti, proposal.T_f, rule="test: a redesign with a larger gain")
+
+    monkeypatch.setattr(_chain, "_propose", propose)
+    rep = commission(sim.SimulatedDrive(ELASTIC), LIMITS, identifier=stub("elastic", ELASTIC), config=MEASURING)
+    assert calls[0] is None and calls[-1] is rep.measured is not None
+    assert rep.redesign is not None and rep.redesign.Kp == pytest.approx(1.2 * rep.proposal.Kp)
+    assert len(rep.redesign_runs) >= 1 and rep.redesign_reason
+    kinds = [r["kind"] for r in rep.checks["runs"]]
+    assert kinds.count("frequency response") == 1 and any(k.startswith("redesign") for k in kinds)
+    if rep.redesign_kept:
+        assert rep.delivered.rules[-1].startswith(("test:", "T1", "T2")) and rep.delivered_run in rep.redesign_runs
+    else:
+        assert rep.delivered_run in rep.runs
+    _check_delivered(rep)
+
+
+def test_not_worse_compares_what_a_linear_loop_does_not_scale():
+    from types import SimpleNamespace
+
+    from training.commissioning._chain import _not_worse
+
+    def run(settle, dip):
+        return SimpleNamespace(figures={"settling_time": settle, "dist_peak": dip})
+
+    def plan(M_dist):
+        return SimpleNamespace(scenario=SimpleNamespace(M_dist=M_dist))
+
+    assert _not_worse(run(0.05, 0.4), plan(4.0), run(0.1, 0.2), plan(1.0)) == ""  # dip 0.1 vs 0.2 rad/s per Nm
+    assert "settles" in _not_worse(run(0.2, 0.1), plan(1.0), run(0.1, 0.1), plan(1.0))
+    assert "dip" in _not_worse(run(0.05, 0.4), plan(1.0), run(0.1, 0.2), plan(1.0))
