@@ -8,7 +8,7 @@ in the run's :class:`ChainState` and adding its own.
     guard     the limits handed to the drive for the closed-loop runs (E9: less the stop headroom)
     permit    may a model-based controller be proposed? (V1-V6)
     design    propose (R1-R8, margins guaranteed), tune on the identified model, plan the experiment
-    try       run the candidates on the drive (``drive.run_closed_loop``) and choose one
+    try       run the candidates on the drive (``drive.run_closed_loop``) and choose the cheapest usable one
     measure   the plant's frequency response on the chosen loop (a multisine ``M_dist``, :mod:`._frf`)
     redesign  the design again with the measurement; its candidates on the drive, kept where not worse
     fallback  the cautious F1 where no model-based loop can be delivered
@@ -406,15 +406,13 @@ def _run_candidates(run: ChainRun, plan: LoopPlan, kind: str) -> list[PlantRun]:
 
 
 def _choose(runs: list[PlantRun]) -> int | None:
-    """The delivered candidate: the lowest cost among the usable runs (:attr:`PlantRun.usable`:
-    settled, or near the reference and only slow) that are not worse than the proposal's (index 0)
-    on the motor nor on the (estimated) load; with an unusable proposal the lowest usable one; None
-    when none is usable."""
+    """The delivered candidate: the lowest cost (motor and estimated load together) among the usable
+    runs (:attr:`PlantRun.usable`: settled, or near the reference and only slow); the proposal's
+    (index 0) on a tie; None when none is usable. A tuned candidate may trade the motor against the
+    load: its load peak was bounded on the model (:func:`tune_controller`)."""
     settled = [i for i, r in enumerate(runs) if r.usable]
     if not settled:
         return None
-    if runs[0].usable:
-        settled = [i for i in settled if runs[i].motor <= runs[0].motor and runs[i].load <= runs[0].load]
     return min(settled, key=lambda i: (runs[i].cost, i))
 
 

@@ -198,7 +198,10 @@ class CommissioningReport:
             "tuning": None if self.tuning is None else {
                 "model_cost_proposal": self.tuning.cost_proposal, "model_cost_tuned": self.tuning.cost_tuned,
                 "n_evaluations": self.tuning.n_evaluations, "rejected_for_margins": self.tuning.rejected,
-                "warnings": list(self.tuning.warnings)},
+                "rejected_for_load_peak": self.tuning.rejected_load, "changed": self.tuning.changed,
+                "gains_before": _gains(self.tuning.proposal), "gains_after": _gains(self.tuning.controller),
+                "load_peak_dB_before": self.tuning.load_peak_proposal, "load_peak_dB_after": self.tuning.load_peak_tuned,
+                "changes": self.tuning.changes(), "warnings": list(self.tuning.warnings)},
             "runs": [r.to_dict() for r in self.runs],
             "fallback": None if self.fallback is None else {"reason": self.fallback_reason, **self.fallback.to_dict(),
                                                            "runs": [r.to_dict() for r in self.fallback_runs]},
@@ -287,9 +290,8 @@ class CommissioningReport:
         L = _design_lines("5 proposal", self.proposal)
         if self.tuning is not None:
             t = self.tuning
-            L.append(f"6 tuning on the identified model: {t.n_evaluations} evaluations ({t.rejected} rejected for the margins), "
-                     f"model cost {t.cost_proposal:.4g} -> {t.cost_tuned:.4g}")
-            L += [f"   note: {w}" for w in t.warnings]
+            L.append(f"6 tuning on the identified model ({t.n_evaluations} evaluations, {t.rejected} rejected for the margins, "
+                     f"{t.rejected_load} for the load peak): {t.changes()}")
         L += self._runs_lines(self.runs, ("proposal", "tuned", "between"), experiment=not self.redesign_kept)
         return L
 
@@ -396,6 +398,10 @@ def _controller_text(p: ControllerProposal) -> str:
     notch = "" if p.notch is None else f", notch f_n {p.notch.f_n:.4g} Hz (D_z {p.notch.D_z:.3g}, D_p {p.notch.D_p:.3g})"
     return (f"{p.concept}, Kp {p.Kp:.4g} Nm s/rad, Ti {p.Ti * 1e3:.4g} ms, T_f {p.T_f * 1e3:.3g} ms{notch}; "
             f"w_c {p.figures['w_c']:.4g} rad/s, PM {p.margins.phase_margin:.1f} deg, GM {p.margins.gain_margin_dB:.1f} dB (guarantee set)")
+
+
+def _gains(p: ControllerProposal) -> dict[str, float]:
+    return {"Kp": p.Kp, "Ti": p.Ti, "T_f": p.T_f}
 
 
 def _fmt(v: Any) -> str:

@@ -60,7 +60,7 @@ def test_settings_are_frozen_dataclasses(settings):
     (FRFSettings, "min_coherence", 1.5),
     (ScenarioSizing, "min_segment", 0),
     (ScenarioSizing, "kick_share", 0.0),
-    (SearchSettings, "pareto_weight", 0.0),
+    (SearchSettings, "max_load_peak_dB", 0.0),
     (SearchSettings, "fatol", -1.0),
     (LoopAnalysis, "grid_points", 1),
     (LoopAnalysis, "settle_band", 0.0),
