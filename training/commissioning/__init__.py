@@ -8,8 +8,9 @@ identifier's protocol, :class:`RecordIdentifier`; the drive's is :class:`sim.Dri
 ``_bands`` (what a test run cannot exclude), ``_validation`` (re-simulation), ``_permission``
 (refusal rules V1-V6, warning codes), ``_law`` (the PI speed law of SPEC 8.1), ``_loop`` (linear
 loop analysis, margins, model sets), ``_rules`` (controller rules R1-R8, R7b, R7c in the order of
-``CONTROLLER_RULES``, fallback F1), ``_frf`` (the frequency-response experiment on the running loop,
-:class:`MeasuredResponse`), ``_tuning`` (scenario, cost, Nelder-Mead), ``_report`` (one
+``CONTROLLER_RULES``, fallback F1), ``_frf`` (the measured frequency response,
+:class:`MeasuredResponse`: the multisine and the estimate), ``_measure`` (its experiment planned
+on the identified model's loop), ``_tuning`` (scenario, cost, Nelder-Mead), ``_report`` (one
 drive's report, the summary over many), ``_filedrive`` (a drive that exchanges experiments as files
 with a person at a real drive), ``_guard`` (every drive call bounded in time, every record checked
 at once and held against the user's limits: a passed limit ends the experiments,

@@ -40,7 +40,8 @@ from training.errors import CommissioningError, LimitPassed, one_line
 
 from ._bands import f1_bands, hidden_bands, widen
 from ._excitation import ExcitationResult, ExcitationRules, adapt_test_signal, guarded_limits, measure_response, stop_headroom
-from ._frf import FRF_SETTINGS, FRFSettings, MeasuredResponse, measured_response, plan_frf
+from ._frf import FRF_SETTINGS, FRFSettings, MeasuredResponse
+from ._measure import measured_response, plan_frf
 from ._guard import CONFIG_KEYS, CheckedDrive, passed_limits, record_peaks
 from ._loop import linear_plant, margins
 from ._permission import (CommissioningWarning, IdentificationFailed, IdentificationOutcome, Permission, may_propose_controller,

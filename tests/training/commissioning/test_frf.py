@@ -16,7 +16,8 @@ sim = pytest.importorskip("sim")
 
 from training.commissioning import PISpeedLaw, linear_plant, margins  # noqa: E402
 from training.commissioning._frf import (FRF_SETTINGS, FRFPlan, MeasuredResponse, estimate_response, excited_lines,  # noqa: E402
-                                         measured_response, multisine, plan_frf)
+                                         multisine)
+from training.commissioning._measure import measured_response, plan_frf  # noqa: E402
 
 CONFIG = sim.DriveConfig()
 LIMITS = sim.DriveLimits(w_max=20.0, travel=5.0)
