@@ -64,13 +64,17 @@ class FRFSettings:
     min_coherence: float = 0.8
     """A line with a lower coherence is not used to find resonances."""
     resonance_excess_dB: float = 6.0
-    """A local maximum of the measured magnitude that exceeds the model's by at least this much is a
-    resonance the model lacks."""
+    """A local maximum of the measured magnitude over the model's, at least this high and standing out
+    by as much, may be a resonance the model lacks ..."""
+    resonance_shape_dB: float = 3.0
+    """... where the measured magnitude over an inertia's (``|G| w``) has a peak there standing out by
+    at least this much (a resonance, not the model's misplaced anti-resonance nor noise)."""
 
     def __post_init__(self) -> None:
         check_settings(self, {"period": Interval(64, integer=True), "periods": Interval(3, integer=True),
                               "lines_per_decade": POSITIVE_OR_INF, "limit_share": SHARE, "torque_share": SHARE,
-                              "min_coherence": SHARE, "resonance_excess_dB": POSITIVE_OR_INF})
+                              "min_coherence": SHARE, "resonance_excess_dB": POSITIVE_OR_INF,
+                              "resonance_shape_dB": POSITIVE_OR_INF})
 
 
 #: The experiment's settings.
@@ -193,18 +197,20 @@ def find_resonances(w: np.ndarray, G: np.ndarray, coherence: np.ndarray, model: 
     ``settings.min_coherence``, the peaks of the measured magnitude over the model's (in dB) that
     reach ``settings.resonance_excess_dB`` and stand out by as much from their surroundings (a
     two-mass plant read as one-mass is +``20 log10(1 + V_J)`` dB everywhere above its resonance: a
-    plateau, not a peak) and where the measured magnitude itself peaks; each placed by a parabola through the excess at the line and its two
-    neighbours over log frequency."""
+    plateau, not a peak) and where the measured magnitude itself has a resonance's shape
+    (``settings.resonance_shape_dB``); each placed by a parabola through the excess at the line and
+    its two neighbours over log frequency."""
     good = coherence >= settings.min_coherence
     lw, mag = np.log(w[good]), _dB(G[good])
     excess = mag - _dB(model[good])
     level = settings.resonance_excess_dB
     peaks, _ = scipy.signal.find_peaks(excess, height=level, prominence=level)
+    # the measured response itself peaks: its magnitude over an inertia's (|G| w) stands out
+    shaped, _ = scipy.signal.find_peaks(mag + 20 * lw / math.log(10), prominence=settings.resonance_shape_dB)
     out = []
     for i in peaks:
-        j = i - 1 + int(np.argmax(mag[i - 1:i + 2]))
-        if not 0 < j < len(mag) - 1 or mag[j] < max(mag[j - 1], mag[j + 1]):
-            continue  # the measured magnitude has no peak here (the model's anti-resonance misplaced)
+        if not np.any(np.abs(shaped - i) <= 1):
+            continue  # no resonance in the measurement here (e.g. the model's anti-resonance, misplaced)
         x, y = lw[i - 1:i + 2], excess[i - 1:i + 2]
         a, b, _ = np.polyfit(x - x[1], y, 2)
         shift = float(np.clip(-b / (2 * a), x[0] - x[1], x[2] - x[1])) if a < 0 else 0.0

@@ -114,3 +114,23 @@ def test_csv_has_the_measured_and_the_model_columns(tmp_path):
     np.testing.assert_allclose(vals[:, 4], [0.0, -20.0, -40.0], atol=1e-9)
     bare = MeasuredResponse(w=w, G=G, coherence=np.ones(3), T_s=1e-4).to_csv(tmp_path / "g.csv")
     assert next(csv.reader(bare.open())) == ["f_Hz", "magnitude_dB", "phase_deg", "coherence"]
+
+
+def test_resonances_are_peaks_of_the_response_not_plateaus_or_a_models_anti_resonance():
+    """Exact responses, coherence 1: a 300 Hz mode a one-mass model lacks is found (within 1 %); a
+    decoupled motor (a backlash gap open: ``J_M`` alone, +``20 log10(1 + V_J)`` dB over the model)
+    measured against a two-mass model is a plateau and the model's misplaced anti-resonance: none."""
+    from training.commissioning._frf import find_resonances
+
+    w = 2 * np.pi * np.geomspace(2.0, 1900.0, 400)
+    z = np.exp(1j * w * CONFIG.T_s)
+    two_mass = _plant(f_e=300.0, d=0.02)
+    one_mass = {"J_sigma": 0.05}
+    G_two = linear_plant(two_mass, CONFIG).speed_response(z)
+    G_one = linear_plant(one_mass, CONFIG).speed_response(z)
+    coherence = np.ones(len(w))
+    found = find_resonances(w, G_two, coherence, G_one)
+    assert len(found) == 1 and found[0] / (2 * np.pi) == pytest.approx(300.0, rel=0.01)
+    decoupled = linear_plant({"J_sigma": 0.025}, CONFIG).speed_response(z)  # J_M of V_J 1
+    assert find_resonances(w, decoupled, coherence, G_two) == ()
+    assert find_resonances(w, G_two, np.zeros(len(w)), G_one) == ()  # nothing coherent: nothing found
