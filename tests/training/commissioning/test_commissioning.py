@@ -14,7 +14,7 @@ import pytest
 sim = pytest.importorskip("sim")
 
 from training.cli import main  # noqa: E402
-from training.commissioning import (CommissioningConfig, FileDrive, commission, summarize,  # noqa: E402
+from training.commissioning import (CommissioningConfig, FileDrive, commission, load_peak_dB, summarize,  # noqa: E402
                                     summary_text)
 from training.errors import ExperimentPending  # noqa: E402
 
@@ -56,7 +56,13 @@ def test_chain_on_an_elastic_plant_counts_the_load(stub):
     _check_delivered(rep)
     assert rep.delivered_run.cost <= rep.runs[0].cost
     assert rep.improvement is not None and rep.improvement >= 0
-    assert rep.tuning.changes()  # what the tuning changed, or why nothing
+    text, out = rep.to_text(), rep.to_dict()
+    assert rep.tuning.changes() in text  # what the tuning changed, or why nothing
+    assert out["tuning"]["changes"] == rep.tuning.changes() and out["tuning"]["gains_before"]["Kp"] == rep.proposal.Kp
+    d = rep.delivered
+    assert rep.load_peak_dB == pytest.approx(load_peak_dB(d.mechanics, rep.config, d.Kp, d.Ti, d.T_f, d.notch))
+    assert f"reference-to-load-speed peak {rep.load_peak_dB:.2f} dB" in text
+    assert out["delivered"]["load_peak_dB"] == pytest.approx(rep.load_peak_dB)
 
 
 def test_chain_on_an_independent_plant_in_another_process():
