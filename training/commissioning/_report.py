@@ -163,12 +163,20 @@ class CommissioningReport:
         return self.delivered
 
     @property
+    def model_runs(self) -> list[PlantRun]:
+        """The candidate runs of the model-based plan delivered (the redesign's where it is kept, else
+        the design's): one scenario, so their costs compare."""
+        return self.redesign_runs if self.redesign_kept else self.runs
+
+    @property
     def improvement(self) -> float | None:
-        """``1 - cost(delivered) / cost(proposal)`` on the drive, only against a proposal that
-        settled or is only slow (:attr:`PlantRun.usable`; a model-based delivery); None otherwise."""
-        if self.delivered_run is None or self.fallback is not None or not self.runs or not self.runs[0].usable:
+        """``1 - cost(delivered) / cost(proposal)`` on the drive, the proposal of the same plan
+        (:attr:`model_runs`), only where it settled or is only slow (:attr:`PlantRun.usable`; a
+        model-based delivery); None otherwise."""
+        runs = self.model_runs
+        if self.delivered_run is None or self.fallback is not None or not runs or not runs[0].usable:
             return None
-        return 1.0 - self.delivered_run.cost / self.runs[0].cost
+        return 1.0 - self.delivered_run.cost / runs[0].cost
 
     @property
     def identified_structure(self) -> str | None:
@@ -351,9 +359,9 @@ class CommissioningReport:
             L.append(f"   below what the model allows: {self.limited_by}")
         imp = self.improvement
         if imp is not None:
-            L.append(f"   cost on the drive: proposal {self.runs[0].cost:.4g} -> delivered {self.delivered_run.cost:.4g} "
+            L.append(f"   cost on the drive: proposal {self.model_runs[0].cost:.4g} -> delivered {self.delivered_run.cost:.4g} "
                      f"({100 * imp:.1f} % better)")
-        elif self.fallback is None and self.runs and not self.runs[0].usable:
+        elif self.fallback is None and self.model_runs and not self.model_runs[0].usable:
             L.append("   the proposal did not settle on the drive: no improvement percentage")
         return L
 

@@ -42,7 +42,7 @@ def main() -> None:
             drive.close()
         reports.append(rep)
         peak = {k: max(e[k] for e in drive.experiments) for k in ("w_M", "w_L", "phi_M")}
-        runs = rep.runs
+        runs = rep.model_runs
         row = {"name": rep.name, "f_e": p["f_e"], "V_J": p["V_J"], "refused": rep.permission.rule,
                "fallback": rep.fallback_reason if rep.fallback is not None else None,
                "f1_w_c": rep.fallback.figures["w_c"] if rep.fallback is not None else None,
@@ -55,8 +55,8 @@ def main() -> None:
                "resonances_Hz": None if rep.measured is None else rep.measured.to_dict()["resonances_Hz"],
                "redesign": rep.redesign_reason or None,
                "not_worse": None if rep.delivered_run is None or rep.fallback is not None else
-               bool(rep.delivered_run.usable and (not runs[0].usable or (  # an unsettled proposal is worse
-                   rep.delivered_run.motor <= runs[0].motor and rep.delivered_run.load <= runs[0].load))),
+               bool(rep.delivered_run.usable and (not runs[0].usable  # an unsettled proposal is worse
+                                                  or rep.delivered_run.cost <= runs[0].cost)),
                "seconds": rep.timings.get("total")}
         rows.append(row)
         print(json.dumps(row), flush=True)
@@ -69,7 +69,7 @@ def main() -> None:
     gms = [r["true_gm"] for r in rows if r["true_gm"] is not None]
     print(f"delivered: true PM >= 35 deg and GM >= 5 dB: {sum(pm >= 35 and gm >= 5 for pm, gm in zip(pms, gms))}/{len(pms)}; "
           f"median true PM {statistics.median(pms):.1f} deg, min {min(pms):.1f}; min GM {min(gms):.1f} dB")
-    print(f"not worse than the proposal (measured motor, estimated load): {sum(bool(r['not_worse']) for r in rows)}/"
+    print(f"not worse than the proposal of the same plan (measured cost, motor and estimated load): {sum(bool(r['not_worse']) for r in rows)}/"
           f"{sum(r['not_worse'] is not None for r in rows)}; seconds per plant: median "
           f"{statistics.median(r['seconds'] for r in rows):.1f}")
 
