@@ -97,13 +97,20 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--validation", choices=("switching", "replay"), default="replay",
                         help="re-simulation mode of the validation (default replay: the recorded torque "
                              "reference open loop; switching: the test's switching law)")
+    parser.add_argument("--no-measure", action="store_true",
+                        help="no frequency-response experiment on the chosen loop and no redesign with it (faster)")
     parser.add_argument("--plots", type=Path, help="folder for one PNG page per drive: the test runs, the closed loop before and after "
                         "tuning (motor; load as the model estimates it), the delivered loop's Bode plot with its "
-                        "margins (needs matplotlib, the 'plot' extra)")
+                        "margins; where the frequency response was measured also NAME_frf.png: measured beside the "
+                        "model, with the coherence (needs matplotlib, the 'plot' extra)")
+    parser.add_argument("--frf", type=Path, metavar="DIR",
+                        help="folder for the frequency response measured on each drive as CSV, NAME_frf.csv: columns "
+                             "f_Hz, magnitude_dB, phase_deg, coherence, model_magnitude_dB, model_phase_deg (torque "
+                             "reference -> motor speed, both sample delays included); none for a drive not measured")
     parser.add_argument("--logdir", type=Path, help="TensorBoard log folder (scalars of the search)")
     parser.add_argument("--json", type=Path, help="write the reports (and the summary) as JSON to this file "
                         "(NaN and inf as null)")
-    parser.add_argument("--overwrite", action="store_true", help="replace an existing --json file or --plots page")
+    parser.add_argument("--overwrite", action="store_true", help="replace an existing --json file, --plots page or --frf file")
     parser.add_argument("--checkpoints", type=Path, help="folder with the maps (default: the shipped checkpoints/)")
     parser.add_argument("--quiet", action="store_true", help="print only the summary (also for one drive), not the reports")
     parser.epilog = (f"safety: a drive of your own (--drive) needs --w-limit and --travel-limit; every experiment is handed "
@@ -117,10 +124,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _plot(report: Any, folder: Path, overwrite: bool) -> None:
-    """``folder/<name>.png``: the commissioning page (:func:`training.figures.commission_figure`)."""
-    from training.figures import commission_figure, save_png
+    """``folder/<name>.png``: the commissioning page (:func:`training.figures.commission_figure`);
+    ``folder/<name>_frf.png`` where the frequency response was measured (its Bode page)."""
+    from training.figures import commission_figure, frf_figure, save_png
 
     save_png(commission_figure(report), folder / f"{report.name}.png", overwrite=overwrite)
+    if report.measured is not None:
+        save_png(frf_figure(report), folder / f"{report.name}_frf.png", overwrite=overwrite)
 
 
 def _refuse_existing(option: str, paths: list[Path], overwrite: bool) -> None:
@@ -263,7 +273,8 @@ def _settings(args: argparse.Namespace) -> CommissioningConfig:
 
     return CommissioningConfig(tune=not args.no_tune, max_map_distance_ratio=args.max_map_distance,
                                tune_evaluations=args.tune_evaluations, fallback=not args.no_fallback,
-                               validation_mode=args.validation, drive_timeout=args.drive_timeout)
+                               validation_mode=args.validation, drive_timeout=args.drive_timeout,
+                               measure_response=not args.no_measure)
 
 
 def _user_limits(args: argparse.Namespace) -> sim.DriveLimits:
@@ -345,6 +356,8 @@ def _show(session: _Session, index: int, report: CommissioningReport) -> None:
                 writer.add_scalar(f"commission/{key}", value, index)
     if args.plots is not None:
         _plot(report, args.plots, args.overwrite)
+    if args.frf is not None and report.measured is not None:
+        report.measured.to_csv(args.frf / f"{report.name}_frf.csv")
     if not args.quiet:
         print(report.to_text(), flush=True)
         print(flush=True)
@@ -379,8 +392,10 @@ def run(args: argparse.Namespace) -> int:
     settings = _settings(args)
     _refuse_existing("--json", [] if args.json is None else [args.json], args.overwrite)
     drives, limits = _drives(args, _user_limits(args))
-    _refuse_existing("--plots", [] if args.plots is None else [args.plots / f"{name}.png" for name, _ in drives],
+    _refuse_existing("--plots", [] if args.plots is None else [args.plots / f"{name}{end}" for name, _ in drives
+                                                                for end in (".png", "_frf.png")],
                      args.overwrite)  # before any experiment
+    _refuse_existing("--frf", [] if args.frf is None else [args.frf / f"{name}_frf.csv" for name, _ in drives], args.overwrite)
     session = _Session(args, settings, limits, _identifier(args), _writer(args), _progress_line(args))
     reports = []
     started = time.perf_counter()

@@ -8,7 +8,9 @@ identifier's protocol, :class:`RecordIdentifier`; the drive's is :class:`sim.Dri
 ``_bands`` (what a test run cannot exclude), ``_validation`` (re-simulation), ``_permission``
 (refusal rules V1-V6, warning codes), ``_law`` (the PI speed law of SPEC 8.1), ``_loop`` (linear
 loop analysis, margins, model sets), ``_rules`` (controller rules R1-R8, R7b, R7c in the order of
-``CONTROLLER_RULES``, fallback F1), ``_tuning`` (scenario, cost, Nelder-Mead), ``_report`` (one
+``CONTROLLER_RULES``, fallback F1), ``_frf`` (the measured frequency response,
+:class:`MeasuredResponse`: the multisine and the estimate), ``_measure`` (its experiment planned
+on the identified model's loop), ``_tuning`` (scenario, cost, Nelder-Mead), ``_report`` (one
 drive's report, the summary over many), ``_filedrive`` (a drive that exchanges experiments as files
 with a person at a real drive), ``_guard`` (every drive call bounded in time, every record checked
 at once and held against the user's limits: a passed limit ends the experiments,
@@ -19,6 +21,7 @@ from ._chain import STAGES, CommissioningConfig, RecordIdentifier, commission, d
 from ._design import DesignSearch, UncertaintySet, optimize_loop
 from ._excitation import ExcitationResult, ExcitationRules, adapt_test_signal, measure_response
 from ._filedrive import ExperimentPending, FileDrive
+from ._frf import FRF_SETTINGS, FRFSettings, MeasuredResponse
 from ._guard import MEASURED_TORQUE_ALLOWANCE, LimitBreach, PassedLimit, close_drive
 from ._law import NotchSpec, PISpeedLaw
 from ._loop import (LinearPlant, Margins, Mechanics, ModelSet, bode, linear_plant, load_peak_dB, loop_figures, margins, mechanics_from,
@@ -42,5 +45,5 @@ __all__ = [
     "NotchSpec", "Mechanics", "mechanics_from", "LinearPlant", "linear_plant", "loop_figures", "Margins", "margins",
     "ModelSet", "model_set", "bode", "tune_controller", "TuningResult", "TuningScenario", "plan_scenario",
     "closed_loop_cost", "load_estimate", "loop_verdict", "LOOP_VERDICTS", "UncertaintySet", "uncertainty_set", "DesignSearch",
-    "optimize_loop", "load_peak_dB", "reference_to_load",
+    "optimize_loop", "load_peak_dB", "reference_to_load", "MeasuredResponse", "FRFSettings", "FRF_SETTINGS",
 ]

@@ -8,7 +8,9 @@ in the run's :class:`ChainState` and adding its own.
     guard     the limits handed to the drive for the closed-loop runs (E9: less the stop headroom)
     permit    may a model-based controller be proposed? (V1-V6)
     design    propose (R1-R8, margins guaranteed), tune on the identified model, plan the experiment
-    try       run the candidates on the drive (``drive.run_closed_loop``) and choose one
+    try       run the candidates on the drive (``drive.run_closed_loop``) and choose the cheapest usable one
+    measure   the plant's frequency response on the chosen loop (a multisine ``M_dist``, :mod:`._frf`)
+    redesign  the design again with the measurement; its candidates on the drive, kept where not worse
     fallback  the cautious F1 where no model-based loop can be delivered
     deliver   the controller delivered, and whether its run on the drive looks like its model
 
@@ -38,7 +40,8 @@ from training.errors import CommissioningError, LimitPassed, one_line
 
 from ._bands import f1_bands, hidden_bands, widen
 from ._excitation import ExcitationResult, ExcitationRules, adapt_test_signal, guarded_limits, measure_response, stop_headroom
-from ._frf import MeasuredResponse
+from ._frf import FRF_SETTINGS, FRFSettings, MeasuredResponse
+from ._measure import measured_response, plan_frf
 from ._guard import CONFIG_KEYS, CheckedDrive, passed_limits, record_peaks
 from ._loop import linear_plant, margins
 from ._permission import (CommissioningWarning, IdentificationFailed, IdentificationOutcome, Permission, may_propose_controller,
@@ -46,8 +49,8 @@ from ._permission import (CommissioningWarning, IdentificationFailed, Identifica
 from ._report import CommissioningReport, PlantRun
 from ._design import elastic_doubts
 from ._rules import ControllerProposal, ControllerSpec, propose_cautious, propose_controller, uncertainty_set
-from ._tuning import (BOUNDED_VERDICTS, Gains, TuningResult, TuningScenario, closed_loop_cost, loop_verdict, model_response,
-                      plan_scenario, response_figures, tune_controller)
+from ._tuning import (BOUNDED_VERDICTS, Gains, TuningResult, TuningScenario, closed_loop_cost, load_peak_dB, loop_verdict,
+                      model_response, plan_scenario, response_figures, tune_controller)
 from ._validation import OSC_METRICS, VALIDATION_MODES, ValidationResult, validate_model
 
 __all__ = ["CommissioningConfig", "commission", "limit_checks", "drive_config", "check_resolution", "MIN_LIMIT_QUANTA",
@@ -102,6 +105,9 @@ class CommissioningConfig:
             10 s each on a real drive, with its upload, fits the default); past it the drive is a
             fault (:func:`training.commissioning._guard.call_drive`). None: no bound, the drive is
             called in the calling thread.
+        measure_response: run the frequency-response experiment on the chosen model-based loop
+            and the design again with it (stages ``measure``, ``redesign``); False: skip both (faster).
+        frf: the frequency-response experiment's settings (:class:`FRFSettings`).
     """
 
     spec: ControllerSpec = field(default_factory=ControllerSpec)
@@ -123,6 +129,8 @@ class CommissioningConfig:
     fallback_resonance_factor: float = 1.5
     min_scenario_quanta: float = 20.0
     drive_timeout: float | None = 600.0
+    measure_response: bool = True
+    frf: FRFSettings = FRF_SETTINGS
 
     def __post_init__(self) -> None:
         check_settings(self, {
@@ -133,7 +141,7 @@ class CommissioningConfig:
             "max_samples": Interval(MIN_EXPERIMENT_SAMPLES, integer=True), "osc_visible_ratio": NON_NEGATIVE_OR_INF,
             "uncertain_spread": Interval(0.0, 1.0, open_high=True), "uncertain_damping": SHARE, "hidden_resonances": FLAG,
             "fallback_resonance_factor": Interval(1.0, finite=False), "min_scenario_quanta": NON_NEGATIVE_OR_INF,
-            "drive_timeout": OrNone(POSITIVE)})
+            "drive_timeout": OrNone(POSITIVE), "measure_response": FLAG, "frf": InstanceOf(FRFSettings)})
 
 
 class RecordIdentifier(Protocol):
@@ -244,6 +252,14 @@ class ChainState:
     design_trial: LoopTrial | None = None
     measured: MeasuredResponse | None = None
     """The plant's frequency response measured on the drive (None: not measured)."""
+    redesign: LoopPlan | None = None
+    """The design made again with the measured response (None: not measured, or the same design)."""
+    redesign_trial: LoopTrial | None = None
+    redesign_kept: bool = False
+    """The redesigned loop settled on the drive, not worse than the first: it is delivered."""
+    redesign_reason: str = ""
+    """Why the redesign is or is not delivered, or why nothing was measured (one line; empty where
+    the experiment did not apply)."""
     fallback_reason: str | None = None
     """Why no model-based loop is delivered (``refused``, ``margins_not_reached``, ``loop_not_settled``)."""
     fallback: LoopPlan | None = None
@@ -253,9 +269,19 @@ class ChainState:
     delivered_run: PlantRun | None = None
 
     @property
+    def model_plan(self) -> LoopPlan | None:
+        """The model-based plan delivered or to deliver: the redesign where it is kept, else the design."""
+        return self.redesign if self.redesign_kept else self.design
+
+    @property
+    def model_trial(self) -> LoopTrial | None:
+        """The trial of :attr:`model_plan`."""
+        return self.redesign_trial if self.redesign_kept else self.design_trial
+
+    @property
     def last_plan(self) -> LoopPlan | None:
-        """The plan whose experiment ran last (F1's over the design's): the report's scenario."""
-        return self.fallback if self.fallback is not None else self.design
+        """The plan whose experiment is delivered or ran last (F1's over the model-based one): the report's scenario."""
+        return self.fallback if self.fallback is not None else self.model_plan
 
 
 @dataclass
@@ -390,15 +416,13 @@ def _run_candidates(run: ChainRun, plan: LoopPlan, kind: str) -> list[PlantRun]:
 
 
 def _choose(runs: list[PlantRun]) -> int | None:
-    """The delivered candidate: the lowest cost among the usable runs (:attr:`PlantRun.usable`:
-    settled, or near the reference and only slow) that are not worse than the proposal's (index 0)
-    on the motor nor on the (estimated) load; with an unusable proposal the lowest usable one; None
-    when none is usable."""
+    """The delivered candidate: the lowest cost (motor and estimated load together) among the usable
+    runs (:attr:`PlantRun.usable`: settled, or near the reference and only slow); the proposal's
+    (index 0) on a tie; None when none is usable. A tuned candidate may trade the motor against the
+    load: its load peak was bounded on the model (:func:`tune_controller`)."""
     settled = [i for i, r in enumerate(runs) if r.usable]
     if not settled:
         return None
-    if runs[0].usable:
-        settled = [i for i in settled if runs[i].motor <= runs[0].motor and runs[i].load <= runs[0].load]
     return min(settled, key=lambda i: (runs[i].cost, i))
 
 
@@ -489,10 +513,9 @@ def _fallback_plan(run: ChainRun) -> LoopPlan:
     return LoopPlan(proposal, ((proposal.Kp, proposal.Ti, proposal.T_f),), scenario, prediction)
 
 
-def _model_based_delivery(run: ChainRun, trial: LoopTrial) -> ControllerProposal:
-    """The controller of the chosen model-based candidate: the proposal, the tuned one, or their
-    geometric mean (T2)."""
-    design = run.state.design
+def _model_based_delivery(run: ChainRun, design: LoopPlan, trial: LoopTrial) -> ControllerProposal:
+    """The controller of the chosen model-based candidate of ``design``: the proposal, the tuned
+    one, or their geometric mean (T2)."""
     if trial.chosen == 0:
         return design.proposal
     if trial.chosen == 1:
@@ -576,6 +599,12 @@ def _design(run: ChainRun) -> None:
         run.warn("margins_not_reached", f"R7: {proposal.warnings[-1]}")
         return
     run.lap("proposal")
+    run.state.design = _plan_loop(run, proposal)
+
+
+def _plan_loop(run: ChainRun, proposal: ControllerProposal) -> LoopPlan:
+    """The proposal tuned on the identified model, its candidates and their experiment planned."""
+    settings = run.settings
     tuning, gains = _tune(run, proposal)
     run.lap("tuning")
     scenario, prediction = plan_scenario(proposal, gains[1:], run.config, run.limits, limit_use=settings.limit_use,
@@ -583,7 +612,80 @@ def _design(run: ChainRun) -> None:
     if prediction["speed_quanta"] < settings.min_scenario_quanta:
         run.warn("scenario_small", f"the scenario's speed step is {prediction['speed_quanta']:.3g} speed quanta")
     run.say(f"{run.name}: running {len(gains)} gain set(s) on the drive")
-    run.state.design = LoopPlan(proposal, tuple(gains), scenario, prediction, tuning)
+    return LoopPlan(proposal, tuple(gains), scenario, prediction, tuning)
+
+
+def _measure(run: ChainRun) -> None:
+    """The plant's frequency response on the chosen model-based loop (:mod:`._frf`): a multisine
+    disturbance torque planned on the identified model inside the limits handed to the drive; a run
+    the drive stopped measures nothing (a warning says so; so does :attr:`ChainState.redesign_reason`)."""
+    state, settings = run.state, run.settings
+    trial = state.design_trial
+    if not settings.measure_response or trial is None or trial.chosen is None:
+        return
+    proposal, gains = state.design.proposal, trial.runs[trial.chosen].gains
+    try:
+        plan = plan_frf(proposal.mechanics, run.config, gains, proposal.notch, run.loop_limits, settings.frf)
+    except ValueError as err:
+        state.redesign_reason = f"frequency response not measured: {one_line(err)}"
+        return
+    run.say(f"{run.name}: measuring the frequency response ({len(plan.scenario)} samples)")
+    law = proposal.law(run.config, Kp=gains[0], Ti=gains[1], T_f=gains[2])
+    rec = run.drive.run_closed_loop(law, plan.scenario, run.loop_limits, "frequency response")
+    run.lap("frequency_response")
+    if rec.meta.get("aborted", False):
+        run.warn("run_stopped", "the drive stopped the frequency-response run at a limit: nothing measured")
+        state.redesign_reason = "frequency response not measured: the drive stopped its run at a limit"
+        return
+    state.measured = measured_response(rec, plan, proposal.mechanics, run.config, settings.frf)
+
+
+def _same_law(a: ControllerProposal, b: ControllerProposal) -> bool:
+    """The same law: gains, low-pass and notch."""
+    return (a.Kp, a.Ti, a.T_f, a.notch) == (b.Kp, b.Ti, b.T_f, b.notch)
+
+
+def _not_worse(new: PlantRun, new_plan: LoopPlan, old: PlantRun, old_plan: LoopPlan) -> str:
+    """Why the redesigned run ``new`` is worse than the first design's ``old`` (empty: it is not).
+    The runs' scenarios differ in size; compared are what a linear loop does not scale: the first
+    step's settling time and the disturbance's speed dip per Nm."""
+    settle_new, settle_old = new.figures["settling_time"], old.figures["settling_time"]
+    dip_new = new.figures["dist_peak"] / new_plan.scenario.M_dist
+    dip_old = old.figures["dist_peak"] / old_plan.scenario.M_dist
+    if settle_new > settle_old:
+        return f"it settles in {settle_new:.3g} s, the first design in {settle_old:.3g} s"
+    if dip_new > dip_old:
+        return f"its disturbance dip is {dip_new:.3g} rad/s per Nm, the first design's {dip_old:.3g}"
+    return ""
+
+
+def _redesign(run: ChainRun) -> None:
+    """With a measured response: the design again (:func:`_propose` reads it); a new law is tuned,
+    planned and run on the drive, and kept for delivery where one of its candidates settled and is
+    not worse than the first design's chosen run (:func:`_not_worse`)."""
+    state, settings = run.state, run.settings
+    if state.measured is None:
+        return
+    proposal = _propose(run)
+    if not proposal.meets(settings.spec):
+        state.redesign_reason = f"the redesign misses the margins ({proposal.warnings[-1] if proposal.warnings else 'R7'})"
+        return
+    if _same_law(proposal, state.design.proposal):
+        state.redesign_reason = "the measured response leaves the design as it is"
+        return
+    state.redesign = plan = _plan_loop(run, proposal)
+    state.redesign_trial = trial = LoopTrial(_run_candidates(run, plan, "redesign"), None)
+    chosen = _choose(trial.runs)
+    run.lap("redesign")
+    if chosen is None:
+        state.redesign_reason = "no redesigned candidate settled on the drive: the first design is delivered"
+        return
+    first = state.design_trial
+    worse = _not_worse(trial.runs[chosen], plan, first.runs[first.chosen], state.design)
+    state.redesign_trial = LoopTrial(trial.runs, chosen)
+    state.redesign_kept = not worse
+    state.redesign_reason = (f"the redesign is worse on the drive ({worse}): the first design is delivered" if worse
+                             else "the redesign settled on the drive and is not worse: it is delivered")
 
 
 def _try_design(run: ChainRun) -> None:
@@ -626,9 +728,9 @@ def _deliver(run: ChainRun) -> None:
                                          f"no controller delivered")
             return
         state.delivered, state.delivered_run = state.fallback.proposal, trial.runs[trial.chosen]
-    elif state.design_trial is not None and state.design_trial.chosen is not None:
-        trial = state.design_trial
-        state.delivered, state.delivered_run = _model_based_delivery(run, trial), trial.runs[trial.chosen]
+    elif state.model_trial is not None and state.model_trial.chosen is not None:
+        trial = state.model_trial
+        state.delivered, state.delivered_run = _model_based_delivery(run, state.model_plan, trial), trial.runs[trial.chosen]
     else:
         return
     delivered_run, scenario = state.delivered_run, state.last_plan.scenario
@@ -647,6 +749,8 @@ STAGES: tuple[tuple[str, Callable[[ChainRun], None]], ...] = (
     ("permit", _permit),
     ("design", _design),
     ("try", _try_design),
+    ("measure", _measure),
+    ("redesign", _redesign),
     ("fallback", _fall_back),
     ("deliver", _deliver),
 )
@@ -774,4 +878,30 @@ def _report(run: ChainRun, excitation: ExcitationResult, M_star: float) -> Commi
         runs=[] if trial is None else trial.runs, fallback_runs=[] if state.fallback_trial is None else state.fallback_trial.runs,
         delivered=state.delivered, delivered_run=state.delivered_run, scenario=None if plan is None else plan.scenario,
         prediction=prediction or {}, checks=checks, truth=_truth_checks(run.drive.drive, state.delivered, run.config, M_star),
-        timings=run.timings, name=run.name, breach=run.drive.breach)
+        timings=run.timings, name=run.name, breach=run.drive.breach, measured=state.measured,
+        redesign=None if state.redesign is None else state.redesign.proposal,
+        redesign_runs=[] if state.redesign_trial is None else state.redesign_trial.runs, redesign_kept=state.redesign_kept,
+        redesign_reason=state.redesign_reason, load_peak_dB=_load_peak(run, state.delivered), limited_by=_limited_by(state))
+
+
+#: Rule codes of a design that trades bandwidth for what the test run could not show.
+_LIMITING_RULES: tuple[str, ...] = ("R7b", "R7c")
+
+
+def _limited_by(state: ChainState) -> str:
+    """Why the delivered loop is below what the identified model allows: the fallback F1 and its
+    reason, or the design's rule lines that widen the guarantee (:data:`_LIMITING_RULES`); empty
+    where neither applies or nothing is delivered."""
+    delivered = state.delivered
+    if delivered is None:
+        return ""
+    if state.fallback is not None and delivered is state.fallback.proposal:
+        return f"the cautious fallback F1 ({state.fallback_reason}): designed on the class's worst cases, not on the model"
+    return "; ".join(r for r in delivered.rules if r.split(" ", 1)[0] in _LIMITING_RULES)
+
+
+def _load_peak(run: ChainRun, delivered: ControllerProposal | None) -> float | None:
+    """The delivered loop's reference-to-load-speed peak [dB] on its design model (None: none delivered, or one-mass)."""
+    if delivered is None or delivered.mechanics is None:
+        return None
+    return load_peak_dB(delivered.mechanics, run.config, delivered.Kp, delivered.Ti, delivered.T_f, delivered.notch)

@@ -21,6 +21,7 @@ import sim
 from training._json import json_safe
 
 from ._excitation import ExcitationResult
+from ._frf import MeasuredResponse
 from ._guard import LimitBreach
 from ._permission import CommissioningWarning, IdentificationOutcome, Permission
 from ._rules import ControllerProposal
@@ -99,7 +100,12 @@ class CommissioningReport:
     ``fallback_runs``; ``delivered``: the controller to use (None: none) and ``delivered_run``;
     ``scenario`` and ``prediction`` (the model's predicted peaks); ``checks``: the limits in every
     experiment, from the measured records; ``truth``: simulation-only figures (None for a drive
-    without truth); ``timings`` [s]. ``breach``: the record that showed one of the user's limits
+    without truth); ``timings`` [s]. ``measured``: the plant's frequency response measured on the
+    drive (None: not measured); ``redesign``: the design made again with it (None: not made, or the
+    same law), ``redesign_runs`` its candidates on the drive, ``redesign_kept`` (it is delivered) and
+    ``redesign_reason``; ``load_peak_dB``: the delivered loop's reference-to-load-speed peak on the
+    design model (None: one-mass or none delivered); ``limited_by``: why the delivered loop is below
+    what the identified model allows (empty: nothing limits it but the model). ``breach``: the record that showed one of the user's limits
     passed (SPEC 8.2; None: none did): the experiments ended there, nothing is delivered, and the
     stages the chain had not reached are None (``identification``, ``validation``, ``permission``)
     or empty.
@@ -129,6 +135,13 @@ class CommissioningReport:
     timings: dict[str, float] = field(default_factory=dict)
     name: str = "plant"
     breach: LimitBreach | None = None
+    measured: MeasuredResponse | None = None
+    redesign: ControllerProposal | None = None
+    redesign_runs: list[PlantRun] = field(default_factory=list)
+    redesign_kept: bool = False
+    redesign_reason: str = ""
+    load_peak_dB: float | None = None
+    limited_by: str = ""
 
     def __post_init__(self) -> None:
         if self.breach is not None and self.delivered is not None:
@@ -150,12 +163,20 @@ class CommissioningReport:
         return self.delivered
 
     @property
+    def model_runs(self) -> list[PlantRun]:
+        """The candidate runs of the model-based plan delivered (the redesign's where it is kept, else
+        the design's): one scenario, so their costs compare."""
+        return self.redesign_runs if self.redesign_kept else self.runs
+
+    @property
     def improvement(self) -> float | None:
-        """``1 - cost(delivered) / cost(proposal)`` on the drive, only against a proposal that
-        settled or is only slow (:attr:`PlantRun.usable`; a model-based delivery); None otherwise."""
-        if self.delivered_run is None or self.fallback is not None or not self.runs or not self.runs[0].usable:
+        """``1 - cost(delivered) / cost(proposal)`` on the drive, the proposal of the same plan
+        (:attr:`model_runs`), only where it settled or is only slow (:attr:`PlantRun.usable`; a
+        model-based delivery); None otherwise."""
+        runs = self.model_runs
+        if self.delivered_run is None or self.fallback is not None or not runs or not runs[0].usable:
             return None
-        return 1.0 - self.delivered_run.cost / self.runs[0].cost
+        return 1.0 - self.delivered_run.cost / runs[0].cost
 
     @property
     def identified_structure(self) -> str | None:
@@ -185,11 +206,20 @@ class CommissioningReport:
             "tuning": None if self.tuning is None else {
                 "model_cost_proposal": self.tuning.cost_proposal, "model_cost_tuned": self.tuning.cost_tuned,
                 "n_evaluations": self.tuning.n_evaluations, "rejected_for_margins": self.tuning.rejected,
-                "warnings": list(self.tuning.warnings)},
+                "rejected_for_load_peak": self.tuning.rejected_load, "changed": self.tuning.changed,
+                "gains_before": _gains(self.tuning.proposal), "gains_after": _gains(self.tuning.controller),
+                "load_peak_dB_before": self.tuning.load_peak_proposal, "load_peak_dB_after": self.tuning.load_peak_tuned,
+                "changes": self.tuning.changes(), "warnings": list(self.tuning.warnings)},
             "runs": [r.to_dict() for r in self.runs],
             "fallback": None if self.fallback is None else {"reason": self.fallback_reason, **self.fallback.to_dict(),
                                                            "runs": [r.to_dict() for r in self.fallback_runs]},
-            "delivered": None if self.delivered is None else self.delivered.to_dict(),
+            "frequency_response": None if self.measured is None else self.measured.to_dict(),
+            "redesign": None if not (self.redesign or self.redesign_reason) else {
+                "kept": self.redesign_kept, "reason": self.redesign_reason,
+                "controller": None if self.redesign is None else self.redesign.to_dict(),
+                "runs": [r.to_dict() for r in self.redesign_runs]},
+            "delivered": None if self.delivered is None else {**self.delivered.to_dict(), "load_peak_dB": self.load_peak_dB,
+                                                               "limited_by": self.limited_by},
             "scenario": None if self.scenario is None else self.scenario.to_dict(),
             "prediction": self.prediction,
             "improvement": self.improvement,
@@ -220,6 +250,7 @@ class CommissioningReport:
         L += notes["permission"]
         if self.proposal is not None:
             L += self._proposal_lines()
+        L += self._frf_lines()
         if self.fallback is not None:
             L += self._fallback_lines()
         L += notes["drive"] + self._delivered_lines() + self._limit_lines() + self._truth_lines()
@@ -267,23 +298,41 @@ class CommissioningReport:
         L = _design_lines("5 proposal", self.proposal)
         if self.tuning is not None:
             t = self.tuning
-            L.append(f"6 tuning on the identified model: {t.n_evaluations} evaluations ({t.rejected} rejected for the margins), "
-                     f"model cost {t.cost_proposal:.4g} -> {t.cost_tuned:.4g}")
-            L += [f"   note: {w}" for w in t.warnings]
-        L += self._runs_lines(self.runs, ("proposal", "tuned", "between"))
+            L.append(f"6 tuning on the identified model ({t.n_evaluations} evaluations, {t.rejected} rejected for the margins, "
+                     f"{t.rejected_load} for the load peak): {t.changes()}")
+        L += self._runs_lines(self.runs, ("proposal", "tuned", "between"), experiment=not self.redesign_kept)
+        return L
+
+    def _frf_lines(self) -> list[str]:
+        """The measured frequency response and the redesign made with it."""
+        m = self.measured
+        if m is None:
+            return [f"7b frequency response: {self.redesign_reason}"] if self.redesign_reason else []
+        info = m.to_dict()
+        res = ", ".join(f"{f:.4g} Hz" for f in info["resonances_Hz"]) or "none"
+        L = [f"7b frequency response on the chosen loop: {info['lines']} lines {info['f_min_Hz']:.3g}-{info['f_max_Hz']:.4g} Hz, "
+             f"multisine {info['amplitude_Nm']:.3g} Nm per line, coherence >= 0.8 on {100 * info['coherent_share']:.0f} % of the lines; "
+             f"resonances the model lacks: {res}"]
+        if self.redesign is not None:
+            L += _design_lines("   redesign", self.redesign)
+            L += self._runs_lines(self.redesign_runs, ("redesign", "tuned", "between"), experiment=self.redesign_kept)
+        if self.redesign_reason:
+            L.append(f"   redesign: {self.redesign_reason}")
         return L
 
     def _fallback_lines(self) -> list[str]:
         return _design_lines(f"5 fallback F1 ({self.fallback_reason})", self.fallback) + self._runs_lines(self.fallback_runs, ("F1",))
 
-    def _runs_lines(self, runs: list[PlantRun], names: tuple[str, ...]) -> list[str]:
+    def _runs_lines(self, runs: list[PlantRun], names: tuple[str, ...], experiment: bool = True) -> list[str]:
+        """The runs' table; ``experiment``: headed by the experiment of :attr:`scenario` (False: the
+        runs of another plan, the table only)."""
         if not runs or self.scenario is None:
             return []
         scenario = self.scenario
-        L = [f"7 on the drive (steps +-{scenario.w_step:.3g} rad/s, disturbance {scenario.M_dist:.3g} Nm, {scenario.n_samples} samples; "
+        L = [] if not experiment else [f"7 on the drive (steps +-{scenario.w_step:.3g} rad/s, disturbance {scenario.M_dist:.3g} Nm, {scenario.n_samples} samples; "
              f"predicted peak {self.prediction.get('peak_speed', math.nan):.3g} rad/s, travel {self.prediction.get('travel', math.nan):.3g} rad; "
-             f"the drive stops at {self.prediction.get('stop_at', math.nan):.3g} rad/s):",
-             "   run       Kp      Ti [ms]  cost (motor+load)  rise [ms]  overshoot [%]  load overshoot [%]  settled"]
+             f"the drive stops at {self.prediction.get('stop_at', math.nan):.3g} rad/s):"]
+        L += ["   run       Kp      Ti [ms]  cost (motor+load)  rise [ms]  overshoot [%]  load overshoot [%]  settled"]
         for name, r in zip(names, runs):
             f = r.figures
             cost = "-" if r.verdict in UNSCORED_VERDICTS else f"{r.cost:.4g} ({r.motor:.3g}+{r.load:.3g})"
@@ -304,11 +353,15 @@ class CommissioningReport:
         L = [f"8 delivered: {_controller_text(d)}",
              f"   guaranteed margins (worst of {len(d.models.plants)} models: {m.model}): PM {m.phase_margin:.1f} deg, "
              f"GM {m.gain_margin_dB:.1f} dB; crossover w_c {d.figures['w_c']:.4g} rad/s on the design model"]
+        if self.load_peak_dB is not None:
+            L.append(f"   reference-to-load-speed peak {self.load_peak_dB:.2f} dB on the design model")
+        if self.limited_by:
+            L.append(f"   below what the model allows: {self.limited_by}")
         imp = self.improvement
         if imp is not None:
-            L.append(f"   cost on the drive: proposal {self.runs[0].cost:.4g} -> delivered {self.delivered_run.cost:.4g} "
+            L.append(f"   cost on the drive: proposal {self.model_runs[0].cost:.4g} -> delivered {self.delivered_run.cost:.4g} "
                      f"({100 * imp:.1f} % better)")
-        elif self.fallback is None and self.runs and not self.runs[0].usable:
+        elif self.fallback is None and self.model_runs and not self.model_runs[0].usable:
             L.append("   the proposal did not settle on the drive: no improvement percentage")
         return L
 
@@ -353,6 +406,10 @@ def _controller_text(p: ControllerProposal) -> str:
     notch = "".join(f", notch f_n {n.f_n:.4g} Hz (D_z {n.D_z:.3g}, D_p {n.D_p:.3g})" for n in p.notches)
     return (f"{p.concept}, Kp {p.Kp:.4g} Nm s/rad, Ti {p.Ti * 1e3:.4g} ms, T_f {p.T_f * 1e3:.3g} ms{notch}; "
             f"w_c {p.figures['w_c']:.4g} rad/s, PM {p.margins.phase_margin:.1f} deg, GM {p.margins.gain_margin_dB:.1f} dB (guarantee set)")
+
+
+def _gains(p: ControllerProposal) -> dict[str, float]:
+    return {"Kp": p.Kp, "Ti": p.Ti, "T_f": p.T_f}
 
 
 def _fmt(v: Any) -> str:

@@ -36,12 +36,12 @@ import scipy.signal
 import sim
 from training._settings import AT_LEAST_ONE, POSITIVE_OR_INF, SHARE, check_settings
 
-from ._loop import Mechanics, closed_loop_matrices, linear_plant
+from ._loop import Mechanics, closed_loop_matrices, frequency_grid, linear_plant
 from ._rules import ControllerProposal, ControllerSpec
 
 __all__ = [
     "TuningScenario", "TuningResult", "plan_scenario", "closed_loop_cost", "response_figures", "load_estimate",
-    "model_response", "tune_controller", "Gains", "loop_verdict", "LOOP_VERDICTS", "BOUNDED_VERDICTS",
+    "model_response", "load_peak_dB", "tune_controller", "Gains", "loop_verdict", "LOOP_VERDICTS", "BOUNDED_VERDICTS",
     "USABLE_VERDICTS", "UNSCORED_VERDICTS", "ScenarioSizing", "SearchSettings", "SCENARIO_SIZING", "SEARCH",
 ]
 
@@ -67,8 +67,10 @@ class ScenarioSizing:
 class SearchSettings:
     """The cost landscape and the stopping rule of :func:`tune_controller`'s Nelder-Mead search."""
 
-    pareto_weight: float = 10.0
-    """A candidate worse than the proposal on the motor or the load terms pays this many times the excess."""
+    max_load_peak_dB: float = 6.0
+    """A candidate may trade the motor against the load only while its reference-to-load-speed peak on
+    the identified model stays within this (SPEC 8.2: the load must not ring), or within the
+    proposal's own peak where that is higher; beyond it, it is not a solution."""
     phase_deficit_per_dB: float = 10.0
     """A candidate that misses the margins pays its phase deficit [deg] over this plus its gain deficit [dB]."""
     unstable_penalty: float = 100.0
@@ -79,7 +81,7 @@ class SearchSettings:
     """... and their costs within this."""
 
     def __post_init__(self) -> None:
-        check_settings(self, {"pareto_weight": POSITIVE_OR_INF, "phase_deficit_per_dB": POSITIVE_OR_INF,
+        check_settings(self, {"max_load_peak_dB": POSITIVE_OR_INF, "phase_deficit_per_dB": POSITIVE_OR_INF,
                               "unstable_penalty": POSITIVE_OR_INF, "xatol": POSITIVE_OR_INF, "fatol": POSITIVE_OR_INF})
 
 
@@ -199,6 +201,23 @@ def model_response(mech: Mechanics, config: Any, gains: Sequence[Gains], notch: 
                     y[k:] = np.inf
                     break
     return out
+
+
+def load_peak_dB(mech: Mechanics, config: Any, Kp: float, Ti: float, T_f: float, notch: Any) -> float | None:
+    """The reference-to-load-speed peak [dB] of the law on the linear model of ``mech``: the largest
+    ``|c_L (zI - A)^-1 b_r|`` of :func:`closed_loop_matrices` over the frequency grid (the load must
+    not ring: SPEC 8.2 bounds it by 6 dB); None for one-mass mechanics, inf for an unstable loop."""
+    if not mech.two_mass:
+        return None
+    plant = linear_plant(mech, config)
+    A, b_r, _, _, c_L = closed_loop_matrices(plant, Kp, Ti, T_f, notch)
+    if np.abs(np.linalg.eigvals(A)).max() >= 1.0:
+        return math.inf
+    w = frequency_grid(plant.T_s, plant.resonances)
+    z = np.exp(1j * w * plant.T_s)
+    zI_A = z[:, None, None] * np.eye(A.shape[0])[None] - A[None]
+    H = np.linalg.solve(zI_A, np.broadcast_to(b_r, (len(z), len(b_r)))[..., None])[..., 0] @ c_L
+    return float(20 * np.log10(np.abs(H).max()))
 
 
 def plan_scenario(proposal: ControllerProposal, extra: Sequence[Gains], config: Any, limits: sim.DriveLimits, *,
@@ -402,8 +421,10 @@ class TuningResult:
 
     ``controller``: the tuned :class:`ControllerProposal` (or the proposal, when the search found
     nothing better that keeps the guarantee); ``cost_proposal``, ``cost_tuned`` on the model;
-    ``history``: one dict per evaluation (``Kp, Ti, T_f, cost, feasible``); ``rejected``: how many
-    candidates missed the margins; ``message`` / ``warnings``.
+    ``history``: one dict per evaluation (``Kp, Ti, T_f, cost, feasible, load_peak_dB``);
+    ``rejected``: how many candidates missed the margins, ``rejected_load`` how many the load peak;
+    ``load_peak_proposal`` / ``load_peak_tuned`` [dB] on the identified model (None: one-mass);
+    ``message`` / ``warnings``; :meth:`changes` says what the search changed, or why nothing.
     """
 
     controller: ControllerProposal
@@ -416,6 +437,26 @@ class TuningResult:
     rejected: int
     message: str
     warnings: list[str] = field(default_factory=list)
+    rejected_load: int = 0
+    load_peak_proposal: float | None = None
+    load_peak_tuned: float | None = None
+
+    @property
+    def changed(self) -> bool:
+        """The search found gains other than the proposal's."""
+        return self.controller is not self.proposal
+
+    def changes(self) -> str:
+        """One line: the gains, the model cost and the load peak before -> after, or why the
+        proposal was kept."""
+        p, c = self.proposal, self.controller
+        if not self.changed:
+            return (f"kept the proposal: {self.warnings[0] if self.warnings else 'no better gain set found'} "
+                    f"({self.n_evaluations} evaluations, {self.rejected} missed the margins, {self.rejected_load} the load peak)")
+        peak = ("" if self.load_peak_proposal is None or self.load_peak_tuned is None else
+                f"; load peak {self.load_peak_proposal:.2f} -> {self.load_peak_tuned:.2f} dB")
+        return (f"Kp {p.Kp:.4g} -> {c.Kp:.4g} Nm s/rad (x{c.Kp / p.Kp:.3g}), Ti {p.Ti * 1e3:.4g} -> {c.Ti * 1e3:.4g} ms, "
+                f"T_f {p.T_f * 1e3:.3g} -> {c.T_f * 1e3:.3g} ms; model cost {self.cost_proposal:.4g} -> {self.cost_tuned:.4g}{peak}")
 
 
 def tune_controller(
@@ -433,9 +474,10 @@ def tune_controller(
 
     A candidate that misses the guarantee (``spec``'s margins on the proposal's model set) is not
     a solution: it costs ``scenario.unstable_cost`` plus its deficit, so the simplex moves back; the
-    result always keeps the margins (else the proposal is kept). A candidate worse than the
-    proposal on the motor terms or on the (estimated) load terms pays ten times the excess: the
-    search looks for gains that are better on both, as the delivery on the drive demands. ``span``: each gain stays within
+    result always keeps the margins (else the proposal is kept). It may trade
+    the motor against the load (the cost counts both) only within the load peak: a candidate whose
+    reference-to-load-speed peak on the identified model passes ``SEARCH.max_load_peak_dB`` (or the
+    proposal's own peak, where higher) is not a solution either. ``span``: each gain stays within
     ``[start / span, start * span]``.
     """
     if max_evaluations < 1 or not span > 1:
@@ -444,31 +486,32 @@ def tune_controller(
     use_f = proposal.T_f > 0
     x0 = np.log([proposal.Kp, proposal.Ti] + ([proposal.T_f] if use_f else []))
     history: list[dict[str, float]] = []
-    rejected = 0
-    start: dict[str, float] = {}  # the proposal's motor and load terms
+    rejected = rejected_load = 0
+    peak_0 = load_peak_dB(mech, config, proposal.Kp, proposal.Ti, proposal.T_f, proposal.notch)
+    peak_bound = math.inf if peak_0 is None else max(SEARCH.max_load_peak_dB, peak_0)
 
     def gains_at(x: np.ndarray) -> Gains:
         return float(math.exp(x[0])), float(math.exp(x[1])), float(math.exp(x[2])) if use_f else proposal.T_f
 
     def cost_at(x: np.ndarray) -> float:
-        nonlocal rejected
+        nonlocal rejected, rejected_load
         gains = gains_at(x)
         worst = models.margins(*gains, proposal.notch)
         feasible = worst.meets(spec.min_phase_margin, spec.min_gain_margin_dB)
-        if feasible:
-            model_cost, terms = closed_loop_cost(model_response(mech, config, [gains], proposal.notch, scenario)[0], scenario, mech)
-            cost = float(model_cost)
-            if start:  # Pareto: what is worse than the proposal on the motor or on the load pays for the excess
-                cost += SEARCH.pareto_weight * (max(float(terms["motor"]) - start["motor"], 0.0)
-                                                + max(float(terms["load"]) - start["load"], 0.0))
-            else:
-                start.update(motor=float(terms["motor"]), load=float(terms["load"]))
+        peak = load_peak_dB(mech, config, *gains, proposal.notch) if feasible else None
+        if feasible and peak is not None and not peak <= peak_bound:
+            rejected_load += 1
+            feasible = False
+            cost = scenario.unstable_cost + min(peak - peak_bound, SEARCH.unstable_penalty)
+        elif feasible:
+            cost = float(closed_loop_cost(model_response(mech, config, [gains], proposal.notch, scenario)[0], scenario, mech)[0])
         else:
             rejected += 1
             deficit = (max(spec.min_phase_margin - worst.phase_margin, 0.0) / SEARCH.phase_deficit_per_dB
                        + max(spec.min_gain_margin_dB - worst.gain_margin_dB, 0.0))
             cost = scenario.unstable_cost + (deficit if worst.stable and math.isfinite(deficit) else SEARCH.unstable_penalty)
-        history.append({"Kp": gains[0], "Ti": gains[1], "T_f": gains[2], "cost": cost, "feasible": float(feasible)})
+        history.append({"Kp": gains[0], "Ti": gains[1], "T_f": gains[2], "cost": cost, "feasible": float(feasible),
+                        "load_peak_dB": math.nan if peak is None else peak})
         if progress is not None:
             progress(len(history), cost)
         return cost
@@ -482,12 +525,14 @@ def tune_controller(
     best = min(history, key=lambda h: h["cost"])
     warnings: list[str] = []
     if not best["feasible"] or best["cost"] >= cost0:
-        warnings.append("the search found no gain set better than the proposal that keeps the margins: the proposal is kept")
-        cand, best_cost = proposal, cost0
+        warnings.append("the search found no gain set better than the proposal that keeps the margins"
+                        + ("" if peak_0 is None else f" and the load peak (<= {peak_bound:.3g} dB)") + ": the proposal is kept")
+        cand, best_cost, peak_1 = proposal, cost0, peak_0
     else:
-        best_cost = best["cost"]
+        best_cost, peak_1 = best["cost"], (None if peak_0 is None else best["load_peak_dB"])
         cand = proposal.with_gains(config, best["Kp"], best["Ti"], best["T_f"], rule=(
             f"T1 Nelder-Mead on the identified model: Kp {proposal.Kp:.4g} -> {best['Kp']:.4g}, Ti {proposal.Ti:.4g} -> "
             f"{best['Ti']:.4g}, T_f {proposal.T_f:.3g} -> {best['T_f']:.3g}; model cost {cost0:.4g} -> {best_cost:.4g}"))
     return TuningResult(controller=cand, proposal=proposal, cost_proposal=cost0, cost_tuned=best_cost, history=history,
-                        scenario=scenario, n_evaluations=len(history), rejected=rejected, message=str(res.message), warnings=warnings)
+                        scenario=scenario, n_evaluations=len(history), rejected=rejected, message=str(res.message), warnings=warnings,
+                        rejected_load=rejected_load, load_peak_proposal=peak_0, load_peak_tuned=peak_1)

@@ -5,7 +5,8 @@
 * a trained map's figures (:func:`map_figures`: U-matrix, hit map, stored components, the
   paper-style contour plot), into TensorBoard (:func:`log_map_figures`) or as PNG files;
 * the commissioning page of a drive (:func:`commission_figure`: test runs, the loop before and
-  after tuning, motor and load, the delivered loop's Bode plot with its margins);
+  after tuning, motor and load, the delivered loop's Bode plot with its margins) and its measured
+  frequency response beside the model's (:func:`frf_figure`);
 * the house style for any page (:func:`new_figure`, :func:`save_png`, :func:`draw_plane`, ...).
 
 matplotlib is the optional ``plot`` extra: it is imported only when a figure is drawn;
@@ -15,7 +16,7 @@ option without it.
 """
 
 from ._commission import PANELS as COMMISSION_PANELS
-from ._commission import commission_figure
+from ._commission import FRF_PANELS, commission_figure, frf_figure
 from ._identify import (PageWriter, anti_resonance, best_match, failure_figure, identify_figure, identify_pages,
                         maps_figure, model_speed, page_names)
 from ._planes import (COMPONENT_LABELS, PARAMETER_PLANES, ParameterPlane, draw_plane, map_figure, map_figure_names,
@@ -25,7 +26,7 @@ from ._style import (DPI, MARK, MEASURED, MODEL, PLOT_HINT, figure_image, new_fi
 from ._tensorboard import log_map_figures
 
 __all__ = [
-    "commission_figure", "COMMISSION_PANELS",
+    "commission_figure", "COMMISSION_PANELS", "frf_figure", "FRF_PANELS",
     "identify_figure", "failure_figure", "maps_figure", "identify_pages", "PageWriter", "page_names", "model_speed",
     "anti_resonance",
     "best_match", "map_figures", "map_figure", "map_figure_names", "map_png_paths", "write_map_pngs",

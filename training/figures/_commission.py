@@ -1,6 +1,6 @@
 """The commissioning page of one drive: test runs, the closed loop before and after tuning (motor
 measured, load as the identified model estimates it), and the delivered loop's Bode plot with its
-margins marked."""
+margins marked; and the page of the frequency response measured on the drive (beside the model)."""
 
 from __future__ import annotations
 
@@ -82,4 +82,45 @@ def commission_figure(report: Any) -> Any:
     ax_mag.set_ylabel(with_unit("|L|", "dB"))
     ax_phase.set_ylabel(with_unit("phase L", "deg"))
     ax_phase.set_xlabel(with_unit("w", "rad/s"))
+    return fig
+
+
+#: Names of the frequency-response page's three panels, top to bottom (their titles start with them).
+FRF_PANELS: tuple[str, ...] = ("measured |G|", "measured phase", "coherence")
+
+
+def frf_figure(report: Any) -> Any:
+    """The frequency-response page of a report with a measured response (``report.measured``; a
+    ``Figure``): the plant's torque-to-speed ``|G|`` and phase measured on the drive beside the
+    identified model's on the same lines, the resonances the model lacks marked, and the
+    coherence per line with the threshold the resonance search uses."""
+    from training.commissioning import FRF_SETTINGS
+
+    m = report.measured
+    if m is None:
+        raise ValueError(f"report {report.name!r}: no measured frequency response to draw")
+    f = m.w / (2 * np.pi)
+    fig = new_figure(9.0, 10.0)
+    ax_mag, ax_phase, ax_coh = fig.subplots(3, 1, sharex=True)
+    curves = [("measured", m.G, MEASURED)] + ([("identified model", m.model, MODEL)] if m.model is not None else [])
+    for label, G, colour in curves:
+        ax_mag.semilogx(f, 20 * np.log10(np.maximum(np.abs(G), 1e-300)), color=colour, lw=0.9, label=label)
+        ax_phase.semilogx(f, np.degrees(np.unwrap(np.angle(G))), color=colour, lw=0.9, label=label)
+    for r in m.resonances:
+        for ax in (ax_mag, ax_phase):
+            ax.axvline(r / (2 * np.pi), color=MARK, ls="--", lw=0.8)
+    found = ", ".join(f"{r / (2 * np.pi):.4g} Hz" for r in m.resonances) or "none"
+    ax_mag.set_title(f"{FRF_PANELS[0]}: {report.name}, torque reference -> motor speed (resonances the model lacks: "
+                     f"{found}, dashed)", fontsize=9)
+    ax_phase.set_title(FRF_PANELS[1], fontsize=9)
+    ax_coh.semilogx(f, m.coherence, color=MEASURED, lw=0.9)
+    ax_coh.axhline(FRF_SETTINGS.min_coherence, color=MARK, ls="--", lw=0.8)
+    ax_coh.set_ylim(0.0, 1.05)
+    ax_coh.set_title(f"{FRF_PANELS[2]}: share of the measured speed the multisine explains "
+                     f"(resonances searched above {FRF_SETTINGS.min_coherence:g})", fontsize=9)
+    ax_mag.set_ylabel(with_unit("|G|", "dB"))
+    ax_phase.set_ylabel(with_unit("phase G", "deg"))
+    ax_coh.set_ylabel(with_unit("coherence", "1"))
+    ax_coh.set_xlabel(with_unit("f", "Hz"))
+    ax_mag.legend(fontsize=7)
     return fig

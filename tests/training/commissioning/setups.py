@@ -7,8 +7,8 @@ import pytest
 import sim
 from training.commissioning import CommissioningConfig
 
-#: A short chain: few tuning evaluations, short closed-loop experiments.
-FAST = CommissioningConfig(tune_evaluations=6, max_samples=1200)
+#: A short chain: few tuning evaluations, short closed-loop experiments, no frequency-response experiment.
+FAST = CommissioningConfig(tune_evaluations=6, max_samples=1200, measure_response=False)
 LIMITS = sim.DriveLimits(w_max=20.0, travel=5.0)
 STIFF = dict(J_sigma=0.05, V_J=0.5, f_e=400.0, d=0.05, backlash=0.0, M_FC=0.1, mu_F=0.001)
 ONE_MASS = {"J_sigma": 0.05, "M_FC": 0.1, "mu_F": 0.001, "V_J": None, "f_e": None, "d": None, "backlash": 0.0}

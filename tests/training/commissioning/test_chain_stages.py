@@ -12,10 +12,11 @@ sim = pytest.importorskip("sim")
 
 from training.commissioning import STAGES, CommissioningConfig, RecordIdentifier, commission, mechanics_from  # noqa: E402
 from training.commissioning import _chain  # noqa: E402
+from training.commissioning._frf import FRFSettings  # noqa: E402
 from training.commissioning._loop import LoopAnalysis  # noqa: E402
 from training.commissioning._tuning import ScenarioSizing, SearchSettings  # noqa: E402
 
-ORDER = ("excite", "identify", "validate", "guard", "permit", "design", "try", "fallback", "deliver")
+ORDER = ("excite", "identify", "validate", "guard", "permit", "design", "try", "measure", "redesign", "fallback", "deliver")
 
 
 def test_the_stages_run_in_the_documented_order():
@@ -32,7 +33,7 @@ def test_the_chain_is_typed_by_protocols():
     assert RecordIdentifier.identify
 
 
-@pytest.mark.parametrize("settings", [CommissioningConfig, ScenarioSizing, SearchSettings, LoopAnalysis])
+@pytest.mark.parametrize("settings", [CommissioningConfig, ScenarioSizing, SearchSettings, LoopAnalysis, FRFSettings])
 def test_settings_are_frozen_dataclasses(settings):
     assert dataclasses.is_dataclass(settings) and settings.__dataclass_params__.frozen
     with pytest.raises(dataclasses.FrozenInstanceError):
@@ -52,9 +53,14 @@ def test_settings_are_frozen_dataclasses(settings):
     (CommissioningConfig, "min_scenario_quanta", -1.0),
     (CommissioningConfig, "drive_timeout", float("inf")),
     (CommissioningConfig, "validation_mode", "guess"),
+    (CommissioningConfig, "measure_response", 1),
+    (CommissioningConfig, "frf", None),
+    (FRFSettings, "periods", 2),
+    (FRFSettings, "limit_share", 0.0),
+    (FRFSettings, "min_coherence", 1.5),
     (ScenarioSizing, "min_segment", 0),
     (ScenarioSizing, "kick_share", 0.0),
-    (SearchSettings, "pareto_weight", 0.0),
+    (SearchSettings, "max_load_peak_dB", 0.0),
     (SearchSettings, "fatol", -1.0),
     (LoopAnalysis, "grid_points", 1),
     (LoopAnalysis, "settle_band", 0.0),

@@ -14,7 +14,7 @@ import pytest
 sim = pytest.importorskip("sim")
 
 from training.cli import main  # noqa: E402
-from training.commissioning import (CommissioningConfig, FileDrive, commission, summarize,  # noqa: E402
+from training.commissioning import (CommissioningConfig, FileDrive, commission, load_peak_dB, summarize,  # noqa: E402
                                     summary_text)
 from training.errors import ExperimentPending  # noqa: E402
 
@@ -46,8 +46,7 @@ def test_chain_on_a_stiff_plant(stub):
     assert any(r.startswith("R7b") for r in rep.proposal.rules)
     assert any(lab.startswith("hidden resonance") for lab in rep.delivered.models.labels)
     _check_delivered(rep)
-    r0 = rep.runs[0]
-    assert rep.delivered_run.motor <= r0.motor and rep.delivered_run.load <= r0.load
+    assert rep.delivered_run.cost <= rep.runs[0].cost
 
 
 def test_chain_on_an_elastic_plant_counts_the_load(stub):
@@ -55,8 +54,15 @@ def test_chain_on_an_elastic_plant_counts_the_load(stub):
     assert any(r.startswith("R4") for r in rep.proposal.rules) and rep.scenario.two_mass
     assert all(r.load > 0 for r in rep.runs)  # the estimated load side is scored
     _check_delivered(rep)
-    assert rep.delivered_run.motor <= rep.runs[0].motor and rep.delivered_run.load <= rep.runs[0].load
+    assert rep.delivered_run.cost <= rep.runs[0].cost
     assert rep.improvement is not None and rep.improvement >= 0
+    text, out = rep.to_text(), rep.to_dict()
+    assert rep.tuning.changes() in text  # what the tuning changed, or why nothing
+    assert out["tuning"]["changes"] == rep.tuning.changes() and out["tuning"]["gains_before"]["Kp"] == rep.proposal.Kp
+    d = rep.delivered
+    assert rep.load_peak_dB == pytest.approx(load_peak_dB(d.mechanics, rep.config, d.Kp, d.Ti, d.T_f, d.notch))
+    assert f"reference-to-load-speed peak {rep.load_peak_dB:.2f} dB" in text
+    assert out["delivered"]["load_peak_dB"] == pytest.approx(rep.load_peak_dB)
 
 
 def test_chain_on_an_independent_plant_in_another_process():
@@ -201,7 +207,7 @@ def test_command_runs_a_drive_from_a_file_and_a_pending_folder(tmp_path, capsys)
     shipped_identifier()
     out_json = tmp_path / "out.json"
     assert main(["commission", "--drive", f"{HERE / 'remote_plant.py'}:make_drive", "--w-limit", "20", "--travel-limit", "5",
-                 "--tune-evaluations", "3", "--no-progress", "--json", str(out_json)]) == 0
+                 "--tune-evaluations", "3", "--no-measure", "--no-progress", "--json", str(out_json)]) == 0
     out = capsys.readouterr().out
     assert "== commissioning drive ==" in out and "limits kept in every experiment" in out
     assert json.loads(out_json.read_text())["reports"][0]["checks"]["within_limits"] is True
@@ -221,3 +227,76 @@ def test_the_chain_reads_identification_codes_only():
 
     assert UNCERTAIN_CODES <= set(WARNING_CODES) and UNDETERMINED_CODES <= UNCERTAIN_CODES
     assert "class_undecided" in UNCERTAIN_CODES
+
+
+#: The chain with the frequency-response experiment (short periods: 3.9 Hz lines at 4 kHz).
+MEASURING = replace(FAST, measure_response=True, frf=replace(FAST.frf, period=1024))
+
+
+@pytest.fixture(scope="module")
+def measured_stiff():
+    """A ``stiff`` answer on the plant with a real 400 Hz mode (V_J 0.5, d 0.05), measured."""
+    from conftest import StubIdentifier
+    return commission(sim.SimulatedDrive(STIFF), LIMITS, identifier=StubIdentifier("stiff", ONE_MASS), config=MEASURING)
+
+
+def test_the_measure_stage_finds_the_mode_a_stiff_answer_lacks(measured_stiff):
+    rep = measured_stiff
+    m = rep.measured
+    assert m is not None and m.model is not None
+    assert [round(r / (2 * np.pi) / 400.0, 1) for r in m.resonances] == [1.0]  # within 5 %
+    kinds = [r["kind"] for r in rep.checks["runs"]]
+    assert "frequency response" in kinds and rep.checks["within_limits"]
+    frf_run = rep.checks["runs"][kinds.index("frequency response")]
+    assert not frf_run["aborted"] and frf_run["peak_speed"] < 0.5 * LIMITS.w_max
+    assert rep.redesign_reason  # what the redesign made of it, in one line
+    _check_delivered(rep)
+    assert "7b frequency response" in rep.to_text()
+    out = rep.to_dict()
+    assert out["frequency_response"]["resonances_Hz"][0] == pytest.approx(400.0, rel=0.05)
+    assert out["redesign"]["reason"] == rep.redesign_reason
+
+
+def test_a_redesign_is_run_and_delivered_only_where_not_worse(stub, monkeypatch):
+    """With a design that the measurement changes (here: a lower gain, a longer Ti), the new law
+    runs on the drive; it is delivered when it settled and is not worse than the first (settling
+    time and disturbance dip per Nm), else the first design stays."""
+    from training.commissioning import _chain
+
+    first = _chain._propose
+    calls = []
+
+    def propose(run):
+        calls.append(run.state.measured)
+        proposal = first(run)
+        return proposal if run.state.measured is None else proposal.with_gains(
+            run.config, proposal.Kp * 0.9, proposal.Ti * 1.2, proposal.T_f, rule="test: a redesign, a lower gain")
+
+    monkeypatch.setattr(_chain, "_propose", propose)
+    rep = commission(sim.SimulatedDrive(ELASTIC), LIMITS, identifier=stub("elastic", ELASTIC), config=MEASURING)
+    assert calls[0] is None and calls[-1] is rep.measured is not None
+    assert rep.redesign is not None and rep.redesign.Kp == pytest.approx(0.9 * rep.proposal.Kp)
+    assert len(rep.redesign_runs) >= 1 and rep.redesign_reason
+    kinds = [r["kind"] for r in rep.checks["runs"]]
+    assert kinds.count("frequency response") == 1 and any(k.startswith("redesign") for k in kinds)
+    if rep.redesign_kept:
+        assert rep.delivered.rules[-1].startswith(("test:", "T1", "T2")) and rep.delivered_run in rep.redesign_runs
+    else:
+        assert rep.delivered_run in rep.runs
+    _check_delivered(rep)
+
+
+def test_not_worse_compares_what_a_linear_loop_does_not_scale():
+    from types import SimpleNamespace
+
+    from training.commissioning._chain import _not_worse
+
+    def run(settle, dip):
+        return SimpleNamespace(figures={"settling_time": settle, "dist_peak": dip})
+
+    def plan(M_dist):
+        return SimpleNamespace(scenario=SimpleNamespace(M_dist=M_dist))
+
+    assert _not_worse(run(0.05, 0.4), plan(4.0), run(0.1, 0.2), plan(1.0)) == ""  # dip 0.1 vs 0.2 rad/s per Nm
+    assert "settles" in _not_worse(run(0.2, 0.1), plan(1.0), run(0.1, 0.1), plan(1.0))
+    assert "dip" in _not_worse(run(0.05, 0.4), plan(1.0), run(0.1, 0.2), plan(1.0))

@@ -66,3 +66,44 @@ def test_tuning_keeps_the_margins_and_never_gets_worse_on_the_model():
     assert all(h["cost"] >= sc.unstable_cost for h in res.history if not h["feasible"])
     m = res.controller.models.margins(res.controller.Kp, res.controller.Ti, res.controller.T_f, res.controller.notch)
     assert m.phase_margin >= spec.min_phase_margin and m.gain_margin_dB >= spec.min_gain_margin_dB
+
+
+def test_load_peak_is_the_peak_of_the_reference_to_load_response():
+    """Independent reference: the DFT of the closed loop's reference-to-load impulse response (from
+    its step response in time) peaks where :func:`load_peak_dB` says; a one-mass model has none."""
+    from training.commissioning import load_peak_dB
+    from training.commissioning._loop import frequency_grid
+
+    mech = mechanics_from(ELASTIC)
+    gains = (2.0, 0.05, 2.5e-4)
+    plant = linear_plant(mech, DRIVE)
+    A, b_r, _, _, c_L = closed_loop_matrices(plant, *gains, None)
+    n = 8000
+    h = np.diff(constant_input_response(A, b_r, c_L, n), prepend=0.0)
+    w = frequency_grid(DRIVE.T_s, plant.resonances)
+    H = np.exp(-1j * np.outer(w * DRIVE.T_s, np.arange(n))) @ h
+    assert load_peak_dB(mech, DRIVE, *gains, None) == pytest.approx(20 * np.log10(np.abs(H).max()), abs=0.05)
+    assert load_peak_dB(mechanics_from({"J_sigma": 0.05}), DRIVE, *gains, None) is None
+
+
+def test_tuning_trades_motor_against_load_only_within_the_load_peak(monkeypatch):
+    from training.commissioning import _tuning, load_peak_dB
+
+    spec = ControllerSpec()
+    prop = propose_controller("elastic", ELASTIC, DRIVE, spec)
+    sc, _ = plan_scenario(prop, [], DRIVE, LIMITS)
+    peak_0 = load_peak_dB(prop.mechanics, DRIVE, prop.Kp, prop.Ti, prop.T_f, prop.notch)
+    # a bound below the proposal's own peak: no candidate may ring the load more than the proposal
+    monkeypatch.setattr(_tuning, "SEARCH", _tuning.SearchSettings(max_load_peak_dB=1e-3))
+    res = tune_controller(prop, DRIVE, sc, spec, max_evaluations=20)
+    feasible = [h for h in res.history if h["feasible"]]
+    assert feasible and all(h["load_peak_dB"] <= peak_0 + 1e-12 for h in feasible)
+    assert res.load_peak_proposal == pytest.approx(peak_0)
+    assert res.load_peak_tuned <= peak_0 + 1e-12
+    rejected = [h for h in res.history if not h["feasible"] and h["load_peak_dB"] > peak_0]
+    assert res.rejected_load == len(rejected)
+    text = res.changes()
+    if res.changed:
+        assert f"Kp {prop.Kp:.4g} -> {res.controller.Kp:.4g}" in text and "load peak" in text
+    else:
+        assert text.startswith("kept the proposal") and "load peak" in text

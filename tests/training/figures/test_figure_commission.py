@@ -63,9 +63,12 @@ def test_commission_command_writes_the_page(tmp_path):
     plant.write_text('{"J_sigma": 0.05, "V_J": 1.0, "f_e": 30.0, "d": 0.03, "backlash": 0.0, "M_FC": 0.2, '
                      '"mu_F": 0.001, "name": "p1"}')
     args = ["commission", "--params", str(plant), "--w-limit", "20", "--travel-limit", "5", "--no-tune",
-            "--plots", str(tmp_path / "plots"), "--quiet"]
+            "--plots", str(tmp_path / "plots"), "--frf", str(tmp_path / "frf"), "--quiet"]
     assert main(args) == 0
     assert (tmp_path / "plots" / "p1.png").stat().st_size > 10_000
+    assert (tmp_path / "plots" / "p1_frf.png").stat().st_size > 10_000  # the measured response's Bode page
+    header = (tmp_path / "frf" / "p1_frf.csv").read_text().splitlines()[0]
+    assert header == "f_Hz,magnitude_dB,phase_deg,coherence,model_magnitude_dB,model_phase_deg"
     assert main(args) == 2  # the page exists: not replaced without --overwrite
 
 
@@ -83,3 +86,20 @@ def test_commission_without_matplotlib_refuses_plots_before_any_work(tmp_path, m
     err = capsys.readouterr().err
     assert "the 'plot' extra: pip install" in err and len(err.strip().splitlines()) == 1
     assert not (tmp_path / "r.json").exists() and not (tmp_path / "plots").exists()
+
+
+def test_frf_page_shows_measured_beside_model_and_coherence(report):
+    from training.figures import FRF_PANELS, frf_figure
+
+    m = report.measured
+    assert m is not None  # the default chain measures the response on the chosen loop
+    fig = frf_figure(report)
+    axes = fig.axes[:3]
+    assert [ax.get_title().split(":")[0] for ax in axes] == list(FRF_PANELS)
+    labels = [ln.get_label() for ln in axes[0].lines]
+    assert labels[:2] == ["measured", "identified model"]
+    measured = axes[0].lines[0]
+    np.testing.assert_allclose(measured.get_xdata(), m.w / (2 * np.pi))
+    np.testing.assert_allclose(measured.get_ydata(), 20 * np.log10(np.abs(m.G)))
+    np.testing.assert_allclose(axes[2].lines[0].get_ydata(), m.coherence)
+    assert figure_image(fig).shape[2] == 3
