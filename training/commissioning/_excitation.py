@@ -167,7 +167,10 @@ class ExcitationRules:
     """Trusted inertia: a fit this close explains the speed whatever the residual's frequency."""
     probe_max_residual: float = 0.8
     """E11: a probe may be planned on the rigid-body fit's inertia up to this residual (a large
-    visible oscillation) where the record spans ``trust_min_periods`` of it."""
+    visible oscillation) ..."""
+    probe_min_periods: float = 2.0
+    """E11: ... and where the record spans this many periods of the residual's dominant frequency (a
+    mode the run did not complete leaves about one)."""
     probe_min_lengthening: float = 1.2
     """E11: a probe must make section I at least this many times longer than the run it is planned from."""
 
@@ -189,7 +192,7 @@ _RULE_INTERVALS: dict[str, Interval] = {
     "slowest_f_e": POSITIVE, "probe_periods": POSITIVE, "V_J_max": NON_NEGATIVE, "probe_range_margin": Interval(1.0),
     "probe_untrusted_share": SHARE, "rigid_friction_share": Interval(0.0, 0.5), "trust_margin": NON_NEGATIVE,
     "trust_max_residual": NON_NEGATIVE, "trust_min_periods": NON_NEGATIVE, "trust_exact_residual": NON_NEGATIVE,
-    "probe_max_residual": NON_NEGATIVE, "probe_min_lengthening": Interval(1.0, open_low=True),
+    "probe_max_residual": NON_NEGATIVE, "probe_min_periods": NON_NEGATIVE, "probe_min_lengthening": Interval(1.0, open_low=True),
 }
 
 
@@ -793,16 +796,18 @@ def judge_run(run: ExcitationRun) -> RuleDecision:
 # --------------------------------------------------------------------------- E0, E11: informative within the limits
 
 
-def trusted_J(figures: RunFigures, rules: ExcitationRules, max_residual: float | None = None) -> float | None:
+def trusted_J(figures: RunFigures, rules: ExcitationRules, max_residual: float | None = None,
+              min_periods: float | None = None) -> float | None:
     """The rigid-body fit's inertia [kg m^2] of a run that accelerated the load with the motor (the fit
     explains the speed to ``max_residual``, default ``trust_max_residual``, and what it leaves is an
-    oscillation of at least ``trust_min_periods`` periods in the record, or nearly nothing); None
-    otherwise (a slow mode the run did not complete: the motor moved alone, and ``M_star / accel``
-    is about ``J_M``)."""
+    oscillation of at least ``min_periods`` (default ``trust_min_periods``) periods in the record, or
+    nearly nothing); None otherwise (a slow mode the run did not complete: the motor moved alone,
+    and ``M_star / accel`` is about ``J_M``)."""
     bound = rules.trust_max_residual if max_residual is None else max_residual
+    periods = rules.trust_min_periods if min_periods is None else min_periods
     if figures.aborted or figures.rigid_J <= 0 or figures.rigid_residual > bound:
         return None
-    if figures.rigid_periods >= rules.trust_min_periods or figures.rigid_residual <= rules.trust_exact_residual:
+    if figures.rigid_periods >= periods or figures.rigid_residual <= rules.trust_exact_residual:
         return figures.rigid_J
     return None
 
@@ -880,7 +885,7 @@ class ProbeBasis:
 
     @classmethod
     def of(cls, plan: RunPlan, figures: RunFigures, rules: ExcitationRules) -> ProbeBasis | None:
-        J = trusted_J(figures, rules, rules.probe_max_residual)
+        J = trusted_J(figures, rules, rules.probe_max_residual, rules.probe_min_periods)
         if J is not None:
             return cls(J * (1 + rules.trust_margin), max(figures.rigid_M_F, 0.0), rules.travel_margin, True)
         if not figures.accel_first > 0:
@@ -932,20 +937,25 @@ def _probe_at_cap(basis: ProbeBasis, limits: sim.DriveLimits, config: Any, rules
 
 
 def plan_probe(plan: RunPlan, figures: RunFigures, limits: sim.DriveLimits, config: Any, rules: ExcitationRules,
-               headroom: Headroom) -> ProbeOutlook:
+               headroom: Headroom, stopped: bool = False) -> ProbeOutlook:
     """E11: a test with longer sections at lower ``M_star`` than ``plan`` (measured as ``figures``):
     ``w_max`` the smallest that resolves the speed range (``probe_range_margin``), ``M_star`` the
     smallest whose rigid travel (:func:`rigid_travel` on :class:`ProbeBasis`) fits in the travel the
     drive is handed, no smaller than sections of ``probe_periods`` periods of ``slowest_f_e`` need;
     None where the sections would not get longer by ``probe_min_lengthening``, with the limits that
-    would let them."""
+    would let them. A rigid response gets a probe at the torque cap instead (not after a run the
+    drive ``stopped``); ``w_max`` stays below the ceiling a stopped run set (E8)."""
     basis = ProbeBasis.of(plan, figures, rules)
     if basis is None:
         return ProbeOutlook(None, {}, "no acceleration measured")
     if basis.trusted and figures.rigid_residual <= rules.trust_exact_residual:
+        if stopped:  # a run the drive stopped: no run at more torque than the rules allowed
+            return ProbeOutlook(None, {}, "a rigid response, and a run was stopped by the drive")
         return _probe_at_cap(basis, limits, config, rules, headroom)
     w_need = rules.probe_range_margin * rules.min_range_quanta * sim.speed_quantum(float(config.encoder_counts), float(config.T_s)) / 2
     room = rules.speed_margin * (limits.w_max - headroom.at(plan.M_star, limits.w_max, config, rules)) / (1 + rules.swing_allowance)
+    if w_need > plan.w_ceiling:
+        return ProbeOutlook(None, {}, f"a run the drive stopped keeps w_max below {plan.w_ceiling:.3g} rad/s")
     if w_need > room:
         w_limit = w_need * (1 + rules.swing_allowance) / rules.speed_margin + headroom.at(plan.M_star, limits.w_max, config, rules)
         return ProbeOutlook(None, {"w_max": w_limit}, f"a speed range of {rules.min_range_quanta:g} speed quanta needs w_max "
@@ -961,9 +971,10 @@ def plan_probe(plan: RunPlan, figures: RunFigures, limits: sim.DriveLimits, conf
     travel = rigid_travel(w_need, M_target, basis.J, basis.M_F) / basis.share
     run_on = limits.w_max * stop_headroom(1.0, config, rules)
     needed = {"travel": min(travel + run_on, travel / rules.max_guard_share)}
-    if needed["travel"] <= limits.travel:  # not the travel: the sections are as long as the probe aims at
-        return ProbeOutlook(None, {}, f"the sections already last about {section:.3g} s ({rules.probe_periods:g} periods of "
-                                      f"{rules.slowest_f_e:g} Hz)")
+    if needed["travel"] <= limits.travel:  # not the travel: friction, or the sections are as long as the probe aims at
+        why = (f"the friction {basis.M_F:.3g} Nm keeps M_star above {M_star:.3g} Nm" if M_star > max(M_travel, M_target) else
+               f"the sections already last about {section:.3g} s ({rules.probe_periods:g} periods of {rules.slowest_f_e:g} Hz)")
+        return ProbeOutlook(None, {}, why)
     return ProbeOutlook(None, needed, f"sections of {section:.3g} s ({rules.probe_periods:g} periods of {rules.slowest_f_e:g} Hz) at "
                                       f"{w_need:.3g} rad/s on J {basis.J:.3g} kg m^2 "
                                       f"({'measured' if basis.trusted else 'bound from the motor inertia'})")
@@ -1053,6 +1064,8 @@ class _Session:
     kept: list[Any] = field(default_factory=list)
     headroom: Headroom = field(default_factory=Headroom)
     last_kept: ExcitationRun | None = None
+    stopped: bool = False
+    """The drive stopped a run at a limit."""
 
     @property
     def M_cap(self) -> float:
@@ -1070,6 +1083,7 @@ class _Session:
         if not figures.aborted:
             self.kept.append(record)
             self.last_kept = run
+        self.stopped = self.stopped or figures.aborted
         return run
 
     def accepted(self, run: ExcitationRun) -> bool:
@@ -1086,7 +1100,7 @@ class _Session:
         rules, unused = self.rules, []
         for _ in range(rules.max_probes):
             base = self.last_kept
-            outlook = plan_probe(base.plan, base.figures, self.limits, self.config, rules, self.headroom)
+            outlook = plan_probe(base.plan, base.figures, self.limits, self.config, rules, self.headroom, self.stopped)
             if outlook.plan is None:
                 return ProbeOutcome(code, _probe_reason(reason, outlook), outlook.needed, unused)
             run = self.run(outlook.plan, None)
