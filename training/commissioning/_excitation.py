@@ -171,6 +171,11 @@ class ExcitationRules:
     probe_min_periods: float = 2.0
     """E11: ... and where the record spans this many periods of the residual's dominant frequency (a
     mode the run did not complete leaves about one)."""
+    min_time_scale: float = 0.02
+    """E12: the envelope's shortest test time scale ``J_sigma w_max / M_star`` [s] (what the maps were
+    trained on): an informative run below it on a trusted inertia gets one probe inside it."""
+    time_scale_margin: float = 1.5
+    """E12: that probe aims at this many times ``min_time_scale``."""
     probe_min_lengthening: float = 1.2
     """E11: a probe must make section I at least this many times longer than the run it is planned from."""
 
@@ -192,7 +197,8 @@ _RULE_INTERVALS: dict[str, Interval] = {
     "slowest_f_e": POSITIVE, "probe_periods": POSITIVE, "V_J_max": NON_NEGATIVE, "probe_range_margin": Interval(1.0),
     "probe_untrusted_share": SHARE, "rigid_friction_share": Interval(0.0, 0.5), "trust_margin": NON_NEGATIVE,
     "trust_max_residual": NON_NEGATIVE, "trust_min_periods": NON_NEGATIVE, "trust_exact_residual": NON_NEGATIVE,
-    "probe_max_residual": NON_NEGATIVE, "probe_min_periods": NON_NEGATIVE, "probe_min_lengthening": Interval(1.0, open_low=True),
+    "probe_max_residual": NON_NEGATIVE, "probe_min_periods": NON_NEGATIVE, "min_time_scale": NON_NEGATIVE,
+    "time_scale_margin": Interval(1.0), "probe_min_lengthening": Interval(1.0, open_low=True),
 }
 
 
@@ -1037,11 +1043,14 @@ def adapt_test_signal(drive: Any, limits: sim.DriveLimits, rules: ExcitationRule
     else:
         code, reason = "max_iterations", f"no informative response after {rules.max_iterations} runs"
     kept, probes, needed = session.kept[-1] if session.kept else session.records[-1], [], {}
+    outcome = None
     if code in PROBED_ENDS and session.last_kept is not None and not session.last_kept.figures.timed_out:
         outcome = session.probe(code, reason)
+    elif code == "informative" and session.last_kept is not None:
+        outcome = session.into_envelope(reason)
+    if outcome is not None:
         code, reason, needed, probes = outcome.code, outcome.reason, outcome.needed, outcome.unused
-        if outcome.record is not None:
-            kept = outcome.record
+        kept = kept if outcome.record is None else outcome.record
     return ExcitationResult(record=kept, records=session.records, log=session.log, informative=code == "informative",
                             reason=reason, code=code, probes=probes, needed=needed)
 
@@ -1091,6 +1100,32 @@ class _Session:
         oscillation at the torque cap."""
         deficits = run.deficits
         return not run.figures.aborted and (not deficits.any or (deficits.only_hidden and run.plan.M_star >= self.M_cap))
+
+    def into_envelope(self, reason: str) -> ProbeOutcome | None:
+        """E12: an informative run whose time scale ``J w_max / M_star`` on its trusted inertia lies
+        below ``min_time_scale`` gets one probe at ``time_scale_margin`` times it (less torque, same
+        ``w_max``) where its rigid travel fits, used when informative; None: no probe."""
+        rules, base = self.rules, self.last_kept
+        J = trusted_J(base.figures, rules)
+        if J is None or J * base.plan.w_max / base.plan.M_star >= rules.min_time_scale:
+            return None
+        M_F = max(base.figures.rigid_M_F, 0.0)
+        M_star = J * base.plan.w_max / (rules.time_scale_margin * rules.min_time_scale)
+        room = rules.travel_margin * guarded_limits(self.limits, 0.0, self.config, rules).travel
+        if M_star < M_F / rules.rigid_friction_share or rigid_travel(base.plan.w_max, M_star, J * (1 + rules.trust_margin), M_F) > room:
+            return None
+        run = self.run(RunPlan(M_star, base.plan.w_max), None)
+        done = self.accepted(run)
+        lacks = ", ".join(run.deficits.names()) if not run.figures.aborted else "stopped by the drive"
+        entry = _log_entry(len(self.log), run, RuleDecision(run.plan, verdict="informative" if done else RUN_AGAIN,
+                                                            decision="accept" if done else "not used",
+                                                            reason="E12 probe inside the envelope's time scale" +
+                                                                   ("" if done else f": {lacks}")))
+        if done:
+            self.log.append(entry)
+            return ProbeOutcome("informative", f"informative (E12 probe at M_star {M_star:.3g} Nm, inside the envelope's "
+                                               f"time scale)", {}, [], self.records[-1])
+        return ProbeOutcome("informative", reason, {}, [entry])
 
     def probe(self, code: str, reason: str) -> ProbeOutcome:
         """E11: up to ``max_probes`` tests with longer sections at lower ``M_star`` (:func:`plan_probe`,

@@ -144,3 +144,17 @@ def test_the_refused_soft_plant_gets_a_model_based_loop():
     assert rep.permission.allowed and rep.fallback is None and rep.delivered is not None
     assert rep.checks["within_limits"]
     assert max(e["w_M"] for e in drive.experiments) <= LIMITS.w_max and max(e["phi_M"] for e in drive.experiments) <= LIMITS.travel
+
+
+def test_an_informative_run_below_the_envelopes_time_scale_gets_one_probe_inside_it():
+    """Plant 41 (171 Hz, backlash): its informative run at 4 Nm has the time scale J w_max / M* of
+    0.017 s, below the envelope's 0.02 s (its answer failed validation, V3); E12 runs it again at
+    less torque, inside the envelope (the study: then validated, a model-based loop)."""
+    plant = STUDY[41]
+    before, _, _ = _adapt(plant, rules=ExcitationRules(min_time_scale=0.0))
+    res, w_M, phi_M = _adapt(plant)
+    first, last = before.log[-1], res.log[-1]
+    assert first["rigid_J"] * first["w_max"] / first["M_star"] < 0.02 and before.informative
+    assert res.informative and last["reason"].startswith("E12") and res.record is res.records[-1]
+    assert last["rigid_J"] * last["w_max"] / last["M_star"] >= 0.02 and last["rigid_J"] == pytest.approx(plant["J_sigma"], rel=0.05)
+    assert w_M <= LIMITS.w_max and phi_M <= LIMITS.travel
