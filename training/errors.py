@@ -35,6 +35,16 @@ class LimitPassed(CommissioningError):
         self.breach = breach
 
 
+class LimitsTooTight(CommissioningError):
+    """The user's limits leave no room for an informative test run, known before any experiment:
+    the message names the limit to raise and to what; ``needed``: each limit that must be raised
+    (``"w_max"`` [rad/s], ``"travel"`` [rad]) with the smallest value that lets a test fit."""
+
+    def __init__(self, message: str, needed: Mapping[str, float]) -> None:
+        super().__init__(message)
+        self.needed = dict(needed)
+
+
 class ExperimentPending(Exception):
     """Not an error: a file-based drive has written the experiment it wants and waits for its
     recording (``twomass commission --resume DIR`` goes on once it is there). ``request``: the

@@ -47,8 +47,8 @@ from typing import Any
 import numpy as np
 
 import sim
-from training._settings import NON_NEGATIVE, POSITIVE, SHARE, Interval, check_settings
-from training.errors import CommissioningError
+from training._settings import FLAG, NON_NEGATIVE, POSITIVE, SHARE, Interval, check_settings
+from training.errors import CommissioningError, LimitsTooTight
 
 from ._guard import record_peaks
 
@@ -67,7 +67,8 @@ RUN_AGAIN = "run_again"
 
 __all__ = ["EXCITATION_ENDS", "EXCITATION_RULES", "ExcitationRules", "ExcitationResult", "RunFigures", "RunPlan", "Deficits",
            "Headroom", "ExcitationRun", "RuleDecision", "measure_run", "measure_response", "first_plan", "judge_run",
-           "adapt_test_signal", "stop_headroom", "guarded_limits"]
+           "adapt_test_signal", "stop_headroom", "guarded_limits", "RigidFit", "rigid_fit", "rigid_travel", "trusted_J",
+           "trusted_inertia", "informative_limits", "check_limits", "ProbeBasis", "ProbeOutlook", "plan_probe", "PROBED_ENDS"]
 
 
 @dataclass(frozen=True)
@@ -133,6 +134,50 @@ class ExcitationRules:
     """E2: sections with fewer samples are left out of the oscillating part (no quadratic fit)."""
     spectrum_padding: int = 4
     """E2: the sections' spectra are zero-padded to this many times the longest (``f_osc``'s grid)."""
+    refuse_uninformative_limits: bool = True
+    """E0: before the first run, refuse limits that no informative test fits within (:func:`check_limits`)."""
+    min_travel_factor: float = 0.7
+    """E0: the smallest informative test's travel over ``w T`` (speed ``w``, section ``T``): section I
+    accelerating evenly (0.5) and section II above ``0.2 w`` (0.2)."""
+    max_probes: int = 3
+    """E11: most long-section probes after the rules ended without an informative response."""
+    slowest_f_e: float = 5.0
+    """E11: the envelope's lowest eigenfrequency [Hz]: a probe's sections aim at ``probe_periods`` of it."""
+    probe_periods: float = 2.0
+    """E11: a probe's section I aims at this many periods of ``slowest_f_e`` (no longer: less travel)."""
+    V_J_max: float = 5.0
+    """E11: the envelope's largest inertia ratio: ``J_sigma <= (1 + V_J_max) J_M``, and a run from rest
+    shows at least ``J_M`` in section I (``M_star`` over its mean acceleration)."""
+    probe_range_margin: float = 1.25
+    """E11: a probe's ``w_max`` gives this many times the speed range E2 needs (``min_range_quanta``)."""
+    probe_untrusted_share: float = 0.5
+    """E11: the share of the drive's travel a probe planned on the envelope's inertia bound may use
+    (its friction is unknown: the rigid travel holds up to ``rigid_friction_share``)."""
+    rigid_friction_share: float = 0.5
+    """E11: the rigid six-section travel ``2.21 w^2 J / M_star`` bounds the travel for Coulomb friction
+    up to this share of ``M_star``; a probe planned without a friction estimate stays above twice it."""
+    trust_margin: float = 0.25
+    """E11: a probe planned on a trusted inertia counts it this much larger."""
+    trust_max_residual: float = 0.35
+    """Trusted inertia: the rigid-body fit's speed residual (RMS over the speed's RMS) at most this."""
+    trust_min_periods: float = 2.5
+    """Trusted inertia: the record spans at least this many periods of the fit residual's dominant
+    frequency (a slow mode the run did not complete leaves a residual of about one period)."""
+    trust_exact_residual: float = 0.03
+    """Trusted inertia: a fit this close explains the speed whatever the residual's frequency."""
+    probe_max_residual: float = 0.8
+    """E11: a probe may be planned on the rigid-body fit's inertia up to this residual (a large
+    visible oscillation) ..."""
+    probe_min_periods: float = 2.0
+    """E11: ... and where the record spans this many periods of the residual's dominant frequency (a
+    mode the run did not complete leaves about one)."""
+    min_time_scale: float = 0.02
+    """E12: the envelope's shortest test time scale ``J_sigma w_max / M_star`` [s] (what the maps were
+    trained on): an informative run below it on a trusted inertia gets one probe inside it."""
+    time_scale_margin: float = 1.5
+    """E12: that probe aims at this many times ``min_time_scale``."""
+    probe_min_lengthening: float = 1.2
+    """E11: a probe must make section I at least this many times longer than the run it is planned from."""
 
     def __post_init__(self) -> None:
         check_settings(self, _RULE_INTERVALS, CommissioningError)
@@ -148,6 +193,12 @@ _RULE_INTERVALS: dict[str, Interval] = {
     "delay_allowance": Interval(0, integer=True), "first_headroom": Interval(0.0, 1.0), "max_guard_share": SHARE,
     "against_quanta": NON_NEGATIVE, "torque_on_share": SHARE, "repeat_tolerance": NON_NEGATIVE,
     "change_tolerance": NON_NEGATIVE, "fit_min_samples": Interval(3, integer=True), "spectrum_padding": Interval(1, integer=True),
+    "refuse_uninformative_limits": FLAG, "min_travel_factor": NON_NEGATIVE, "max_probes": Interval(0, integer=True),
+    "slowest_f_e": POSITIVE, "probe_periods": POSITIVE, "V_J_max": NON_NEGATIVE, "probe_range_margin": Interval(1.0),
+    "probe_untrusted_share": SHARE, "rigid_friction_share": Interval(0.0, 0.5), "trust_margin": NON_NEGATIVE,
+    "trust_max_residual": NON_NEGATIVE, "trust_min_periods": NON_NEGATIVE, "trust_exact_residual": NON_NEGATIVE,
+    "probe_max_residual": NON_NEGATIVE, "probe_min_periods": NON_NEGATIVE, "min_time_scale": NON_NEGATIVE,
+    "time_scale_margin": Interval(1.0), "probe_min_lengthening": Interval(1.0, open_low=True),
 }
 
 
@@ -166,6 +217,12 @@ class ExcitationResult:
     reason: str = ""
     code: str = ""
     """How the adaptation ended: a key of :data:`EXCITATION_ENDS`."""
+    probes: list[dict[str, Any]] = field(default_factory=list)
+    """The log entries of the E11 probes whose records are not used (not informative); an informative
+    probe's entry ends ``log``."""
+    needed: dict[str, float] = field(default_factory=dict)
+    """Where no informative test fitted: the limits to raise (``"w_max"`` [rad/s], ``"travel"`` [rad])
+    and the smallest value that lets one fit."""
 
 
 # --------------------------------------------------------------------------- measuring one run
@@ -190,6 +247,16 @@ class RunFigures:
     peak_torque_ref: float
     peak_torque: float
     duration: float
+    accel_first: float = 0.0
+    """Section I's mean acceleration [rad/s^2] (from rest: ``M_star`` over it is at least ``J_M``)."""
+    rigid_J: float = 0.0
+    """The rigid-body fit's inertia [kg m^2] (:class:`RigidFit`; 0: no fit)."""
+    rigid_M_F: float = 0.0
+    """The rigid-body fit's Coulomb friction [Nm]."""
+    rigid_residual: float = 1.0
+    """The rigid-body fit's speed residual, RMS over the speed's RMS (1: nothing explained)."""
+    rigid_periods: float = 0.0
+    """How many periods of the residual's dominant frequency the record spans."""
 
     def as_dict(self) -> dict[str, Any]:
         """The figures as the keys of a log entry (``samples_per_section`` a list)."""
@@ -223,16 +290,61 @@ def _oscillating_parts(speed: np.ndarray, section: np.ndarray | None, min_sample
     return parts
 
 
-def _mean_acceleration(speed: np.ndarray, section: np.ndarray | None, T_s: float) -> float:
-    """The larger mean acceleration [rad/s^2] of sections I and IV (0 without sections)."""
+def _mean_acceleration(speed: np.ndarray, section: np.ndarray | None, T_s: float, sections: tuple[int, ...] = (1, 4)) -> float:
+    """The largest mean acceleration [rad/s^2] of ``sections`` (default I and IV; 0 without sections)."""
     accel = 0.0
     if section is None:
         return accel
-    for k in (1, 4):
+    for k in sections:
         idx = np.nonzero(section == k)[0]
         if len(idx) >= 2:
             accel = max(accel, abs(float(speed[idx[-1]] - speed[idx[0]])) / ((len(idx) - 1) * T_s))
     return accel
+
+
+@dataclass(frozen=True)
+class RigidFit:
+    """The test record read as one rigid body with Coulomb friction, ``J dw/dt = M - M_F sign(w)``,
+    fitted by least squares to the measured speed over the whole record: ``J`` [kg m^2], ``M_F``
+    [Nm], ``residual`` (RMS of the speed left unexplained over the speed's RMS) and ``periods`` (the
+    record's duration over the period of the residual's dominant frequency). Where the load moved
+    with the motor, ``J`` is ``J_sigma`` and ``M_F`` the load's friction (a visible oscillation is
+    averaged out over several periods); where a slow mode did not complete, the residual is a trend
+    of about one period and ``J`` lies between ``J_M`` and ``J_sigma``."""
+
+    J: float = 0.0
+    M_F: float = 0.0
+    residual: float = 1.0
+    periods: float = 0.0
+
+
+def _measured_torque(record: Any, K_M: float) -> np.ndarray | None:
+    """The measured air-gap torque [Nm] (``torque``, or ``current * K_M``), else the torque reference."""
+    for torque, scale in ((record.torque, 1.0), (record.current, K_M), (record.torque_ref, 1.0)):
+        if torque is not None:
+            return np.asarray(torque, dtype=np.float64) * scale
+    return None
+
+
+def rigid_fit(record: Any, config: Any, padding: int = 4) -> RigidFit:
+    """:class:`RigidFit` of a test record (the speed against the integrated measured torque, the
+    integrated sign of the speed and a constant); an empty fit where the record has no torque or
+    the fit has no positive inertia."""
+    T_s = float(config.T_s)
+    speed = np.asarray(record.speed, dtype=np.float64)
+    torque = _measured_torque(record, float(config.K_M))
+    if torque is None or len(torque) != len(speed) or len(speed) < 8 or not np.isfinite(torque).all():
+        return RigidFit()
+    impulse = np.concatenate([[0.0], np.cumsum(0.5 * (torque[1:] + torque[:-1])) * T_s])
+    friction = np.concatenate([[0.0], np.cumsum(np.sign(speed[:-1])) * T_s])
+    design = np.stack([impulse, -friction, np.ones_like(speed)], axis=1)
+    coef, *_ = np.linalg.lstsq(design, speed, rcond=None)
+    speed_rms = float(np.sqrt(np.mean(speed**2)))
+    if not (coef[0] > 0 and speed_rms > 0):
+        return RigidFit()
+    resid = speed - design @ coef
+    return RigidFit(J=float(1.0 / coef[0]), M_F=float(coef[1] / coef[0]), residual=float(np.sqrt(np.mean(resid**2))) / speed_rms,
+                    periods=_dominant_frequency([resid], T_s, padding) * len(speed) * T_s)
 
 
 def _along_torque(record: Any, speed: np.ndarray, q_w: float, on_share: float) -> float:
@@ -263,6 +375,7 @@ def measure_run(record: Any, config: Any, rules: ExcitationRules | None = None) 
     counts = tuple(int((section == k).sum()) for k in range(1, 7)) if section is not None else (0,) * 6
     parts = _oscillating_parts(speed, section, rules.fit_min_samples)
     meta = record.meta or {}
+    fit = rigid_fit(record, config, rules.spectrum_padding)
     return RunFigures(
         along_torque_quanta=_along_torque(record, speed, q_w, rules.torque_on_share),
         samples_per_section=counts, samples_min=min(counts),
@@ -271,7 +384,8 @@ def measure_run(record: Any, config: Any, rules: ExcitationRules | None = None) 
         osc_quanta=float(np.sqrt(np.mean(np.concatenate(parts) ** 2))) / q_w if parts else 0.0,
         f_osc=_dominant_frequency(parts, T_s, rules.spectrum_padding), longest_section=max(counts) * T_s,
         accel=_mean_acceleration(speed, section, T_s), **record_peaks(record, T_s, float(config.K_M)),
-        duration=len(speed) * T_s)
+        duration=len(speed) * T_s, accel_first=_mean_acceleration(speed, section, T_s, (1,)), rigid_J=fit.J,
+        rigid_M_F=fit.M_F, rigid_residual=fit.residual, rigid_periods=fit.periods)
 
 
 def measure_response(record: Any, config: Any) -> dict[str, Any]:
@@ -685,6 +799,193 @@ def judge_run(run: ExcitationRun) -> RuleDecision:
     return decision
 
 
+# --------------------------------------------------------------------------- E0, E11: informative within the limits
+
+
+def trusted_J(figures: RunFigures, rules: ExcitationRules, max_residual: float | None = None,
+              min_periods: float | None = None) -> float | None:
+    """The rigid-body fit's inertia [kg m^2] of a run that accelerated the load with the motor (the fit
+    explains the speed to ``max_residual``, default ``trust_max_residual``, and what it leaves is an
+    oscillation of at least ``min_periods`` (default ``trust_min_periods``) periods in the record, or
+    nearly nothing); None otherwise (a slow mode the run did not complete: the motor moved alone,
+    and ``M_star / accel`` is about ``J_M``)."""
+    bound = rules.trust_max_residual if max_residual is None else max_residual
+    periods = rules.trust_min_periods if min_periods is None else min_periods
+    if figures.aborted or figures.rigid_J <= 0 or figures.rigid_residual > bound:
+        return None
+    if figures.rigid_periods >= periods or figures.rigid_residual <= rules.trust_exact_residual:
+        return figures.rigid_J
+    return None
+
+
+def trusted_inertia(excitation: ExcitationResult, rules: ExcitationRules | None = None) -> float | None:
+    """The inertia [kg m^2] the accepted test run (the last one the drive did not stop) shows as a
+    rigid body, where that run accelerated the load with the motor (:func:`trusted_J`); None where it
+    did not (the fallback F1 then designs on the identified ``J_sigma``)."""
+    rules = rules or ExcitationRules()
+    kept = [e for e in excitation.log if not e.get("aborted", False)]
+    if not kept:
+        return None
+    names = {f.name for f in fields(RunFigures)} - {"samples_per_section"}
+    entry = kept[-1]
+    figures = RunFigures(samples_per_section=tuple(entry.get("samples_per_section", ())),
+                         **{k: entry[k] for k in names if k in entry})
+    return trusted_J(figures, rules)
+
+
+def rigid_travel(w_max: float, M_star: float, J: float, M_F: float = 0.0) -> float:
+    """The largest travel [rad] of the six-section test (SPEC section 2) on a rigid body ``J`` with
+    Coulomb friction ``M_F``: section I up to ``w_max``, II coasting as long as I (or down to
+    ``0.2 w_max``), III braking at ``0.7 M_star`` to rest; IV-VI come back. Without friction
+    ``2.21 w_max^2 J / M_star``, the most for any ``M_F`` up to ``M_star / 2``; inf where ``M_F >= M_star``."""
+    a1 = (M_star - M_F) / J
+    if not a1 > 0:
+        return math.inf
+    t1 = w_max / a1
+    a2 = M_F / J
+    t2 = t1 if a2 <= 0 else min(t1, 0.8 * w_max / a2)
+    w2 = w_max - a2 * t2
+    return w_max * t1 / 2 + w_max * t2 - a2 * t2**2 / 2 + w2**2 / (2 * (0.7 * M_star + M_F) / J)
+
+
+def informative_limits(limits: sim.DriveLimits, config: Any, rules: ExcitationRules) -> dict[str, float]:
+    """E0: the smallest speed [rad/s] and travel [rad] limits within which an informative test can
+    fit at all, from the drive's ``config`` alone: the speed range of ``min_range_quanta`` speed
+    quanta needs a peak of half of it both ways; a rigid run at that speed with sections of
+    ``min_section_samples`` travels ``min_travel_factor`` times speed times section, inside the
+    travel the drive is handed (less the stop's run-on, :func:`guarded_limits`)."""
+    T_s = float(config.T_s)
+    w_min = rules.min_range_quanta * sim.speed_quantum(float(config.encoder_counts), T_s) / 2
+    travel = rules.min_travel_factor * w_min * rules.min_section_samples * T_s
+    run_on = max(limits.w_max, w_min) * stop_headroom(1.0, config, rules)
+    return {"w_max": w_min, "travel": min(travel + run_on, travel / rules.max_guard_share)}
+
+
+def _raise_text(needed: dict[str, float]) -> str:
+    names = {"w_max": ("speed", "rad/s"), "travel": ("travel", "rad")}
+    return " and ".join(f"the {names[k][0]} limit to >= {v:.3g} {names[k][1]}" for k, v in needed.items())
+
+
+def check_limits(limits: sim.DriveLimits, config: Any, rules: ExcitationRules) -> None:
+    """E0, before the first run: raise :class:`LimitsTooTight` (one line naming the limit to raise
+    and to what) where no informative test fits within the user's limits (:func:`informative_limits`)."""
+    need = informative_limits(limits, config, rules)
+    short = {k: v for k, v in need.items() if getattr(limits, k) < v}
+    if short:
+        q_w = sim.speed_quantum(float(config.encoder_counts), float(config.T_s))
+        raise LimitsTooTight(f"limits: no informative test fits within {limits.w_max:g} rad/s and {limits.travel:g} rad: raise "
+                             f"{_raise_text(short)} (a test spans {rules.min_range_quanta:g} speed quanta of {q_w:.3g} rad/s "
+                             f"with sections of {rules.min_section_samples} samples)", short)
+
+
+@dataclass(frozen=True)
+class ProbeBasis:
+    """E11: what a long-section probe is planned on: an inertia ``J`` [kg m^2] that bounds the
+    plant's, its friction ``M_F`` [Nm], the share of the drive's travel the probe may use, and
+    whether ``J`` is a trusted one (else the envelope's bound ``(1 + V_J_max) M_star / accel_first``)."""
+
+    J: float
+    M_F: float
+    share: float
+    trusted: bool
+
+    @classmethod
+    def of(cls, plan: RunPlan, figures: RunFigures, rules: ExcitationRules) -> ProbeBasis | None:
+        J = trusted_J(figures, rules, rules.probe_max_residual, rules.probe_min_periods)
+        if J is not None:
+            return cls(J * (1 + rules.trust_margin), max(figures.rigid_M_F, 0.0), rules.travel_margin, True)
+        if not figures.accel_first > 0:
+            return None
+        return cls((1 + rules.V_J_max) * plan.M_star / figures.accel_first, 0.0, rules.probe_untrusted_share, False)
+
+    def torque_for(self, w_max: float, travel: float, M_high: float) -> float:
+        """The smallest ``M_star`` up to ``M_high`` whose rigid travel at ``w_max`` fits in ``travel``
+        (``M_high`` where none does)."""
+        lo, hi = self.M_F / (1 - 1e-9) if self.M_F > 0 else 1e-9 * M_high, M_high
+        if rigid_travel(w_max, hi, self.J, self.M_F) > travel:
+            return hi
+        for _ in range(60):
+            mid = math.sqrt(lo * hi)
+            lo, hi = (lo, mid) if rigid_travel(w_max, mid, self.J, self.M_F) <= travel else (mid, hi)
+        return hi
+
+
+@dataclass(frozen=True)
+class ProbeOutlook:
+    """E11: the next probe's plan, or None with ``needed``: the limits to raise, and to what, for a
+    probe whose sections last ``probe_periods`` periods of ``slowest_f_e``."""
+
+    plan: RunPlan | None
+    needed: dict[str, float]
+    why: str
+
+
+def _probe_at_cap(basis: ProbeBasis, limits: sim.DriveLimits, config: Any, rules: ExcitationRules,
+                  headroom: Headroom) -> ProbeOutlook:
+    """E11 for a run that moved as one rigid body (its fit explains the speed to
+    ``trust_exact_residual``): longer sections show nothing more; E7 accepts a hidden oscillation at
+    the torque cap, so the probe runs at the cap with sections of ``min_section_samples`` (+1) and
+    the speed range E2 needs, where the limits allow it; else the limits that would."""
+    T_s, M_cap = float(config.T_s), limits.torque_cap(config)
+    J = basis.J / (1 + rules.trust_margin)
+    w_range = rules.probe_range_margin * rules.min_range_quanta * sim.speed_quantum(float(config.encoder_counts), T_s) / 2
+    w_max = max(w_range, (rules.min_section_samples + 1) * T_s * (M_cap - basis.M_F) / J)
+    over = headroom.at(M_cap, limits.w_max, config, rules)
+    speed = w_max * (1 + rules.swing_allowance) / rules.speed_margin + over
+    travel = rigid_travel(w_max, M_cap, basis.J, basis.M_F) / rules.travel_margin
+    run_on = limits.w_max * stop_headroom(1.0, config, rules)
+    needed = {"w_max": speed, "travel": min(travel + run_on, travel / rules.max_guard_share)}
+    needed = {k: v for k, v in needed.items() if v > getattr(limits, k)}
+    if needed:
+        return ProbeOutlook(None, needed, f"a rigid response: a hidden oscillation is accepted at the torque cap {M_cap:.3g} Nm, "
+                                          f"whose sections of {rules.min_section_samples} samples need w_max {w_max:.3g} rad/s")
+    return ProbeOutlook(RunPlan(M_cap, w_max), {}, "")
+
+
+def plan_probe(plan: RunPlan, figures: RunFigures, limits: sim.DriveLimits, config: Any, rules: ExcitationRules,
+               headroom: Headroom, stopped: bool = False) -> ProbeOutlook:
+    """E11: a test with longer sections at lower ``M_star`` than ``plan`` (measured as ``figures``):
+    ``w_max`` the smallest that resolves the speed range (``probe_range_margin``), ``M_star`` the
+    smallest whose rigid travel (:func:`rigid_travel` on :class:`ProbeBasis`) fits in the travel the
+    drive is handed, no smaller than sections of ``probe_periods`` periods of ``slowest_f_e`` need;
+    None where the sections would not get longer by ``probe_min_lengthening``, with the limits that
+    would let them. A rigid response gets a probe at the torque cap instead (not after a run the
+    drive ``stopped``); ``w_max`` stays below the ceiling a stopped run set (E8)."""
+    basis = ProbeBasis.of(plan, figures, rules)
+    if basis is None:
+        return ProbeOutlook(None, {}, "no acceleration measured")
+    if basis.trusted and figures.rigid_residual <= rules.trust_exact_residual:
+        if stopped:  # a run the drive stopped: no run at more torque than the rules allowed
+            return ProbeOutlook(None, {}, "a rigid response, and a run was stopped by the drive")
+        return _probe_at_cap(basis, limits, config, rules, headroom)
+    w_need = rules.probe_range_margin * rules.min_range_quanta * sim.speed_quantum(float(config.encoder_counts), float(config.T_s)) / 2
+    room = rules.speed_margin * (limits.w_max - headroom.at(plan.M_star, limits.w_max, config, rules)) / (1 + rules.swing_allowance)
+    if w_need > plan.w_ceiling:
+        return ProbeOutlook(None, {}, f"a run the drive stopped keeps w_max below {plan.w_ceiling:.3g} rad/s")
+    if w_need > room:
+        w_limit = w_need * (1 + rules.swing_allowance) / rules.speed_margin + headroom.at(plan.M_star, limits.w_max, config, rules)
+        return ProbeOutlook(None, {"w_max": w_limit}, f"a speed range of {rules.min_range_quanta:g} speed quanta needs w_max "
+                                                      f"{w_need:.3g} rad/s")
+    section = rules.probe_periods / rules.slowest_f_e
+    J_nominal = basis.J / (1 + rules.trust_margin) if basis.trusted else basis.J
+    M_target = basis.M_F + J_nominal * w_need / section
+    guarded = guarded_limits(limits, 0.0, config, rules)
+    M_travel = basis.torque_for(w_need, basis.share * guarded.travel, plan.M_star)
+    M_star = max(M_travel, M_target, basis.M_F / rules.rigid_friction_share)
+    if M_star <= plan.M_star / rules.probe_min_lengthening:
+        return ProbeOutlook(RunPlan(M_star, w_need), {}, "")
+    travel = rigid_travel(w_need, M_target, basis.J, basis.M_F) / basis.share
+    run_on = limits.w_max * stop_headroom(1.0, config, rules)
+    needed = {"travel": min(travel + run_on, travel / rules.max_guard_share)}
+    if needed["travel"] <= limits.travel:  # not the travel: friction, or the sections are as long as the probe aims at
+        why = (f"the friction {basis.M_F:.3g} Nm keeps M_star above {M_star:.3g} Nm" if M_star > max(M_travel, M_target) else
+               f"the sections already last about {section:.3g} s ({rules.probe_periods:g} periods of {rules.slowest_f_e:g} Hz)")
+        return ProbeOutlook(None, {}, why)
+    return ProbeOutlook(None, needed, f"sections of {section:.3g} s ({rules.probe_periods:g} periods of {rules.slowest_f_e:g} Hz) at "
+                                      f"{w_need:.3g} rad/s on J {basis.J:.3g} kg m^2 "
+                                      f"({'measured' if basis.trusted else 'bound from the motor inertia'})")
+
+
 # --------------------------------------------------------------------------- the adaptation
 
 
@@ -727,27 +1028,147 @@ def adapt_test_signal(drive: Any, limits: sim.DriveLimits, rules: ExcitationRule
     """
     rules = _checked(drive, limits, rules)
     config = drive.config
-    M_cap = limits.torque_cap(config)
-    plan, headroom, stopped = first_plan(limits, M_cap, rules), Headroom(), None
-    log = [] if log is None else log
-    records: list[Any] = []
-    kept: list[Any] = []  # the records the drive did not stop
+    if rules.refuse_uninformative_limits:
+        check_limits(limits, config, rules)
+    session = _Session(drive, limits, rules, config, [] if log is None else log)
+    plan, stopped = first_plan(limits, session.M_cap, rules), None
     for iteration in range(rules.max_iterations):
-        guarded = guarded_limits(limits, headroom.at(plan.M_star, limits.w_max, config, rules), config, rules)
-        record = drive.run_test(plan.M_star, plan.w_max, guarded)
-        records.append(record)
-        figures = measure_run(record, config, rules)
-        if not figures.aborted:
-            kept.append(record)
-        headroom = headroom.learned(plan, figures)
-        run = ExcitationRun.of(plan, figures, guarded, limits, M_cap, headroom, stopped, config, rules)
+        run = session.run(plan, stopped)
         decision = judge_run(run)
-        log.append(_log_entry(iteration, run, decision))
+        session.log.append(_log_entry(iteration, run, decision))
         if decision.verdict != RUN_AGAIN:
             code, reason = decision.verdict, decision.reason
             break
-        plan, stopped = decision.plan, figures if figures.aborted else stopped
+        plan, stopped = decision.plan, run.figures if run.figures.aborted else stopped
     else:
         code, reason = "max_iterations", f"no informative response after {rules.max_iterations} runs"
-    return ExcitationResult(record=kept[-1] if kept else records[-1], records=records, log=log,
-                            informative=code == "informative", reason=reason, code=code)
+    kept, probes, needed = session.kept[-1] if session.kept else session.records[-1], [], {}
+    outcome = None
+    if code in PROBED_ENDS and session.last_kept is not None and not session.last_kept.figures.timed_out:
+        outcome = session.probe(code, reason)
+    elif code == "informative" and session.last_kept is not None:
+        outcome = session.into_envelope(reason)
+    if outcome is not None:
+        code, reason, needed, probes = outcome.code, outcome.reason, outcome.needed, outcome.unused
+        kept = kept if outcome.record is None else outcome.record
+    return ExcitationResult(record=kept, records=session.records, log=session.log, informative=code == "informative",
+                            reason=reason, code=code, probes=probes, needed=needed)
+
+
+#: The ends of the rules after which E11 plans long-section probes.
+PROBED_ENDS: frozenset[str] = frozenset({"limits_reached", "max_iterations"})
+
+
+@dataclass
+class _Session:
+    """One adaptation on a drive: the runs so far (records, those the drive did not stop, the log,
+    the last run it did not stop) and what they taught about the headroom after a stop (E9)."""
+
+    drive: Any
+    limits: sim.DriveLimits
+    rules: ExcitationRules
+    config: Any
+    log: list[dict[str, Any]]
+    records: list[Any] = field(default_factory=list)
+    kept: list[Any] = field(default_factory=list)
+    headroom: Headroom = field(default_factory=Headroom)
+    last_kept: ExcitationRun | None = None
+    stopped: bool = False
+    """The drive stopped a run at a limit."""
+
+    @property
+    def M_cap(self) -> float:
+        return self.limits.torque_cap(self.config)
+
+    def run(self, plan: RunPlan, stopped: RunFigures | None) -> ExcitationRun:
+        """One test run on the drive at ``plan``, inside the limits less the headroom (E9), measured."""
+        config, rules = self.config, self.rules
+        guarded = guarded_limits(self.limits, self.headroom.at(plan.M_star, self.limits.w_max, config, rules), config, rules)
+        record = self.drive.run_test(plan.M_star, plan.w_max, guarded)
+        self.records.append(record)
+        figures = measure_run(record, config, rules)
+        self.headroom = self.headroom.learned(plan, figures)
+        run = ExcitationRun.of(plan, figures, guarded, self.limits, self.M_cap, self.headroom, stopped, config, rules)
+        if not figures.aborted:
+            self.kept.append(record)
+            self.last_kept = run
+        self.stopped = self.stopped or figures.aborted
+        return run
+
+    def accepted(self, run: ExcitationRun) -> bool:
+        """A probe is accepted as E7 accepts a run: not stopped, nothing missing, or only the
+        oscillation at the torque cap."""
+        deficits = run.deficits
+        return not run.figures.aborted and (not deficits.any or (deficits.only_hidden and run.plan.M_star >= self.M_cap))
+
+    def into_envelope(self, reason: str) -> ProbeOutcome | None:
+        """E12: an informative run whose time scale ``J w_max / M_star`` on its trusted inertia lies
+        below ``min_time_scale`` gets one probe at ``time_scale_margin`` times it (less torque, same
+        ``w_max``) where its rigid travel fits, used when informative; None: no probe."""
+        rules, base = self.rules, self.last_kept
+        J = trusted_J(base.figures, rules)
+        if J is None or J * base.plan.w_max / base.plan.M_star >= rules.min_time_scale:
+            return None
+        M_F = max(base.figures.rigid_M_F, 0.0)
+        M_star = J * base.plan.w_max / (rules.time_scale_margin * rules.min_time_scale)
+        room = rules.travel_margin * guarded_limits(self.limits, 0.0, self.config, rules).travel
+        if M_star < M_F / rules.rigid_friction_share or rigid_travel(base.plan.w_max, M_star, J * (1 + rules.trust_margin), M_F) > room:
+            return None
+        run = self.run(RunPlan(M_star, base.plan.w_max), None)
+        done = self.accepted(run)
+        lacks = ", ".join(run.deficits.names()) if not run.figures.aborted else "stopped by the drive"
+        entry = _log_entry(len(self.log), run, RuleDecision(run.plan, verdict="informative" if done else RUN_AGAIN,
+                                                            decision="accept" if done else "not used",
+                                                            reason="E12 probe inside the envelope's time scale" +
+                                                                   ("" if done else f": {lacks}")))
+        if done:
+            self.log.append(entry)
+            return ProbeOutcome("informative", f"informative (E12 probe at M_star {M_star:.3g} Nm, inside the envelope's "
+                                               f"time scale)", {}, [], self.records[-1])
+        return ProbeOutcome("informative", reason, {}, [entry])
+
+    def probe(self, code: str, reason: str) -> ProbeOutcome:
+        """E11: up to ``max_probes`` tests with longer sections at lower ``M_star`` (:func:`plan_probe`,
+        each from the last run the drive did not stop); the first informative one is accepted (its
+        entry ends the log), a stopped one ends the probing. Without one: ``code``, and ``reason``
+        with the limits to raise; the probes' entries apart (their records are not used)."""
+        rules, unused = self.rules, []
+        for _ in range(rules.max_probes):
+            base = self.last_kept
+            outlook = plan_probe(base.plan, base.figures, self.limits, self.config, rules, self.headroom, self.stopped)
+            if outlook.plan is None:
+                return ProbeOutcome(code, _probe_reason(reason, outlook), outlook.needed, unused)
+            run = self.run(outlook.plan, None)
+            done = self.accepted(run)
+            lacks = ", ".join(run.deficits.names()) if not run.figures.aborted else "stopped by the drive"
+            decision = RuleDecision(run.plan, verdict="informative" if done else RUN_AGAIN,
+                                    decision="accept" if done else "not used",
+                                    reason="E11 long-section probe" + ("" if done else f": {lacks}"))
+            entry = _log_entry(len(self.log) + len(unused), run, decision)
+            if done:
+                self.log.append(entry)
+                return ProbeOutcome("informative", f"informative (E11 long-section probe at M_star {run.plan.M_star:.3g} Nm)",
+                                    {}, unused, self.records[-1])
+            unused.append(entry)
+            if run.figures.aborted:
+                return ProbeOutcome(code, f"{reason}; an E11 long-section probe was stopped by the drive", {}, unused)
+        return ProbeOutcome(code, f"{reason}; {rules.max_probes} E11 long-section probes not informative", {}, unused)
+
+
+@dataclass(frozen=True)
+class ProbeOutcome:
+    """How E11's probes ended: the adaptation's ``code`` and ``reason``, the limits to raise
+    (``needed``), the unused probes' log entries and the informative probe's record (None: none)."""
+
+    code: str
+    reason: str
+    needed: dict[str, float]
+    unused: list[dict[str, Any]]
+    record: Any = None
+
+
+def _probe_reason(reason: str, outlook: ProbeOutlook) -> str:
+    """The adaptation's reason where no (further) probe fits: the limits to raise, and to what."""
+    if not outlook.needed:
+        return f"{reason}; no longer-section probe: {outlook.why}"
+    return f"{reason}; raise {_raise_text(outlook.needed)} for an informative test ({outlook.why})"

@@ -16,7 +16,7 @@ import pytest
 sim = pytest.importorskip("sim")
 
 from training.cli import main  # noqa: E402
-from training.commissioning import CommissioningConfig, FileDrive, adapt_test_signal, commission  # noqa: E402
+from training.commissioning import CommissioningConfig, ExcitationRules, FileDrive, adapt_test_signal, commission  # noqa: E402
 from training.commissioning._tuning import TuningScenario, loop_verdict, response_figures  # noqa: E402
 from training.errors import CommissioningError, ExperimentPending  # noqa: E402
 
@@ -98,7 +98,8 @@ def test_a_stopped_run_is_never_repeated_unchanged():
     """A 10 mrad travel limit: the stopped runs used to repeat (only w_max halved, M* kept) up to the
     10-run cap; then M* came down too and no stopped run repeated the one before; now (E6d: the travel
     predicted from the peak as well, below the drive's stop travel) the drive stops none."""
-    res = adapt_test_signal(sim.SimulatedDrive(faulty_drives.PLANT), sim.DriveLimits(w_max=100.0, travel=0.01))
+    res = adapt_test_signal(sim.SimulatedDrive(faulty_drives.PLANT), sim.DriveLimits(w_max=100.0, travel=0.01),
+                            ExcitationRules(refuse_uninformative_limits=False))  # E0 would refuse it before any run
     assert len(res.log) < 10
     stopped = [(e["M_star"], e["w_max"], e["peak_speed"], e["travel"]) for e in res.log if e["aborted"]]
     assert all(a != b for a, b in zip(stopped, stopped[1:]))
@@ -140,7 +141,7 @@ def _one_error_line(capsys, *words):
 def test_command_checks_before_any_experiment(tmp_path, capsys):
     folder = tmp_path / "rig"
     folder.mkdir()
-    (folder / "drive.json").write_text(json.dumps({"config": {"T_s": 2.5e-4, "K_M": 1.0, "T_Ei": 5e-4, "encoder_counts": 2**16,
+    (folder / "drive.json").write_text(json.dumps({"config": {"T_s": 2.5e-4, "K_M": 1.0, "T_Ei": 5e-4, "encoder_counts": 2**20,
                                                               "M_N": 10.0, "M_max": 20.0}, "limits": {"w_max": 20, "travel": 5}}))
     assert main(["commission", "--resume", str(folder), "--w-limit", "1", "--no-progress"]) == 2
     _one_error_line(capsys, "--w-limit", "drive.json")

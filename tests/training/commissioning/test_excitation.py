@@ -132,9 +132,10 @@ def test_soft_mode_swinging_on_after_section_one_stays_inside():
     dict(J_sigma=0.03363, V_J=1.670, f_e=5.099, d=0.03747, backlash=0.001331, M_FC=0.3969, mu_F=0.003137),
 ])
 def test_a_travel_limit_below_the_quantized_run_on_holds(params):
+    """E6d, with E0's refusal of such a limit switched off (run inside it anyway)."""
     limits = sim.DriveLimits(w_max=100.0, travel=0.01)
     drive = Recording(params)
-    res = adapt_test_signal(drive, limits)
+    res = adapt_test_signal(drive, limits, ExcitationRules(refuse_uninformative_limits=False))
     for rec in drive.records:
         assert not rec.meta["aborted"]
         assert np.abs(np.cumsum(rec.speed) * DRIVE.T_s).max() <= limits.travel
