@@ -290,19 +290,25 @@ def _median(values: Sequence[float]) -> float:
     return statistics.median(values) if values else math.nan
 
 
+def _worst_margins(delivered: Sequence[BenchRow]) -> tuple[float | None, float | None]:
+    """The smallest true phase margin [deg] and gain margin [dB] of the delivered loops (None: none)."""
+    pms = [r.phase_margin for r in delivered if r.phase_margin is not None]
+    gms = [r.gain_margin_dB for r in delivered if r.gain_margin_dB is not None]
+    return min(pms, default=None), min(gms, default=None)
+
+
 def summarize_rows(rows: Sequence[BenchRow], drive: str) -> DriveSummary:
     """:class:`DriveSummary` of the ``rows`` of ``drive``."""
     mine = [r for r in rows if r.drive == drive]
     delivered = [r for r in mine if r.delivered != "none"]
-    pms = [r.phase_margin for r in delivered if r.phase_margin is not None]
-    gms = [r.gain_margin_dB for r in delivered if r.gain_margin_dB is not None]
+    min_pm, min_gm = _worst_margins(delivered)
     cycles = [r for r in mine if r.limit_cycle]
     return DriveSummary(
         drive=drive, plants=len(mine), median_ratio=_median([r.ratio for r in mine]),
         class_median_ratio={c: _median([r.ratio for r in mine if r.structure == c]) for c in sorted({r.structure for r in mine})},
         at_least_floor=sum(r.ratio >= TARGETS.ratio_floor for r in mine),
         fallback=sum(r.delivered == "F1" for r in mine), delivered=len(delivered),
-        min_phase_margin=min(pms, default=None), min_gain_margin_dB=min(gms, default=None),
+        min_phase_margin=min_pm, min_gain_margin_dB=min_gm,
         unstable=sum(r.stable is False for r in delivered), limit_cycles=len(cycles),
         limit_cycles_backlash=sum(r.backlash > 0 for r in cycles), within_limits=sum(r.within_limits for r in mine),
         median_seconds=_median([r.seconds for r in mine]))
