@@ -72,6 +72,9 @@ class Targets:
     """True phase margin [deg] of every delivered loop."""
     min_gain_margin_dB: float = 6.0
     """True gain margin [dB] of every delivered loop."""
+    max_load_peak_dB: float = 20 * math.log10(2.0)
+    """True reference-to-load peak [dB] of a loop that does not ring the load (the oracle's bound:
+    a delivered loop above it may pass the oracle's crossover, its ratio above 1)."""
 
 
 TARGETS = Targets()
@@ -264,6 +267,7 @@ class DriveSummary:
     min_phase_margin: float | None
     min_gain_margin_dB: float | None
     unstable: int
+    ringing: int
     limit_cycles: int
     limit_cycles_backlash: int
     within_limits: int
@@ -281,6 +285,7 @@ class DriveSummary:
             f"true PM >= {t.min_phase_margin:g} deg, GM >= {t.min_gain_margin_dB:g} dB, stable": self.unstable == 0 and (
                 self.min_phase_margin is None or (self.min_phase_margin >= t.min_phase_margin
                                                   and self.min_gain_margin_dB >= t.min_gain_margin_dB)),
+            f"load peak <= {t.max_load_peak_dB:.0f} dB": self.ringing == 0,
             "no limit cycle on backlash plants": self.limit_cycles_backlash == 0,
             "every experiment inside the limits": self.within_limits == n,
         }
@@ -309,7 +314,9 @@ def summarize_rows(rows: Sequence[BenchRow], drive: str) -> DriveSummary:
         at_least_floor=sum(r.ratio >= TARGETS.ratio_floor for r in mine),
         fallback=sum(r.delivered == "F1" for r in mine), delivered=len(delivered),
         min_phase_margin=min_pm, min_gain_margin_dB=min_gm,
-        unstable=sum(r.stable is False for r in delivered), limit_cycles=len(cycles),
+        unstable=sum(r.stable is False for r in delivered),
+        ringing=sum(r.load_peak_dB is not None and r.load_peak_dB > TARGETS.max_load_peak_dB for r in delivered),
+        limit_cycles=len(cycles),
         limit_cycles_backlash=sum(r.backlash > 0 for r in cycles), within_limits=sum(r.within_limits for r in mine),
         median_seconds=_median([r.seconds for r in mine]))
 
@@ -339,7 +346,8 @@ def summary_lines(s: DriveSummary) -> list[str]:
              f">= {TARGETS.ratio_floor}: {s.at_least_floor}/{s.plants}",
              f"delivered {s.delivered}/{s.plants} ({s.delivered - s.fallback} model-based, {s.fallback} F1); "
              f"true PM min {_fmt(s.min_phase_margin, '.1f')} deg, GM min {_fmt(s.min_gain_margin_dB, '.1f')} dB, "
-             f"unstable {s.unstable}",
+             f"unstable {s.unstable}; load peak above {TARGETS.max_load_peak_dB:.0f} dB (rings the load, the "
+             f"oracle's bound): {s.ringing}",
              f"limit cycles: {s.limit_cycles} ({s.limit_cycles_backlash} on backlash plants); experiments inside the "
              f"limits: {s.within_limits}/{s.plants}; seconds per plant: median {s.median_seconds:.0f}"]
     lines += [f"  target {name}: {'kept' if ok else 'MISSED'}" for name, ok in s.verdicts.items()]

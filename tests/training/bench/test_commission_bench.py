@@ -94,26 +94,26 @@ def test_limit_cycle_criterion() -> None:
 
 
 def _row(plant: int, structure: str, ratio: float, delivered: str = "model", pm: float = 50.0, backlash: float = 0.0,
-         cycle: bool = False, within: bool = True) -> BenchRow:
+         cycle: bool = False, within: bool = True, peak: float = 1.0) -> BenchRow:
     return BenchRow(plant=plant, drive="reference", structure=structure, f_e=50.0, V_J=1.0, backlash=backlash,
                     oracle_w_c=100.0, oracle_notches=0, delivered=delivered, refusal=None, fallback_reason=None,
                     stated_w_c=None, w_c=None if delivered == "none" else 100 * ratio, ratio=ratio,
                     phase_margin=None if delivered == "none" else pm, gain_margin_dB=None if delivered == "none" else 9.0,
-                    load_peak_dB=1.0, stable=None if delivered == "none" else True,
+                    load_peak_dB=peak, stable=None if delivered == "none" else True,
                     limit_cycle=None if delivered == "none" else cycle, within_limits=within)
 
 
 def test_summary_counts_by_hand() -> None:
     rows = [_row(0, "stiff", 0.9), _row(1, "stiff", 0.7), _row(2, "elastic", 0.2, "F1", pm=70.0),
             _row(3, "elastic", 0.0, "none"), _row(4, "elastic_backlash", 0.6, backlash=0.01, cycle=True, pm=38.0),
-            _row(5, "stiff", 1.0, within=False)]
+            _row(5, "stiff", 1.0, within=False), _row(6, "stiff", 1.3, peak=9.0)]
     s = summarize_rows(rows, "reference")
-    assert s.plants == 6 and s.median_ratio == pytest.approx(0.65)  # (0.6 + 0.7) / 2
-    assert s.class_median_ratio == {"elastic": 0.1, "elastic_backlash": 0.6, "stiff": 0.9}
-    assert s.at_least_floor == 4 and s.fallback == 1 and s.delivered == 5
-    assert s.min_phase_margin == 38.0 and s.limit_cycles_backlash == 1 and s.within_limits == 5
+    assert s.plants == 7 and s.median_ratio == pytest.approx(0.7)
+    assert s.class_median_ratio == {"elastic": 0.1, "elastic_backlash": 0.6, "stiff": 0.95}
+    assert s.at_least_floor == 5 and s.fallback == 1 and s.delivered == 6 and s.ringing == 1
+    assert s.min_phase_margin == 38.0 and s.limit_cycles_backlash == 1 and s.within_limits == 6
     v = s.verdicts
-    assert not v["median ratio >= 0.8"] and not v["no limit cycle on backlash plants"]
+    assert not v["median ratio >= 0.8"] and not v["no limit cycle on backlash plants"] and not v["load peak <= 6 dB"]
     assert not v["true PM >= 40 deg, GM >= 6 dB, stable"] and not v["every experiment inside the limits"]
     assert summarize_rows(rows, "2nd-order+delay").plants == 0
 
