@@ -11,6 +11,7 @@ from training.errors import UserError
 
 #: target name -> module (imported only when the target runs)
 TARGETS: dict[str, str] = {
+    "commission": "training.bench._commission",
     "identify": "training.bench._identify",
     "sim": "training.bench._sim",
     "som": "training.bench._som",

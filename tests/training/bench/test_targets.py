@@ -19,8 +19,8 @@ def test_table_renders_markdown() -> None:
 
 
 def test_targets() -> None:
-    assert sorted(TARGETS) == ["identify", "sim", "som", "train"]
-    with pytest.raises(UserError, match="valid targets: identify, sim, som, train"):
+    assert sorted(TARGETS) == ["commission", "identify", "sim", "som", "train"]
+    with pytest.raises(UserError, match="valid targets: commission, identify, sim, som, train"):
         run_target("nope", [])
 
 
