@@ -39,7 +39,8 @@ from training._settings import (AT_LEAST_ONE, FLAG, NON_NEGATIVE_OR_INF, POSITIV
 from training.errors import CommissioningError, LimitPassed, one_line
 
 from ._bands import f1_bands, hidden_bands, widen
-from ._excitation import ExcitationResult, ExcitationRules, adapt_test_signal, guarded_limits, measure_response, stop_headroom
+from ._excitation import ExcitationResult, ExcitationRules, adapt_test_signal, guarded_limits, measure_response, stop_headroom,
+                          trusted_inertia
 from ._frf import FRF_SETTINGS, FRFSettings, MeasuredResponse
 from ._measure import measured_response, plan_frf
 from ._guard import CONFIG_KEYS, CheckedDrive, passed_limits, record_peaks
@@ -49,7 +50,7 @@ from ._permission import (CommissioningWarning, IdentificationFailed, Identifica
 from ._report import CommissioningReport, PlantRun
 from ._design import elastic_doubts
 from ._rules import ControllerProposal, ControllerSpec, propose_cautious, propose_controller, uncertainty_set
-from ._tuning import (BOUNDED_VERDICTS, Gains, TuningResult, TuningScenario, closed_loop_cost, load_peak_dB, loop_verdict,
+from ._tuning import (BOUNDED_VERDICTS, Gains, TuningResult, TuningScenario, closed_loop_cost, loop_verdict,
                       model_response, plan_scenario, response_figures, tune_controller)
 from ._validation import OSC_METRICS, VALIDATION_MODES, ValidationResult, validate_model
 
@@ -361,18 +362,12 @@ def _accepted(excitation: ExcitationResult) -> dict[str, Any]:
     return kept[-1] if kept else excitation.log[-1]
 
 
-def _test_J(excitation: ExcitationResult, *, trusted: bool = False) -> float:
+def _test_J(excitation: ExcitationResult) -> float:
     """The one-mass inertia the accepted test run's mean acceleration gives, ``M* / accel`` [kg m^2]
-    (friction makes it larger, never smaller; inf when the run had no acceleration to measure).
-
-    ``trusted``: the one inertia of the test run a design may rest on (F1): only where the run
-    accelerated the load too, i.e. its longest section holds at least one period of the
-    oscillation it shows (or it shows none); else inf (a run that moved the motor alone gives
-    ``J_M``, and a loop designed on it is slower than it states)."""
+    (friction makes it larger, never smaller; inf when the run had no acceleration to measure):
+    the bound of the stop headroom (E9), never a design's inertia (F1 takes :func:`trusted_inertia`)."""
     entry = _accepted(excitation)
     if not entry.get("accel", 0.0) > 0:
-        return math.inf
-    if trusted and entry.get("f_osc", 0.0) > 0 and entry.get("f_osc", 0.0) * entry.get("longest_section", 0.0) < 1.0:
         return math.inf
     return entry["M_star"] / entry["accel"]
 
@@ -493,10 +488,12 @@ def _fallback_plan(run: ChainRun) -> LoopPlan:
     """F1: the cautious law on ``J_sigma`` optimized over the worst cases of the class the test run
     allows (and the identified resonance), planned on the one-mass model, stating the lowest
     crossover over that set; ``J_sigma`` the smaller of the identified and the test run's
-    acceleration's where the run accelerated the load (:func:`_test_J` with ``trusted``)."""
+    rigid-body fit where the run accelerated the load (:func:`trusted_inertia`; a run that moved the
+    motor alone shows ``J_M``, and a loop designed on it is slower than it states)."""
     settings, config, result, excitation = run.settings, run.config, run.result, run.excitation
     spec, identified_J = settings.spec, float(result.parameters.J_sigma)
-    J = min(identified_J, _test_J(excitation, trusted=True))
+    trusted = trusted_inertia(excitation, settings.rules)
+    J = identified_J if trusted is None else min(identified_J, trusted)
     bands = f1_bands(_accepted(excitation), J, config, spec.class_V_J, spec.class_f_e, min_osc_quanta=settings.rules.min_osc_quanta,
                      osc_visible_ratio=settings.osc_visible_ratio)
     params = _model_params(result)
@@ -506,7 +503,7 @@ def _fallback_plan(run: ChainRun) -> LoopPlan:
     proposal = propose_cautious(J, config, spec, bands=bands)
     if J < identified_J:
         proposal = replace(proposal, rules=proposal.rules + (
-            f"F1 J_sigma from the test run's acceleration (M* / accel = {J:.4g} kg m^2), "
+            f"F1 J_sigma from the test run's rigid-body fit ({J:.4g} kg m^2), "
             f"below the identified {identified_J:.4g} kg m^2",))
     scenario, prediction = plan_scenario(proposal, [], config, run.limits, limit_use=settings.fallback_limit_use,
                                          max_samples=settings.max_samples)
@@ -881,27 +878,24 @@ def _report(run: ChainRun, excitation: ExcitationResult, M_star: float) -> Commi
         timings=run.timings, name=run.name, breach=run.drive.breach, measured=state.measured,
         redesign=None if state.redesign is None else state.redesign.proposal,
         redesign_runs=[] if state.redesign_trial is None else state.redesign_trial.runs, redesign_kept=state.redesign_kept,
-        redesign_reason=state.redesign_reason, load_peak_dB=_load_peak(run, state.delivered), limited_by=_limited_by(state))
-
-
-#: Rule codes of a design that trades bandwidth for what the test run could not show.
-_LIMITING_RULES: tuple[str, ...] = ("R7b", "R7c")
+        redesign_reason=state.redesign_reason, load_peak_dB=_load_peak(state.delivered), limited_by=_limited_by(state))
 
 
 def _limited_by(state: ChainState) -> str:
     """Why the delivered loop is below what the identified model allows: the fallback F1 and its
-    reason, or the design's rule lines that widen the guarantee (:data:`_LIMITING_RULES`); empty
-    where neither applies or nothing is delivered."""
+    reason, else what bounds the design's crossover (:attr:`ControllerProposal.limited_by`); empty
+    where nothing is delivered."""
     delivered = state.delivered
     if delivered is None:
         return ""
     if state.fallback is not None and delivered is state.fallback.proposal:
         return f"the cautious fallback F1 ({state.fallback_reason}): designed on the class's worst cases, not on the model"
-    return "; ".join(r for r in delivered.rules if r.split(" ", 1)[0] in _LIMITING_RULES)
+    return delivered.limited_by
 
 
-def _load_peak(run: ChainRun, delivered: ControllerProposal | None) -> float | None:
-    """The delivered loop's reference-to-load-speed peak [dB] on its design model (None: none delivered, or one-mass)."""
-    if delivered is None or delivered.mechanics is None:
+def _load_peak(delivered: ControllerProposal | None) -> float | None:
+    """The delivered loop's worst reference-to-load-speed peak [dB] over its design set (None: none
+    delivered, or not known)."""
+    if delivered is None or not math.isfinite(delivered.load_peak_dB):
         return None
-    return load_peak_dB(delivered.mechanics, run.config, delivered.Kp, delivered.Ti, delivered.T_f, delivered.notch)
+    return delivered.load_peak_dB

@@ -103,8 +103,8 @@ class CommissioningReport:
     without truth); ``timings`` [s]. ``measured``: the plant's frequency response measured on the
     drive (None: not measured); ``redesign``: the design made again with it (None: not made, or the
     same law), ``redesign_runs`` its candidates on the drive, ``redesign_kept`` (it is delivered) and
-    ``redesign_reason``; ``load_peak_dB``: the delivered loop's reference-to-load-speed peak on the
-    design model (None: one-mass or none delivered); ``limited_by``: why the delivered loop is below
+    ``redesign_reason``; ``load_peak_dB``: the delivered loop's worst reference-to-load-speed peak over the
+    design set (None: not known, or none delivered); ``limited_by``: why the delivered loop is below
     what the identified model allows (empty: nothing limits it but the model). ``breach``: the record that showed one of the user's limits
     passed (SPEC 8.2; None: none did): the experiments ended there, nothing is delivered, and the
     stages the chain had not reached are None (``identification``, ``validation``, ``permission``)
@@ -354,7 +354,7 @@ class CommissioningReport:
              f"   guaranteed margins (worst of {len(d.models.plants)} models: {m.model}): PM {m.phase_margin:.1f} deg, "
              f"GM {m.gain_margin_dB:.1f} dB; crossover w_c {d.figures['w_c']:.4g} rad/s on the design model"]
         if self.load_peak_dB is not None:
-            L.append(f"   reference-to-load-speed peak {self.load_peak_dB:.2f} dB on the design model")
+            L.append(f"   reference-to-load-speed peak {self.load_peak_dB:.2f} dB, the worst over the design set")
         if self.limited_by:
             L.append(f"   below what the model allows: {self.limited_by}")
         imp = self.improvement

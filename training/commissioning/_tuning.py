@@ -36,12 +36,12 @@ import scipy.signal
 import sim
 from training._settings import AT_LEAST_ONE, POSITIVE_OR_INF, SHARE, check_settings
 
-from ._loop import Mechanics, closed_loop_matrices, frequency_grid, linear_plant
+from ._loop import Mechanics, closed_loop_matrices, frequency_grid, linear_plant, load_peak_dB
 from ._rules import ControllerProposal, ControllerSpec
 
 __all__ = [
     "TuningScenario", "TuningResult", "plan_scenario", "closed_loop_cost", "response_figures", "load_estimate",
-    "model_response", "load_peak_dB", "tune_controller", "Gains", "loop_verdict", "LOOP_VERDICTS", "BOUNDED_VERDICTS",
+    "model_response", "tune_controller", "Gains", "loop_verdict", "LOOP_VERDICTS", "BOUNDED_VERDICTS",
     "USABLE_VERDICTS", "UNSCORED_VERDICTS", "ScenarioSizing", "SearchSettings", "SCENARIO_SIZING", "SEARCH",
 ]
 
@@ -203,21 +203,10 @@ def model_response(mech: Mechanics, config: Any, gains: Sequence[Gains], notch: 
     return out
 
 
-def load_peak_dB(mech: Mechanics, config: Any, Kp: float, Ti: float, T_f: float, notch: Any) -> float | None:
-    """The reference-to-load-speed peak [dB] of the law on the linear model of ``mech``: the largest
-    ``|c_L (zI - A)^-1 b_r|`` of :func:`closed_loop_matrices` over the frequency grid (the load must
-    not ring: SPEC 8.2 bounds it by 6 dB); None for one-mass mechanics, inf for an unstable loop."""
-    if not mech.two_mass:
-        return None
-    plant = linear_plant(mech, config)
-    A, b_r, _, _, c_L = closed_loop_matrices(plant, Kp, Ti, T_f, notch)
-    if np.abs(np.linalg.eigvals(A)).max() >= 1.0:
-        return math.inf
-    w = frequency_grid(plant.T_s, plant.resonances)
-    z = np.exp(1j * w * plant.T_s)
-    zI_A = z[:, None, None] * np.eye(A.shape[0])[None] - A[None]
-    H = np.linalg.solve(zI_A, np.broadcast_to(b_r, (len(z), len(b_r)))[..., None])[..., 0] @ c_L
-    return float(20 * np.log10(np.abs(H).max()))
+def identified_load_peak_dB(mech: Mechanics, config: Any, Kp: float, Ti: float, T_f: float, notch: Any) -> float | None:
+    """The reference-to-load-speed peak [dB] of the law on the identified linear model of ``mech``
+    (:func:`_loop.load_peak_dB`); None for one-mass mechanics (no load apart from the motor)."""
+    return load_peak_dB(linear_plant(mech, config), Kp, Ti, T_f, notch) if mech.two_mass else None
 
 
 def plan_scenario(proposal: ControllerProposal, extra: Sequence[Gains], config: Any, limits: sim.DriveLimits, *,
@@ -487,7 +476,7 @@ def tune_controller(
     x0 = np.log([proposal.Kp, proposal.Ti] + ([proposal.T_f] if use_f else []))
     history: list[dict[str, float]] = []
     rejected = rejected_load = 0
-    peak_0 = load_peak_dB(mech, config, proposal.Kp, proposal.Ti, proposal.T_f, proposal.notch)
+    peak_0 = identified_load_peak_dB(mech, config, proposal.Kp, proposal.Ti, proposal.T_f, proposal.notch)
     peak_bound = math.inf if peak_0 is None else max(SEARCH.max_load_peak_dB, peak_0)
 
     def gains_at(x: np.ndarray) -> Gains:
@@ -498,7 +487,7 @@ def tune_controller(
         gains = gains_at(x)
         worst = models.margins(*gains, proposal.notch)
         feasible = worst.meets(spec.min_phase_margin, spec.min_gain_margin_dB)
-        peak = load_peak_dB(mech, config, *gains, proposal.notch) if feasible else None
+        peak = identified_load_peak_dB(mech, config, *gains, proposal.notch) if feasible else None
         if feasible and peak is not None and not peak <= peak_bound:
             rejected_load += 1
             feasible = False

@@ -71,7 +71,7 @@ def test_tuning_keeps_the_margins_and_never_gets_worse_on_the_model():
 def test_load_peak_is_the_peak_of_the_reference_to_load_response():
     """Independent reference: the DFT of the closed loop's reference-to-load impulse response (from
     its step response in time) peaks where :func:`load_peak_dB` says; a one-mass model has none."""
-    from training.commissioning import load_peak_dB
+    from training.commissioning._tuning import identified_load_peak_dB as load_peak_dB
     from training.commissioning._loop import frequency_grid
 
     mech = mechanics_from(ELASTIC)
@@ -87,7 +87,8 @@ def test_load_peak_is_the_peak_of_the_reference_to_load_response():
 
 
 def test_tuning_trades_motor_against_load_only_within_the_load_peak(monkeypatch):
-    from training.commissioning import _tuning, load_peak_dB
+    from training.commissioning import _tuning
+    from training.commissioning._tuning import identified_load_peak_dB as load_peak_dB
 
     spec = ControllerSpec()
     prop = propose_controller("elastic", ELASTIC, DRIVE, spec)
