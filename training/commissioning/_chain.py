@@ -39,8 +39,8 @@ from training._settings import (AT_LEAST_ONE, FLAG, NON_NEGATIVE_OR_INF, POSITIV
 from training.errors import CommissioningError, LimitPassed, one_line
 
 from ._bands import f1_bands, hidden_bands, widen
-from ._excitation import ExcitationResult, ExcitationRules, adapt_test_signal, guarded_limits, measure_response, stop_headroom,
-                          trusted_inertia
+from ._excitation import (ExcitationResult, ExcitationRules, adapt_test_signal, guarded_limits, measure_response, stop_headroom,
+                          trusted_inertia)
 from ._frf import FRF_SETTINGS, FRFSettings, MeasuredResponse
 from ._measure import measured_response, plan_frf
 from ._guard import CONFIG_KEYS, CheckedDrive, passed_limits, record_peaks
