@@ -50,7 +50,7 @@ from ._permission import (CommissioningWarning, IdentificationFailed, Identifica
 from ._report import CommissioningReport, PlantRun
 from ._design import elastic_doubts
 from ._rules import ControllerProposal, ControllerSpec, propose_cautious, propose_controller, uncertainty_set
-from ._tuning import (BOUNDED_VERDICTS, Gains, TuningResult, TuningScenario, closed_loop_cost, loop_verdict,
+from ._tuning import (BOUNDED_VERDICTS, applied_torque_gain, Gains, TuningResult, TuningScenario, closed_loop_cost, loop_verdict,
                       model_response, plan_scenario, response_figures, tune_controller)
 from ._validation import OSC_METRICS, VALIDATION_MODES, ValidationResult, validate_model
 
@@ -403,11 +403,25 @@ def _run_candidates(run: ChainRun, plan: LoopPlan, kind: str) -> list[PlantRun]:
         out.append(PlantRun(gains=gains, cost=float(cost), motor=float(terms["motor"]), load=float(terms["load"]),
                             aborted=stopped, figures=response_figures(speed, scenario, mech), speed=speed, verdict=verdict,
                             verdict_text=why, model_cost=model_cost))
+        _check_applied_law(run, proposal.law(run.config, Kp=gains[0], Ti=gains[1], T_f=gains[2]), rec, scenario)
         if stopped:
             run.warn("run_stopped", f"the drive stopped the closed-loop run {kind} {i} at a limit")
         elif verdict not in BOUNDED_VERDICTS:
             run.warn("loop_rejected", f"{kind} {i} not delivered [{verdict}]: {why}")
     return out
+
+
+def _check_applied_law(run: ChainRun, law: Any, record: sim.Record, scenario: TuningScenario) -> None:
+    """Warn (once) where the drive did not apply the law as given: its recorded torque is far from
+    the law replayed on the record (:func:`applied_torque_gain`); the margins rest on that law."""
+    if "loop_unlike_model" in {w.code for w in run.warnings}:
+        return
+    gain = applied_torque_gain(law, np.asarray(record.speed, dtype=np.float64), record.torque_ref, scenario.scenario(),
+                               run.loop_limits.torque_cap(run.config))
+    tolerance = scenario.torque_gain_tolerance
+    if gain is not None and not 1 / tolerance <= gain <= tolerance:
+        run.warn("loop_unlike_model", f"the drive applied {gain:.3g} x the law's torque in a closed-loop run: the margins "
+                                      "guaranteed on the model do not hold for what it runs (a torque scale or K_M off?)")
 
 
 def _choose(runs: list[PlantRun]) -> int | None:
@@ -634,7 +648,13 @@ def _measure(run: ChainRun) -> None:
         run.warn("run_stopped", "the drive stopped the frequency-response run at a limit: nothing measured")
         state.redesign_reason = "frequency response not measured: the drive stopped its run at a limit"
         return
-    state.measured = measured_response(rec, plan, proposal.mechanics, run.config, settings.frf)
+    state.measured = measured = measured_response(rec, plan, proposal.mechanics, run.config, settings.frf)
+    ratio = measured.model_gain_ratio(proposal.figures["w_c"], settings.frf.min_coherence)
+    factor = settings.frf.model_gain_factor
+    if ratio is not None and not 1 / factor <= ratio <= factor:
+        run.warn("loop_unlike_model", f"the measured frequency response near the crossover is {ratio:.3g} x the identified "
+                                      "model's: the margins guaranteed on the model may not hold on this drive (a torque "
+                                      "scale or K_M off? a plant unlike the model?)")
 
 
 def _same_law(a: ControllerProposal, b: ControllerProposal) -> bool:
@@ -731,7 +751,8 @@ def _deliver(run: ChainRun) -> None:
     else:
         return
     delivered_run, scenario = state.delivered_run, state.last_plan.scenario
-    if delivered_run.cost > scenario.model_warn_factor * delivered_run.model_cost:
+    already = "loop_unlike_model" in {w.code for w in run.warnings}  # the measured response said so
+    if not already and delivered_run.cost > scenario.model_warn_factor * delivered_run.model_cost:
         run.warn("loop_unlike_model", f"the delivered loop costs {delivered_run.cost / delivered_run.model_cost:.3g} x what "
                                       "the identified model predicts for its gains: the margins guaranteed on the model "
                                       "may not hold on this drive (a torque scale or K_M off? a plant unlike the model?)")

@@ -66,6 +66,10 @@ class FRFSettings:
     resonance_excess_dB: float = 6.0
     """A local maximum of the measured magnitude over the model's, at least this high and standing out
     by as much, may be a resonance the model lacks ..."""
+    model_gain_factor: float = 2.0
+    """Near the loop's crossover (a decade around it) the measured magnitude may differ from the
+    identified model's by at most this factor (median over the coherent lines); beyond it the drive
+    is unlike its model (a torque scale or ``K_M`` off?) and the warning ``loop_unlike_model`` says so."""
     resonance_shape_dB: float = 3.0
     """... where the measured magnitude over an inertia's (``|G| w``) has a peak there standing out by
     at least this much (a resonance, not the model's misplaced anti-resonance nor noise)."""
@@ -73,7 +77,7 @@ class FRFSettings:
     def __post_init__(self) -> None:
         check_settings(self, {"period": Interval(64, integer=True), "periods": Interval(3, integer=True),
                               "lines_per_decade": POSITIVE_OR_INF, "limit_share": SHARE, "torque_share": SHARE,
-                              "min_coherence": SHARE, "resonance_excess_dB": POSITIVE_OR_INF,
+                              "min_coherence": SHARE, "resonance_excess_dB": POSITIVE_OR_INF, "model_gain_factor": Interval(1.0),
                               "resonance_shape_dB": POSITIVE_OR_INF})
 
 
@@ -102,6 +106,14 @@ class MeasuredResponse:
     model: np.ndarray | None = None
     resonances: tuple[float, ...] = ()
     amplitude: float = math.nan
+
+    def model_gain_ratio(self, w_c: float, min_coherence: float) -> float | None:
+        """The median of ``|G / model|`` over the coherent lines within ``w_c / 3 .. 3 w_c`` [rad/s]
+        (None: no model, or no such line)."""
+        if self.model is None:
+            return None
+        near = (self.w >= w_c / 3) & (self.w <= 3 * w_c) & (self.coherence >= min_coherence)
+        return float(np.median(np.abs(self.G[near] / self.model[near]))) if near.any() else None
 
     def to_csv(self, path: str | Path) -> Path:
         """Write the response as CSV: ``f_Hz, magnitude_dB, phase_deg, coherence`` and, where the

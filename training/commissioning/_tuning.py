@@ -36,12 +36,12 @@ import scipy.signal
 import sim
 from training._settings import AT_LEAST_ONE, POSITIVE_OR_INF, SHARE, check_settings
 
-from ._loop import Mechanics, closed_loop_matrices, frequency_grid, linear_plant, load_peak_dB
+from ._loop import Mechanics, closed_loop_matrices, frequency_grid, linear_plant
 from ._rules import ControllerProposal, ControllerSpec
 
 __all__ = [
     "TuningScenario", "TuningResult", "plan_scenario", "closed_loop_cost", "response_figures", "load_estimate",
-    "model_response", "tune_controller", "Gains", "loop_verdict", "LOOP_VERDICTS", "BOUNDED_VERDICTS",
+    "model_response", "tune_controller", "applied_torque_gain", "Gains", "loop_verdict", "LOOP_VERDICTS", "BOUNDED_VERDICTS",
     "USABLE_VERDICTS", "UNSCORED_VERDICTS", "ScenarioSizing", "SearchSettings", "SCENARIO_SIZING", "SEARCH",
 ]
 
@@ -129,6 +129,9 @@ class TuningScenario:
     model_warn_factor: float = 8.0
     """A delivered run above this many times its model's cost gets ``loop_unlike_model`` (the 50-plant studies'
     delivered and candidate runs: at most 6.7 x, median 0.9-1.3 x; a drive applying 20 x the law's torque: 18.5 x)."""
+    torque_gain_tolerance: float = 1.25
+    """A run whose recorded torque is more than this factor off the law replayed on its record
+    (:func:`applied_torque_gain`) was not run with the law as given: ``loop_unlike_model``."""
     not_settled_error: float = 0.5
     """A first step that ends (mean over the last quarter of its segment) more than this share of ``w_step`` off its
     reference does not settle: it costs ``unstable_cost``."""
@@ -201,12 +204,6 @@ def model_response(mech: Mechanics, config: Any, gains: Sequence[Gains], notch: 
                     y[k:] = np.inf
                     break
     return out
-
-
-def identified_load_peak_dB(mech: Mechanics, config: Any, Kp: float, Ti: float, T_f: float, notch: Any) -> float | None:
-    """The reference-to-load-speed peak [dB] of the law on the identified linear model of ``mech``
-    (:func:`_loop.load_peak_dB`); None for one-mass mechanics (no load apart from the motor)."""
-    return load_peak_dB(linear_plant(mech, config), Kp, Ti, T_f, notch) if mech.two_mass else None
 
 
 def plan_scenario(proposal: ControllerProposal, extra: Sequence[Gains], config: Any, limits: sim.DriveLimits, *,
@@ -373,6 +370,33 @@ BOUNDED_VERDICTS: frozenset[str | None] = USABLE_VERDICTS | {"not_settled"}
 UNSCORED_VERDICTS: frozenset[str | None] = frozenset({"stopped", "diverging"})
 
 
+def applied_torque_gain(law: Any, speed: np.ndarray, torque_ref: np.ndarray | None, scenario: sim.Scenario,
+                        cap: float) -> float | None:
+    """How many times the law's torque the drive applied in a closed-loop run: the least-squares
+    factor between the recorded torque reference less the injected disturbance and ``law`` (fresh,
+    reset here) replayed on the recorded speed and the scenario's reference, at the lag of 0-2
+    samples that fits best, samples near the torque cap left out (1 for a drive that runs the law
+    as given; a clamp at the cap may lower it). None without a torque record, or where the law's torque is too small to tell."""
+    n = min(len(speed), len(scenario))
+    if torque_ref is None or n < 3:
+        return None
+    law.reset()
+    replay = np.array([law.step(float(w), float(r)) for w, r in zip(speed[:n], scenario.w_ref[:n])])
+    recorded, dist = np.asarray(torque_ref[:n], dtype=np.float64), scenario.M_dist[:n]
+    best: tuple[float, float] | None = None  # (relative residual, gain)
+    for lag in (0, 1, 2):
+        rec, rep = recorded[lag:] - dist[:n - lag], replay[:n - lag]
+        free = (np.abs(rec) < 0.95 * cap) & (np.abs(recorded[lag:]) < 0.95 * cap) & (np.abs(rep) < 0.95 * cap)
+        rec, rep = rec[free], rep[free]
+        power = float(rep @ rep)
+        if not power > 1e-12 * len(recorded) * cap * cap:
+            continue
+        gain = float(rec @ rep) / power
+        residual = float(np.linalg.norm(rec - gain * rep)) / max(float(np.linalg.norm(rec)), 1e-300)
+        best = min(best, (residual, gain)) if best is not None else (residual, gain)
+    return None if best is None else best[1]
+
+
 def loop_verdict(speed: np.ndarray, torque_ref: np.ndarray | None, scenario: TuningScenario, M_cap: float, cost: float,
                  model_cost: float, aborted: bool) -> tuple[str | None, str]:
     """Did a measured run settle? ``(code, text)``: ``code`` a key of :data:`LOOP_VERDICTS` (the first
@@ -465,7 +489,7 @@ def tune_controller(
     a solution: it costs ``scenario.unstable_cost`` plus its deficit, so the simplex moves back; the
     result always keeps the margins (else the proposal is kept). It may trade
     the motor against the load (the cost counts both) only within the load peak: a candidate whose
-    reference-to-load-speed peak on the identified model passes ``SEARCH.max_load_peak_dB`` (or the
+    reference-to-load-speed peak (the worst over the proposal's model set) passes ``SEARCH.max_load_peak_dB`` (or the
     proposal's own peak, where higher) is not a solution either. ``span``: each gain stays within
     ``[start / span, start * span]``.
     """
@@ -476,7 +500,12 @@ def tune_controller(
     x0 = np.log([proposal.Kp, proposal.Ti] + ([proposal.T_f] if use_f else []))
     history: list[dict[str, float]] = []
     rejected = rejected_load = 0
-    peak_0 = identified_load_peak_dB(mech, config, proposal.Kp, proposal.Ti, proposal.T_f, proposal.notch)
+
+    def load_peak(gains: Gains) -> float | None:  # the worst over the guarantee's set, as ControllerProposal.meets
+        peak = float(models.load_peaks_dB(*gains, proposal.notch).max())
+        return peak if math.isfinite(peak) else None
+
+    peak_0 = load_peak((proposal.Kp, proposal.Ti, proposal.T_f))
     peak_bound = math.inf if peak_0 is None else max(SEARCH.max_load_peak_dB, peak_0)
 
     def gains_at(x: np.ndarray) -> Gains:
@@ -487,7 +516,7 @@ def tune_controller(
         gains = gains_at(x)
         worst = models.margins(*gains, proposal.notch)
         feasible = worst.meets(spec.min_phase_margin, spec.min_gain_margin_dB)
-        peak = identified_load_peak_dB(mech, config, *gains, proposal.notch) if feasible else None
+        peak = load_peak(gains) if feasible else None
         if feasible and peak is not None and not peak <= peak_bound:
             rejected_load += 1
             feasible = False

@@ -70,9 +70,8 @@ def test_tuning_keeps_the_margins_and_never_gets_worse_on_the_model():
 
 def test_load_peak_is_the_peak_of_the_reference_to_load_response():
     """Independent reference: the DFT of the closed loop's reference-to-load impulse response (from
-    its step response in time) peaks where :func:`load_peak_dB` says; a one-mass model has none."""
-    from training.commissioning._tuning import identified_load_peak_dB as load_peak_dB
-    from training.commissioning._loop import frequency_grid
+    its step response in time) peaks where :func:`load_peak_dB` says."""
+    from training.commissioning._loop import frequency_grid, load_peak_dB
 
     mech = mechanics_from(ELASTIC)
     gains = (2.0, 0.05, 2.5e-4)
@@ -82,18 +81,16 @@ def test_load_peak_is_the_peak_of_the_reference_to_load_response():
     h = np.diff(constant_input_response(A, b_r, c_L, n), prepend=0.0)
     w = frequency_grid(DRIVE.T_s, plant.resonances)
     H = np.exp(-1j * np.outer(w * DRIVE.T_s, np.arange(n))) @ h
-    assert load_peak_dB(mech, DRIVE, *gains, None) == pytest.approx(20 * np.log10(np.abs(H).max()), abs=0.05)
-    assert load_peak_dB(mechanics_from({"J_sigma": 0.05}), DRIVE, *gains, None) is None
+    assert load_peak_dB(plant, *gains, None) == pytest.approx(20 * np.log10(np.abs(H).max()), abs=0.05)
 
 
 def test_tuning_trades_motor_against_load_only_within_the_load_peak(monkeypatch):
     from training.commissioning import _tuning
-    from training.commissioning._tuning import identified_load_peak_dB as load_peak_dB
 
     spec = ControllerSpec()
     prop = propose_controller("elastic", ELASTIC, DRIVE, spec)
     sc, _ = plan_scenario(prop, [], DRIVE, LIMITS)
-    peak_0 = load_peak_dB(prop.mechanics, DRIVE, prop.Kp, prop.Ti, prop.T_f, prop.notch)
+    peak_0 = float(prop.models.load_peaks_dB(prop.Kp, prop.Ti, prop.T_f, prop.notch).max())
     # a bound below the proposal's own peak: no candidate may ring the load more than the proposal
     monkeypatch.setattr(_tuning, "SEARCH", _tuning.SearchSettings(max_load_peak_dB=1e-3))
     res = tune_controller(prop, DRIVE, sc, spec, max_evaluations=20)
