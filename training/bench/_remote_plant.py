@@ -4,7 +4,9 @@ Written apart from ``sim`` (its own explicit integrator, encoder, friction and b
 the commissioning chain is tried on a plant it did not write. The plant runs as a child process
 (``python remote_plant.py --serve``) stepped sample by sample over JSON lines on stdin/stdout;
 the adapter :class:`RemoteDrive` runs the test signal's switching law and the speed law locally,
-as a drive's firmware would, and stops at the limits.
+as a drive's firmware would, and stops at the limits. A torque reference computed at sample ``k``
+acts over sample ``k+1`` (SPEC 8.1's computation delay); the record's ``torque_ref`` at ``k`` is the
+one acting over sample ``k``.
 
 What the chain's models leave out, each an option of :class:`Plant` (:class:`PlantOptions`): a
 second-order current loop of a given damping (same sum time constant ``T_Ei``), extra samples of
@@ -171,7 +173,7 @@ class RemoteDrive:
         """Sample loop: ``law(k, w) -> (M_ref, section or None, done)``; stop at the limits."""
         T_s, cap = CONFIG["T_s"], min(CONFIG["M_max"], limits.M_max or math.inf)
         self._send({"reset": 1})
-        w = phi = M_ref = i = 0.0
+        w = phi = M_ref = i = 0.0  # M_ref: computed at the sample before, applied over this one (SPEC 8.1)
         rows, stop = [], None
         for k in range(n_max):
             M_cmd, sec, done = law(k, w)
@@ -183,8 +185,8 @@ class RemoteDrive:
                 stop = k
             if stop is not None and k >= stop + 200:
                 break
-            M_ref = 0.0 if stop is not None else max(-cap, min(cap, M_cmd))
             w, i = self._send({"M": M_ref})
+            M_ref = 0.0 if stop is not None else max(-cap, min(cap, M_cmd))
         import sim  # only for the record type the interface returns
 
         t, sp, cur, tr, sec = (np.array([r[j] if r[j] is not None else 0 for r in rows], dtype=float) for j in range(5))
