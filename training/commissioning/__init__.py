@@ -19,7 +19,7 @@ at once and held against the user's limits: a passed limit ends the experiments,
 
 from ._chain import STAGES, CommissioningConfig, RecordIdentifier, commission, drive_config, limit_checks
 from ._design import DesignSearch, UncertaintySet, optimize_loop
-from ._excitation import ExcitationResult, ExcitationRules, adapt_test_signal, measure_response
+from ._excitation import ExcitationResult, ExcitationRules, adapt_test_signal, check_limits, measure_response, trusted_inertia
 from ._filedrive import ExperimentPending, FileDrive
 from ._frf import FRF_SETTINGS, FRFSettings, MeasuredResponse
 from ._guard import MEASURED_TORQUE_ALLOWANCE, LimitBreach, PassedLimit, close_drive
@@ -45,5 +45,6 @@ __all__ = [
     "NotchSpec", "Mechanics", "mechanics_from", "LinearPlant", "linear_plant", "loop_figures", "Margins", "margins",
     "ModelSet", "model_set", "bode", "tune_controller", "TuningResult", "TuningScenario", "plan_scenario",
     "closed_loop_cost", "load_estimate", "loop_verdict", "LOOP_VERDICTS", "UncertaintySet", "uncertainty_set", "DesignSearch",
-    "optimize_loop", "load_peak_dB", "reference_to_load", "MeasuredResponse", "FRFSettings", "FRF_SETTINGS",
+    "optimize_loop", "load_peak_dB", "reference_to_load", "MeasuredResponse", "FRFSettings", "FRF_SETTINGS", "check_limits",
+    "trusted_inertia",
 ]
