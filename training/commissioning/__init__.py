@@ -1,14 +1,16 @@
 """Self-commissioning (SPEC 8) through a SPEC 8.1 drive: adapt the test signal, identify, validate,
-propose a speed controller with guaranteed margins, fine-tune it on the identified model, run the
-candidates on the drive inside the limits, deliver, report.
+design a speed controller by optimization over an uncertainty set, fine-tune it on the identified
+model, run the candidates on the drive inside the limits, measure the plant's frequency response
+on the running loop and design again with it, deliver, report.
 
 Rooms: ``_chain`` (the chain as named stages applied in order, :data:`STAGES`; its settings; the
 identifier's protocol, :class:`RecordIdentifier`; the drive's is :class:`sim.Drive`),
-``_excitation`` (test signal E1-E10, the rules applied in the order of ``EXCITATION_RULES``),
+``_excitation`` (test signal E0-E12, the rules applied in the order of ``EXCITATION_RULES``),
 ``_bands`` (what a test run cannot exclude), ``_validation`` (re-simulation), ``_permission``
 (refusal rules V1-V6, warning codes), ``_law`` (the PI speed law of SPEC 8.1), ``_loop`` (linear
-loop analysis, margins, model sets), ``_rules`` (controller rules R1-R8, R7b, R7c in the order of
-``CONTROLLER_RULES``, fallback F1), ``_frf`` (the measured frequency response,
+loop analysis, margins, load peak, model sets), ``_rules`` (controller rules R6, R7 with R7b and R7c,
+R4, R5 in the order of ``CONTROLLER_RULES``, fallback F1), ``_design`` (the uncertainty set, design
+by optimization), ``_frf`` (the measured frequency response,
 :class:`MeasuredResponse`: the multisine and the estimate), ``_measure`` (its experiment planned
 on the identified model's loop), ``_tuning`` (scenario, cost, Nelder-Mead), ``_report`` (one
 drive's report, the summary over many), ``_filedrive`` (a drive that exchanges experiments as files

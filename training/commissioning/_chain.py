@@ -2,12 +2,12 @@
 section 4: named stages applied in order (:data:`STAGES`), each reading what the earlier ones left
 in the run's :class:`ChainState` and adding its own.
 
-    excite    adapt the test signal on the drive (E1-E10, ``drive.run_test``)
+    excite    adapt the test signal on the drive (E0-E12, ``drive.run_test``)
     identify  what the shipped maps say of the accepted test record (V1 when the identifier fails)
     validate  re-simulate the identified model under the record's test signal
     guard     the limits handed to the drive for the closed-loop runs (E9: less the stop headroom)
     permit    may a model-based controller be proposed? (V1-V6)
-    design    propose (R1-R8, margins guaranteed), tune on the identified model, plan the experiment
+    design    optimize the law over the uncertainty set (R6, R7, R4, R5), tune on the identified model, plan the experiment
     try       run the candidates on the drive (``drive.run_closed_loop``) and choose the cheapest usable one
     measure   the plant's frequency response on the chosen loop (a multisine ``M_dist``, :mod:`._frf`)
     redesign  the design again with the measurement; its candidates on the drive, kept where not worse
@@ -93,8 +93,8 @@ class CommissioningConfig:
         uncertain_spread: rule R7c: the guarantee's spread of ``f_e`` and ``V_J`` when the
             identification's own quality figures say the elastic values are uncertain (a warning
             code of :data:`UNCERTAIN_CODES`, or a map beyond its training).
-        uncertain_damping: rule R7c: the identified damping ``d`` is multiplied by this share (a
-            lighter damped resonance; the rule line says "halved").
+        uncertain_damping: rule R7c: the set's lowest damping is the identified ``d`` times this
+            share (a lighter damped resonance).
         hidden_resonances: rule R7b: the guarantee of a ``stiff`` answer, or of one whose
             oscillation is not determined (:data:`UNDETERMINED_CODES`), also covers the resonances
             the test could not show (:func:`training.commissioning._bands.hidden_bands`).
@@ -600,7 +600,7 @@ def _permit(run: ChainRun) -> None:
 
 
 def _design(run: ChainRun) -> None:
-    """Where permitted: propose (R1-R8), keep it only when it meets the guarantee (R7), tune it on
+    """Where permitted: design (R6, R7, R4, R5), keep it only when it meets the guarantee (R7), tune it on
     the identified model and plan the closed-loop experiment for the candidates."""
     if not run.state.permission.allowed:
         return
