@@ -37,7 +37,7 @@ def test_simulate_bad_params_file(tmp_path, capsys):
 
 def test_bench_without_or_with_unknown_target(capsys):
     assert main(["bench"]) == 2
-    assert "valid targets: identify, sim, som" in capsys.readouterr().err
+    assert "valid targets: commission, identify, sim, som" in capsys.readouterr().err
     assert main(["bench", "nope"]) == 2
     err = capsys.readouterr().err.strip()
     assert "unknown bench target 'nope'" in err and "sim" in err and len(err.splitlines()) == 1

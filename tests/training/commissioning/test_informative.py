@@ -1,8 +1,8 @@
 """Informative within the limits, or say what to change (E0, E11) and the inertia F1 may trust.
 
-The soft plants are plants 13 and 22 of the 50-plant study (``sim.sample_population(50, 0)``) on the
-independent plant of :mod:`remote_plant`, limits 20 rad/s and 5 rad: the rules alone end them
-"not informative" (refusal V6), with sections of 5-10 ms against a 10 Hz (6.6 Hz) mode.
+The soft plants are plants 13, 22 and 44 of the 50-plant study (``sim.sample_population(50, 0)``) on
+the independent plant of :mod:`remote_plant`, limits 20 rad/s and 5 rad: the rules alone end 22 and 44
+"not informative" (refusal V6), with sections of a few ms against a 6.6 Hz (7.4 Hz) mode.
 """
 
 from __future__ import annotations
@@ -31,6 +31,7 @@ DRIVE = sim.DriveConfig()
 LIMITS = sim.DriveLimits(w_max=20.0, travel=5.0)
 STUDY = sim.sample_population(50, 0).to_dicts()
 SOFT, SOFT_LIGHT, STIFF = STUDY[13], STUDY[22], STUDY[33]  # 10 Hz V_J 5; 6.6 Hz V_J 0.74; 291 Hz V_J 0.36
+REFUSED = STUDY[44]  # 7.4 Hz V_J 1.9: the rules alone end at the limits (V6)
 
 
 class Counting(sim.SimulatedDrive):
@@ -111,9 +112,9 @@ def test_trusted_inertia_only_where_the_run_moved_the_load():
 
 
 def test_long_section_probe_makes_the_soft_plant_informative_inside_the_limits():
-    before, _, _ = _adapt(SOFT, rules=ExcitationRules(max_probes=0))
+    before, _, _ = _adapt(REFUSED, rules=ExcitationRules(max_probes=0))
     assert before.code == "limits_reached"  # the rules alone: refused V6
-    res, w_M, phi_M = _adapt(SOFT)
+    res, w_M, phi_M = _adapt(REFUSED)
     assert res.informative and res.log[-1]["reason"].startswith("E11") and res.record is res.records[-1]
     assert res.log[-1]["M_star"] < 0.5 * before.log[-1]["M_star"] and res.log[-1]["samples_min"] >= 40
     assert w_M <= LIMITS.w_max and phi_M <= 0.8 * LIMITS.travel  # true motor states
@@ -134,11 +135,11 @@ def test_where_no_test_fits_the_reason_names_the_limit_and_raising_it_is_enough(
 
 
 def test_the_refused_soft_plant_gets_a_model_based_loop():
-    """Plant 13 was refused V6 at 20 rad/s and 5 rad (F1 at 7.6 rad/s): now a validated
+    """Plant 44 was refused V6 at 20 rad/s and 5 rad (F1): now a validated
     identification and a model-based loop, every experiment inside the limits."""
-    drive = remote_plant.make_drive(SOFT)
+    drive = remote_plant.make_drive(REFUSED)
     try:
-        rep = commission(drive, LIMITS, identifier=shipped_identifier(), name="plant013")
+        rep = commission(drive, LIMITS, identifier=shipped_identifier(), name="plant044")
     finally:
         drive.close()
     assert rep.permission.allowed and rep.fallback is None and rep.delivered is not None
