@@ -541,7 +541,7 @@ def _model_based_delivery(run: ChainRun, design: LoopPlan, trial: LoopTrial) -> 
 
 
 def _excite(run: ChainRun) -> None:
-    """E1-E10: the test signal adapted on the drive until its response is informative."""
+    """E0-E12: the test signal adapted on the drive until its response is informative."""
     run.say(f"{run.name}: adapting the test signal")
     excitation = adapt_test_signal(run.drive, run.limits, run.settings.rules, log=run.test_log)
     run.state.excitation = excitation

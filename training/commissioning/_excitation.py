@@ -73,7 +73,7 @@ __all__ = ["EXCITATION_ENDS", "EXCITATION_RULES", "ExcitationRules", "Excitation
 
 @dataclass(frozen=True)
 class ExcitationRules:
-    """The test-signal rules' settings (docs/commissioning.md, E1-E10); checked on construction."""
+    """The test-signal rules' settings (docs/commissioning.md, E0-E12); checked on construction."""
 
     M_star_start: float = 0.1
     """E1: the first ``M_star`` as a share of the torque cap (small: the plant is unknown)."""
@@ -1013,7 +1013,7 @@ def _log_entry(iteration: int, run: ExcitationRun, decision: RuleDecision) -> di
 
 def adapt_test_signal(drive: Any, limits: sim.DriveLimits, rules: ExcitationRules | None = None, *,
                       log: list[dict[str, Any]] | None = None) -> ExcitationResult:
-    """Adapt ``M_star`` and ``w_max`` until the test record is informative (rules E1-E10).
+    """Adapt ``M_star`` and ``w_max`` until the test record is informative (rules E0-E12).
 
     Args:
         drive: a SPEC 8.1 drive (``config``, ``run_test(M_star, w_max, limits) -> Record``).
