@@ -60,7 +60,8 @@ def trusted_response(measured: MeasuredResponse, min_coherence: float) -> Measur
     if keep.sum() < 2:
         return None
     return MeasuredResponse(w=np.asarray(measured.w)[keep], G=np.asarray(measured.G)[keep],
-                            coherence=np.asarray(measured.coherence)[keep], T_s=float(measured.T_s))
+                            coherence=np.asarray(measured.coherence)[keep], T_s=float(measured.T_s),
+                            resonances=measured.resonances)
 
 
 def measured_peaks(measured: MeasuredResponse, J_sigma: float, *, min_ratio: float, most: int = MAX_NOTCHES) -> tuple[float, ...]:
@@ -96,7 +97,10 @@ class UncertaintySet:
     plant's motor alone while the gap is open (one mass ``J_sigma / (1 + V_J)``, rule R6).
     ``hidden``: resonances a test run cannot exclude (``V_J -> (f_lo, f_hi)`` [Hz], rule R7b,
     at damping ``hidden_d``), replaced by ``measured`` (the trusted part of the plant's measured
-    frequency response) where there is one.
+    frequency response) where there is one; a resonance the measurement found (and the model
+    lacks) stays in the set at the same worst cases (each ``V_J`` of ``hidden``, ``hidden_d``) at
+    its measured frequency x(1 -+ ``measured_f_spread``): the measurement places it, but its height
+    and phase are not to be trusted (friction makes a small-signal measurement lead the plant).
     """
 
     mechanics: Mechanics
@@ -111,6 +115,7 @@ class UncertaintySet:
     hidden_points_per_decade: float = 8.0
     hidden_min_points: int = 5
     measured: MeasuredResponse | None = None
+    measured_f_spread: float = 0.05
     doubts: tuple[str, ...] = ()
 
     def members(self) -> list[Member]:
@@ -132,6 +137,12 @@ class UncertaintySet:
             out += [Member(h, f"hidden resonance {_label(h)}", hidden=True)
                     for h in _hidden_mechanics(m.J_sigma, self.hidden, self.hidden_d, self.hidden_points_per_decade,
                                                self.hidden_min_points)]
+        elif self.hidden:
+            out += [Member(Mechanics(m.J_sigma, V_J=v, f_e=w / (2 * math.pi) * scale, d=self.hidden_d),
+                           f"measured resonance's worst case f_e {w / (2 * math.pi) * scale:.4g} Hz, V_J {v:g}, d {self.hidden_d:g}",
+                           hidden=True)
+                    for w in self.measured.resonances for v in self.hidden
+                    for scale in (1 - self.measured_f_spread, 1.0, 1 + self.measured_f_spread)]
         return out
 
     def models(self, drive: Any) -> ModelSet:
@@ -166,6 +177,10 @@ class UncertaintySet:
             parts.append("hidden resonances " + ", ".join(f"V_J {v:g}: {lo:.3g}..{hi:.3g} Hz" for v, (lo, hi) in self.hidden.items()))
         if self.measured is not None:
             parts.append(f"the measured response at {len(self.measured.w)} frequencies")
+            if self.hidden and self.measured.resonances:
+                found = ", ".join(f"{w / (2 * math.pi):.4g}" for w in self.measured.resonances)
+                parts.append(f"the measured resonances ({found} Hz) at V_J {', '.join(f'{v:g}' for v in self.hidden)}, "
+                             f"d {self.hidden_d:g}, f +-{self.measured_f_spread:.0%}")
         parts.append(f"each with a 2nd-order current loop (D {self.current_loop_damping:.3g}) +{self.extra_delay} sample delay")
         return "; ".join(parts)
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from dataclasses import replace
 import sys
 from pathlib import Path
 from types import SimpleNamespace
@@ -119,3 +120,23 @@ def test_a_measured_response_replaces_the_hidden_resonances():
     assert any(r.startswith("R4") and "measured peak" in r for r in meas.rules)
     m = margins(linear_plant(true, DRIVE), meas.Kp, meas.Ti, meas.T_f, meas.notch)
     assert m.meets(45.0 - 1.0, 6.0 - 0.2) and meas.figures["w_c"] > hidden.figures["w_c"]
+
+
+def test_a_measured_resonance_keeps_its_worst_cases_where_the_measurement_understates_it():
+    """The measurement places a resonance but may understate it (friction makes a small-signal
+    measurement lead the plant): a stiff answer whose 440 Hz mode (V_J 2, d 0.005) was measured
+    as a mild one (V_J 0.3, d 0.05) gets worst-case members at the measured frequency (each V_J of
+    the hidden bands, d 0.005, f +-5 %), none elsewhere, and keeps PM >= 45 deg and GM >= 6 dB on
+    the true plant (held to the measurement alone, the loop is unstable there)."""
+    J = 0.05
+    true = Mechanics(J, V_J=2.0, f_e=440.0, d=0.005)
+    mild = Mechanics(J, V_J=0.3, f_e=440.0, d=0.05)
+    spec = ControllerSpec()
+    bands, _ = hidden_bands({"M_star": 10.0, "osc_quanta": 0.5, "f_osc": 0.0}, J, DRIVE, spec.class_V_J, f_lo=5.0, min_osc_quanta=2.0)
+    measured = replace(_measured(linear_plant(mild, DRIVE), 0.0), resonances=(2 * math.pi * 440.0,))
+    prop = propose_controller("stiff", {"J_sigma": J}, DRIVE, spec, hidden=bands, measured=measured)
+    worst = [lab for lab in prop.models.labels if lab.startswith("measured resonance's worst case")]
+    assert worst and all(418.0 - 1 <= float(lab.split("f_e ")[1].split(" Hz")[0]) <= 462.0 + 1 for lab in worst)
+    assert {float(lab.split("V_J ")[1].split(",")[0]) for lab in worst} == set(bands)
+    m = margins(linear_plant(true, DRIVE), prop.Kp, prop.Ti, prop.T_f, prop.notch)
+    assert m.stable and m.meets(45.0 - 1.0, 6.0 - 0.2)
