@@ -403,7 +403,7 @@ def _run_candidates(run: ChainRun, plan: LoopPlan, kind: str) -> list[PlantRun]:
         out.append(PlantRun(gains=gains, cost=float(cost), motor=float(terms["motor"]), load=float(terms["load"]),
                             aborted=stopped, figures=response_figures(speed, scenario, mech), speed=speed, verdict=verdict,
                             verdict_text=why, model_cost=model_cost))
-        _check_applied_law(run, proposal.law(run.config, Kp=gains[0], Ti=gains[1], T_f=gains[2]), rec, scenario)
+        _check_applied_law(run, law, rec, scenario)
         if stopped:
             run.warn("run_stopped", f"the drive stopped the closed-loop run {kind} {i} at a limit")
         elif verdict not in BOUNDED_VERDICTS:
@@ -413,7 +413,7 @@ def _run_candidates(run: ChainRun, plan: LoopPlan, kind: str) -> list[PlantRun]:
 
 def _check_applied_law(run: ChainRun, law: Any, record: sim.Record, scenario: TuningScenario) -> None:
     """Warn (once) where the drive did not apply the law as given: its recorded torque is far from
-    the law replayed on the record (:func:`applied_torque_gain`); the margins rest on that law."""
+    the law replayed (reset) on the record (:func:`applied_torque_gain`); the margins rest on that law."""
     if "loop_unlike_model" in {w.code for w in run.warnings}:
         return
     gain = applied_torque_gain(law, np.asarray(record.speed, dtype=np.float64), record.torque_ref, scenario.scenario(),
