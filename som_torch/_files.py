@@ -11,17 +11,21 @@ from pathlib import Path
 from typing import IO, Any
 
 
-def _create_temp(path: Path) -> tuple[int, Path]:
+def _create_temp(path: Path, made: list[Path]) -> int:
     """A new file beside ``path``, opened for writing with mode ``0o666`` less the umask (as any
-    new file; ``tempfile.mkstemp`` would give 0600)."""
+    new file; ``tempfile.mkstemp`` would give 0600). Its name goes into ``made`` before it is
+    created, so that a caller interrupted at any point after the creation can remove it."""
     flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_BINARY", 0)
     for _ in range(16):  # a name clash is as good as impossible; retry anyway
         tmp = path.with_name(f".{path.name}.{secrets.token_hex(6)}.tmp")
         try:
-            return os.open(tmp, flags, 0o666), tmp
+            made.append(tmp)
+            return os.open(tmp, flags, 0o666)
         except FileExistsError:
+            made.remove(tmp)  # someone else's file: not ours to remove
             continue
         except OSError as err:  # a read-only folder: the user's path, not our temporary name
+            made.remove(tmp)
             raise _naming(err, path, tmp) from None
     raise FileExistsError(f"{path}: no free temporary name beside it")
 
@@ -47,8 +51,10 @@ def atomic_write(path: str | os.PathLike[str], write: Callable[[IO[Any]], object
         old_mode: int | None = stat.S_IMODE(path.stat().st_mode)
     except FileNotFoundError:
         old_mode = None
-    fd, tmp = _create_temp(path)
+    made: list[Path] = []  # the temporary file, once named: removed on any failure or interruption
     try:
+        fd = _create_temp(path, made)
+        tmp = made[-1]
         with os.fdopen(fd, "w" if text else "wb", **({"encoding": "utf-8", "newline": "\n"} if text else {})) as f:
             if old_mode is not None and os.chmod in os.supports_fd:
                 os.chmod(f.fileno(), old_mode)
@@ -57,8 +63,10 @@ def atomic_write(path: str | os.PathLike[str], write: Callable[[IO[Any]], object
             os.fsync(f.fileno())
         os.replace(tmp, path)
     except OSError as err:
-        tmp.unlink(missing_ok=True)
-        raise _naming(err, path, tmp) from None
+        for tmp in made:
+            tmp.unlink(missing_ok=True)
+        raise err if not made else _naming(err, path, made[-1]) from None
     except BaseException:
-        tmp.unlink(missing_ok=True)
+        for tmp in made:
+            tmp.unlink(missing_ok=True)
         raise
