@@ -83,7 +83,7 @@ def drive_rows(case: DriveCase, n: int, seed: int, identifier: Any,
                progress: Callable[[int], object] | None = None) -> list[dict[str, Any]]:
     """Simulate ``n`` systems of ``case`` and identify them; one row per system: ``truth``
     (true parameters, ``s_N``, ``r_osc``, ``w_e_T_Ei``, class) and ``som`` (``structure``, the
-    parameters, ``n_warnings``, ``error``)."""
+    parameters, ``n_warnings``, ``error`` and :func:`confidence_columns`)."""
     return _rows(sample_population(n, seed, case.ranges()), case.drive, case.signal, seed, identifier, progress)
 
 
@@ -120,11 +120,22 @@ def _rows(params: TwoMassParams, drive: DriveConfig, signal: TestSignalConfig, s
         truth["gap_counts"] = motor_lead(truth["backlash"], truth["V_J"]) / drive.q_phi
         som: dict[str, Any] = {"structure": None, "n_warnings": 0, "error": None}
         if out.ok:
-            som.update(out.parameters.to_dict(), structure=out.structure, n_warnings=len(out.warnings))
+            som.update(out.parameters.to_dict(), structure=out.structure, n_warnings=len(out.warnings),
+                       **confidence_columns(out))
         else:
             som["error"] = out.error
         rows.append({"truth": truth, "som": som})
     return rows
+
+
+def confidence_columns(result: Any) -> dict[str, Any]:
+    """What the confidence study reads of one answer (JSON-able): ``intervals`` (parameter ->
+    ``[low, high]``, or ``None`` without a calibration), ``probabilities`` (class -> probability),
+    ``answer_probability`` (``None`` without a calibration), ``warning_codes`` and ``note_codes``."""
+    return {"intervals": None if result.intervals is None else result.intervals.to_dict(),
+            "probabilities": dict(result.quality.structure_probabilities),
+            "answer_probability": result.quality.answer_probability,
+            "warning_codes": [w.code for w in result.warnings], "note_codes": [w.code for w in result.notes]}
 
 
 def _values(rows: Sequence[dict[str, Any]], part: str, key: str) -> np.ndarray:

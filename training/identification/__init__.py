@@ -15,13 +15,14 @@ from ._one_mass import FORMULATIONS, OneMassFit, fit_one_mass, speed_from_positi
 from ._oscillation import OscillationFit, fit_oscillation
 from ._plausibility import check_record
 from ._refine import RefineConfig, RefineProblem, Refined, refine, torque_reference
-from ._result import (PARAMETER_NAMES, PARAMETER_UNITS, WARNING_CODES, IdentificationFailure, IdentificationResult,
+from ._result import (INTERVAL_NAMES, NOTE_CODES, PARAMETER_NAMES, PARAMETER_UNITS, WARNING_CODES, IdentificationFailure,
+                      IdentificationResult, Intervals,
                       IdentWarning, Outcome, Parameters, Quality)
 from ._sections import SectionSplit, detect_sections
 
 __all__ = [
     "Identifier", "IdentificationPolicy", "ReadRecord", "CHUNK", "IdentificationResult", "IdentificationFailure", "Outcome", "Parameters", "Quality",
-    "IdentWarning", "WARNING_CODES", "PARAMETER_NAMES", "PARAMETER_UNITS",
+    "IdentWarning", "WARNING_CODES", "NOTE_CODES", "PARAMETER_NAMES", "PARAMETER_UNITS", "INTERVAL_NAMES", "Intervals",
     "analyze", "Analysis", "FEATURE_NAMES", "FEATURE_VERSION", "REFERENCE_DRIVE", "DriveValues",
     "Envelope", "SPEC_ENVELOPE", "ENVELOPE_FILE", "inside_envelope", "trained_envelope",
     "detect_sections", "SectionSplit", "fit_one_mass", "FORMULATIONS", "OneMassFit", "speed_from_position",

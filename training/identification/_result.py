@@ -59,7 +59,20 @@ WARNING_CODES: dict[str, str] = {
     "implausible_output": "an identified value the record cannot support (above Nyquist or the current loop's "
                           "bandwidth, wider than the travel, off the one-mass fit)",
     "impossible_output": "an identified value no mechanic can have; it is not reported",
+    "likely_wrong": "the calibrated probability that the answer is right (class right, elastic values within 30 %, "
+                    "J_sigma within 30 %) is low: distrust it, or test again with a larger M* or a finer encoder",
 }
+
+#: The codes that say only how uncertain an answer is: with a calibration (SPEC 4.1) they are the
+#: answer's ``notes``, not its warnings; the interval and the probabilities carry the uncertainty,
+#: and ``likely_wrong`` warns where the answer is likely wrong.
+NOTE_CODES: frozenset[str] = frozenset({
+    "unlike_training_data", "oscillation_below_quantum", "refine_partial_fit", "one_mass_fit_replaced",
+    "one_mass_fit_residual", "one_mass_fit_short_sections", "one_mass_fit_uninformative", "backlash_below_resolution",
+    "backlash_from_angle", "class_undecided", "class_near_threshold"})
+
+#: The parameters that carry a 90 % interval (SPEC 4.1), in output order.
+INTERVAL_NAMES: tuple[str, ...] = PARAMETER_NAMES
 
 
 @dataclass(frozen=True)
@@ -89,6 +102,38 @@ class Parameters:
 
 
 @dataclass(frozen=True)
+class Intervals:
+    """The 90 % interval ``(low, high)`` [SI] of every parameter of :data:`INTERVAL_NAMES` (SPEC 4.1),
+    calibrated on held-out simulated records (``docs/identification.md``, "Confidence"). A
+    parameter the record cannot show has the interval it can support (a backlash below the
+    resolution: ``(0, bound)``; a stiff answer's ``f_e``: from the class's lower bound up)."""
+
+    J_sigma: tuple[float, float]
+    V_J: tuple[float, float]
+    J_M: tuple[float, float]
+    J_L: tuple[float, float]
+    f_e: tuple[float, float]
+    C_F: tuple[float, float]
+    d: tuple[float, float]
+    backlash: tuple[float, float]
+    M_FC: tuple[float, float]
+    mu_F: tuple[float, float]
+
+    def __getitem__(self, name: str) -> tuple[float, float]:
+        if name not in INTERVAL_NAMES:
+            raise KeyError(f"interval: expected one of {list(INTERVAL_NAMES)}, received {name!r}")
+        return getattr(self, name)
+
+    def relative_half_width(self, name: str, value: float) -> float:
+        """Half the interval's width over ``value`` (inf where ``value`` is 0)."""
+        low, high = self[name]
+        return 0.5 * (high - low) / abs(value) if value else float("inf")
+
+    def to_dict(self) -> dict[str, list[float]]:
+        return {n: list(getattr(self, n)) for n in INTERVAL_NAMES}
+
+
+@dataclass(frozen=True)
 class Quality:
     """Figures that say how far to trust a result (``docs/identification.md``). The refinement's
     figures are ``None`` where it did not run, and then absent from :meth:`to_dict`."""
@@ -110,6 +155,7 @@ class Quality:
     backlash_upper_bound: float | None = None  # [rad] the widest backlash the record cannot show, where it matters
     stiff_mode_Hz: float | None = None  # [Hz] a stiff answer: the mode its record still shows (the oscillation fit's)
     stiff_mode_note: str | None = None  # why that mode does not make the answer elastic, in words
+    answer_probability: float | None = None  # calibrated P(answer right: class, E_30, J_sigma 30 %); None uncalibrated
 
     def to_dict(self) -> dict[str, Any]:
         out: dict[str, Any] = {}
@@ -124,13 +170,17 @@ class Quality:
 @dataclass(frozen=True)
 class IdentificationResult:
     """One identified record: ``structure`` (a class of ``sim.STRUCTURE_CLASSES``), ``parameters``,
-    ``quality`` and ``warnings``; ``record`` names its file where it came from one."""
+    ``quality``, ``warnings`` (what the user must act on), ``intervals`` (90 %, SPEC 4.1; ``None``
+    where the maps carry no calibration) and ``notes`` (coded remarks on the uncertainty that the
+    intervals and probabilities already carry); ``record`` names its file where it came from one."""
 
     structure: str
     parameters: Parameters
     quality: Quality
     warnings: tuple[IdentWarning, ...] = ()
     record: str | None = None
+    intervals: Intervals | None = None
+    notes: tuple[IdentWarning, ...] = ()
 
     @property
     def ok(self) -> bool:
@@ -141,11 +191,18 @@ class IdentificationResult:
             raise ValueError(f"code: expected one of {sorted(WARNING_CODES)}, received {code!r}")
         return any(w.code == code for w in self.warnings)
 
+    def has_note(self, code: str) -> bool:
+        """Whether ``code`` is among the warnings or the notes (an uncertainty remark of :data:`NOTE_CODES`)."""
+        return self.has_warning(code) or any(w.code == code for w in self.notes)
+
     def to_dict(self) -> dict[str, Any]:
         """The JSON object of SPEC section 9 (with ``record`` first where known)."""
         out: dict[str, Any] = {} if self.record is None else {"record": self.record}
-        out.update(structure=self.structure, parameters=self.parameters.to_dict(), quality=self.quality.to_dict(),
-                   warnings=[w.text for w in self.warnings])
+        out.update(structure=self.structure, parameters=self.parameters.to_dict())
+        if self.intervals is not None:
+            out["intervals"] = self.intervals.to_dict()
+        out.update(quality=self.quality.to_dict(), warnings=[w.text for w in self.warnings],
+                   notes=[w.text for w in self.notes])
         return out
 
 
