@@ -28,11 +28,11 @@ import torch
 
 from sim import (R_OSC_VISIBLE, S_N_ELASTIC, DriveConfig, EnvelopeRanges, PopulationRanges, TestSignalConfig,
                  TwoMassParams, inertia_of_time_scale, iter_records, sample_envelope, sample_population, time_scale)
-from training.evaluation._metrics import recognized, relative_error, threshold_margin
+from training.evaluation._metrics import ELASTIC_CLASSES, answer_wrong, recognized, relative_error, threshold_margin
 from training.evaluation._report import markdown_table
 from training.identification import BACKLASH_VISIBLE_COUNTS, motor_lead
 
-_ELASTIC = ("elastic", "elastic_backlash")
+_ELASTIC = ELASTIC_CLASSES
 
 
 @dataclass(frozen=True)
@@ -161,7 +161,7 @@ def drive_figures(rows: Sequence[dict[str, Any]]) -> dict[str, Any]:
     bl = np.zeros(len(rows), dtype=bool)
     bl[wide] = np.nan_to_num(relative_error(_values(rows, "som", "backlash")[wide], truth["backlash"][wide]),
                              nan=np.inf) <= 0.3
-    wrong = ~correct | (elastic & np.isin(cls_som, _ELASTIC) & ~e30) | (j_err > 0.3)
+    wrong = answer_wrong(cls_true, cls_som, err)
     silent = wrong & (np.array([r["som"]["n_warnings"] for r in rows]) == 0) & np.array(
         [r["som"]["error"] is None for r in rows])
     pct = lambda mask, over: float(100.0 * mask[over].mean()) if over.any() else None  # noqa: E731

@@ -70,6 +70,19 @@ def confusion_matrix(truth: np.ndarray, predicted: np.ndarray, n_classes: int) -
     return out
 
 
+#: The classes whose elastic values an answer is scored on (``E_x``).
+ELASTIC_CLASSES = ("elastic", "elastic_backlash")
+
+
+def answer_wrong(true_class: np.ndarray, answer_class: np.ndarray, errors: Mapping[str, np.ndarray]) -> np.ndarray:
+    """Which answers are wrong (SPEC 4.1): the class wrong, or an elastic answer of an elastic
+    system outside ``E_30`` (``f_e``, ``V_J``, ``J_sigma`` within 30 %), or ``J_sigma`` off by 30 %.
+    ``errors``: the relative errors of ``f_e``, ``V_J``, ``J_sigma`` (NaN: not identified)."""
+    elastic = np.isin(true_class, ELASTIC_CLASSES) & np.isin(answer_class, ELASTIC_CLASSES)
+    J_sigma_off = np.nan_to_num(errors["J_sigma"], nan=np.inf) > 0.3
+    return (true_class != answer_class) | (elastic & ~recognized(errors, 30)) | J_sigma_off
+
+
 def threshold_margin(quantities: Mapping[str, np.ndarray]) -> np.ndarray:
     """Smallest relative distance ``|q - thr| / thr`` of each system to any class threshold (``N``).
 

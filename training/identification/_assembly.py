@@ -13,7 +13,10 @@ The steps, in order (each adjusts the draft's answer or adds warnings, never bot
 5. :func:`drop_impossible`: values no mechanic can have are not reported;
 6. :func:`warn_implausible`: values the record cannot support;
 7. :func:`bound_backlash`: a backlash the record cannot show becomes an upper bound;
-8. :func:`warn_near_threshold`: a class quantity near a threshold of the class rule.
+8. :func:`warn_near_threshold`: a class quantity near a threshold of the class rule;
+9. :func:`state_confidence`: with a calibration (SPEC 4.1), the 90 % intervals, the class
+   probabilities and the probability that the answer is right; the remarks of
+   :data:`._result.NOTE_CODES` become notes, and ``likely_wrong`` warns where that probability is low.
 """
 
 from __future__ import annotations
@@ -24,13 +27,16 @@ from dataclasses import dataclass, replace
 
 from sim import CLASS_THRESHOLDS, gap_width, normalized_backlash, two_mass_derived
 from training.identification._analysis import Analysis
+from training.identification._confidence import (Calibration, ConfidenceInputs, class_margin, confidence_inputs,
+                                                 share_rest, stand_in_points)
 from training.identification._envelope import Envelope, Finding, envelope_warnings
 from training.identification._limits import (backlash_negligible, backlash_resolution, implausible, impossible,
                                              travel)
 from training.identification._policy import (BACKLASH_CLASSES, ClassModel, IdentificationPolicy, MapsAnswer,
                                              class_quantities, refinement_stands, spec_class)
 from training.identification._refine import HiddenGap, Refined
-from training.identification._result import IdentificationResult, IdentWarning, Parameters, Quality
+from training.identification._result import (NOTE_CODES, IdentificationResult, IdentWarning, Intervals, Parameters,
+                                              Quality)
 
 #: The label of the maps' model in a warning where another model's answer stands.
 _MAPS_ESTIMATE = " (the maps' estimate)"
@@ -62,6 +68,11 @@ class Draft:
     warnings: tuple[IdentWarning, ...]
     findings: tuple[Finding, ...] = ()
     backlash_bound: float | None = None
+    notes: tuple[IdentWarning, ...] = ()
+    confidence: ConfidenceInputs | None = None
+    intervals: Intervals | None = None
+    probabilities: dict[str, float] | None = None
+    answer_probability: float | None = None
 
     def warned(self, *warnings: IdentWarning) -> "Draft":
         return replace(self, warnings=self.warnings + warnings)
@@ -69,10 +80,12 @@ class Draft:
 
 @dataclass(frozen=True)
 class Judge:
-    """What the steps consult besides the record: the drive ``envelope`` and the ``policy``."""
+    """What the steps consult besides the record: the drive ``envelope``, the ``policy`` and the
+    ``calibration`` of the answers' confidence (``None``: none; the answers carry no intervals)."""
 
     envelope: Envelope
     policy: IdentificationPolicy
+    calibration: Calibration | None = None
 
 
 #: One adjust-or-warn step over a record's draft.
@@ -85,7 +98,7 @@ def assemble(evidence: RecordEvidence, judge: Judge) -> IdentificationResult:
     for step in ADJUSTMENTS:
         draft = step(evidence, draft, judge)
     return IdentificationResult(draft.structure, draft.parameters, _quality(evidence, draft, judge.policy), draft.warnings,
-                                evidence.name)
+                                evidence.name, draft.intervals, draft.notes, draft.confidence)
 
 
 def _maps_draft(evidence: RecordEvidence) -> Draft:
@@ -201,9 +214,48 @@ def warn_near_threshold(evidence: RecordEvidence, draft: Draft, judge: Judge) ->
                           for (name, threshold), what in near.items()))
 
 
+def state_confidence(evidence: RecordEvidence, draft: Draft, judge: Judge) -> Draft:
+    """The answer's confidence inputs (:mod:`._confidence`); with a calibration its intervals, class
+    probabilities and answer probability, the uncertainty remarks as notes, and ``likely_wrong``
+    where the answer probability lies below the calibration's ``warn_below``."""
+    inputs = answer_confidence(evidence, draft)
+    calibration, raw = judge.calibration, evidence.maps.probabilities
+    if calibration is None:  # the structure map's weights, normalized, the answer's class their largest
+        total = sum(max(p, 0.0) for p in raw.values())
+        p = max(raw[draft.structure], 0.0) / total if total > 0 else 0.0
+        return replace(draft, confidence=inputs, probabilities=share_rest(draft.structure, max(p, 0.25), raw))
+    p_right = calibration.answer_probability(inputs)
+    notes = tuple(w for w in draft.warnings if w.code in NOTE_CODES)
+    warnings = tuple(w for w in draft.warnings if w.code not in NOTE_CODES)
+    if p_right < calibration.warn_below:
+        why = "; ".join(w.text for w in notes[:2])
+        warnings += (IdentWarning("likely_wrong", f"the answer is right with probability {p_right:.2f} only"
+                                                  + (f" ({why})" if why else "")),)
+    return replace(draft, warnings=warnings, notes=notes, confidence=inputs, intervals=calibration.intervals(inputs),
+                   probabilities=calibration.probabilities(inputs, raw),
+                   answer_probability=p_right)
+
+
+def answer_confidence(evidence: RecordEvidence, draft: Draft) -> ConfidenceInputs:
+    """The :class:`._confidence.ConfidenceInputs` of the draft's answer."""
+    analysis, answer, refined = evidence.analysis, evidence.maps, evidence.refined
+    fit = analysis.fit
+    points = stand_in_points(draft.parameters, (answer.f_e, answer.V_J, answer.d), fit.J_sigma, (fit.M_FC, fit.mu_F))
+    maps_margin = class_margin(class_quantities(analysis, fit.J_sigma, answer.V_J, answer.f_e, answer.d, answer.s_N))
+    return confidence_inputs(
+        analysis, draft.structure, draft.parameters, points, maps_structure=answer.structure,
+        maps_probabilities=answer.probabilities,
+        map_distance=max((answer.distance_ratio[n] for n in answer.used), default=1.0),
+        margins=(class_margin(_threshold_sources(analysis, draft)[0][0]), maps_margin),
+        maps_elastic=(answer.f_e, answer.V_J, answer.d),
+        refine=None if refined is None else (refined.residual, refined.evidence), backlash_bound=draft.backlash_bound,
+        remarks=[w.code for w in draft.warnings])
+
+
 #: The adjust-or-warn steps, in the order they run over a record's draft.
 ADJUSTMENTS: tuple[Step, ...] = (warn_maps, take_angle_or_refinement, warn_below_quantum, check_envelope,
-                                 drop_impossible, warn_implausible, bound_backlash, warn_near_threshold)
+                                 drop_impossible, warn_implausible, bound_backlash, warn_near_threshold,
+                                 state_confidence)
 
 
 # -- the answers' parameters -------------------------------------------------------------------
@@ -316,14 +368,15 @@ def _quality(evidence: RecordEvidence, draft: Draft, policy: IdentificationPolic
                                                   refined_s_N=refined.s_N))
     angle = {} if gap is None else dict(angle_ratio=gap.angle_ratio)  # only refined records are checked in the angle
     return Quality(
-        structure_probabilities=answer.probabilities, map_distance_ratio=answer.distance_ratio,
+        structure_probabilities=draft.probabilities if draft.probabilities is not None else answer.probabilities, map_distance_ratio=answer.distance_ratio,
         osc_quanta=analysis.osc_quanta, oscillation_fit_r2=analysis.feature("r2_fit"),
         one_mass_rel_residual=analysis.fit.rel_residual,
         outside_training=answer.outside_training or any("trained" in f.outside for f in evidence.drive_findings),
         section_flags=analysis.section_flags,
         maps_estimate={"f_e": answer.f_e, "V_J": answer.V_J, "d": answer.d, "s_N": answer.s_N},
         outside_envelope={f.quantity: f.to_dict() for f in draft.findings}, backlash_upper_bound=draft.backlash_bound,
-        **refinement, **angle, **_stiff_mode(analysis, draft.structure, policy))
+        answer_probability=draft.answer_probability, **refinement, **angle,
+        **_stiff_mode(analysis, draft.structure, policy))
 
 
 def _stiff_mode(analysis: Analysis, structure: str, policy: IdentificationPolicy) -> dict[str, float | str]:

@@ -28,6 +28,8 @@ from training.config import blas_threads, checkpoints_folder
 from training.errors import one_line
 from training.identification._analysis import Analysis, analyze, feature_columns
 from training.identification._assembly import Judge, RecordEvidence, assemble, drive_quantities
+from training.identification._confidence import FILE_NAME as CONFIDENCE_FILE
+from training.identification._confidence import Calibration, check_calibrated_for
 from training.identification._batch import ReadRecord, analysis_outcome, answered_files
 from training.identification._envelope import Envelope, trained_envelope
 from training.identification._maps import (CHECKPOINT_FILES, MAP_SPECS, MapMetadata, TrainedMap, from_correction,
@@ -64,7 +66,8 @@ class Identifier:
     and ``M_N``)."""
 
     def __init__(self, maps: dict[str, TrainedMap], refine: RefineConfig | None = RefineConfig(),
-                 envelope: Envelope | None = None, *, policy: IdentificationPolicy = IdentificationPolicy()) -> None:
+                 envelope: Envelope | None = None, *, policy: IdentificationPolicy = IdentificationPolicy(),
+                 calibration: Calibration | None = None) -> None:
         missing = [n for n in MAP_SPECS if n not in maps]
         if missing:
             raise ValueError(f"Identifier: maps missing: {missing}; expected {list(MAP_SPECS)}")
@@ -72,9 +75,13 @@ class Identifier:
             raise TypeError(f"refine: expected a RefineConfig or None, received {type(refine).__name__}")
         if not isinstance(policy, IdentificationPolicy):
             raise TypeError(f"policy: expected an IdentificationPolicy, received {type(policy).__name__}")
+        if calibration is not None and not isinstance(calibration, Calibration):
+            raise TypeError(f"calibration: expected a Calibration or None, received {type(calibration).__name__}")
         self.maps = maps
         self.refine = refine
         self.policy = policy
+        #: the answers' confidence calibration (SPEC 4.1; ``None``: answers without intervals)
+        self.calibration = calibration
         #: each map's metadata, checked once (:class:`MapMetadata`): what the recall reads of it
         self.map_metadata = {name: MapMetadata.from_dict(trained.metadata, name, trained.som.grid.n_units)
                              for name, trained in maps.items()}
@@ -85,11 +92,17 @@ class Identifier:
              refine: RefineConfig | None = RefineConfig()) -> "Identifier":
         """Load every map of ``folder`` (default: :func:`training.config.checkpoints_folder`, the
         shipped maps unless ``$TWOMASS_CHECKPOINTS`` names others) after checking the manifest's
-        SHA-256 of each file; the manifest must list every file read (:data:`CHECKPOINT_FILES`)."""
+        SHA-256 of each file; the manifest must list every file read (:data:`CHECKPOINT_FILES`, and
+        the confidence calibration ``confidence.json`` where the folder has one: made for these
+        maps, else an error)."""
         folder = Path(folder) if folder is not None else checkpoints_folder()
-        st.verify_manifest(folder, required=CHECKPOINT_FILES)
+        calibrated = (folder / CONFIDENCE_FILE).exists()
+        digests = st.verify_manifest(folder, required=CHECKPOINT_FILES + ((CONFIDENCE_FILE,) if calibrated else ()))
         maps = {name: load_map(folder / f"{name}.pt") for name in MAP_SPECS}
-        return cls(maps, refine, Envelope.load(folder))
+        calibration = Calibration.load(folder / CONFIDENCE_FILE) if calibrated else None
+        if calibration is not None:
+            check_calibrated_for(calibration, digests, folder)
+        return cls(maps, refine, Envelope.load(folder), calibration=calibration)
 
     # -- public entries ---------------------------------------------------------------------
     def identify(self, record: Record) -> IdentificationResult:
@@ -180,7 +193,7 @@ class Identifier:
         evidence = [RecordEvidence(analysis, answer, None, self.envelope.check(drive_quantities(analysis)), name)
                     for analysis, answer, name in zip(analyses, answers, names)]
         refinements = self._refinements(evidence)
-        judge = Judge(self.envelope, self.policy)
+        judge = Judge(self.envelope, self.policy, self.calibration)
         evidence = [replace(record, refined=refinements[i].refined) if i in refinements else record
                     for i, record in enumerate(evidence)]
         results = [assemble(record, judge) for record in evidence]

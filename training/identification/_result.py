@@ -8,7 +8,7 @@ key on :attr:`IdentWarning.code`, never on the text.
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, field, fields
 from typing import Any, ClassVar
 
 from training.errors import CodedWarning
@@ -181,6 +181,8 @@ class IdentificationResult:
     record: str | None = None
     intervals: Intervals | None = None
     notes: tuple[IdentWarning, ...] = ()
+    #: what the calibration read of the answer (``training.identification._confidence``; not in the JSON)
+    confidence: Any = field(default=None, repr=False, compare=False)
 
     @property
     def ok(self) -> bool:

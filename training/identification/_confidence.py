@@ -1,0 +1,271 @@
+"""How sure an answer is (SPEC 4.1): 90 % intervals, class probabilities and the probability that
+the answer is right, from the record's own evidence, calibrated on held-out simulated records.
+
+Each answer gets a vector of *confidence features* (:data:`FEATURE_NAMES`: its class, how far its
+class quantities lie from the class rule's thresholds, how well the refined model fits, how
+visible the oscillation is, whether the maps and the refinement agree, the drive's resolution
+and noise, which uncertainty remarks fired) and, per parameter, a *point* in a transformed
+coordinate (``log`` for the positive quantities; ``asinh(value / scale)`` for those that may be
+0: backlash, friction). The :class:`Calibration` (shipped with the maps as ``confidence.json``,
+made by ``twomass calibrate``) holds
+
+- per parameter a linear model of the log of the record's expected error from the features (the
+  normalizing *scale*) and, per reported class, the split-conformal quantile of the error over
+  that scale on the calibration records: the interval is ``point +- quantile * scale`` mapped
+  back, with the conformal guarantee (over records exchangeable with the calibration's, the
+  truth lies inside for at least 90 % of answers of each class);
+- two logistic models: P(the class is right) and P(the answer is right: class right, an elastic
+  answer within ``E_30``, ``J_sigma`` within 30 %), and the probability below which an answer is
+  warned ``likely_wrong``.
+
+The class probabilities are P(class right) for the reported class and the rest shared among
+the other classes as the structure map weighs them (never above the reported class's).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from sim import CLASS_THRESHOLDS, STRUCTURE_CLASSES, normalized_backlash, two_mass_derived
+from training.identification._analysis import Analysis
+from training.identification._result import INTERVAL_NAMES, WARNING_CODES, Intervals, Parameters
+
+#: Version of the features and of the calibration file's layout.
+CONFIDENCE_VERSION = "twomass-confidence-v1"
+#: The calibration's file in a checkpoints folder.
+FILE_NAME = "confidence.json"
+#: The intervals' coverage (SPEC 4.1).
+COVERAGE = 0.9
+
+#: The parameters whose coordinate is ``asinh(value / scale)`` (they may be 0); the others' is ``log``.
+ZERO_CAPABLE = ("backlash", "M_FC", "mu_F")
+#: The remarks whose presence is a feature (every code but the calibration's own).
+REMARK_CODES = tuple(c for c in WARNING_CODES if c != "likely_wrong")
+
+FEATURE_NAMES: tuple[str, ...] = (
+    *(f"class_{c}" for c in STRUCTURE_CLASSES), "maps_agree", "refined", "log_refine_residual",
+    "log_refine_evidence", "log_osc_quanta", "r2_fit", "log_one_mass_residual", "log_map_distance", "p_map_class",
+    "class_margin", "class_margin_maps", "log_f_e_T_s", "log_f_e_T_Ei", "log_V_J", "log_d", "log_s_N",
+    "maps_refined_f_e", "maps_refined_V_J", "log_noise", "log_T_s", "log_counts", "log_time_scale", "log_T_Ei_T_s",
+    "friction", "viscous", "log_backlash_bound", *(f"remark_{c}" for c in REMARK_CODES))
+
+
+@dataclass(frozen=True)
+class ConfidenceInputs:
+    """What the calibration reads of one answer: ``features`` ``(F,)`` in the order of
+    :data:`FEATURE_NAMES`; per parameter of :data:`INTERVAL_NAMES` its ``points`` (the answer's
+    value, or what stands in for one the answer leaves out: the maps' elastic values of a stiff
+    answer, 0 for a backlash not identified) and the ``scales`` of the zero-capable coordinates."""
+
+    features: np.ndarray
+    points: dict[str, float]
+    scales: dict[str, float]
+    structure: str
+
+    def coordinate(self, name: str, value: float) -> float:
+        """``value`` of parameter ``name`` in its coordinate (:data:`ZERO_CAPABLE`: asinh; else log)."""
+        if name in ZERO_CAPABLE:
+            return math.asinh(value / self.scales[name])
+        return math.log(max(value, 1e-300))
+
+    def value(self, name: str, coordinate: float) -> float:
+        """The inverse of :meth:`coordinate` (a zero-capable value clipped at 0)."""
+        if name in ZERO_CAPABLE:
+            return max(self.scales[name] * math.sinh(coordinate), 0.0)
+        return math.exp(coordinate)
+
+
+def stand_in_points(parameters: Parameters, maps_elastic: tuple[float, float, float], J_sigma_fit: float,
+                    friction_fit: tuple[float, float]) -> dict[str, float]:
+    """Every parameter's point: the answer's value, else its stand-in (``maps_elastic`` =
+    ``(f_e, V_J, d)`` of the maps, the one-mass fit's ``J_sigma`` and ``(M_FC, mu_F)``, backlash 0;
+    the derived ``J_M``, ``J_L``, ``C_F`` of those)."""
+    J_sigma = parameters.J_sigma if parameters.J_sigma is not None else abs(J_sigma_fit)
+    f_e, V_J, d = (v if v is not None else m for v, m in zip((parameters.f_e, parameters.V_J, parameters.d),
+                                                              maps_elastic))
+    derived = two_mass_derived(J_sigma, V_J, f_e, d)
+    return {"J_sigma": J_sigma, "V_J": V_J, "J_M": derived.J_M, "J_L": derived.J_L, "f_e": f_e, "C_F": derived.C_F,
+            "d": d, "backlash": parameters.backlash or 0.0,
+            "M_FC": parameters.M_FC if parameters.M_FC is not None else max(friction_fit[0], 0.0),
+            "mu_F": parameters.mu_F if parameters.mu_F is not None else max(friction_fit[1], 0.0)}
+
+
+def class_margin(quantities: Mapping[str, float]) -> float:
+    """How far class quantities lie from the class rule's nearest threshold: ``min |ln(q / t)|``
+    (clipped to 0..3; 3 where none is finite)."""
+    gaps = [abs(math.log(q / t)) for name, q in quantities.items() for t in CLASS_THRESHOLDS[name]
+            if math.isfinite(q) and q > 0]
+    return min([3.0, *gaps])
+
+
+def _unit(x: float) -> float:
+    return min(max(x, 0.0), 1.0) if math.isfinite(x) else 0.0
+
+
+def _log10(x: float | None, low: float, high: float) -> float:
+    return 0.0 if x is None or not math.isfinite(x) else math.log10(min(max(x, low), high))
+
+
+def confidence_inputs(analysis: Analysis, structure: str, parameters: Parameters, points: dict[str, float], *,
+                      maps_structure: str, maps_probabilities: Mapping[str, float], map_distance: float,
+                      margins: tuple[float, float], maps_elastic: tuple[float, float, float],
+                      refine: tuple[float, float] | None, backlash_bound: float | None,
+                      remarks: Sequence[str]) -> ConfidenceInputs:
+    """One answer's :class:`ConfidenceInputs` (``margins``: :func:`class_margin` of the answer's and
+    the maps' class quantities; ``refine``: the refined model's residual and evidence, ``None`` where
+    no refinement stands; ``remarks``: the codes of its warnings)."""
+    drive, fit = analysis.drive, analysis.fit
+    f_e, V_J, d = points["f_e"], points["V_J"], points["d"]
+    s_N = (normalized_backlash(points["backlash"], drive.M_N, points["C_F"]) if points["backlash"] > 0 else 1e-3)
+    codes = set(remarks)
+    values = [*(float(structure == c) for c in STRUCTURE_CLASSES), float(structure == maps_structure),
+              float(refine is not None), _log10(refine[0] if refine else None, 1e-3, 1e3),
+              _log10(1.0 + refine[1] if refine else None, 1.0, 1e6), _log10(analysis.osc_quanta, 1e-3, 1e4),
+              _unit(analysis.feature("r2_fit")), _log10(fit.rel_residual, 1e-4, 10.0), _log10(map_distance, 1e-2, 1e2),
+              float(maps_probabilities.get(structure, 0.0)), margins[0], margins[1],
+              _log10(f_e * drive.T_s, 1e-5, 10.0), _log10(f_e * drive.T_Ei, 1e-5, 10.0), _log10(V_J, 1e-2, 1e2),
+              _log10(d, 1e-4, 1.0), _log10(s_N, 1e-3, 1e2),
+              min(abs(math.log(f_e / maps_elastic[0])), 3.0), min(abs(math.log(V_J / maps_elastic[1])), 3.0),
+              _log10(drive.current_noise / drive.M_star, 1e-6, 1.0), _log10(drive.T_s / 250e-6, 1e-2, 1e2),
+              math.log2(max(drive.encoder_counts, 2)) / 20.0, _log10(drive.time_scale(points["J_sigma"]), 1e-3, 1e2),
+              _log10(drive.T_Ei / drive.T_s, 1e-2, 1e3), min(points["M_FC"] / drive.M_star, 1.0),
+              min(points["mu_F"] * drive.w_max / drive.M_star, 1.0),
+              _log10(backlash_bound / drive.q_phi if backlash_bound else None, 1e-2, 1e6),
+              *(float(c in codes) for c in REMARK_CODES)]
+    scales = {"backlash": 2.0 * drive.q_phi, "M_FC": 0.01 * drive.M_star, "mu_F": 0.01 * drive.M_star / drive.w_max}
+    return ConfidenceInputs(np.asarray(values, dtype=np.float64), dict(points), scales, structure)
+
+
+# -- the calibration ---------------------------------------------------------------------------
+@dataclass(frozen=True)
+class LinearModel:
+    """``y = coef . (x - mean) / std + intercept`` over :data:`FEATURE_NAMES` (``std`` 1 where constant)."""
+
+    mean: np.ndarray
+    std: np.ndarray
+    coef: np.ndarray
+    intercept: float
+
+    def __call__(self, x: np.ndarray) -> np.ndarray:
+        """``x``: ``*batch x F`` -> ``*batch``."""
+        return ((x - self.mean) / self.std) @ self.coef + self.intercept
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"mean": self.mean.tolist(), "std": self.std.tolist(), "coef": self.coef.tolist(),
+                "intercept": self.intercept}
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> "LinearModel":
+        arrays = [np.asarray(d[k], dtype=np.float64) for k in ("mean", "std", "coef")]
+        if any(a.shape != (len(FEATURE_NAMES),) for a in arrays):
+            raise ValueError(f"confidence model: expected {len(FEATURE_NAMES)} features, received "
+                             f"{[a.shape for a in arrays]}")
+        return cls(*arrays, float(d["intercept"]))
+
+
+@dataclass(frozen=True)
+class Calibration:
+    """The calibration of :mod:`this module <training.identification._confidence>`: per parameter
+    the log-scale model and the conformal quantile per reported class (``"*"``: all classes, used
+    for a class with too few calibration records); the logistic models of P(class right) and
+    P(answer right) (their ``y`` is the log-odds); the answer probability below which an answer is
+    warned; and where it came from (``provenance``: seeds, counts, the maps' digests)."""
+
+    scale: dict[str, LinearModel]
+    quantile: dict[str, dict[str, float]]
+    class_right: LinearModel
+    answer_right: LinearModel
+    warn_below: float
+    provenance: dict[str, Any]
+
+    def intervals(self, inputs: ConfidenceInputs) -> Intervals:
+        """The answer's 90 % intervals."""
+        out = {}
+        for name in INTERVAL_NAMES:
+            q = self.quantile[name].get(inputs.structure, self.quantile[name]["*"])
+            half = q * math.exp(float(self.scale[name](inputs.features)))
+            centre = inputs.coordinate(name, inputs.points[name])
+            out[name] = (inputs.value(name, centre - half), inputs.value(name, centre + half))
+        return Intervals(**out)
+
+    def probabilities(self, inputs: ConfidenceInputs, map_probabilities: Mapping[str, float]) -> dict[str, float]:
+        """The four classes' probabilities: P(class right) for the answer's, the rest shared by
+        the structure map's weights, none above the answer's (they sum to 1)."""
+        p = max(_sigmoid(float(self.class_right(inputs.features))), 1.0 / len(STRUCTURE_CLASSES))
+        return share_rest(inputs.structure, p, map_probabilities)
+
+    def answer_probability(self, inputs: ConfidenceInputs) -> float:
+        """P(the answer is right: class, ``E_30`` of an elastic answer, ``J_sigma`` within 30 %)."""
+        return _sigmoid(float(self.answer_right(inputs.features)))
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"version": CONFIDENCE_VERSION, "features": list(FEATURE_NAMES), "coverage": COVERAGE,
+                "scale": {n: m.to_dict() for n, m in self.scale.items()}, "quantile": self.quantile,
+                "class_right": self.class_right.to_dict(), "answer_right": self.answer_right.to_dict(),
+                "warn_below": self.warn_below, "provenance": self.provenance}
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> "Calibration":
+        if d.get("version") != CONFIDENCE_VERSION or list(d.get("features", ())) != list(FEATURE_NAMES):
+            raise ValueError(f"confidence calibration: version {d.get('version')!r} does not match this toolkit's "
+                             f"{CONFIDENCE_VERSION!r}: rerun `twomass calibrate`")
+        missing = [n for n in INTERVAL_NAMES if n not in d["scale"] or "*" not in d["quantile"].get(n, {})]
+        if missing:
+            raise ValueError(f"confidence calibration: parameters missing: {missing}")
+        return cls({n: LinearModel.from_dict(d["scale"][n]) for n in INTERVAL_NAMES},
+                   {n: {k: float(v) for k, v in d["quantile"][n].items()} for n in INTERVAL_NAMES},
+                   LinearModel.from_dict(d["class_right"]), LinearModel.from_dict(d["answer_right"]),
+                   float(d["warn_below"]), dict(d.get("provenance", {})))
+
+    @classmethod
+    def load(cls, path: str | os.PathLike[str]) -> "Calibration":
+        try:
+            return cls.from_dict(json.loads(Path(path).read_text()))
+        except (OSError, json.JSONDecodeError, KeyError, TypeError) as err:
+            raise ValueError(f"confidence calibration {path}: unreadable ({err})") from None
+
+
+def share_rest(structure: str, p: float, weights: Mapping[str, float]) -> dict[str, float]:
+    """``p`` for ``structure`` and ``1 - p`` shared among the other classes in proportion to
+    ``weights`` (equally where they are all 0), none above ``p`` (water-filling: a share capped at
+    ``p`` passes its excess to the others). ``p`` >= 1/4 so that this is always possible."""
+    others = [c for c in STRUCTURE_CLASSES if c != structure]
+    w = {c: max(float(weights.get(c, 0.0)), 0.0) for c in others}
+    out, rest, free = {structure: p}, 1.0 - p, list(others)
+    while free:
+        total = sum(w[c] for c in free)
+        share = {c: rest * (w[c] / total if total > 0 else 1.0 / len(free)) for c in free}
+        capped = [c for c in free if share[c] > p]
+        if not capped:
+            out.update(share)
+            break
+        for c in capped:
+            out[c] = p
+            rest -= p
+            free.remove(c)
+    return {c: out[c] for c in STRUCTURE_CLASSES}
+
+
+def _sigmoid(z: float) -> float:
+    return 1.0 / (1.0 + math.exp(-z)) if z >= 0 else math.exp(z) / (1.0 + math.exp(z))
+
+
+def maps_digests(digests: Mapping[str, str]) -> dict[str, str]:
+    """The maps' SHA-256 of a manifest listing (every ``.pt`` file): what a calibration is made for."""
+    return {name: digest for name, digest in sorted(digests.items()) if name.endswith(".pt")}
+
+
+def check_calibrated_for(calibration: Calibration, digests: Mapping[str, str], folder: str | os.PathLike[str]) -> None:
+    """Raise ``ValueError`` (one line) where ``calibration`` was made for other maps than those of
+    the manifest listing ``digests``."""
+    if calibration.provenance.get("maps_sha256") != maps_digests(digests):
+        raise ValueError(f"{folder}: {FILE_NAME} was calibrated for other maps: rerun `twomass calibrate "
+                         f"--checkpoints {folder}`")
