@@ -49,6 +49,7 @@ COMMANDS: dict[str, str] = {
     "bench": "training.commands.bench",
     "demo": "training.commands.demo",
     "inspect": "training.commands.inspect",
+    "calibrate": "training.commands.calibrate",
 }
 
 #: Exit codes of :func:`main` besides a command's own: bad input, Ctrl-C (128 + SIGINT) and

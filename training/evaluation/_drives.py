@@ -89,15 +89,21 @@ def drive_rows(case: DriveCase, n: int, seed: int, identifier: Any,
 
 def envelope_rows(drives: int, per_drive: int, seed: int, identifier: Any,
                   progress: Callable[[int], object] | None = None) -> Iterator[tuple[str, str, list[dict[str, Any]]]]:
+    """The drives of :func:`envelope_cases`, simulated and identified a drive at a time: (name, the
+    drive in words, its rows as :func:`drive_rows`)."""
+    for name, drive, signal, params, noise_seed in envelope_cases(drives, per_drive, seed):
+        yield name, _describe(drive, signal, params), _rows(params, drive, signal, noise_seed, identifier, progress)
+
+
+def envelope_cases(drives: int, per_drive: int, seed: int) -> Iterator[
+        tuple[str, DriveConfig, TestSignalConfig, TwoMassParams, int]]:
     """``drives`` drives and test runs drawn at random over SPEC 3.1's envelope, ``per_drive`` systems
     each (:func:`sim.sample_envelope`: the maps' training distribution, with no cell on the reference
-    drive), simulated and identified a drive at a time: (name, the drive in words, its rows as
-    :func:`drive_rows`)."""
+    drive): (name, drive, test, systems, noise seed)."""
     sample = sample_envelope(drives * per_drive, seed, EnvelopeRanges(cell=per_drive, reference_share=0.0))
     for k, (drive, signal) in enumerate(sample.cases):
         params = sample.params[torch.nonzero(sample.cell == k).flatten()]  # per_drive systems
-        yield (f"envelope_{k}", _describe(drive, signal, params),
-               _rows(params, drive, signal, seed * 1000 + k, identifier, progress))
+        yield f"envelope_{k}", drive, signal, params, seed * 1000 + k
 
 
 def _describe(drive: DriveConfig, signal: TestSignalConfig, params: TwoMassParams) -> str:

@@ -1,0 +1,225 @@
+"""The confidence calibration (SPEC 4.1; :mod:`training.identification._confidence`): held-out
+simulated records of the drive matrix, drives drawn over the envelope and the reference drive's
+default population, identified without a calibration; then per parameter a log-scale model and
+split-conformal quantiles, and the logistic models of P(class right) and P(answer right).
+
+The calibration's seeds (:data:`CALIBRATION_SEEDS`) are used nowhere else: not by the maps'
+training (``twomass generate``, seed 0 and up) nor by ``twomass evaluate`` (seeds 5, 6 and the
+drive studies' ``--seed``).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from sim import DriveConfig, TestSignalConfig, TwoMassParams, iter_records, sample_population
+from training.evaluation._drives import DRIVES, envelope_cases
+from training.evaluation._metrics import answer_wrong, relative_error
+from training.identification import INTERVAL_NAMES, NOTE_CODES, Identifier
+from training.identification._confidence import (COVERAGE, CONFIDENCE_VERSION, FEATURE_NAMES, Calibration,
+                                                 ConfidenceInputs, LinearModel)
+
+#: The seeds of the calibration's three sets: the drive matrix, the envelope drives, the reference
+#: drive's default population.
+CALIBRATION_SEEDS = {"matrix": 7101, "envelope": 7102, "reference": 7103}
+#: The fewest calibration answers of a class for a class's own conformal quantile (else the pooled one).
+MIN_CLASS_SAMPLES = 80
+#: The share of wrong answers the ``likely_wrong`` threshold may leave unwarned on the calibration
+#: (out-of-fold), half SPEC 4.1's 1 % for the evaluation's sake.
+SILENT_WRONG_SHARE = 0.005
+#: The ridge penalties of the scale regressions and of the logistic models (standardized features).
+RIDGE_SCALE, RIDGE_LOGISTIC = 1.0, 1.0
+#: The floors added to a coordinate's error before its log (log coordinates: 0.1 %; asinh: 0.05).
+_ERROR_FLOOR = {"log": 1e-3, "asinh": 0.05}
+
+
+@dataclass(frozen=True)
+class CalibrationSample:
+    """One identified calibration record: what the calibration reads of its answer, the truth of
+    every parameter of :data:`INTERVAL_NAMES`, the true and the answered class, the relative errors
+    of ``f_e``, ``V_J``, ``J_sigma`` (NaN: not identified), the codes of the warnings that stay
+    warnings, and its set (``matrix:reference``, ``envelope_3``, ...)."""
+
+    inputs: ConfidenceInputs
+    truth: dict[str, float]
+    true_class: str
+    errors: dict[str, float]
+    kept_warnings: tuple[str, ...]
+    group: str
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"features": self.inputs.features.tolist(), "points": self.inputs.points, "scales": self.inputs.scales,
+                "structure": self.inputs.structure, "truth": self.truth, "true_class": self.true_class,
+                "errors": self.errors, "kept_warnings": list(self.kept_warnings), "group": self.group}
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> "CalibrationSample":
+        inputs = ConfidenceInputs(np.asarray(d["features"], dtype=np.float64), d["points"], d["scales"], d["structure"])
+        return cls(inputs, d["truth"], d["true_class"], d["errors"], tuple(d["kept_warnings"]), d["group"])
+
+
+# -- the calibration records -------------------------------------------------------------------
+Task = tuple[str, DriveConfig, TestSignalConfig, TwoMassParams, int]
+
+
+def calibration_tasks(per_drive: int = 300, envelope_drives: int = 40, per_envelope_drive: int = 25,
+                      reference: int = 1000, seeds: dict[str, int] = CALIBRATION_SEEDS) -> list[Task]:
+    """The calibration's simulation tasks: (group, drive, test, systems, noise seed), each at most
+    100 systems."""
+    tasks: list[Task] = []
+    for name, case in DRIVES.items():
+        tasks += _split(f"matrix:{name}", case.drive, case.signal, sample_population(per_drive, seeds["matrix"],
+                                                                                     case.ranges()), seeds["matrix"])
+    for name, drive, signal, params, seed in envelope_cases(envelope_drives, per_envelope_drive, seeds["envelope"]):
+        tasks += _split(name, drive, signal, params, seed)
+    reference_drive = DRIVES["reference"]
+    tasks += _split("reference_population", reference_drive.drive, reference_drive.signal,
+                    sample_population(reference, seeds["reference"]), seeds["reference"])
+    return tasks
+
+
+def _split(group: str, drive: DriveConfig, signal: TestSignalConfig, params: TwoMassParams, seed: int,
+           size: int = 100) -> list[Task]:
+    n = params.J_sigma.shape[0]
+    return [(group, drive, signal, params[k:k + size], seed * 1000 + k // size) for k in range(0, n, size)]
+
+
+def task_samples(task: Task, checkpoints: str | os.PathLike[str] | None = None) -> list[CalibrationSample]:
+    """Simulate and identify one task's systems without a calibration; one sample per answer."""
+    group, drive, signal, params, seed = task
+    loaded = Identifier.load(checkpoints)
+    identifier = Identifier(loaded.maps, loaded.refine, loaded.envelope, policy=loaded.policy)
+    records = list(iter_records(params, drive, signal, seed=seed))
+    out = []
+    for record, result in zip(records, identifier.identify_records(records)):
+        if not result.ok:
+            continue
+        truth = record.info.truth
+        estimates = result.parameters.to_dict()
+        errors = {k: float(relative_error(np.array([np.nan if estimates[k] is None else estimates[k]]),
+                                          np.array([truth[k]]))[0]) for k in ("f_e", "V_J", "J_sigma")}
+        kept = tuple(w.code for w in result.warnings if w.code not in NOTE_CODES)
+        out.append(CalibrationSample(result.confidence, {k: float(truth[k]) for k in INTERVAL_NAMES},
+                                     str(truth["structure"]), errors, kept, group))
+    return out
+
+
+def save_samples(samples: Sequence[CalibrationSample], path: str | os.PathLike[str]) -> None:
+    Path(path).write_text("\n".join(json.dumps(s.to_dict()) for s in samples) + "\n")
+
+
+def load_samples(path: str | os.PathLike[str]) -> list[CalibrationSample]:
+    return [CalibrationSample.from_dict(json.loads(line)) for line in Path(path).read_text().splitlines() if line]
+
+
+# -- the fit -----------------------------------------------------------------------------------
+def answer_right(samples: Sequence[CalibrationSample]) -> np.ndarray:
+    """``N`` bool: the answer is right (:func:`training.evaluation._metrics.answer_wrong` negated)."""
+    errors = {k: np.array([s.errors[k] for s in samples]) for k in ("f_e", "V_J", "J_sigma")}
+    return ~answer_wrong(np.array([s.true_class for s in samples]), np.array([s.inputs.structure for s in samples]),
+                         errors)
+
+
+def coordinate_errors(samples: Sequence[CalibrationSample], name: str) -> np.ndarray:
+    """``N``: each answer's error of parameter ``name`` in its coordinate, ``|c(point) - c(truth)|``."""
+    return np.array([abs(s.inputs.coordinate(name, s.inputs.points[name]) - s.inputs.coordinate(name, s.truth[name]))
+                     for s in samples])
+
+
+def fit_calibration(samples: Sequence[CalibrationSample], provenance: dict[str, Any]) -> Calibration:
+    """The :class:`Calibration` of ``samples`` (module docstring); ``provenance`` is stored with it."""
+    if len(samples) < 200:
+        raise ValueError(f"fit_calibration: expected at least 200 calibration answers, received {len(samples)}")
+    X = np.stack([s.inputs.features for s in samples])  # N x F
+    mean, std = X.mean(axis=0), X.std(axis=0)
+    std = np.where(std > 1e-9, std, 1.0)
+    Z = (X - mean) / std  # N x F, standardized
+    classes = np.array([s.inputs.structure for s in samples])
+    scale, quantile = {}, {}
+    for name in INTERVAL_NAMES:
+        floor = _ERROR_FLOOR["asinh" if name in ("backlash", "M_FC", "mu_F") else "log"]
+        e = coordinate_errors(samples, name)
+        coef, intercept = _ridge(Z, np.log(e + floor), RIDGE_SCALE)
+        model = LinearModel(mean, std, coef, intercept)
+        scores = e / np.exp(model(X))
+        scale[name] = model
+        quantile[name] = {"*": conformal_quantile(scores, COVERAGE)}
+        for c in np.unique(classes):
+            if (classes == c).sum() >= MIN_CLASS_SAMPLES:
+                quantile[name][str(c)] = conformal_quantile(scores[classes == c], COVERAGE)
+    class_right = np.array([s.inputs.structure == s.true_class for s in samples])
+    right = answer_right(samples)
+    class_model = LinearModel(mean, std, *_logistic(Z, class_right, RIDGE_LOGISTIC))
+    answer_model = LinearModel(mean, std, *_logistic(Z, right, RIDGE_LOGISTIC))
+    warned = np.array([bool(s.kept_warnings) for s in samples])
+    p_out_of_fold = _out_of_fold_probability(Z, right)
+    warn_below = warn_threshold(p_out_of_fold[~right & ~warned], int((~right).sum()), SILENT_WRONG_SHARE)
+    counts = {str(c): int((classes == c).sum()) for c in np.unique(classes)}
+    provenance = {**provenance, "n": len(samples), "classes": counts, "version": CONFIDENCE_VERSION,
+                  "right": float(right.mean()), "right_warned_out_of_fold": float(
+                      ((p_out_of_fold < warn_below) | warned)[right].mean())}
+    return Calibration(scale, quantile, class_model, answer_model, warn_below, provenance)
+
+
+def conformal_quantile(scores: np.ndarray, coverage: float) -> float:
+    """The split-conformal quantile: the ``ceil((n + 1) coverage)``-th smallest of ``n`` scores
+    (inf where that exceeds ``n``): a new exchangeable score lies at or below it with probability
+    at least ``coverage``."""
+    n = len(scores)
+    k = math.ceil((n + 1) * coverage)
+    return float(np.sort(scores)[k - 1]) if k <= n else math.inf
+
+
+def warn_threshold(p_silent_wrong: np.ndarray, n_wrong: int, share: float) -> float:
+    """The smallest answer probability threshold that leaves at most ``share`` of the ``n_wrong``
+    wrong answers unwarned (``p_silent_wrong``: the probabilities of the wrong answers no other
+    warning covers; an answer below the threshold is warned)."""
+    allowed = int(math.floor(share * n_wrong))
+    p = np.sort(p_silent_wrong)[::-1]
+    if len(p) <= allowed:
+        return 0.0
+    return float(np.nextafter(p[allowed], 1.0))
+
+
+def _ridge(Z: np.ndarray, y: np.ndarray, lam: float) -> tuple[np.ndarray, float]:
+    """Ridge regression of ``y`` on standardized ``Z`` (intercept unpenalized)."""
+    y0 = float(y.mean())
+    F = Z.shape[1]
+    coef = np.linalg.solve(Z.T @ Z + lam * np.eye(F), Z.T @ (y - y0))
+    return coef, y0 - float(Z.mean(axis=0) @ coef)
+
+
+def _logistic(Z: np.ndarray, y: np.ndarray, lam: float, iterations: int = 50) -> tuple[np.ndarray, float]:
+    """Ridge-penalized logistic regression by Newton's method: ``(coef, intercept)`` of the log-odds."""
+    A = np.hstack([Z, np.ones((len(Z), 1))])  # N x (F + 1)
+    penalty = lam * np.eye(A.shape[1])
+    penalty[-1, -1] = 0.0
+    w = np.zeros(A.shape[1])
+    t = y.astype(np.float64)
+    for _ in range(iterations):
+        p = 1.0 / (1.0 + np.exp(-np.clip(A @ w, -40, 40)))
+        grad = A.T @ (p - t) + penalty @ w
+        hess = (A * (p * (1 - p))[:, None]).T @ A + penalty
+        step = np.linalg.solve(hess, grad)
+        w -= step
+        if np.max(np.abs(step)) < 1e-8:
+            break
+    return w[:-1], float(w[-1])
+
+
+def _out_of_fold_probability(Z: np.ndarray, y: np.ndarray, folds: int = 5, seed: int = 0) -> np.ndarray:
+    """Each answer's P(right) from a logistic model fitted without its fold."""
+    fold = np.random.default_rng(seed).integers(0, folds, len(y))
+    p = np.empty(len(y))
+    for k in range(folds):
+        coef, intercept = _logistic(Z[fold != k], y[fold != k], RIDGE_LOGISTIC)
+        p[fold == k] = 1.0 / (1.0 + np.exp(-np.clip(Z[fold == k] @ coef + intercept, -40, 40)))
+    return p
