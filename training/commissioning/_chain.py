@@ -48,7 +48,7 @@ from ._loop import linear_plant, margins
 from ._permission import (CommissioningWarning, IdentificationFailed, IdentificationOutcome, Permission, may_propose_controller,
                           outside_training)
 from ._report import CommissioningReport, PlantRun
-from ._design import elastic_doubts
+from ._design import MechanicsBounds, elastic_doubts
 from ._rules import ControllerProposal, ControllerSpec, propose_cautious, propose_controller, uncertainty_set
 from ._tuning import (BOUNDED_VERDICTS, applied_torque_gain, Gains, TuningResult, TuningScenario, closed_loop_cost, loop_verdict,
                       model_response, plan_scenario, response_figures, tune_controller)
@@ -57,14 +57,22 @@ from ._validation import OSC_METRICS, VALIDATION_MODES, ValidationResult, valida
 __all__ = ["CommissioningConfig", "commission", "limit_checks", "drive_config", "check_resolution", "MIN_LIMIT_QUANTA",
            "RecordIdentifier", "ScalarWriter", "ChainRun", "ChainState", "LoopPlan", "LoopTrial", "STAGES"]
 
-#: Identification warning codes that make the elastic parameters uncertain (rule R7c widens the set;
-#: ``outside_envelope`` and ``drive_outside_training`` only where a finding concerns more than
-#: friction and torque levels: :func:`training.commissioning._design.elastic_doubts`).
+#: Identification warning codes that make the elastic parameters uncertain, for an identification
+#: without calibrated intervals (rule R7c widens the interim set; ``outside_envelope`` and
+#: ``drive_outside_training`` only where a finding concerns more than friction and torque levels:
+#: :func:`training.commissioning._design.elastic_doubts`).
 UNCERTAIN_CODES: frozenset[str] = frozenset({"unlike_training_data", "oscillation_below_quantum", "refine_partial_fit",
                                              "implausible_output", "drive_outside_training", "outside_envelope",
-                                             "class_undecided", "backlash_from_angle"})
-#: Identification warning codes that say the oscillation is not determined at all (rule R7b as for ``stiff``).
-UNDETERMINED_CODES: frozenset[str] = frozenset({"refine_partial_fit", "oscillation_below_quantum"})
+                                             "class_undecided", "backlash_from_angle", "likely_wrong"})
+#: With calibrated intervals (SPEC 4.1) the intervals carry the uncertainty (the other codes are the
+#: answer's notes); these warnings still widen the set (R7c): the intervals hold for records like the
+#: calibration's, inside the envelope and the maps' training, and ``likely_wrong`` says the answer
+#: itself is likely wrong.
+CALIBRATED_UNCERTAIN_CODES: frozenset[str] = frozenset({"implausible_output", "drive_outside_training", "outside_envelope",
+                                                        "likely_wrong"})
+#: Identification codes (warnings or notes) that say the oscillation is not determined at all, or
+#: the answer likely wrong (rule R7b as for ``stiff``: the set covers what the test cannot exclude).
+UNDETERMINED_CODES: frozenset[str] = frozenset({"refine_partial_fit", "oscillation_below_quantum", "likely_wrong"})
 #: The fewest samples a closed-loop experiment may be given: six segments of at least 100 samples.
 MIN_EXPERIMENT_SAMPLES: int = 600
 
@@ -376,10 +384,25 @@ def _positive(x: Any) -> bool:
     return isinstance(x, (int, float)) and math.isfinite(x) and x > 0
 
 
+def _intervals(result: Any) -> Any:
+    """The identification's calibrated intervals (None: its maps carry no calibration, or the
+    identifier reports none)."""
+    return getattr(result, "intervals", None)
+
+
 def _uncertain(result: Any) -> list[str]:
-    """Why the identified elastic values are uncertain (warning codes of :data:`UNCERTAIN_CODES`
-    that concern them, ``outside_training``: :func:`elastic_doubts`); empty when nothing says so."""
-    return elastic_doubts(result, UNCERTAIN_CODES)
+    """Why the identified elastic values are more uncertain than the set shows (warning codes of
+    :data:`UNCERTAIN_CODES`, or of :data:`CALIBRATED_UNCERTAIN_CODES` where the result has
+    calibrated intervals, that concern them; ``outside_training``: :func:`elastic_doubts`); empty
+    when nothing says so."""
+    return elastic_doubts(result, UNCERTAIN_CODES if _intervals(result) is None else CALIBRATED_UNCERTAIN_CODES)
+
+
+def _undetermined(result: Any) -> list[str]:
+    """The codes of :data:`UNDETERMINED_CODES` among the result's warnings or notes (with a
+    calibration the oscillation's codes arrive as notes: what the test cannot show stays so)."""
+    remarks = {w.code for w in (*result.warnings, *getattr(result, "notes", ()))}
+    return sorted(UNDETERMINED_CODES & remarks)
 
 
 def _run_candidates(run: ChainRun, plan: LoopPlan, kind: str) -> list[PlantRun]:
@@ -442,27 +465,32 @@ def _design_spec(settings: CommissioningConfig, result: Any) -> ControllerSpec:
 
 
 def _propose(run: ChainRun) -> ControllerProposal:
-    """The optimized design (R4-R7) on the uncertainty set of the identified model; R7b covers the
-    resonances the test could not show unless the frequency response was measured (then the
-    measurement stands in for them), R7c an identification whose elastic values are uncertain
-    (wider spread, lighter damping)."""
+    """The optimized design (R4-R7) on the uncertainty set of the identified model: spanning the
+    identification's calibrated intervals (:class:`MechanicsBounds`), or the interim spread where it
+    has none (the R7 rule line says which); R7b covers the resonances the test could not show
+    unless the frequency response was measured (then the measurement stands in for them), R7c an
+    identification whose elastic values are uncertain beyond what the set shows (wider spread,
+    lighter damping)."""
     settings, result = run.settings, run.result
     params, why = _model_params(result), _uncertain(result)
     spec = _design_spec(settings, result)
+    intervals = _intervals(result)
+    bounds = None if intervals is None else MechanicsBounds.from_intervals(intervals)
     hidden = notch_at = None
-    if settings.hidden_resonances and (params["f_e"] is None or UNDETERMINED_CODES.intersection(why)):
+    if settings.hidden_resonances and (params["f_e"] is None or _undetermined(result)):
         hidden, notch_at = hidden_bands(_accepted(run.excitation), float(params["J_sigma"]), run.config, spec.class_V_J,
                                         f_lo=spec.class_f_e[0], min_osc_quanta=settings.rules.min_osc_quanta)
     r7c = bool(why) and params["f_e"] is not None
     uncertainty = uncertainty_set(params, spec, structure=result.structure, hidden=hidden, measured=run.state.measured,
                                   spread=settings.uncertain_spread if r7c else None,
-                                  damping=settings.uncertain_damping if r7c else None, doubts=tuple(why))
+                                  damping=settings.uncertain_damping if r7c else None, doubts=tuple(why), bounds=bounds)
     proposal = propose_controller(result.structure, params, run.config, spec, notch_at=notch_at, uncertainty=uncertainty)
     if r7c:
-        low = uncertainty.d_scale[0]
-        proposal = replace(proposal, rules=(f"R7c identification uncertain ({', '.join(why)}): the set's f_e +-"
-                                            f"{uncertainty.f_e_spread:.0%}, V_J +-{uncertainty.V_J_spread:.0%}, "
-                                            f"d from x{low:g} ({low * float(params['d'] or 0.0):.3g})",) + proposal.rules)
+        f_es, V_Js, (d_lo, _) = uncertainty.spans()
+        proposal = replace(proposal, rules=(f"R7c identification uncertain ({', '.join(why)}): the set's f_e "
+                                            f"{f_es[0]:.4g}..{f_es[-1]:.4g} Hz (+-{uncertainty.f_e_spread:.0%} at least), "
+                                            f"V_J {V_Js[0]:.3g}..{V_Js[-1]:.3g} (+-{uncertainty.V_J_spread:.0%} at least), "
+                                            f"d from {d_lo:.3g}",) + proposal.rules)
     return proposal
 
 

@@ -28,7 +28,7 @@ from ._law import MAX_NOTCHES, NotchSpec
 from ._loop import (LinearPlant, Mechanics, ModelSet, closed_loop_matrices, controller_parts, drive_value, linear_plant,
                     load_transfer, margin_arrays)
 
-__all__ = ["UncertaintySet", "DesignSearch", "SEARCH", "OptimizedLoop", "optimize_loop", "elastic_doubts",
+__all__ = ["UncertaintySet", "MechanicsBounds", "BOUNDED_PARAMETERS", "DesignSearch", "SEARCH", "OptimizedLoop", "optimize_loop", "elastic_doubts",
            "measured_peaks", "trusted_response", "NON_ELASTIC_QUANTITIES"]
 
 #: Quantities of the identification's envelope findings (``quality.outside_envelope``) that say
@@ -52,6 +52,60 @@ def elastic_doubts(result: Any, codes: Iterable[str]) -> list[str]:
     if result.quality.outside_training and "outside_training" not in why:
         why.append("outside_training")
     return why
+
+
+#: The parameters a :class:`MechanicsBounds` spans (those the design's models vary).
+BOUNDED_PARAMETERS: tuple[str, ...] = ("J_sigma", "V_J", "f_e", "d", "J_M")
+
+
+@dataclass(frozen=True)
+class MechanicsBounds:
+    """The ranges ``(low, high)`` an :class:`UncertaintySet` spans around the identified mechanic:
+    ``J_sigma`` [kg m^2], ``V_J`` [-], ``f_e`` [Hz], ``d`` [-] and ``J_M`` [kg m^2] (the motor alone:
+    a backlash plant's decoupled motor). Built from the identification's calibrated 90 % intervals
+    (:meth:`from_intervals`, SPEC 4.1 and 8.2); ``widened`` says what rule R7c added to them (empty:
+    the intervals as they are). Checked on construction: finite, ``0 <= low <= high``, and a
+    positive low end of ``J_sigma``, ``f_e`` and ``J_M``."""
+
+    J_sigma: tuple[float, float]
+    V_J: tuple[float, float]
+    f_e: tuple[float, float]
+    d: tuple[float, float]
+    J_M: tuple[float, float]
+    widened: str = ""
+
+    def __post_init__(self) -> None:
+        for name in BOUNDED_PARAMETERS:
+            pair = getattr(self, name)
+            try:
+                low, high = (float(v) for v in pair)
+            except (TypeError, ValueError):
+                raise ValueError(f"bounds {name}: expected a pair (low, high), received {pair!r}") from None
+            positive = name in ("J_sigma", "f_e", "J_M")
+            if not (math.isfinite(low) and math.isfinite(high) and 0.0 <= low <= high and (low > 0 or not positive)):
+                need = "0 < low" if positive else "0 <= low"
+                raise ValueError(f"bounds {name}: expected finite {need} <= high, received ({low!r}, {high!r})")
+            object.__setattr__(self, name, (low, high))
+
+    @classmethod
+    def from_intervals(cls, intervals: Any) -> MechanicsBounds:
+        """The bounds of an identification's ``intervals`` (``intervals[name] -> (low, high)`` in SI:
+        ``training.identification.Intervals``) over :data:`BOUNDED_PARAMETERS`."""
+        try:
+            return cls(**{name: tuple(intervals[name]) for name in BOUNDED_PARAMETERS})
+        except (KeyError, TypeError) as err:
+            raise ValueError(f"intervals: expected (low, high) for each of {list(BOUNDED_PARAMETERS)}: {err}") from None
+
+    def widen(self, mechanics: Mechanics, spread: float, damping: float, why: str) -> MechanicsBounds:
+        """Rule R7c on calibrated bounds: ``f_e`` and ``V_J`` span at least the identified value
+        x(1 -+ ``spread``), ``d`` reaches down to at least the identified ``d`` x ``damping``; ``why``
+        (one line) is kept in :attr:`widened`. A one-mass ``mechanics`` keeps the bounds as they are."""
+        if not mechanics.two_mass:
+            return self
+        f, v, d = mechanics.f_e, mechanics.V_J, mechanics.d
+        return replace(self, f_e=(min(self.f_e[0], f * (1 - spread)), max(self.f_e[1], f * (1 + spread))),
+                       V_J=(min(self.V_J[0], v * (1 - spread)), max(self.V_J[1], v * (1 + spread))),
+                       d=(min(self.d[0], d * damping), self.d[1]), widened=why)
 
 
 def trusted_response(measured: MeasuredResponse, min_coherence: float) -> MeasuredResponse | None:
@@ -88,9 +142,13 @@ class Member(NamedTuple):
 class UncertaintySet:
     """The plants a design must hold on (SPEC 8.2's "every model of the uncertainty set").
 
-    Until the identification reports calibrated intervals, an interim set of documented relative
-    half-widths (``f_e_spread``, ``V_J_spread``; ``d_scale`` the damping's factors, low and high),
-    all around the identified ``mechanics``; ``doubts``: why it was widened (rule R7c). The
+    Where the identification reports calibrated intervals (SPEC 4.1), ``bounds`` (a
+    :class:`MechanicsBounds` of them): the members span each interval of ``f_e``, ``V_J``, ``d``
+    and ``J_sigma`` (a backlash plant's decoupled motor at the low end of ``J_M``), so that a
+    narrow interval gives a narrow set. Without them (``bounds`` None: maps without a calibration)
+    an interim set of documented relative half-widths (``f_e_spread``, ``V_J_spread``; ``d_scale``
+    the damping's factors, low and high) around the identified ``mechanics``, and :meth:`describe`
+    says so. ``doubts``: why it was widened (rule R7c). The
     identified mechanic is taken with the SPEC's first-order current loop, every member with
     ``current_loop_damping``'s second-order lag plus ``extra_delay`` samples of dead time (the
     hidden resonances with both). ``decoupled_motor``: a backlash
@@ -117,22 +175,53 @@ class UncertaintySet:
     measured: MeasuredResponse | None = None
     measured_f_spread: float = 0.05
     doubts: tuple[str, ...] = ()
+    bounds: MechanicsBounds | None = None
+
+    def __post_init__(self) -> None:
+        if self.bounds is not None and not isinstance(self.bounds, MechanicsBounds):
+            raise TypeError(f"bounds: expected MechanicsBounds or None, received {type(self.bounds).__name__}")
+
+    def spans(self) -> tuple[tuple[float, ...], tuple[float, ...], tuple[float, float]]:
+        """The two-mass members' ``f_e`` values [Hz] (low, identified, high), ``V_J`` values and the
+        damping's ``(low, high)`` (each at most 0.999): from :attr:`bounds`, else the interim spread."""
+        m = self.mechanics
+        if self.bounds is not None:
+            b = self.bounds
+            f_es, V_Js, (d_lo, d_hi) = (b.f_e[0], m.f_e, b.f_e[1]), (b.V_J[0], m.V_J, b.V_J[1]), b.d
+        else:
+            f_es = tuple(m.f_e * s for s in (1 - self.f_e_spread, 1.0, 1 + self.f_e_spread))
+            V_Js = tuple(m.V_J * s for s in (1 - self.V_J_spread, 1.0, 1 + self.V_J_spread))
+            d_lo, d_hi = (m.d * s for s in self.d_scale)
+        return tuple(dict.fromkeys(f_es)), tuple(dict.fromkeys(V_Js)), (min(d_lo, 0.999), min(d_hi, 0.999))
+
+    def decoupled_J(self) -> float:
+        """The decoupled motor's inertia [kg m^2] (rule R6): the identified ``J_sigma / (1 + V_J)``, or
+        the low end of :attr:`bounds`' ``J_M`` where that is lower (a lighter motor: more loop gain)."""
+        m = self.mechanics
+        J_M = m.J_sigma / (1.0 + m.V_J)
+        return J_M if self.bounds is None else min(self.bounds.J_M[0], J_M)
 
     def members(self) -> list[Member]:
-        """The mechanics of the set: the identified one first, the spread's corners at the low
-        damping, the damping's range at the identified ``f_e`` and ``V_J``, the decoupled motor,
-        the hidden resonances (none where a response was measured)."""
+        """The mechanics of the set: the identified one first, the corners of ``f_e`` x ``V_J``
+        (:meth:`spans`) at the low damping, the high damping at the identified ``f_e`` and ``V_J``,
+        the ends of the ``J_sigma`` interval (with :attr:`bounds`; at the low damping), the decoupled
+        motor, the hidden resonances (none where a response was measured)."""
         m = self.mechanics
         out = [Member(m, _label(m))]
         if m.two_mass:
-            d_lo, d_hi = (m.d * s for s in self.d_scale)
-            for sf, sv in itertools.product((1 - self.f_e_spread, 1.0, 1 + self.f_e_spread),
-                                            (1 - self.V_J_spread, 1.0, 1 + self.V_J_spread)):
-                corner = replace(m, f_e=m.f_e * sf, V_J=m.V_J * sv, d=min(d_lo, 0.999))
+            f_es, V_Js, (d_lo, d_hi) = self.spans()
+            for f_e, V_J in itertools.product(f_es, V_Js):
+                corner = replace(m, f_e=f_e, V_J=V_J, d=d_lo)
                 out.append(Member(corner, _label(corner)))
-            out.append(Member(replace(m, d=min(d_hi, 0.999)), _label(replace(m, d=min(d_hi, 0.999)))))
-            if self.decoupled_motor:
-                out.append(Member(Mechanics(m.J_sigma / (1.0 + m.V_J), mu_F=m.mu_F), "decoupled motor (backlash gap open)"))
+            out.append(Member(replace(m, d=d_hi), _label(replace(m, d=d_hi))))
+        if self.bounds is not None:
+            low_d = {"d": self.spans()[2][0]} if m.two_mass else {}
+            for J in dict.fromkeys(self.bounds.J_sigma):
+                if J != m.J_sigma:
+                    end = replace(m, J_sigma=J, **low_d)
+                    out.append(Member(end, f"J_sigma {J:.4g} kg m^2, " + _label(end) if m.two_mass else _label(end)))
+        if m.two_mass and self.decoupled_motor:
+            out.append(Member(Mechanics(self.decoupled_J(), mu_F=m.mu_F), "decoupled motor (backlash gap open)"))
         if self.hidden and self.measured is None:
             out += [Member(h, f"hidden resonance {_label(h)}", hidden=True)
                     for h in _hidden_mechanics(m.J_sigma, self.hidden, self.hidden_d, self.hidden_points_per_decade,
@@ -168,11 +257,18 @@ class UncertaintySet:
 
     def describe(self) -> str:
         """One line: what the set holds."""
-        m, parts = self.mechanics, []
-        if m.two_mass:
-            parts.append(f"f_e +-{self.f_e_spread:.0%}, V_J +-{self.V_J_spread:.0%}, d x{self.d_scale[0]:g}..{self.d_scale[1]:g}")
-        if self.decoupled_motor:
-            parts.append(f"the decoupled motor J_sigma/(1+V_J) = {m.J_sigma / (1 + m.V_J):.4g} kg m^2")
+        m, b, parts = self.mechanics, self.bounds, []
+        if b is not None:
+            f_es, V_Js, (d_lo, d_hi) = self.spans()
+            spans = (f"f_e {f_es[0]:.4g}..{f_es[-1]:.4g} Hz, V_J {V_Js[0]:.3g}..{V_Js[-1]:.3g}, d {d_lo:.3g}..{d_hi:.3g}, "
+                     if m.two_mass else "")
+            parts.append(f"{spans}J_sigma {b.J_sigma[0]:.4g}..{b.J_sigma[1]:.4g} kg m^2 (the identification's calibrated "
+                         f"90 % intervals{'; ' + b.widened if b.widened else ''})")
+        elif m.two_mass:
+            parts.append(f"f_e +-{self.f_e_spread:.0%}, V_J +-{self.V_J_spread:.0%}, d x{self.d_scale[0]:g}..{self.d_scale[1]:g} "
+                         "(the interim spread: the identification carries no calibrated intervals)")
+        if m.two_mass and self.decoupled_motor:
+            parts.append(f"the decoupled motor {'J_sigma/(1+V_J)' if b is None else 'J_M'} = {self.decoupled_J():.4g} kg m^2")
         if self.hidden and self.measured is None:
             parts.append("hidden resonances " + ", ".join(f"V_J {v:g}: {lo:.3g}..{hi:.3g} Hz" for v, (lo, hi) in self.hidden.items()))
         if self.measured is not None:

@@ -7,7 +7,10 @@ Decisions key on codes: the rule that refused (:attr:`Permission.rule`) and the 
 
 The identification result is read through its attributes (``ok``, ``structure``, ``parameters``,
 ``quality``, ``warnings``, or ``error`` for a failure: :class:`IdentificationOutcome`); this room
-does not import the identification room.
+does not import the identification room. Its ``notes`` (remarks on the uncertainty its calibrated
+intervals already carry) never refuse; neither does its ``likely_wrong`` warning by default: the
+chain's design limits such an answer instead (rules R7b and R7c: the set widened, the resonances
+the test cannot exclude added), and a design that then misses the margins falls back to F1.
 """
 
 from __future__ import annotations
@@ -50,7 +53,8 @@ COMMISSIONING_WARNING_CODES: dict[str, str] = {
     "scenario_small": "the limits leave a scenario speed step of few speed quanta: the figures on the drive are coarse",
 }
 
-#: Warning codes that refuse a controller (rule V6). No identification code blocks by default.
+#: Warning codes that refuse a controller (rule V6). No identification code blocks by default (an
+#: uncertain or likely wrong answer limits the design instead: see the module's docstring).
 BLOCKING_WARNING_CODES: frozenset[str] = frozenset({"test_not_informative", "validation_not_run"})
 
 _REQUIRED = {
@@ -65,7 +69,8 @@ _BACKLASH = ("elastic_backlash", "stiff_backlash")
 class IdentificationOutcome(Protocol):
     """What the rules read of an identification: ``ok``; for a result ``structure``, ``parameters``
     (attributes ``J_sigma``, ``V_J``, ``f_e``, ...), ``quality`` (``map_distance_ratio``,
-    ``outside_training``) and ``warnings`` (items with ``code`` and ``text``); for a failure ``error``."""
+    ``outside_training``) and ``warnings`` (items with ``code`` and ``text``), and where calibrated
+    ``intervals`` and ``notes`` (read by the chain's design, never refusing); for a failure ``error``."""
 
     @property
     def ok(self) -> bool: ...
@@ -183,7 +188,8 @@ def may_propose_controller(
     V2 a parameter the structure needs is missing, not finite or not positive (``J_sigma``; plus
     ``V_J``, ``f_e`` for elastic); V3 the validation is missing, failed or its error is above the
     bound; V4 the record lies outside the maps' training data; V6 a warning has a blocking code.
-    The other warnings' texts are passed on as ``notes``.
+    The other warnings' texts are passed on as ``notes``; the identification's own ``notes`` are
+    not read here (they never refuse).
     """
     if not isinstance(getattr(result, "ok", None), bool):
         raise TypeError(f"result: expected an identification result with 'ok', received {type(result).__name__}")

@@ -291,7 +291,14 @@ class CommissioningReport:
         ratios = ident.quality.map_distance_ratio
         if ratios:
             L.append("   map distance / training 99 % quantile: " + ", ".join(f"{k} {v:.2f}" for k, v in ratios.items()))
+        intervals = getattr(ident, "intervals", None)
+        if intervals is None:
+            L.append("   no calibrated intervals (the maps carry no calibration): the design's set is the interim spread")
+        else:
+            L.append("   90 % intervals: " + ", ".join(f"{k} {_fmt(intervals[k][0])}..{_fmt(intervals[k][1])}"
+                                                     for k in ("J_sigma", "V_J", "f_e", "d")))
         L += [f"   warning [{w.code}]: {w.text}" for w in ident.warnings]
+        L += [f"   note [{w.code}]: {w.text}" for w in getattr(ident, "notes", ())]
         return L
 
     def _proposal_lines(self) -> list[str]:

@@ -23,7 +23,8 @@ import sim
 from training._settings import NON_NEGATIVE, POSITIVE, Constraint, InstanceOf, Interval, Pair, Values, check_settings
 from training.errors import CommissioningError
 
-from ._design import SEARCH, DesignSearch, OptimizedLoop, UncertaintySet, measured_peaks, optimize_loop, trusted_response
+from ._design import (SEARCH, DesignSearch, MechanicsBounds, OptimizedLoop, UncertaintySet, measured_peaks, optimize_loop,
+                      trusted_response)
 from ._frf import MeasuredResponse
 from ._law import NotchSpec, PISpeedLaw
 from ._loop import Margins, Mechanics, ModelSet, Notches, drive_value, loop_figures, mechanics_from
@@ -40,8 +41,8 @@ class ControllerSpec:
     The guarantee (every delivered loop): ``min_phase_margin``, ``min_gain_margin_dB`` and the
     reference-to-load peak ``search.max_load_peak_dB`` on every model of the uncertainty set
     (:class:`training.commissioning._design.UncertaintySet`): the identified mechanic and its
-    spread (interim half-widths ``f_e_spread``, ``V_J_spread``, damping factors ``d_scale``),
-    each with the SPEC's current loop and with a second-order lag of damping
+    spread (the identification's calibrated intervals where it has them, else the interim
+    half-widths ``f_e_spread``, ``V_J_spread`` and damping factors ``d_scale``), each with the SPEC's current loop and with a second-order lag of damping
     ``current_loop_damping`` plus ``extra_delay`` samples of dead time.
 
     Fallback F1 (:func:`propose_cautious`): the worst case of the class over ``class_V_J`` and the
@@ -53,7 +54,7 @@ class ControllerSpec:
     min_gain_margin_dB: float = 6.0
     """The design's gain margin on every model of the set [dB]."""
     f_e_spread: float = 0.1
-    """Interim relative half-width of ``f_e`` (docs/results/report.md: the identification's ``f_e`` error has std 6.0 %, 99 % within 30 %)."""
+    """Interim relative half-width of ``f_e``, for an identification without calibrated intervals (docs/results/report.md: the identification's ``f_e`` error has std 6.0 %, 99 % within 30 %)."""
     V_J_spread: float = 0.25
     """Interim relative half-width of ``V_J`` (docs/results/report.md: std 5.4 %; the maps alone 34 %)."""
     d_scale: tuple[float, float] = (0.5, 2.0)
@@ -172,17 +173,23 @@ def _finite_or_none(x: float) -> float | None:
 
 def uncertainty_set(mechanics: Any, spec: ControllerSpec, *, structure: str = "stiff",
                     hidden: dict[float, tuple[float, float]] | None = None, measured: MeasuredResponse | None = None,
-                    spread: float | None = None, damping: float | None = None, doubts: tuple[str, ...] = ()) -> UncertaintySet:
-    """The interim :class:`UncertaintySet` of ``spec`` around ``mechanics``: ``spread`` and
-    ``damping`` (rule R7c) widen ``f_e`` and ``V_J`` to at least that relative half-width and the
-    damping's low factor to at most ``damping``; a backlash ``structure`` adds the decoupled motor
-    (R6); ``hidden`` (R7b) unless ``measured`` (its trusted part, coherence >= ``spec.min_coherence``)."""
+                    spread: float | None = None, damping: float | None = None, doubts: tuple[str, ...] = (),
+                    bounds: MechanicsBounds | None = None) -> UncertaintySet:
+    """The :class:`UncertaintySet` of ``spec`` around ``mechanics``: spanning ``bounds`` (the
+    identification's calibrated intervals, :meth:`MechanicsBounds.from_intervals`), or without them
+    ``spec``'s interim spread; ``spread`` and ``damping`` (rule R7c) widen ``f_e`` and ``V_J`` to at
+    least that relative half-width and the damping's low end to at most ``damping`` x the identified
+    ``d`` (on either); a backlash ``structure`` adds the decoupled motor (R6); ``hidden`` (R7b)
+    unless ``measured`` (its trusted part, coherence >= ``spec.min_coherence``)."""
     m = mechanics_from(mechanics)
     trusted = trusted_response(measured, spec.min_coherence) if measured is not None else None
     wide = 0.0 if spread is None else spread
     d_low = spec.d_scale[0] if damping is None else min(spec.d_scale[0], damping)
+    if bounds is not None and (spread is not None or damping is not None):
+        bounds = bounds.widen(m, wide, 1.0 if damping is None else damping,
+                              f"R7c widened to f_e, V_J +-{wide:.0%} and d from x{1.0 if damping is None else damping:g} at least")
     return UncertaintySet(m, f_e_spread=max(spec.f_e_spread, wide), V_J_spread=max(spec.V_J_spread, wide),
-                          d_scale=(d_low, spec.d_scale[1]),
+                          d_scale=(d_low, spec.d_scale[1]), bounds=bounds,
                           current_loop_damping=spec.current_loop_damping, extra_delay=spec.extra_delay,
                           decoupled_motor=structure in _BACKLASH and m.two_mass, hidden=hidden, hidden_d=spec.class_d,
                           hidden_points_per_decade=spec.class_points_per_decade, hidden_min_points=spec.class_min_points,

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from training.commissioning import ValidationResult
-from training.identification import IdentificationResult, IdentWarning, Parameters, Quality
+from training.identification import IdentificationResult, Intervals, IdentWarning, Parameters, Quality
 
 
 def _quality_extras() -> dict:
@@ -18,12 +18,15 @@ def _quality_extras() -> dict:
 
 
 def identification_result(structure: str, params: dict, *, outside_training: bool = False,
-                          ratios: dict | None = None, warnings: tuple = ()) -> IdentificationResult:
-    """A typed identification result; ``warnings`` as ``(code, text)`` pairs."""
+                          ratios: dict | None = None, warnings: tuple = (), notes: tuple = (),
+                          intervals: Intervals | None = None, answer_probability: float | None = None) -> IdentificationResult:
+    """A typed identification result; ``warnings`` and ``notes`` as ``(code, text)`` pairs; ``intervals``
+    the calibrated 90 % intervals (None: uncalibrated maps)."""
     quality = Quality(structure_probabilities={}, map_distance_ratio=dict(ratios or {}), osc_quanta=5.0,
                       oscillation_fit_r2=0.9, one_mass_rel_residual=0.01, outside_training=outside_training,
-                      section_flags=(), maps_estimate={}, **_quality_extras())
-    return IdentificationResult(structure, Parameters(**params), quality, tuple(IdentWarning(c, t) for c, t in warnings))
+                      section_flags=(), maps_estimate={}, answer_probability=answer_probability, **_quality_extras())
+    return IdentificationResult(structure, Parameters(**params), quality, tuple(IdentWarning(c, t) for c, t in warnings),
+                                intervals=intervals, notes=tuple(IdentWarning(c, t) for c, t in notes))
 
 
 def validation_result(nrmse: float = 0.03, passed: bool = True, reason: str = "model reproduces the record") -> ValidationResult:
