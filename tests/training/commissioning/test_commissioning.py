@@ -222,11 +222,14 @@ def test_command_runs_a_drive_from_a_file_and_a_pending_folder(tmp_path, capsys)
 def test_the_chain_reads_identification_codes_only():
     """Every code the chain acts on is one the identification emits (a misspelt code would never
     match); an undecided class makes the elastic values uncertain."""
-    from training.commissioning._chain import UNCERTAIN_CODES, UNDETERMINED_CODES
-    from training.identification import WARNING_CODES
+    from training.commissioning._chain import CALIBRATED_UNCERTAIN_CODES, UNCERTAIN_CODES, UNDETERMINED_CODES
+    from training.identification import NOTE_CODES, WARNING_CODES
 
     assert UNCERTAIN_CODES <= set(WARNING_CODES) and UNDETERMINED_CODES <= UNCERTAIN_CODES
     assert "class_undecided" in UNCERTAIN_CODES
+    # with a calibration the notes' uncertainty is in the intervals: none of them widens again
+    assert CALIBRATED_UNCERTAIN_CODES <= UNCERTAIN_CODES and not CALIBRATED_UNCERTAIN_CODES & NOTE_CODES
+    assert "likely_wrong" in CALIBRATED_UNCERTAIN_CODES
 
 
 #: The chain with the frequency-response experiment (short periods: 3.9 Hz lines at 4 kHz).
