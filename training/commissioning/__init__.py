@@ -20,7 +20,7 @@ at once and held against the user's limits: a passed limit ends the experiments,
 """
 
 from ._chain import STAGES, CommissioningConfig, RecordIdentifier, commission, drive_config, limit_checks
-from ._design import DesignSearch, UncertaintySet, optimize_loop
+from ._design import DesignSearch, MechanicsBounds, UncertaintySet, optimize_loop
 from ._excitation import ExcitationResult, ExcitationRules, adapt_test_signal, check_limits, measure_response, trusted_inertia
 from ._filedrive import ExperimentPending, FileDrive
 from ._frf import FRF_SETTINGS, FRFSettings, MeasuredResponse
@@ -46,7 +46,7 @@ __all__ = [
     "ControllerSpec", "ControllerProposal", "propose_controller", "propose_cautious", "robust_models", "PISpeedLaw",
     "NotchSpec", "Mechanics", "mechanics_from", "LinearPlant", "linear_plant", "loop_figures", "Margins", "margins",
     "ModelSet", "model_set", "bode", "tune_controller", "TuningResult", "TuningScenario", "plan_scenario",
-    "closed_loop_cost", "load_estimate", "loop_verdict", "LOOP_VERDICTS", "UncertaintySet", "uncertainty_set", "DesignSearch",
+    "closed_loop_cost", "load_estimate", "loop_verdict", "LOOP_VERDICTS", "UncertaintySet", "MechanicsBounds", "uncertainty_set", "DesignSearch",
     "optimize_loop", "load_peak_dB", "reference_to_load", "MeasuredResponse", "FRFSettings", "FRF_SETTINGS", "check_limits",
     "trusted_inertia",
 ]
