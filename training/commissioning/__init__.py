@@ -46,7 +46,8 @@ __all__ = [
     "ControllerSpec", "ControllerProposal", "propose_controller", "propose_cautious", "robust_models", "PISpeedLaw",
     "NotchSpec", "Mechanics", "mechanics_from", "LinearPlant", "linear_plant", "loop_figures", "Margins", "margins",
     "ModelSet", "model_set", "bode", "tune_controller", "TuningResult", "TuningScenario", "plan_scenario",
-    "closed_loop_cost", "load_estimate", "loop_verdict", "LOOP_VERDICTS", "UncertaintySet", "MechanicsBounds", "uncertainty_set", "DesignSearch",
+    "closed_loop_cost", "load_estimate", "loop_verdict", "LOOP_VERDICTS", "UncertaintySet", "MechanicsBounds",
+    "uncertainty_set", "DesignSearch",
     "optimize_loop", "load_peak_dB", "reference_to_load", "MeasuredResponse", "FRFSettings", "FRF_SETTINGS", "check_limits",
     "trusted_inertia",
 ]
