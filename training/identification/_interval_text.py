@@ -23,7 +23,7 @@ def _percent(x: float) -> str:
 
 
 def interval_text(name: str, value: float | None, interval: tuple[float, float], *, scale: float = 1.0,
-                  digits: int = 3) -> str:
+                  digits: int = 4) -> str:
     """The 90 % interval ``interval`` = ``(low, high)`` [SI] of parameter ``name`` around its
     reported ``value`` [SI; None: not identified] in words: ``+-x %`` where both sides lie within
     ``x %`` of the value and are about equal (within a factor 1.25; ``x`` the larger side, so the

@@ -90,7 +90,7 @@ def test_identify_page_draws_each_interval_as_a_bar_over_the_value(good, identif
     assert "P(class), calibrated:" in text and "P(answer right) 0.87" in text
     rows = {ln.split()[0]: ln for ln in text.splitlines() if ln.split()[:1] and ln.split()[0] in PARAMETER_NAMES}
     assert rows["f_e"].endswith("Hz       -10/+20 %")  # sides 10 % and 20 %: not +-
-    assert rows["backlash"].endswith(f"rad      [0 .. {2.0 * p.backlash:.3g}]")
+    assert rows["backlash"].endswith(f"rad      [0 .. {2.0 * p.backlash:.4g}]")
     assert ax_c.get_xlabel() == "90 % interval / reported value"
     assert [t.get_text() for t in ax_c.get_yticklabels()] == list(PARAMETER_NAMES)[::-1]
     for name in ("J_sigma", "f_e", "mu_F"):
