@@ -7,10 +7,10 @@ quality figures (each explained in one line) and warnings. ``--params`` replaces
 ``--seed`` the noise. ``--json``: the JSON lines ``twomass identify`` would write for the records
 (the README's example is the first of them).
 
-How well the one test run determines each parameter is shown by repeating it: the same plants are
-simulated again with :data:`REPEATS` other noise draws and identified; a parameter whose value
-varies between the draws by more than :data:`POORLY_DETERMINED` of its value is flagged (damping
-typically: the record holds few decaying periods of the oscillation).
+How well the one test run determines each parameter is the 90 % interval of each value (SPEC 4.1)
+where the maps carry a calibration (``twomass calibrate``), with the calibrated probability of the
+class and of the whole answer; without one a line says so. Warnings (what to act on) are printed
+apart from the notes (the codes of the uncertainty remarks the intervals already carry).
 """
 
 from __future__ import annotations
@@ -18,7 +18,6 @@ from __future__ import annotations
 import argparse
 import math
 import sys
-from collections.abc import Sequence
 from dataclasses import replace
 from pathlib import Path
 from typing import Any, TextIO
@@ -44,18 +43,18 @@ _ROWS: tuple[tuple[str, str, float], ...] = (
 )
 
 
-#: Extra noise draws per plant for the spread column, and the spread above which a parameter is
-#: flagged as poorly determined ((max - min) over the draws / |value|).
-REPEATS, POORLY_DETERMINED = 3, 0.25
-
 #: What each printed figure means: one line each, printed under the tables.
 EXPLAINED: tuple[tuple[str, str], ...] = (
     ("s_N", "normalized backlash s*C_F/M_N: above 0.1 the backlash shapes the response"),
     ("r_osc", "oscillation-to-resolution ratio V_J*M*/(J_sigma*w_0*q_w): below 1 the encoder cannot see the "
               "elastic mode"),
-    ("spread", f"(max - min) of the value over this record and {REPEATS} more noise draws of the same plant, over "
-               f"the value (above {100 * POORLY_DETERMINED:.0f} %: poorly determined by this test run)"),
-    ("P(class)", "the structure map's probability of the identified class"),
+    ("90 % interval", "where the maps carry a calibration: the truth lies inside for 9 of 10 answers (held-out "
+                      "simulated records); +-x %: within x % of the value either side"),
+    ("P(class)", "the calibrated probability of the identified class (next: the runner-up class)"),
+    ("P(right)", "the calibrated probability that the answer is right: class right, f_e, V_J and J_sigma within "
+                 "30 %"),
+    ("warnings", "what to act on or distrust (a likely wrong answer, a record outside the envelope, a fault)"),
+    ("notes", "the codes of the uncertainty remarks (docs/identification.md) that the intervals already carry"),
     ("map distance", "each map's recall distance over the 99 % quantile of held-out training records "
                      "(above 1: unlike the training data)"),
     ("oscillation", "rms of the oscillation in speed quanta of the encoder (below 1: elastic values uncertain)"),
@@ -92,53 +91,66 @@ def _rel(ident: float | None, true: float) -> str:
     return f"{100.0 * (ident - true) / abs(true):+.1f} %"
 
 
-def spreads(results: Sequence[Any]) -> dict[str, float | None]:
-    """Per parameter: ``(max - min) / |first|`` over the identifications of one plant from several
-    noise draws (``results[0]`` the reported one); ``None`` where one failed or the value is 0."""
-    if not all(r.ok for r in results):
-        return {name: None for name, _, _ in _ROWS}
-    out: dict[str, float | None] = {}
-    for name, _, _ in _ROWS:
-        vals = [getattr(r.parameters, name) for r in results]
-        ok = all(v is not None and math.isfinite(v) for v in vals) and vals[0] != 0
-        out[name] = (max(vals) - min(vals)) / abs(vals[0]) if ok else None
-    return out
+def _interval_cell(name: str, value: float | None, true: float, intervals: Any, k: float) -> str:
+    """The 90 % interval of ``name`` as :func:`training.identification.interval_text` writes it (in
+    the shown unit, ``k`` x SI), marked where the true value ``true`` [SI] lies outside."""
+    from training.identification import interval_text
+
+    low, high = intervals[name]
+    text = interval_text(name, value, (low, high), scale=k)
+    return text if low <= true <= high else f"{text}  (true value outside)"
 
 
-def print_result(label: str, truth: dict[str, Any], res: Any, n_samples: int, T_s: float, out: TextIO,
-                 spread: dict[str, float | None] | None = None) -> None:
-    """One plant: true vs identified table (with the ``spread`` over noise draws where given),
-    quality line, warnings (``res``: an ``IdentificationResult`` or ``IdentificationFailure``)."""
+def _quality_line(res: Any) -> str:
+    """The calibrated probabilities (class, runner-up, answer right; the structure map's, marked
+    uncalibrated, where the maps carry no calibration) and the quality figures."""
+    q = res.quality
+    probs = q.structure_probabilities
+    runner_up = max((c for c in probs if c != res.structure), key=probs.__getitem__, default=None)
+    line = f"  quality: P({res.structure}) {probs[res.structure]:.2f}"
+    if q.answer_probability is None:
+        line += " uncalibrated"
+    if runner_up is not None:
+        line += f" (next: {runner_up} {probs[runner_up]:.2f})"
+    if q.answer_probability is not None:
+        line += f"; P(right) {q.answer_probability:.2f}"
+    dist = ", ".join(f"{n} {_num(v)}" for n, v in q.map_distance_ratio.items())
+    return (line + f"; map distance / training 99 % quantile: {dist}; oscillation {q.osc_quanta:.3g} speed quanta "
+            f"rms; one-mass residual {100.0 * q.one_mass_rel_residual:.2g} %")
+
+
+def print_result(label: str, truth: dict[str, Any], res: Any, n_samples: int, T_s: float, out: TextIO) -> None:
+    """One plant: true vs identified table with each value's 90 % interval (where ``res.intervals``
+    is given: the maps carry a calibration; else one line says there is none), the probabilities
+    and quality line, the warnings, and the notes' codes (``res``: an ``IdentificationResult`` or
+    ``IdentificationFailure``)."""
     print(f"\n{label}: record {n_samples} samples ({n_samples * T_s:.2f} s), true class {truth['structure']}, "
           f"s_N {truth['s_N']:.3g}, r_osc {truth['r_osc']:.3g}", file=out)
     if not res.ok:
         print(f"  identification failed: {res.error}", file=out)
         return
-    spread = spread or {}
-    print(f"  {'':10} {'unit':>9} {'true':>16} {'identified':>16} {'error':>9} {'spread':>8}", file=out)
+    intervals = res.intervals
+    head = f"  {'':10} {'unit':>9} {'true':>16} {'identified':>16} {'error':>9}"
+    print(head + ("" if intervals is None else "   90 % interval"), file=out)
     ok = "ok" if res.structure == truth["structure"] else "WRONG"
     print(f"  {'structure':10} {'-':>9} {truth['structure']:>16} {res.structure:>16} {ok:>9}", file=out)
     for name, unit, k in _ROWS:
         t = float(truth[name]) * k
         v = getattr(res.parameters, name)
         v = None if v is None else float(v) * k
-        sp = spread.get(name)
-        flag = "  poorly determined" if sp is not None and sp > POORLY_DETERMINED else ""
-        print(f"  {name:10} {unit:>9} {_num(t):>16} {_num(v):>16} {_rel(v, t):>9} "
-              f"{'-' if sp is None else f'{100.0 * sp:.0f} %':>8}{flag}", file=out)
-    q = res.quality
-    dist = ", ".join(f"{n} {_num(v)}" for n, v in q.map_distance_ratio.items())
-    print(f"  quality: P({res.structure}) {q.structure_probabilities[res.structure]:.2f}; "
-          f"map distance / training 99 % quantile: {dist}; oscillation {q.osc_quanta:.3g} speed quanta rms; "
-          f"one-mass residual {100.0 * q.one_mass_rel_residual:.2g} %", file=out)
-    poor = [name for name in spread if spread[name] is not None and spread[name] > POORLY_DETERMINED]
-    notes = [w.text for w in res.warnings]
-    if poor:
-        notes.append(f"poorly determined by this test run: {', '.join(poor)} (value varies by more than "
-                     f"{100 * POORLY_DETERMINED:.0f} % between noise draws of the same plant)")
-    if q.stiff_mode_note is not None:
-        print(f"  note: {q.stiff_mode_note}", file=out)
-    print("  warnings: " + ("; ".join(notes) or "none"), file=out)
+        row = f"  {name:10} {unit:>9} {_num(t):>16} {_num(v):>16} {_rel(v, t):>9}"
+        if intervals is not None:
+            si = getattr(res.parameters, name)
+            row += "   " + _interval_cell(name, None if si is None else float(si), float(truth[name]), intervals, k)
+        print(row, file=out)
+    if intervals is None:
+        print("  90 % intervals: none (the maps carry no calibration; `twomass calibrate` makes one)", file=out)
+    print(_quality_line(res), file=out)
+    if res.quality.stiff_mode_note is not None:
+        print(f"  note: {res.quality.stiff_mode_note}", file=out)
+    print("  warnings: " + ("; ".join(w.text for w in res.warnings) or "none"), file=out)
+    if res.notes:
+        print("  notes: " + ", ".join(dict.fromkeys(w.code for w in res.notes)), file=out)
 
 
 def _explain(out: TextIO) -> None:
@@ -163,7 +175,7 @@ def run(args: argparse.Namespace) -> int:
         params, labels = read_params_file(args.params, name_prefix="plant")
         check_sim_cost("--params", params, drive)
     n = len(labels)
-    steps = 1 + n if args.json else 2 + n * (1 + REPEATS)
+    steps = 1 + n
     with _progress.bar(args, total=steps, desc="demo", unit="step") as bar:
         bar.set_postfix_str("loading the maps")
         ident = load_identifier(args.checkpoints)
@@ -180,22 +192,13 @@ def run(args: argparse.Namespace) -> int:
             for res in results:
                 print(dumps(res))
             return 1 if any(not r.ok for r in results) else 0
-        bar.set_postfix_str(f"{REPEATS} more noise draws per plant")
-        again = TwoMassParams.from_dicts([p for p in params.reshape(-1).to_dicts() for _ in range(REPEATS)])
-        repeats = responses_to_records(simulate_test(again, drive, signal, seed=args.seed + 1), again, drive, signal)
-        bar.update(1)
-        others = []
-        for rec in repeats:
-            others.append(ident.identify_records([rec])[0])
-            bar.update(1)
     out = sys.stdout
     print(f"twomass demo: reference drive (M_max {drive.M_max:g} Nm, K_M {drive.K_M:g} Nm/A, T_Ei "
           f"{drive.T_Ei * 1e3:g} ms, T_s {drive.T_s * 1e6:g} us, {round(math.log2(drive.encoder_counts))}-bit "
           f"encoder); test signal M* {signal.M_star:g} Nm, w_max {signal.w_max:g} rad/s; "
           "identified with the shipped maps", file=out)
-    for i, (label, rec, res) in enumerate(zip(labels, records, results)):
-        spread = spreads([res, *others[i * REPEATS:(i + 1) * REPEATS]])
-        print_result(label, rec.meta["truth"], res, len(rec), drive.T_s, out, spread)
+    for label, rec, res in zip(labels, records, results):
+        print_result(label, rec.meta["truth"], res, len(rec), drive.T_s, out)
     _explain(out)
     failed = sum(not r.ok for r in results)
     return 1 if failed else 0

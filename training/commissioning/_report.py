@@ -291,12 +291,7 @@ class CommissioningReport:
         ratios = ident.quality.map_distance_ratio
         if ratios:
             L.append("   map distance / training 99 % quantile: " + ", ".join(f"{k} {v:.2f}" for k, v in ratios.items()))
-        intervals = getattr(ident, "intervals", None)
-        if intervals is None:
-            L.append("   no calibrated intervals (the maps carry no calibration): the design's set is the interim spread")
-        else:
-            L.append("   90 % intervals: " + ", ".join(f"{k} {_fmt(intervals[k][0])}..{_fmt(intervals[k][1])}"
-                                                     for k in ("J_sigma", "V_J", "f_e", "d")))
+        L.append(_interval_line(getattr(ident, "intervals", None)))
         L += [f"   warning [{w.code}]: {w.text}" for w in ident.warnings]
         L += [f"   note [{w.code}]: {w.text}" for w in getattr(ident, "notes", ())]
         return L
@@ -417,6 +412,23 @@ def _controller_text(p: ControllerProposal) -> str:
 
 def _gains(p: ControllerProposal) -> dict[str, float]:
     return {"Kp": p.Kp, "Ti": p.Ti, "T_f": p.T_f}
+
+
+#: The parameters whose 90 % interval the identification section names (the design reads them).
+_INTERVALS_SHOWN: tuple[str, ...] = ("f_e", "V_J", "J_sigma")
+
+
+def _interval_line(intervals: Any) -> str:
+    """One line: the identification's 90 % intervals (SPEC 4.1) of :data:`_INTERVALS_SHOWN`, each
+    ``low .. high`` [SI]; ``intervals`` ``None`` (maps without a calibration, or an identifier that
+    gives none) is said so."""
+    if intervals is None:
+        return "   90 % intervals: none (the maps carry no calibration): the design's set is the interim spread"
+    parts = []
+    for k in _INTERVALS_SHOWN:
+        low, high = intervals[k]
+        parts.append(f"{k} {_fmt(low)} .. {_fmt(high)}" + (f" {_UNITS[k]}" if k in _UNITS else ""))
+    return "   90 % intervals: " + ", ".join(parts)
 
 
 def _fmt(v: Any) -> str:

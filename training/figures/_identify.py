@@ -4,7 +4,10 @@ Left, over time with the six test sections shaded and labelled: the measured mot
 identified model's replay (:func:`model_speed`); the oscillating part ``w_osc`` (paper eq. 1:
 the speed minus STEP 2's one-mass speed) of both; the current (or torque) with the torque
 reference the sections imply. Below: the amplitude spectrum of ``w_osc`` with ``f_e`` and the
-anti-resonance marked. Right: structure, parameters with units, quality figures, warnings.
+anti-resonance marked. Right: structure with the class probabilities, parameters with units and
+their 90 % intervals (SPEC 4.1), quality figures, warnings and notes; below it each interval as a
+bar relative to its value (:func:`draw_intervals`; where the maps carry no calibration, the text
+says so in one line and no bars are drawn).
 A record that failed gets a page with the reason (and its signals, where they could be read).
 The record-on-the-maps page is :func:`maps_figure`.
 """
@@ -27,11 +30,15 @@ from training.errors import UserError, one_line
 from training.figures._planes import PARAMETER_PLANES, draw_plane, unit_weights
 from training.figures._style import (MARK, MEASURED, MODEL, new_figure, number, refuse_existing, require_matplotlib,
                                      save_png, with_unit)
-from training.identification import (FEATURE_NAMES, PARAMETER_NAMES, PARAMETER_UNITS, Analysis, IdentificationFailure,
-                                     IdentificationResult, Outcome, Parameters, TrainedMap, analyze, torque_reference)
+from training.identification import (FEATURE_NAMES, INTERVAL_NAMES, PARAMETER_NAMES, PARAMETER_UNITS, Analysis,
+                                     IdentificationFailure, IdentificationResult, Outcome, Parameters, TrainedMap,
+                                     analyze, interval_text, torque_reference)
 
 _SHADES = ("#fbe3c9", "#e4ecf7")  # alternate section shading
 _TEXT_WIDTH = 58  # characters per line of the text box
+#: The interval bars' axis: the interval over the reported value, clipped to this range (log scale).
+INTERVAL_RATIO_RANGE = (1.0 / 3.0, 3.0)
+NO_CALIBRATION = "90 % intervals: none (the maps carry no calibration)"
 
 
 def model_speed(analysis: Analysis, parameters: Parameters) -> np.ndarray:
@@ -115,11 +122,19 @@ def _text(result: IdentificationResult, a: Analysis, n: int) -> str:
              f"structure: {result.structure}"]
     if q.maps_structure is not None and q.maps_structure != result.structure:
         lines.append(f"  (maps said {q.maps_structure})")
-    lines.append("  P(class) on the structure map: " + ", ".join(f"{c} {v:.2f}"
-                                                                  for c, v in q.structure_probabilities.items()))
-    lines += ["", "parameters (reported)"]
+    calibrated = q.answer_probability is not None
+    lines.append(("  P(class), calibrated: " if calibrated else "  P(class), the structure map's (uncalibrated): ")
+                 + ", ".join(f"{c} {v:.2f}" for c, v in q.structure_probabilities.items()))
+    if calibrated:
+        lines.append(f"  P(answer right) {q.answer_probability:.2f} (class; f_e, V_J, J_sigma in 30 %)")
+    iv = result.intervals
+    lines += ["", "parameters (reported)" + ("" if iv is None else ", 90 % interval")]
     for name in PARAMETER_NAMES:
-        lines.append(f"  {name:9} {number(getattr(result.parameters, name)):>11}  {PARAMETER_UNITS[name]}")
+        value = getattr(result.parameters, name)
+        row = f"  {name:9} {number(value):>10}  {PARAMETER_UNITS[name]:8}"
+        lines.append((row + " " + interval_text(name, value, iv[name])) if iv is not None else row.rstrip())
+    if iv is None:
+        lines.append("  " + NO_CALIBRATION)
     lines += ["", "quality"]
     lines.append("  map distance / training 99 % quantile:")
     lines.append("    " + ", ".join(f"{n} {v:.2f}" for n, v in q.map_distance_ratio.items()))
@@ -136,12 +151,14 @@ def _text(result: IdentificationResult, a: Analysis, n: int) -> str:
         lines.append("  sections: " + "; ".join(q.section_flags))
     lines += ["", "warnings" + ("" if result.warnings else ": none")]
     lines += [f"  [{w.code}] {w.text}" for w in result.warnings]
+    if result.notes:
+        lines += ["", "notes (the intervals carry them): " + ", ".join(dict.fromkeys(w.code for w in result.notes))]
     return "\n".join(textwrap.fill(ln, _TEXT_WIDTH, subsequent_indent="      ", drop_whitespace=False)
                      if len(ln) > _TEXT_WIDTH else ln for ln in lines)
 
 
 def identify_figure(record: Record, result: IdentificationResult, analysis: Analysis | None = None) -> Any:
-    """The identify page of one identified record (a ``matplotlib`` figure, 15 x 10.5 in).
+    """The identify page of one identified record (a ``matplotlib`` figure, 16 x 12 in).
     ``analysis``: :func:`training.identification.analyze` of ``record`` (computed when not given)."""
     a = analysis if analysis is not None else analyze(record)
     t = np.asarray(record.t, dtype=np.float64)
@@ -149,13 +166,15 @@ def identify_figure(record: Record, result: IdentificationResult, analysis: Anal
     inside = _in_sections(a)
     osc_model = np.where(inside, w_model - a.fit.w_bar, 0.0)
     one_mass = result.parameters.f_e is None
-    fig = new_figure(15.0, 10.5)
-    gs = fig.add_gridspec(4, 2, width_ratios=(2.2, 1.0))
+    fig = new_figure(16.0, 12.0)
+    gs = fig.add_gridspec(4, 2, width_ratios=(2.2, 1.15))
     ax_w = fig.add_subplot(gs[0, 0])
     ax_o = fig.add_subplot(gs[1, 0], sharex=ax_w)
     ax_i = fig.add_subplot(gs[2, 0], sharex=ax_w)
     ax_f = fig.add_subplot(gs[3, 0])
-    ax_t = fig.add_subplot(gs[:, 1])
+    right = gs[:, 1].subgridspec(2, 1, height_ratios=(3.3, 1.0), hspace=0.15)
+    ax_t = fig.add_subplot(right[0])
+    ax_c = fig.add_subplot(right[1])
     model_label = "identified model, replayed" + (" (one mass)" if one_mass else "")
     for ax, labels in ((ax_w, True), (ax_o, False), (ax_i, False)):
         _shade_sections(ax, t, a, labels=labels)
@@ -179,8 +198,48 @@ def identify_figure(record: Record, result: IdentificationResult, analysis: Anal
     ax_t.axis("off")
     ax_t.text(0.0, 1.0, _text(result, a, len(t)), transform=ax_t.transAxes, va="top", ha="left", family="monospace",
               fontsize=8.5)
+    draw_intervals(ax_c, result)
     fig.suptitle(f"{result.record or record.name}: identified {result.structure}", fontsize=12, fontweight="bold")
     return fig
+
+
+def draw_intervals(ax: Any, result: IdentificationResult) -> None:
+    """Each parameter's 90 % interval as a bar over the reported value (log axis, clipped to
+    :data:`INTERVAL_RATIO_RANGE`; a clipped end is marked by a triangle, the value by a dot at 1),
+    one row per parameter of :data:`INTERVAL_NAMES` top down, the line labelled ``"<name>
+    interval"``; a parameter reported 0 or not at all gets no bar, only its interval in words.
+    Without intervals (uncalibrated maps; the text box says so) the axes stay empty and hidden."""
+    if result.intervals is None:  # the text box says so
+        ax.axis("off")
+        return
+    lo_x, hi_x = INTERVAL_RATIO_RANGE
+    names = list(INTERVAL_NAMES)
+    for k, name in enumerate(names):
+        y = len(names) - 1 - k
+        value = getattr(result.parameters, name)
+        low, high = result.intervals[name]
+        if value is None or value <= 0.0:
+            ax.text(1.0, y, f"{interval_text(name, value, (low, high))} {PARAMETER_UNITS[name]}", ha="center",
+                    va="center", fontsize=7)
+            continue
+        a, b = low / value, high / value
+        ax.plot([min(max(a, lo_x), hi_x), max(min(b, hi_x), lo_x)], [y, y], color=MODEL, linewidth=4.0,
+                solid_capstyle="butt", label=f"{name} interval")
+        ax.plot([1.0], [y], "o", color=MEASURED, markersize=3)
+        if a < lo_x:
+            ax.plot([lo_x], [y], "<", color=MODEL, markersize=5)
+        if b > hi_x:
+            ax.plot([hi_x], [y], ">", color=MODEL, markersize=5)
+    ax.set_xscale("log")
+    ax.set_xlim(lo_x / 1.08, hi_x * 1.08)
+    ax.set_xticks([1 / 3, 0.5, 0.8, 1.0, 1.25, 2.0, 3.0], ["1/3", "0.5", "0.8", "1", "1.25", "2", "3"])
+    ax.minorticks_off()
+    ax.set_yticks(range(len(names)), names[::-1], fontsize=7)
+    ax.set_ylim(-0.7, len(names) - 0.3)
+    ax.axvline(1.0, color="0.6", linewidth=0.8, zorder=0)
+    ax.set_xlabel("90 % interval / reported value", fontsize=8)
+    ax.tick_params(axis="x", labelsize=7)
+    ax.grid(alpha=0.3, axis="x")
 
 
 def _draw_spectrum(ax: Any, a: Analysis, result: IdentificationResult, osc_model: np.ndarray) -> None:

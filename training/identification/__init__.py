@@ -19,10 +19,12 @@ from ._result import (INTERVAL_NAMES, NOTE_CODES, PARAMETER_NAMES, PARAMETER_UNI
                       IdentificationResult, Intervals,
                       IdentWarning, Outcome, Parameters, Quality)
 from ._sections import SectionSplit, detect_sections
+from ._interval_text import MAY_BE_ZERO, interval_text
 
 __all__ = [
     "Identifier", "IdentificationPolicy", "ReadRecord", "CHUNK", "IdentificationResult", "IdentificationFailure", "Outcome", "Parameters", "Quality",
     "IdentWarning", "WARNING_CODES", "NOTE_CODES", "PARAMETER_NAMES", "PARAMETER_UNITS", "INTERVAL_NAMES", "Intervals",
+    "interval_text", "MAY_BE_ZERO",
     "analyze", "Analysis", "FEATURE_NAMES", "FEATURE_VERSION", "REFERENCE_DRIVE", "DriveValues",
     "Envelope", "SPEC_ENVELOPE", "ENVELOPE_FILE", "inside_envelope", "trained_envelope",
     "detect_sections", "SectionSplit", "fit_one_mass", "FORMULATIONS", "OneMassFit", "speed_from_position",

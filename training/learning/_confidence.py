@@ -37,8 +37,8 @@ MIN_CLASS_SAMPLES = 80
 SILENT_WRONG_SHARE = 0.005
 #: The ridge penalties of the scale regressions and of the logistic models (standardized features).
 RIDGE_SCALE, RIDGE_LOGISTIC = 1.0, 1.0
-#: The floors added to a coordinate's error before its log (log coordinates: 0.1 %; asinh: 0.05).
-_ERROR_FLOOR = {"log": 1e-3, "asinh": 0.05}
+#: The floors added to a coordinate's error before its log (log coordinates: 0.01 %; asinh: 0.05).
+_ERROR_FLOOR = {"log": 1e-4, "asinh": 0.05}
 
 
 @dataclass(frozen=True)

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import types
 from pathlib import Path
 
 import pytest
@@ -80,28 +79,78 @@ def test_readme_json_example_is_what_demo_json_prints(capsys):
     _close(example, json.loads(lines[0]))
 
 
-def test_demo_flags_a_poorly_determined_parameter_and_explains_its_figures():
+_TRUTH = {"structure": "elastic", "s_N": 0.04, "r_osc": 44.0, "J_sigma": 0.05, "V_J": 1.0, "J_M": 0.025,
+          "J_L": 0.025, "f_e": 30.0, "C_F": 444.0, "d": 0.02, "backlash": 0.0017, "M_FC": 0.2, "mu_F": 0.001}
+
+
+def _result(intervals, answer_probability):
+    """A result whose parameters are the truth, with ``intervals`` and one warning and two notes."""
+    from training.identification import IdentificationResult, IdentWarning, Parameters, Quality
+
+    quality = Quality(structure_probabilities={"stiff": 0.01, "elastic": 0.83, "elastic_backlash": 0.15,
+                                               "stiff_backlash": 0.01},
+                      map_distance_ratio={"f_e": 0.3}, osc_quanta=13.8, oscillation_fit_r2=0.6,
+                      one_mass_rel_residual=0.003, outside_training=False, section_flags=(), maps_estimate={},
+                      outside_envelope={}, answer_probability=answer_probability)
+    return IdentificationResult(
+        "elastic", Parameters(**{k: _TRUTH[k] for k in PARAMETER_NAMES}), quality,
+        warnings=(IdentWarning("likely_wrong", "the answer is right with probability 0.42 only"),),
+        intervals=intervals,
+        notes=(IdentWarning("refine_partial_fit", "long text one"), IdentWarning("class_undecided", "long text two")))
+
+
+def _print(res) -> str:
     import io
 
     from training.commands import demo
 
-    truth = {"structure": "elastic", "s_N": 0.04, "r_osc": 44.0, "J_sigma": 0.05, "V_J": 1.0, "J_M": 0.025,
-             "J_L": 0.025, "f_e": 30.0, "C_F": 444.0, "d": 0.02, "backlash": 0.0017, "M_FC": 0.2, "mu_F": 0.001}
-
-    class Res:  # the attributes print_result reads
-        ok, structure, warnings = True, "elastic", ()
-        parameters = types.SimpleNamespace(**{k: truth[k] for k in PARAMETER_NAMES})
-        quality = types.SimpleNamespace(structure_probabilities={"elastic": 0.9}, map_distance_ratio={"f_e": 0.3},
-                                        osc_quanta=13.8, one_mass_rel_residual=0.003, stiff_mode_note=None)
-
-    other = types.SimpleNamespace(ok=True, parameters=types.SimpleNamespace(**{**vars(Res.parameters), "d": 0.03}))
-    spread = demo.spreads([Res(), other])
-    assert spread["d"] == pytest.approx(0.5) and spread["f_e"] == 0.0
     out = io.StringIO()
-    demo.print_result("p", truth, Res(), 100, 2.5e-4, out, spread)
-    text = out.getvalue()
-    assert "50 %  poorly determined" in text and "warnings: poorly determined by this test run: d (" in text
+    demo.print_result("p", _TRUTH, res, 100, 2.5e-4, out)
+    return out.getvalue()
+
+
+def test_demo_prints_each_values_90_percent_interval_and_the_calibrated_probabilities():
+    from training.identification import Intervals
+
+    bounds = dict(J_sigma=(0.0499, 0.0501), V_J=(0.8, 1.3), J_M=(0.024, 0.026), J_L=(0.02, 0.024),
+                  f_e=(29.7, 30.3), C_F=(400.0, 500.0), d=(0.004, 0.13), backlash=(0.0, 0.00349066),
+                  M_FC=(0.15, 0.25), mu_F=(0.0, 0.002))
+    text = _print(_result(Intervals(**bounds), 0.42))
+    rows = _table_rows(text)
+    assert "90 % interval" in text and "no calibration" not in text
+    cell = {name: " ".join(rows[name][6:]) for name in PARAMETER_NAMES}
+    assert cell["J_sigma"] == "+-0.2 %"  # 0.0001 / 0.05 either side
+    assert cell["f_e"] == "+-1 %"
+    assert cell["V_J"] == "-20/+30 %"  # sides differ by more than a factor 1.25
+    assert cell["J_M"] == "+-4 %"
+    assert cell["J_L"] == "[0.02 .. 0.024] (true value outside)"  # the value outside: not relative to it
+    assert cell["C_F"] == "-9.9/+13 %"  # (444 - 400) / 444, (500 - 444) / 444
+    assert cell["d"] == "[0.004 .. 0.13]"  # the upper side lies 550 % above the value
+    assert cell["backlash"] == "[0 .. 0.2]"  # in degrees, as the row's unit; may be 0: never relative
+    assert cell["M_FC"] == "[0.15 .. 0.25]" and cell["mu_F"] == "[0 .. 0.002]"
+    assert "quality: P(elastic) 0.83 (next: elastic_backlash 0.15); P(right) 0.42;" in text
+    assert "  warnings: the answer is right with probability 0.42 only\n" in text
+    assert "  notes: refine_partial_fit, class_undecided\n" in text and "long text" not in text
+
+
+def test_demo_says_where_the_maps_carry_no_calibration():
+    text = _print(_result(None, None))
+    assert "   90 % interval\n" not in text  # no column
+    assert text.count("  90 % intervals: none (the maps carry no calibration") == 1
+    rows = _table_rows(text)
+    assert all(len(rows[name]) == 6 for name in PARAMETER_NAMES)  # name, unit, true, identified, error "+0.0 %"
+    assert "quality: P(elastic) 0.83 uncalibrated (next: elastic_backlash 0.15); map distance" in text
+    assert "P(right)" not in text
+
+
+def test_demo_explains_its_figures():
+    import io
+
+    from training.commands import demo
+
+    out = io.StringIO()
     demo._explain(out)
     explained = out.getvalue()
-    for figure in ("s_N", "r_osc", "spread", "map distance", "oscillation", "one-mass residual"):
+    for figure in ("s_N", "r_osc", "90 % interval", "P(class)", "P(right)", "warnings", "notes", "map distance",
+                   "oscillation", "one-mass residual"):
         assert f"\n  {figure} " in explained, figure

@@ -49,3 +49,19 @@ def test_a_summary_without_a_model_based_delivery_says_so():
     text = summary_text(summarize([rep, rep], 2.5))
     assert "none to summarize" in text and "(None)" not in text and "median -" not in text
     assert "chain time 2.5 s" in text and "start-up" in text and "wall time" not in text
+
+
+def test_the_identification_section_names_the_intervals_of_f_e_V_J_J_sigma(stub):
+    from training.identification import INTERVAL_NAMES, Intervals
+
+    rep = commission(sim.SimulatedDrive(STIFF), LIMITS, identifier=stub("stiff", ONE_MASS), config=FAST)
+    lines = rep.to_text().splitlines()
+    assert lines[_line(lines, "2 identification") + 1:].count(
+        "   90 % intervals: none (the maps carry no calibration): the design's set is the interim spread") == 1
+    bounds = {n: (1.0, 2.0) for n in INTERVAL_NAMES} | {"f_e": (37.31, 41.6), "V_J": (0.6381, 0.9612),
+                                                         "J_sigma": (0.04992, 0.0501)}
+    ident = replace(rep.identification, intervals=Intervals(**bounds))
+    lines = replace(rep, identification=ident).to_text().splitlines()
+    (row,) = [ln for ln in lines if ln.startswith("   90 % intervals")]
+    assert row == "   90 % intervals: f_e 37.31 .. 41.6 Hz, V_J 0.6381 .. 0.9612, J_sigma 0.04992 .. 0.0501 kg m^2"
+    assert _line(lines, "2 identification") < lines.index(row) < _line(lines, "3 ")

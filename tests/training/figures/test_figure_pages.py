@@ -4,6 +4,7 @@ anti-resonance where the parameters put them, the best match where the recall fi
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -12,7 +13,7 @@ import torch
 
 import som_torch as st
 from training.figures import failure_figure, identify_figure, maps_figure, page_names, unit_xy
-from training.identification import FEATURE_NAMES, PARAMETER_NAMES, PARAMETER_UNITS, Identifier, analyze
+from training.identification import FEATURE_NAMES, PARAMETER_NAMES, PARAMETER_UNITS, Identifier, Intervals, analyze
 
 pytest.importorskip("matplotlib")
 
@@ -33,7 +34,7 @@ def _line(ax, label: str):
 def test_identify_page_shows_the_replay_on_the_measured_speed(good, identified) -> None:
     _, result, analysis = identified
     fig = identify_figure(good, result, analysis)
-    ax_w, ax_o, ax_i, ax_f, ax_t = fig.axes
+    ax_w, ax_o, ax_i, ax_f, ax_t, _ = fig.axes
     assert ax_w.get_ylabel() == "motor speed w_M [rad/s]"
     assert ax_o.get_ylabel().endswith("[rad/s]") and ax_o.get_ylabel().startswith("w_osc")
     assert ax_i.get_ylabel() == "motor current i [A]" and ax_i.get_xlabel() == "time t [s]"
@@ -71,6 +72,44 @@ def test_identify_page_shows_the_replay_on_the_measured_speed(good, identified) 
         (row,) = [ln for ln in text.splitlines() if ln.split()[:1] == [name]]
         assert row.split()[-1] == PARAMETER_UNITS[name].split()[-1]
     assert "refine residual" in text and "map distance / training 99 % quantile" in text
+
+
+def test_identify_page_draws_each_interval_as_a_bar_over_the_value(good, identified) -> None:
+    """A calibrated result: the text gives each interval (as ``interval_text`` writes it), the
+    calibrated class probabilities and P(answer right); the bars span interval / value, clipped."""
+    _, result, analysis = identified
+    p = result.parameters
+    bounds = {n: (0.9 * getattr(p, n), 1.2 * getattr(p, n)) for n in PARAMETER_NAMES}
+    bounds |= {"d": (0.0, 10.0 * p.d), "backlash": (0.0, 2.0 * p.backlash)}
+    calibrated = dataclasses.replace(result, intervals=Intervals(**bounds),
+                                     quality=dataclasses.replace(result.quality, answer_probability=0.87))
+    fig = identify_figure(good, calibrated, analysis)
+    ax_t, ax_c = fig.axes[4:]
+    text = ax_t.texts[0].get_text()
+    assert "parameters (reported), 90 % interval" in text and "no calibration" not in text
+    assert "P(class), calibrated:" in text and "P(answer right) 0.87" in text
+    rows = {ln.split()[0]: ln for ln in text.splitlines() if ln.split()[:1] and ln.split()[0] in PARAMETER_NAMES}
+    assert rows["f_e"].endswith("Hz       -10/+20 %")  # sides 10 % and 20 %: not +-
+    assert rows["backlash"].endswith(f"rad      [0 .. {2.0 * p.backlash:.4g}]")
+    assert ax_c.get_xlabel() == "90 % interval / reported value"
+    assert [t.get_text() for t in ax_c.get_yticklabels()] == list(PARAMETER_NAMES)[::-1]
+    for name in ("J_sigma", "f_e", "mu_F"):
+        np.testing.assert_allclose(_line(ax_c, f"{name} interval").get_xdata(), [0.9, 1.2], rtol=1e-12)
+    np.testing.assert_allclose(_line(ax_c, "d interval").get_xdata(), [1 / 3, 3.0])  # 0 .. 10: clipped both sides
+    np.testing.assert_allclose(_line(ax_c, "backlash interval").get_xdata(), [1 / 3, 2.0])
+    assert _line(ax_c, "d interval").get_ydata()[0] == PARAMETER_NAMES[::-1].index("d")
+
+
+def test_identify_page_without_calibration_says_so_and_draws_no_bars(good, identified) -> None:
+    _, result, analysis = identified
+    assert result.intervals is None  # the shipped maps of this checkout (no calibration)
+    uncalibrated = dataclasses.replace(result, quality=dataclasses.replace(result.quality, answer_probability=None))
+    fig = identify_figure(good, uncalibrated, analysis)
+    ax_t, ax_c = fig.axes[4:]
+    text = ax_t.texts[0].get_text()
+    assert text.count("90 % intervals: none (the maps carry no calibration)") == 1
+    assert "P(class), the structure map's (uncalibrated):" in text and "P(answer right)" not in text
+    assert not ax_c.axison and not ax_c.get_lines() and not ax_c.texts
 
 
 def test_maps_page_marks_the_best_match_the_recall_returns(identified) -> None:
