@@ -63,13 +63,13 @@ __all__ = ["CommissioningConfig", "commission", "limit_checks", "drive_config", 
 #: :func:`training.commissioning._design.elastic_doubts`).
 UNCERTAIN_CODES: frozenset[str] = frozenset({"unlike_training_data", "oscillation_below_quantum", "refine_partial_fit",
                                              "implausible_output", "drive_outside_training", "outside_envelope",
-                                             "class_undecided", "backlash_from_angle", "likely_wrong"})
+                                             "answer_outside_envelope", "class_undecided", "backlash_from_angle",
+                                             "likely_wrong"})
 #: With calibrated intervals (SPEC 4.1) the intervals carry the uncertainty (the other codes are the
 #: answer's notes); these warnings still widen the set (R7c): the intervals hold for records like the
 #: calibration's, inside the envelope and the maps' training, and ``likely_wrong`` says the answer
 #: itself is likely wrong.
-CALIBRATED_UNCERTAIN_CODES: frozenset[str] = frozenset({"implausible_output", "drive_outside_training", "outside_envelope",
-                                                        "likely_wrong"})
+CALIBRATED_UNCERTAIN_CODES: frozenset[str] = frozenset({"drive_outside_training", "outside_envelope", "likely_wrong"})
 #: Identification codes (warnings or notes) that say the oscillation is not determined at all, or
 #: the answer likely wrong (rule R7b as for ``stiff``: the set covers what the test cannot exclude).
 UNDETERMINED_CODES: frozenset[str] = frozenset({"refine_partial_fit", "oscillation_below_quantum", "likely_wrong"})

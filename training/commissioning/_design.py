@@ -38,7 +38,7 @@ __all__ = ["UncertaintySet", "MechanicsBounds", "BOUNDED_PARAMETERS", "DesignSea
 #: these alone does not widen the set.
 NON_ELASTIC_QUANTITIES: frozenset[str] = frozenset({"M_FC_over_M_star", "s_N", "M_N", "M_max_over_M_N", "M_star_over_M_max"})
 #: The warning codes whose meaning rests on an envelope finding (which quantity: ``quality.outside_envelope``).
-_ENVELOPE_CODES: frozenset[str] = frozenset({"outside_envelope", "drive_outside_training"})
+_ENVELOPE_CODES: frozenset[str] = frozenset({"outside_envelope", "drive_outside_training", "answer_outside_envelope"})
 
 
 def elastic_doubts(result: Any, codes: Iterable[str]) -> list[str]:

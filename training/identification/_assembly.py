@@ -27,7 +27,7 @@ from dataclasses import dataclass, replace
 
 from sim import CLASS_THRESHOLDS, gap_width, normalized_backlash, two_mass_derived
 from training.identification._analysis import Analysis
-from training.identification._confidence import (Calibration, ConfidenceInputs, class_margin, confidence_inputs,
+from training.identification._confidence import (Calibration, ConfidenceInputs, class_margins, confidence_inputs,
                                                  share_rest, stand_in_points)
 from training.identification._envelope import Envelope, Finding, envelope_warnings
 from training.identification._limits import (backlash_negligible, backlash_resolution, implausible, impossible,
@@ -151,10 +151,11 @@ def warn_below_quantum(evidence: RecordEvidence, draft: Draft, judge: Judge) -> 
 
 
 def check_envelope(evidence: RecordEvidence, draft: Draft, judge: Judge) -> Draft:
-    """The drive's and the identified mechanics' findings against the envelope, each warned."""
-    findings = tuple(evidence.drive_findings) + tuple(
-        judge.envelope.check(mechanics_quantities(evidence.analysis, draft.parameters)))
-    return replace(draft, findings=findings).warned(*envelope_warnings(list(findings)))
+    """The drive's and the identified mechanics' findings against the envelope, each warned (the
+    latter as ``answer_outside_envelope``)."""
+    answer_findings = judge.envelope.check(mechanics_quantities(evidence.analysis, draft.parameters))
+    return replace(draft, findings=tuple(evidence.drive_findings) + tuple(answer_findings)).warned(
+        *envelope_warnings(list(evidence.drive_findings)), *envelope_warnings(list(answer_findings), answer=True))
 
 
 def drop_impossible(evidence: RecordEvidence, draft: Draft, judge: Judge) -> Draft:
@@ -241,14 +242,15 @@ def answer_confidence(evidence: RecordEvidence, draft: Draft) -> ConfidenceInput
     analysis, answer, refined = evidence.analysis, evidence.maps, evidence.refined
     fit = analysis.fit
     points = stand_in_points(draft.parameters, (answer.f_e, answer.V_J, answer.d), fit.J_sigma, (fit.M_FC, fit.mu_F))
-    maps_margin = class_margin(class_quantities(analysis, fit.J_sigma, answer.V_J, answer.f_e, answer.d, answer.s_N))
+    maps_quantities = class_quantities(analysis, fit.J_sigma, answer.V_J, answer.f_e, answer.d, answer.s_N)
     return confidence_inputs(
         analysis, draft.structure, draft.parameters, points, maps_structure=answer.structure,
         maps_probabilities=answer.probabilities,
         map_distance=max((answer.distance_ratio[n] for n in answer.used), default=1.0),
-        margins=(class_margin(_threshold_sources(analysis, draft)[0][0]), maps_margin),
+        margins=(class_margins(_threshold_sources(analysis, draft)[0][0]), class_margins(maps_quantities)),
         maps_elastic=(answer.f_e, answer.V_J, answer.d),
-        refine=None if refined is None else (refined.residual, refined.evidence), backlash_bound=draft.backlash_bound,
+        refine=None if refined is None else (refined.residual, refined.evidence, refined.start_residual),
+        backlash_bound=draft.backlash_bound,
         remarks=[w.code for w in draft.warnings])
 
 

@@ -53,7 +53,8 @@ REMARK_CODES = tuple(c for c in WARNING_CODES if c != "likely_wrong")
 FEATURE_NAMES: tuple[str, ...] = (
     *(f"class_{c}" for c in STRUCTURE_CLASSES), "maps_agree", "refined", "log_refine_residual",
     "log_refine_evidence", "log_osc_quanta", "r2_fit", "log_one_mass_residual", "log_map_distance", "p_map_class",
-    "class_margin", "class_margin_maps", "log_f_e_T_s", "log_f_e_T_Ei", "log_V_J", "log_d", "log_s_N",
+    "class_margin", "class_margin_maps", *(f"margin_{q}" for q in CLASS_THRESHOLDS),
+    *(f"margin_maps_{q}" for q in CLASS_THRESHOLDS), "refine_gain", "log_f_e_T_s", "log_f_e_T_Ei", "log_V_J", "log_d", "log_s_N",
     "maps_refined_f_e", "maps_refined_V_J", "log_noise", "log_T_s", "log_counts", "log_time_scale", "log_T_Ei_T_s",
     "friction", "viscous", "log_backlash_bound", *(f"remark_{c}" for c in REMARK_CODES))
 
@@ -98,12 +99,12 @@ def stand_in_points(parameters: Parameters, maps_elastic: tuple[float, float, fl
             "mu_F": parameters.mu_F if parameters.mu_F is not None else max(friction_fit[1], 0.0)}
 
 
-def class_margin(quantities: Mapping[str, float]) -> float:
-    """How far class quantities lie from the class rule's nearest threshold: ``min |ln(q / t)|``
-    (clipped to 0..3; 3 where none is finite)."""
-    gaps = [abs(math.log(q / t)) for name, q in quantities.items() for t in CLASS_THRESHOLDS[name]
-            if math.isfinite(q) and q > 0]
-    return min([3.0, *gaps])
+def class_margins(quantities: Mapping[str, float]) -> dict[str, float]:
+    """Per quantity of the class rule (:data:`sim.CLASS_THRESHOLDS`): ``min |ln(q / t)|`` over its
+    thresholds, clipped to 0..3 (3 where it is missing or not finite)."""
+    return {name: min([3.0, *(abs(math.log(quantities[name] / t)) for t in thresholds
+                              if name in quantities and math.isfinite(quantities[name]) and quantities[name] > 0)])
+            for name, thresholds in CLASS_THRESHOLDS.items()}
 
 
 def _unit(x: float) -> float:
@@ -116,12 +117,12 @@ def _log10(x: float | None, low: float, high: float) -> float:
 
 def confidence_inputs(analysis: Analysis, structure: str, parameters: Parameters, points: dict[str, float], *,
                       maps_structure: str, maps_probabilities: Mapping[str, float], map_distance: float,
-                      margins: tuple[float, float], maps_elastic: tuple[float, float, float],
-                      refine: tuple[float, float] | None, backlash_bound: float | None,
+                      margins: tuple[Mapping[str, float], Mapping[str, float]], maps_elastic: tuple[float, float, float],
+                      refine: tuple[float, float, float] | None, backlash_bound: float | None,
                       remarks: Sequence[str]) -> ConfidenceInputs:
-    """One answer's :class:`ConfidenceInputs` (``margins``: :func:`class_margin` of the answer's and
-    the maps' class quantities; ``refine``: the refined model's residual and evidence, ``None`` where
-    no refinement stands; ``remarks``: the codes of its warnings)."""
+    """One answer's :class:`ConfidenceInputs` (``margins``: :func:`class_margins` of the answer's and
+    the maps' class quantities; ``refine``: the refined model's residual, evidence and start
+    residual, ``None`` where no refinement ran; ``remarks``: the codes of its warnings)."""
     drive, fit = analysis.drive, analysis.fit
     f_e, V_J, d = points["f_e"], points["V_J"], points["d"]
     s_N = (normalized_backlash(points["backlash"], drive.M_N, points["C_F"]) if points["backlash"] > 0 else 1e-3)
@@ -130,7 +131,9 @@ def confidence_inputs(analysis: Analysis, structure: str, parameters: Parameters
               float(refine is not None), _log10(refine[0] if refine else None, 1e-3, 1e3),
               _log10(1.0 + refine[1] if refine else None, 1.0, 1e6), _log10(analysis.osc_quanta, 1e-3, 1e4),
               _unit(analysis.feature("r2_fit")), _log10(fit.rel_residual, 1e-4, 10.0), _log10(map_distance, 1e-2, 1e2),
-              float(maps_probabilities.get(structure, 0.0)), margins[0], margins[1],
+              float(maps_probabilities.get(structure, 0.0)), min(margins[0].values()), min(margins[1].values()),
+              *(margins[0][q] for q in CLASS_THRESHOLDS), *(margins[1][q] for q in CLASS_THRESHOLDS),
+              _log10(refine[2] / refine[0] if refine and refine[0] > 0 else None, 1e-2, 1e4),
               _log10(f_e * drive.T_s, 1e-5, 10.0), _log10(f_e * drive.T_Ei, 1e-5, 10.0), _log10(V_J, 1e-2, 1e2),
               _log10(d, 1e-4, 1.0), _log10(s_N, 1e-3, 1e2),
               min(abs(math.log(f_e / maps_elastic[0])), 3.0), min(abs(math.log(V_J / maps_elastic[1])), 3.0),

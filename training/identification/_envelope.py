@@ -250,15 +250,17 @@ def trained_envelope(metadata: Mapping[str, Any]) -> Envelope:
     return Envelope(trained=trained)
 
 
-def envelope_warnings(findings: list[Finding]) -> list[IdentWarning]:
+def envelope_warnings(findings: list[Finding], *, answer: bool = False) -> list[IdentWarning]:
     """One coded warning per finding: ``drive_outside_training`` when only the training range is
-    left, ``outside_envelope`` when SPEC 3.1's is."""
+    left, ``outside_envelope`` when SPEC 3.1's is; ``answer_outside_envelope`` for either where the
+    findings are on identified values (``answer``)."""
     out = []
     for f in findings:
         unit = UNITS[f.quantity]
         rng = f.envelope if "envelope" in f.outside else f.trained
         what = "the drive envelope (docs/contract.md)" if "envelope" in f.outside else "what the maps were trained on"
-        code = "outside_envelope" if "envelope" in f.outside else "drive_outside_training"
+        code = ("answer_outside_envelope" if answer else "outside_envelope" if "envelope" in f.outside
+                else "drive_outside_training")
         out.append(IdentWarning(code, f"{f.quantity} = {_fmt(f.value)} {unit} is outside {what} "
                                       f"({_fmt(rng[0])} .. {_fmt(rng[1])} {unit}): the answer is less certain".replace(
                                           "  ", " ")))

@@ -47,7 +47,8 @@ WARNING_CODES: dict[str, str] = {
                        "encoder_counts it steps in; the torque: neither M_star nor M_max): a unit error would go "
                        "unnoticed",
     "drive_outside_training": "a drive or test value lies outside what the maps were trained on",
-    "outside_envelope": "a drive, test or identified value lies outside the drive envelope (docs/contract.md)",
+    "outside_envelope": "a drive or test value lies outside the drive envelope (docs/contract.md)",
+    "answer_outside_envelope": "an identified value lies outside the drive envelope or what the maps were trained on",
     "backlash_below_resolution": "a backlash narrower than the encoder resolves may hide, or its width is "
                                  "uncertain: an upper bound is given",
     "backlash_from_angle": "the backlash shows in the motor's angle, not in the fit of its speed (a coarse "
@@ -69,7 +70,7 @@ WARNING_CODES: dict[str, str] = {
 NOTE_CODES: frozenset[str] = frozenset({
     "unlike_training_data", "oscillation_below_quantum", "refine_partial_fit", "one_mass_fit_replaced",
     "one_mass_fit_residual", "one_mass_fit_short_sections", "one_mass_fit_uninformative", "backlash_below_resolution",
-    "backlash_from_angle", "class_undecided", "class_near_threshold"})
+    "backlash_from_angle", "class_undecided", "class_near_threshold", "answer_outside_envelope", "implausible_output"})
 
 #: The parameters that carry a 90 % interval (SPEC 4.1), in output order.
 INTERVAL_NAMES: tuple[str, ...] = PARAMETER_NAMES

@@ -22,7 +22,7 @@ import numpy as np
 
 from sim import DriveConfig, TestSignalConfig, TwoMassParams, iter_records, sample_population
 from training.evaluation._drives import DRIVES, envelope_cases
-from training.evaluation._metrics import answer_wrong, relative_error
+from training.evaluation._metrics import answer_wrong, relative_error, threshold_margin
 from training.identification import INTERVAL_NAMES, NOTE_CODES, Identifier
 from training.identification._confidence import (COVERAGE, CONFIDENCE_VERSION, FEATURE_NAMES, Calibration,
                                                  ConfidenceInputs, LinearModel)
@@ -46,7 +46,8 @@ class CalibrationSample:
     """One identified calibration record: what the calibration reads of its answer, the truth of
     every parameter of :data:`INTERVAL_NAMES`, the true and the answered class, the relative errors
     of ``f_e``, ``V_J``, ``J_sigma`` (NaN: not identified), the codes of the warnings that stay
-    warnings, and its set (``matrix:reference``, ``envelope_3``, ...)."""
+    warnings, its set (``matrix:reference``, ``envelope_3``, ...) and how far the true system lies
+    from the class rule's thresholds (:func:`training.evaluation._metrics.threshold_margin`)."""
 
     inputs: ConfidenceInputs
     truth: dict[str, float]
@@ -54,16 +55,19 @@ class CalibrationSample:
     errors: dict[str, float]
     kept_warnings: tuple[str, ...]
     group: str
+    margin: float = math.inf
 
     def to_dict(self) -> dict[str, Any]:
         return {"features": self.inputs.features.tolist(), "points": self.inputs.points, "scales": self.inputs.scales,
                 "structure": self.inputs.structure, "truth": self.truth, "true_class": self.true_class,
-                "errors": self.errors, "kept_warnings": list(self.kept_warnings), "group": self.group}
+                "errors": self.errors, "kept_warnings": list(self.kept_warnings), "group": self.group,
+                "margin": self.margin}
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> "CalibrationSample":
         inputs = ConfidenceInputs(np.asarray(d["features"], dtype=np.float64), d["points"], d["scales"], d["structure"])
-        return cls(inputs, d["truth"], d["true_class"], d["errors"], tuple(d["kept_warnings"]), d["group"])
+        return cls(inputs, d["truth"], d["true_class"], d["errors"], tuple(d["kept_warnings"]), d["group"],
+                   float(d.get("margin", math.inf)))
 
 
 # -- the calibration records -------------------------------------------------------------------
@@ -107,8 +111,10 @@ def task_samples(task: Task, checkpoints: str | os.PathLike[str] | None = None) 
         errors = {k: float(relative_error(np.array([np.nan if estimates[k] is None else estimates[k]]),
                                           np.array([truth[k]]))[0]) for k in ("f_e", "V_J", "J_sigma")}
         kept = tuple(w.code for w in result.warnings if w.code not in NOTE_CODES)
+        margin = threshold_margin({"s_N": np.array([truth["s_N"]]), "r_osc": np.array([truth["r_osc"]]),
+                                   "w_e_T_Ei": np.array([truth["w_e"] * drive.T_Ei])})
         out.append(CalibrationSample(result.confidence, {k: float(truth[k]) for k in INTERVAL_NAMES},
-                                     str(truth["structure"]), errors, kept, group))
+                                     str(truth["structure"]), errors, kept, group, float(margin[0])))
     return out
 
 

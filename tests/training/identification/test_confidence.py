@@ -3,11 +3,12 @@
 from __future__ import annotations
 
 import json
+import math
 
 import pytest
 
 from sim import STRUCTURE_CLASSES
-from training.identification._confidence import Calibration, class_margin, share_rest
+from training.identification._confidence import Calibration, class_margins, share_rest
 
 
 def test_share_rest_hand_computed() -> None:
@@ -26,10 +27,12 @@ def test_share_rest_caps_the_others_at_the_answers_probability() -> None:
     assert flat == pytest.approx(dict.fromkeys(STRUCTURE_CLASSES, 0.25))
 
 
-def test_class_margin_is_the_nearest_thresholds_log_distance() -> None:
-    assert class_margin({"w_e_T_Ei": 2.0}) == pytest.approx(0.6931, abs=1e-4)  # threshold 1
-    assert class_margin({"s_N": 0.12, "w_e_T_Ei": 0.5}) == pytest.approx(abs(__import__("math").log(1.2)))
-    assert class_margin({"r_osc": float("nan")}) == 3.0
+def test_class_margins_are_the_nearest_thresholds_log_distances() -> None:
+    m = class_margins({"w_e_T_Ei": 2.0, "s_N": 0.12})
+    assert m["w_e_T_Ei"] == pytest.approx(math.log(2.0))  # threshold 1
+    assert m["s_N"] == pytest.approx(math.log(1.2))  # thresholds 0.1 and 1: the nearer
+    assert m["r_osc"] == 3.0  # missing
+    assert class_margins({"r_osc": float("nan")})["r_osc"] == 3.0
 
 
 def test_calibration_of_another_version_is_refused(tmp_path) -> None:
