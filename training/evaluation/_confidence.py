@@ -367,23 +367,23 @@ def _checks(cov: CoverageTable, structure: Calibration, answer: Calibration, war
     for name in cov.parameters:
         c = cov.overall[name]
         out.append(Check(f"{name}: coverage {lo:g}..{hi:g} %", None if c.percent is None else lo <= c.percent <= hi,
-                         f"{_fmt(c.percent)} % of {c.n}"))
+                         f"{_fmt(c.percent)} % of {c.n}" if c.n else "no intervals"))
         worst = cov.worst_cell(name)
         w = None if worst is None else worst.coverage[name]
         out.append(Check(f"{name}: every class x drive cell >= {CELL_COVERAGE_MIN:g} %",
                          None if w is None or w.percent is None else w.percent >= CELL_COVERAGE_MIN,
-                         "no cell of n >= 30" if worst is None else
+                         f"no cell of n >= {MIN_CELL}" if worst is None else
                          f"lowest {_fmt(w.percent)} % of {w.n} ({worst.structure} x {worst.drive})"))
     for what, cal in (("class probability", structure), ("answer_probability", answer)):
         ece = cal.reliability.ece
         out.append(Check(f"{what}: ECE <= {ECE_MAX:g}", None if ece is None else ece <= ECE_MAX,
-                         f"{_fmt(ece, 3)} over {cal.reliability.n}"))
+                         "no probabilities" if ece is None else f"{_fmt(ece, 3)} over {cal.reliability.n}"))
     out.append(Check(f"right answers warned <= {RIGHT_WARNED_MAX:g} %",
                      None if warned.right_warned is None else warned.right_warned <= RIGHT_WARNED_MAX,
-                     f"{_fmt(warned.right_warned)} % of {warned.n_right}"))
+                     f"{_fmt(warned.right_warned)} % of {warned.n_right}" if warned.n_right else "no right answers"))
     out.append(Check(f"wrong answers unwarned <= {WRONG_UNWARNED_MAX:g} %",
                      None if warned.wrong_unwarned is None else warned.wrong_unwarned <= WRONG_UNWARNED_MAX,
-                     f"{_fmt(warned.wrong_unwarned)} % of {warned.n_wrong}"))
+                     f"{_fmt(warned.wrong_unwarned)} % of {warned.n_wrong}" if warned.n_wrong else "no wrong answers"))
     return tuple(out)
 
 
