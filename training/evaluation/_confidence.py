@@ -104,8 +104,8 @@ class CoverageTable:
 
     def worst_cell(self, parameter: str) -> CoverageCell | None:
         """The listed cell of the lowest coverage of ``parameter`` (``None`` where none is listed)."""
-        listed = [c for c in self.cells if c.coverage[parameter].n]
-        return min(listed, key=lambda c: c.coverage[parameter].percent or 0.0) if listed else None
+        listed = [c for c in self.cells if c.coverage[parameter].n]  # percent is a number in these
+        return min(listed, key=lambda c: c.coverage[parameter].covered / c.coverage[parameter].n) if listed else None
 
 
 @dataclass(frozen=True)
@@ -438,7 +438,7 @@ def confidence_markdown(report: ConfidenceReport, command: str, descriptions: Ma
     lines += _coverage_lines("Overall", {ALL: cov.overall}, names)
     lines += _coverage_lines("Per reported class (the calibration's cells)", cov.by_reported_class, names)
     lines += _coverage_lines("Per true class", cov.by_true_class, names)
-    lines += _coverage_lines("Per drive", {f"{d}: {descriptions.get(d, '')}".rstrip(": "): g
+    lines += _coverage_lines("Per drive", {f"{d}: {descriptions[d]}" if descriptions.get(d) else d: g
                                            for d, g in cov.by_drive.items()}, names)
     lines += _coverage_lines(f"Per reported class x drive (cells of n >= {MIN_CELL}; {cov.n_small_cells} smaller "
                              "cells left out)", {f"{c.structure} x {c.drive}": c.coverage for c in cov.cells}, names)
