@@ -60,11 +60,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-plots", action="store_true", help="skip the PNG figures")
     parser.add_argument("--drives", type=int, default=None, metavar="N",
                         help="instead: the study on the matrix of six drives across the drive envelope (docs/contract.md), "
-                             "N systems per drive (seed --seed), written to OUT/drives.md and OUT/drives.json")
+                             "N systems per drive (seed --seed), written to OUT/drives.md and OUT/drives.json; the "
+                             "answers' confidence (interval coverage, calibration, warnings) to OUT/confidence.md, "
+                             "OUT/confidence.json and OUT/fig_reliability.png")
     parser.add_argument("--envelope-drives", type=int, default=None, metavar="K",
                         help="with --drives N: instead of the matrix, K drives and tests drawn at random over the "
                              "drive envelope (seed --seed; drives no matrix chose), N systems each, and all together; "
-                             "written to OUT/drives_envelope.md and OUT/drives_envelope.json")
+                             "written to OUT/drives_envelope.md and OUT/drives_envelope.json (the confidence to "
+                             "OUT/confidence_envelope.md, .json and OUT/fig_reliability_envelope.png)")
     _progress.add_option(parser)
 
 
@@ -90,7 +93,8 @@ def _run_drives(args: argparse.Namespace) -> int:
     from som_torch import atomic_write
     from training._json import dumps
     from training.figures import refuse_existing
-    from training.evaluation import DRIVES, drive_figures, drive_rows, drives_markdown, envelope_rows
+    from training.evaluation import (DRIVES, confidence_files, confidence_report, drive_figures, drive_rows,
+                                     drives_markdown, envelope_rows, write_confidence)
     from training.identification import Identifier
 
     if args.drives < 1:
@@ -100,7 +104,8 @@ def _run_drives(args: argparse.Namespace) -> int:
         raise ValueError(f"--envelope-drives: expected K >= 1 drives, received {args.envelope_drives}")
     stem = "drives_envelope" if envelope else "drives"
     md, js = args.out / f"{stem}.md", args.out / f"{stem}.json"
-    refuse_existing([md, js], args.overwrite)
+    confidence_stem = "confidence_envelope" if envelope else "confidence"
+    refuse_existing([md, js, *confidence_files(args.out, confidence_stem, plots=not args.no_plots)], args.overwrite)
     identifier = Identifier.load(args.checkpoints)
     command = (f"twomass evaluate --drives {args.drives}"
                + (f" --envelope-drives {args.envelope_drives}" if envelope else "")
@@ -113,18 +118,21 @@ def _run_drives(args: argparse.Namespace) -> int:
         runs = ((name, case.description, drive_rows(case, args.drives, args.seed, identifier))
                 for name, case in DRIVES.items())
         title = "Identification on a matrix of drives"
-    figures, descriptions, every = {}, {}, []
+    figures, descriptions, by_drive = {}, {}, {}
     for name, words, rows in runs:  # a drive at a time: its figures as soon as they are known
-        figures[name], descriptions[name] = drive_figures(rows), words
-        every += rows
+        figures[name], descriptions[name], by_drive[name] = drive_figures(rows), words, rows
         print(f"{name}: {json.dumps(figures[name])}", file=sys.stderr)
     if envelope:
+        every = [r for rows in by_drive.values() for r in rows]
         figures["all"], descriptions["all"] = drive_figures(every), f"the {args.envelope_drives} drives together"
     args.out.mkdir(parents=True, exist_ok=True)
     atomic_write(md, lambda f: f.write(drives_markdown(figures, command, descriptions, title)), text=True)
     atomic_write(js, lambda f: f.write(dumps({"command": command, "drives": figures, "descriptions": descriptions})
                                         + "\n"), text=True)
-    print(f"wrote {md} and {js}")
+    confidence = write_confidence(confidence_report(by_drive), args.out, confidence_stem, command,
+                                  {k: v for k, v in descriptions.items() if k in by_drive},
+                                  f"Confidence of the answers: {title[0].lower()}{title[1:]}", plots=not args.no_plots)
+    print(f"wrote {md}, {js} and " + ", ".join(str(p) for p in confidence))
     return 0
 
 

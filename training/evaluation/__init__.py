@@ -1,6 +1,11 @@
 """The paper's study (SPEC 7): evaluation sets, the SOM and IV4 methods side by side, metrics,
-report, and the cache of per-system results."""
+report, the cache of per-system results, and the confidence study of the drive rows (SPEC 4.1)."""
 
+from ._answers import AnswerScores, score_rows
+from ._confidence import (Calibration, ConfidenceReport, Coverage, CoverageCell, CoverageTable, Reliability,
+                          WarnedShares, answer_calibration, confidence_files, confidence_markdown, confidence_report,
+                          coverage_table, expected_calibration_error, median_half_width, reliability,
+                          reliability_figure, structure_calibration, warned_shares, write_confidence)
 from ._drives import DRIVES, DriveCase, drive_figures, drive_rows, drives_markdown, envelope_rows
 from ._cache import load_cached, method_config, save_cached, source_digest
 from ._iv4 import (ARXResult, IV4Result, IV4TwoMass, TwoMassEstimate, arx, identify_iv4, iv4, mean_torque,
@@ -14,6 +19,10 @@ from ._summary import summarize
 
 __all__ = [
     "DRIVES", "DriveCase", "drive_rows", "drive_figures", "drives_markdown", "envelope_rows",
+    "score_rows", "AnswerScores", "confidence_report", "coverage_table", "median_half_width",
+    "expected_calibration_error", "reliability", "structure_calibration", "answer_calibration", "warned_shares",
+    "confidence_markdown", "reliability_figure", "write_confidence", "confidence_files", "ConfidenceReport",
+    "CoverageTable", "CoverageCell", "Coverage", "Reliability", "Calibration", "WarnedShares",
     "EvalSet", "grid_set", "population_set", "GRID_F_E", "GRID_BACKLASH_DEG", "METHODS",
     "run_set", "run_study", "som_result", "iv4_result", "summarize", "render_markdown", "report_files", "write_report",
     "method_config", "load_cached", "save_cached", "source_digest",

@@ -158,6 +158,17 @@ def test_evaluate_drives_refuses_an_existing_report(tmp_path, capsys, monkeypatc
     assert (tmp_path / "drives.json").read_text() == "mine"
 
 
+@pytest.mark.parametrize("name, argv", [("confidence.md", []), ("fig_reliability.png", []),
+                                        ("fig_reliability_envelope.png", ["--envelope-drives", "1"])])
+def test_evaluate_drives_refuses_an_existing_confidence_report(tmp_path, capsys, monkeypatch, name, argv):
+    from training.identification import Identifier
+
+    monkeypatch.setattr(Identifier, "load", lambda *a, **k: pytest.fail("maps loaded"))
+    (tmp_path / name).write_text("mine")
+    _refused(["evaluate", "--drives", "1", *argv, "--out", str(tmp_path)], capsys, name, "--overwrite")
+    assert (tmp_path / name).read_text() == "mine"
+
+
 def test_report_files_name_what_write_report_writes(tmp_path):
     from training.evaluation import report_files
     from training.evaluation._report import write_report

@@ -3,6 +3,7 @@ envelope, and the figures (silent-wrong rate included) on hand-made rows."""
 
 from __future__ import annotations
 
+import json
 import math
 
 import pytest
@@ -95,6 +96,12 @@ def test_drives_drawn_over_the_envelope(tmp_path):
     for drive, _ in sample.cases:  # the drives of the same seed and cells, in words
         assert f"T_s {drive.T_s * 1e6:.4g} us, 2^{math.log2(drive.encoder_counts):.0f} counts" in md
     assert md.count("| envelope_") == 2 and not (tmp_path / "drives.md").exists()
+    conf = (tmp_path / "confidence_envelope.md").read_text()  # the confidence of the same answers
+    assert "--envelope-drives 2 --seed 3" in conf and conf.count("| envelope_") >= 2
+    data = json.loads((tmp_path / "confidence_envelope.json").read_text())
+    assert data["n_calibrated"] + data["n_uncalibrated"] + data["n_failed"] == 6
+    assert data["structure_probability"]["reliability"]["n"] == 6 - data["n_failed"]
+    assert not (tmp_path / "confidence.md").exists()
 
 
 @pytest.mark.parametrize(("argv", "message"), [
