@@ -230,8 +230,9 @@ def state_confidence(evidence: RecordEvidence, draft: Draft, judge: Judge) -> Dr
     warnings = tuple(w for w in draft.warnings if w.code not in NOTE_CODES)
     if p_right < calibration.warn_below:
         why = "; ".join(w.text for w in notes[:2])
-        warnings += (IdentWarning("likely_wrong", f"the answer is right with probability {p_right:.2f} only"
-                                                  + (f" ({why})" if why else "")),)
+        warnings += (IdentWarning("likely_wrong", f"the answer is right with probability {p_right:.3f}, below "
+                                                  f"{calibration.warn_below:.3f}, under which nearly all wrong answers "
+                                                  "lie: check it, or test again with a larger M* or a finer encoder" + (f" ({why})" if why else "")),)
     return replace(draft, warnings=warnings, notes=notes, confidence=inputs, intervals=calibration.intervals(inputs),
                    probabilities=calibration.probabilities(inputs, raw),
                    answer_probability=p_right)

@@ -4,7 +4,8 @@ the answer is right, from the record's own evidence, calibrated on held-out simu
 Each answer gets a vector of *confidence features* (:data:`FEATURE_NAMES`: its class, how far its
 class quantities lie from the class rule's thresholds, how well the refined model fits, how
 visible the oscillation is, whether the maps and the refinement agree, the drive's resolution
-and noise, which uncertainty remarks fired) and, per parameter, a *point* in a transformed
+and noise, the one-mass fit's parameters' standard deviations from the least
+squares' curvature, which uncertainty remarks fired) and, per parameter, a *point* in a transformed
 coordinate (``log`` for the positive quantities; ``asinh(value / scale)`` for those that may be
 0: backlash, friction). The :class:`Calibration` (shipped with the maps as ``confidence.json``,
 made by ``twomass calibrate``) holds
@@ -56,7 +57,7 @@ FEATURE_NAMES: tuple[str, ...] = (
     "class_margin", "class_margin_maps", *(f"margin_{q}" for q in CLASS_THRESHOLDS),
     *(f"margin_maps_{q}" for q in CLASS_THRESHOLDS), "refine_gain", "log_f_e_T_s", "log_f_e_T_Ei", "log_V_J", "log_d", "log_s_N",
     "maps_refined_f_e", "maps_refined_V_J", "log_noise", "log_T_s", "log_counts", "log_time_scale", "log_T_Ei_T_s",
-    "friction", "viscous", "log_backlash_bound", *(f"remark_{c}" for c in REMARK_CODES))
+    "friction", "viscous", "log_backlash_bound", "log_std_J_sigma", "log_std_M_FC", "log_std_mu_F", *(f"remark_{c}" for c in REMARK_CODES))
 
 
 @dataclass(frozen=True)
@@ -142,6 +143,8 @@ def confidence_inputs(analysis: Analysis, structure: str, parameters: Parameters
               _log10(drive.T_Ei / drive.T_s, 1e-2, 1e3), min(points["M_FC"] / drive.M_star, 1.0),
               min(points["mu_F"] * drive.w_max / drive.M_star, 1.0),
               _log10(backlash_bound / drive.q_phi if backlash_bound else None, 1e-2, 1e6),
+              _log10(fit.std[0] / abs(fit.J_sigma), 1e-7, 10.0),
+              _log10(fit.std[2] / drive.M_star, 1e-7, 10.0), _log10(fit.std[1] * drive.w_max / drive.M_star, 1e-7, 10.0),
               *(float(c in codes) for c in REMARK_CODES)]
     scales = {"backlash": 2.0 * drive.q_phi, "M_FC": 0.01 * drive.M_star, "mu_F": 0.01 * drive.M_star / drive.w_max}
     return ConfidenceInputs(np.asarray(values, dtype=np.float64), dict(points), scales, structure)

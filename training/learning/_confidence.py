@@ -36,7 +36,7 @@ MIN_CLASS_SAMPLES = 80
 #: (out-of-fold), half SPEC 4.1's 1 % for the evaluation's sake.
 SILENT_WRONG_SHARE = 0.005
 #: The ridge penalties of the scale regressions and of the logistic models (standardized features).
-RIDGE_SCALE, RIDGE_LOGISTIC = 1.0, 1.0
+RIDGE_SCALE, RIDGE_LOGISTIC = 1.0, 10.0
 #: The floors added to a coordinate's error before its log (log coordinates: 0.01 %; asinh: 0.05).
 _ERROR_FLOOR = {"log": 1e-4, "asinh": 0.05}
 
