@@ -211,7 +211,7 @@ def advance_eager(x: FastState, p: FastParams) -> None:
 
     The same operations in the same order as ``_kernel.c``, the four state variables stacked where
     they get the same one (stage states, slopes, RK4 sums, Kahan updates), written into
-    preallocated buffers (:class:`_Work`): about 90 tensor ops per substep. Two selects are products
+    preallocated buffers (:class:`_Work`): about 100 tensor ops per substep. Two selects are products
     that give the same values: the shaft torque's (see :func:`_net_torque`) and the stuck load's
     ``dw_L = 0``, a product with ``1/J_L`` or 0 (``+-0``; a stuck load's speed is reset to +0 by the
     stop rule), as in the kernel. ``2 K`` in the RK4 sums is exact, so adding it with ``alpha=2``

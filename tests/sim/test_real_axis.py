@@ -216,6 +216,8 @@ def test_simulated_drive_starts_held_and_holds_in_closed_loop():
     assert np.allclose(rec.torque_ref, 2.0)
     test = drive.run_test(5.0, 20.0, limits)
     assert test.meta["M_hold"] == 2.0 and test.torque_ref[0] == 2.0 and test.torque_ref[1] == 7.0
+    stopped = drive.run_test(5.0, 20.0, DriveLimits(w_max=5.0, travel=20.0))  # passes 5 rad/s: stops, holds
+    assert stopped.meta["aborted"] and stopped.meta["M_hold"] == 2.0 and stopped.torque_ref[-1] == 2.0
     assert "M_hold" not in SimulatedDrive({k: v for k, v in plant.items() if k != "M_L0"}).run_test(
         5.0, 20.0, limits).meta
 
@@ -240,3 +242,19 @@ def test_real_axis_population_adds_the_parts_and_keeps_the_rest():
     env = sample_envelope(64, 3, real_axis=True)
     M_star_env = torch.tensor([s.M_star for _, s in env.cases])[env.cell]
     assert float((env.params.M_L0.abs() / M_star_env).max()) <= 0.15
+
+
+def test_replay_starts_held_and_its_kernel_equals_the_twin_with_the_new_terms():
+    from sim import replay_speed
+
+    p = _combinations()
+    start = torch.tensor([[0, 100, 300]] * 5, dtype=torch.int32)
+    level = torch.stack([p.M_L0, p.M_L0 + 4.0, p.M_L0 - 4.0], -1)
+    if load_kernel() is not None:
+        a = replay_speed(p, DRIVE, start, level, 500)
+        b = replay_speed(p, DRIVE, start, level, 500, use_kernel=False)
+        assert torch.equal(a, b)
+    held = replay_speed(p, DRIVE, start[:, :1], level[:, :1], 400, dtype=torch.float64)
+    # held by M_hold = M_L0: within one count (the motor angle starts on a count's edge, where a
+    # rounding-size motion of 1e-18 rad reads as one count)
+    assert float(held.abs().max()) <= DRIVE.q_w * (1 + 1e-9)
