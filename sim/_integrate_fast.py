@@ -169,6 +169,8 @@ class _Work:
         # the motor's friction (SPEC 1.1), where any system has Coulomb friction on it (M_FCM > 0: it may
         # stick and stop; without, the motor never sticks)
         self.motor_coulomb = bool((p.M_FCM > 0).any())
+        # none at all (SPEC 1's motor): its terms are skipped (they would subtract +-0: the same values)
+        self.motor_friction = self.motor_coulomb or bool((p.mu_FM != 0).any())
         self.hasM = p.M_FCM > 0
         self.netM, self.sgnM, self.fricM = (torch.empty(n, dtype=p.dtype) for _ in range(3))
         self.restM, self.stuckM, self.stopM = (torch.empty(n, dtype=torch.bool) for _ in range(3))
@@ -200,7 +202,9 @@ def _slopes(wM, wL, MM, Mref, fric, net, p: FastParams, w: _Work, out: torch.Ten
     """The slopes ``dw_M, dw_L, ddphi, dM_M`` into ``out`` (``4 x n``) from ``w.MS``, ``net`` and
     the numerators in ``w.N`` (the motor's friction ``w.fricM``, from the substep's mode)."""
     a, b, _, d = w.Nr
-    torch.sub(MM, w.MS, out=a).sub_(w.fricM).sub_(torch.mul(p.mu_FM, wM, out=w.t1))
+    torch.sub(MM, w.MS, out=a)
+    if w.motor_friction:
+        a.sub_(w.fricM).sub_(torch.mul(p.mu_FM, wM, out=w.t1))
     torch.sub(net, fric, out=b).sub_(torch.mul(p.mu_F, wL, out=w.t1))
     torch.sub(Mref, MM, out=d)
     torch.mul(w.N, w.coef, out=out)
@@ -233,13 +237,13 @@ def advance_eager(x: FastState, p: FastParams) -> None:
             sgn = torch.where(rest, net, wL, out=w.sgn).sign_()
             fric = torch.mul(p.M_FC, sgn, out=w.fric)
             torch.where(stuck, zero, p.iJL, out=iJL_free)
-            # the motor's mode: its net torque M_M - M_S, stuck only with Coulomb friction (M_FCM > 0)
-            netM = torch.sub(MM, w.MS, out=w.netM)
-            restM = torch.eq(wM, zero, out=w.restM)
-            stuckM = torch.le(torch.abs(netM, out=w.t2), p.M_FCM, out=w.stuckM).logical_and_(restM).logical_and_(w.hasM)
-            sgnM = torch.where(restM, netM, wM, out=w.sgnM).sign_()
-            torch.mul(p.M_FCM, sgnM, out=w.fricM)
-            torch.where(stuckM, zero, p.iJM, out=iJM_free)
+            if w.motor_friction:  # the motor's mode: net torque M_M - M_S, stuck only where M_FCM > 0
+                netM = torch.sub(MM, w.MS, out=w.netM)
+                restM = torch.eq(wM, zero, out=w.restM)
+                stuckM = torch.le(torch.abs(netM, out=w.t2), p.M_FCM, out=w.stuckM).logical_and_(restM).logical_and_(w.hasM)
+                sgnM = torch.where(restM, netM, wM, out=w.sgnM).sign_()
+                torch.mul(p.M_FCM, sgnM, out=w.fricM)
+                torch.where(stuckM, zero, p.iJM, out=iJM_free)
             _slopes(wM, wL, MM, Mref, fric, net, p, w, w.Sum4)
             w.Sum_w.copy_(wM)
             # stages 2, 3, 4 from X + h K1, X + h K2, X + dt K3; sums ((K1 + 2 K2) + 2 K3) + K4
@@ -261,7 +265,7 @@ def advance_eager(x: FastState, p: FastParams) -> None:
             gone = torch.lt(torch.abs(Tr[3], out=w.t2), w.floor, out=w.gone)
             torch.where(gone, zero, torque_pair, out=torque_pair)
             if w.motor_coulomb:  # a motor that changed sign against its friction stops (only with M_FCM > 0)
-                stopM = torch.lt(torch.mul(Tr[0], sgnM, out=w.t2), zero, out=w.stopM).logical_or_(stuckM)
+                stopM = torch.lt(torch.mul(Tr[0], w.sgnM, out=w.t2), zero, out=w.stopM).logical_or_(w.stuckM)
                 torch.where(stopM.logical_and_(w.hasM), zero, motor_pair, out=motor_pair)
     X, C = w.views[p.S % 2][:2]
     x.comp = C.clone()
