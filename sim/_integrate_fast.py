@@ -16,8 +16,8 @@ After the RK4 update a load speed that changed sign against the friction directi
 has Coulomb friction (``M_FCM > 0``; without it the motor never sticks, as in SPEC 1): *stuck*
 when ``w_M == 0`` and ``|M_M - M_S| <= M_FCM``, friction ``M_FCM sign(w_M)`` (or
 ``sign(M_M - M_S)`` from rest) and ``mu_FM w_M``, the same stop rule. A motor torque ``|M_M|``
-below :data:`TORQUE_FLOOR` is 0. The motor angle is integrated per sample in float32/float64 and accumulated in float64, so
-the encoder count is exact.
+below :data:`TORQUE_FLOOR` is 0. The motor angle is integrated per sample in float32/float64 and
+accumulated in float64, so the encoder count is exact.
 """
 
 from __future__ import annotations
@@ -240,7 +240,8 @@ def advance_eager(x: FastState, p: FastParams) -> None:
             if w.motor_friction:  # the motor's mode: net torque M_M - M_S, stuck only where M_FCM > 0
                 netM = torch.sub(MM, w.MS, out=w.netM)
                 restM = torch.eq(wM, zero, out=w.restM)
-                stuckM = torch.le(torch.abs(netM, out=w.t2), p.M_FCM, out=w.stuckM).logical_and_(restM).logical_and_(w.hasM)
+                stuckM = torch.le(torch.abs(netM, out=w.t2), p.M_FCM, out=w.stuckM)
+                stuckM.logical_and_(restM).logical_and_(w.hasM)
                 sgnM = torch.where(restM, netM, wM, out=w.sgnM).sign_()
                 torch.mul(p.M_FCM, sgnM, out=w.fricM)
                 torch.where(stuckM, zero, p.iJM, out=iJM_free)

@@ -339,7 +339,8 @@ class TwoMassParams:
         """From one dict (a single system) or a list of dicts (batch ``(n,)``).
 
         Each dict holds the seven parameters (``backlash``, ``M_FC``, ``mu_F``, ``d`` default to 0;
-        optionally ``M_L0``, ``M_FCM``, ``mu_FM``, default 0) or the physical set ``J_M, J_L, C_F`` (+ optional ``D_F``), not both (``ValueError``)."""
+        optionally ``M_L0``, ``M_FCM``, ``mu_FM``, default 0) or the physical set ``J_M, J_L, C_F``
+        (+ optional ``D_F``), not both (``ValueError``)."""
         single = isinstance(items, Mapping)
         rows = [items] if single else list(items)
         if not rows:

@@ -108,8 +108,8 @@ def simulate(params: TwoMassParams, drive: DriveConfig, controller: Controller, 
     samples' torque is the holding torque until the controller's reference applies).
 
     ``load_torque``: external load torque on the load side [Nm], ``*batch`` or scalar (constant),
-    on top of ``params.M_L0`` (not held). ``method="reference"`` integrates with torchdiffeq in float64 (slow). ``seed``
-    (an int) seeds the current noise (see :func:`simulate_test`).
+    on top of ``params.M_L0`` (not held). ``method="reference"`` integrates with torchdiffeq in
+    float64 (slow). ``seed`` (an int) seeds the current noise (see :func:`simulate_test`).
     ``use_kernel=False`` forces the torch eager twin of the fused kernel."""
     if method == "reference":
         dtype = torch.float64

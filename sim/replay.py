@@ -35,8 +35,8 @@ def replay_speed(params: TwoMassParams, drive: DriveConfig, start: torch.Tensor,
     model's noise-free speed). The plant starts at rest held by ``params.M_hold`` (SPEC 1.1; the
     levels are the whole references: a held axis's include the holding torque). ``state``: the
     plant state at sample 0 instead of rest, ``n`` tensors ``w_M``, ``w_L``, ``dphi`` [rad/s, rad/s,
-    rad] and ``M_M`` [Nm] (the motor angle starts at 0; with ``quantize=False`` sample 0 reads ``w_M``). Levels are clamped to
-    ``+-drive.M_max``. ``substeps`` defaults to :func:`default_substeps`."""
+    rad] and ``M_M`` [Nm] (the motor angle starts at 0; with ``quantize=False`` sample 0 reads
+    ``w_M``). Levels are clamped to ``+-drive.M_max``. ``substeps`` defaults to :func:`default_substeps`."""
     flat = params if params.J_sigma.dim() == 1 else params.reshape(-1)
     n = flat.J_sigma.numel()
     if start.ndim != 2 or level.shape != start.shape or start.shape[0] != n:

@@ -12,8 +12,8 @@ import pytest
 import torch
 
 from _helpers import Profile
-from sim import (ALL_PARAM_NAMES, PARAM_NAMES, DriveConfig, RealAxisRanges, TestSignalConfig, TwoMassParams, iter_records,
-                 sample_envelope, sample_population, simulate, simulate_test)
+from sim import (ALL_PARAM_NAMES, PARAM_NAMES, DriveConfig, RealAxisRanges, TestSignalConfig, TwoMassParams,
+                 iter_records, sample_envelope, sample_population, simulate, simulate_test)
 from sim._drive import DriveLimits, Scenario, SimulatedDrive
 from sim._integrate_fast import FastState
 from sim._kernel import load_kernel
