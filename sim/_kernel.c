@@ -20,10 +20,15 @@
    exponentially and would pass through subnormal numbers (float32 from 69 T_Ei on), each operation
    on which costs a microcode assist: the kernel ran 2.4x slower over a whole test. */
 #define TORQUE_FLOOR 1e-30
+/* The substep's phases take `motor` (0 or 1, a constant at each call: advance_block compiles them
+   twice): 1 with SPEC 1.1's motor friction, 0 without (SPEC 1's motor, its arithmetic as before:
+   the blocks of plants without motor friction run as fast as before it was added). */
+#define PHASE static inline __attribute__((always_inline))
 
 typedef struct {
     REAL iJM[BLK], iJL[BLK], CF[BLK], DF[BLK], s[BLK], ns[BLK], MFC[BLK], muF[BLK], Mext[BLK];
     REAL MFCM[BLK], muFM[BLK], hasM[BLK];  /* motor friction (SPEC 1.1); hasM: 1 where MFCM > 0 (it may stick) */
+    int anyM;  /* some lane has motor friction (MFCM or muFM not 0) */
     REAL wM[BLK], wL[BLK], dp[BLK], MM[BLK], Mref[BLK];
     REAL cwM[BLK], cwL[BLK], cdp[BLK], cMM[BLK];  /* Kahan compensations */
     double phi[BLK], cntp[BLK];
@@ -48,9 +53,9 @@ static inline REAL shaft(const block_t *B, int l, REAL dp, REAL dw) {
    A stuck load's dw_L is a product with 0 (+-0, as in the torch twin; its speed is reset to +0 at the
    end of the substep, so the states are those of a select, with no compare and select per stage);
    a stuck motor's dw_M likewise. */
-static inline void rhs(const block_t *B, int l, REAL wM, REAL wL, REAL MM, REAL MS, REAL net, REAL iTE, REAL *a,
-                       REAL *b, REAL *d) {
-    *a = (MM - MS - B->fricM[l] - B->muFM[l] * wM) * B->iJMf[l];
+PHASE void rhs(const block_t *B, int l, REAL wM, REAL wL, REAL MM, REAL MS, REAL net, REAL iTE, REAL *a,
+               REAL *b, REAL *d, const int motor) {
+    *a = motor ? (MM - MS - B->fricM[l] - B->muFM[l] * wM) * B->iJMf[l] : (MM - MS) * B->iJM[l];
     *b = (net - B->fric[l] - B->muF[l] * wL) * B->iJLf[l];
     *d = (B->Mref[l] - MM) * iTE;
 }
@@ -59,7 +64,7 @@ static inline void rhs(const block_t *B, int l, REAL wM, REAL wL, REAL MM, REAL 
    sign) and stage 1, whose shaft torque is the mode's; stage 2 or 3 (f = h, then dt: the next
    stage's state); stage 4 and the Kahan-compensated update (a load that changed sign against its
    friction stops; a motor torque below TORQUE_FLOOR is 0). Stage sums as ((k1 + 2 k2) + 2 k3) + k4. */
-static inline void stage1(block_t *B, int l, REAL h, REAL iTE) {
+PHASE void stage1(block_t *B, int l, REAL h, REAL iTE, const int motor) {
     REAL wM = B->wM[l], wL = B->wL[l], dp = B->dp[l], MM = B->MM[l];
     REAL dw = wM - wL;
     REAL MS = shaft(B, l, dp, dw);
@@ -72,50 +77,56 @@ static inline void stage1(block_t *B, int l, REAL h, REAL iTE) {
     REAL sgn = rest ? sn : sw;
     B->stuck[l] = (REAL)stuck; B->sgn[l] = sgn; B->fric[l] = B->MFC[l] * sgn;
     B->iJLf[l] = stuck ? (REAL)0 : B->iJL[l];
-    /* the motor's mode: net torque M_M - M_S; stuck only with Coulomb friction (hasM) */
-    REAL netM = MM - MS;
-    int restM = wM == (REAL)0;
-    REAL anetM = netM < 0 ? -netM : netM;
-    int stuckM = restM && (anetM <= B->MFCM[l]) && (B->hasM[l] != (REAL)0);
-    REAL snM = (REAL)((netM > 0) - (netM < 0));
-    REAL swM = (REAL)((wM > 0) - (wM < 0));
-    REAL sgnM = restM ? snM : swM;
-    B->stuckM[l] = (REAL)stuckM; B->sgnM[l] = sgnM; B->fricM[l] = B->MFCM[l] * sgnM;
-    B->iJMf[l] = stuckM ? (REAL)0 : B->iJM[l];
+    if (motor) {  /* the motor's mode: net torque M_M - M_S; stuck only with Coulomb friction (hasM) */
+        REAL netM = MM - MS;
+        int restM = wM == (REAL)0;
+        REAL anetM = netM < 0 ? -netM : netM;
+        int stuckM = restM && (anetM <= B->MFCM[l]) && (B->hasM[l] != (REAL)0);
+        REAL snM = (REAL)((netM > 0) - (netM < 0));
+        REAL swM = (REAL)((wM > 0) - (wM < 0));
+        REAL sgnM = restM ? snM : swM;
+        B->stuckM[l] = (REAL)stuckM; B->sgnM[l] = sgnM; B->fricM[l] = B->MFCM[l] * sgnM;
+        B->iJMf[l] = stuckM ? (REAL)0 : B->iJM[l];
+    }
     REAL a, b, d;
-    rhs(B, l, wM, wL, MM, MS, net, iTE, &a, &b, &d);
+    rhs(B, l, wM, wL, MM, MS, net, iTE, &a, &b, &d, motor);
     B->sa[l] = a; B->sb[l] = b; B->sc[l] = dw; B->sd[l] = d; B->sw[l] = wM;
     B->xwM[l] = wM + h * a; B->xwL[l] = wL + h * b; B->xdp[l] = dp + h * dw; B->xMM[l] = MM + h * d;
 }
 
 /* The slopes at the stage's state xw*: its w_M, dw (= ddphi), dw_M, dw_L, dM_M. */
-static inline void stage_slopes(const block_t *B, int l, REAL iTE, REAL *wM, REAL *dw, REAL *a, REAL *b, REAL *d) {
+PHASE void stage_slopes(const block_t *B, int l, REAL iTE, REAL *wM, REAL *dw, REAL *a, REAL *b, REAL *d,
+                        const int motor) {
     REAL wL = B->xwL[l];
     *wM = B->xwM[l];
     *dw = *wM - wL;
     REAL MS = shaft(B, l, B->xdp[l], *dw);
-    rhs(B, l, *wM, wL, B->xMM[l], MS, MS - B->Mext[l], iTE, a, b, d);
+    rhs(B, l, *wM, wL, B->xMM[l], MS, MS - B->Mext[l], iTE, a, b, d, motor);
 }
 
-static inline void stage23(block_t *B, int l, REAL f, REAL iTE) {
+PHASE void stage23(block_t *B, int l, REAL f, REAL iTE, const int motor) {
     REAL wM, dw, a, b, d;
-    stage_slopes(B, l, iTE, &wM, &dw, &a, &b, &d);
+    stage_slopes(B, l, iTE, &wM, &dw, &a, &b, &d, motor);
     B->sa[l] = B->sa[l] + (REAL)2 * a; B->sb[l] = B->sb[l] + (REAL)2 * b; B->sc[l] = B->sc[l] + (REAL)2 * dw;
     B->sd[l] = B->sd[l] + (REAL)2 * d; B->sw[l] = B->sw[l] + (REAL)2 * wM;
     B->xwM[l] = B->wM[l] + f * a; B->xwL[l] = B->wL[l] + f * b; B->xdp[l] = B->dp[l] + f * dw;
     B->xMM[l] = B->MM[l] + f * d;
 }
 
-static inline void stage4(block_t *B, int l, REAL k6, REAL iTE) {
+PHASE void stage4(block_t *B, int l, REAL k6, REAL iTE, const int motor) {
     REAL wM, dw, a, b, d;
-    stage_slopes(B, l, iTE, &wM, &dw, &a, &b, &d);
+    stage_slopes(B, l, iTE, &wM, &dw, &a, &b, &d, motor);
     B->inc[l] = B->inc[l] + k6 * (B->sw[l] + wM);
     REAL y, t, x;
     x = B->wM[l]; y = k6 * (B->sa[l] + a) - B->cwM[l];
     t = x + y;
-    int clampM = (B->hasM[l] != (REAL)0) & ((B->stuckM[l] != (REAL)0) | (t * B->sgnM[l] < (REAL)0));
-    B->cwM[l] = clampM ? (REAL)0 : (t - x) - y;
-    B->wM[l] = clampM ? (REAL)0 : t;
+    if (motor) {  /* a motor with Coulomb friction that changed sign against it stops, as the load */
+        int clampM = (B->hasM[l] != (REAL)0) & ((B->stuckM[l] != (REAL)0) | (t * B->sgnM[l] < (REAL)0));
+        B->cwM[l] = clampM ? (REAL)0 : (t - x) - y;
+        B->wM[l] = clampM ? (REAL)0 : t;
+    } else {
+        B->cwM[l] = (t - x) - y; B->wM[l] = t;
+    }
     x = B->wL[l]; y = k6 * (B->sb[l] + b) - B->cwL[l];
     t = x + y;
     int clamp = (B->stuck[l] != (REAL)0) | (t * B->sgn[l] < (REAL)0);
@@ -129,20 +140,28 @@ static inline void stage4(block_t *B, int l, REAL k6, REAL iTE) {
     B->cMM[l] = gone ? (REAL)0 : (t - x) - y; B->MM[l] = gone ? (REAL)0 : t;
 }
 
-/* S substeps of RK4 for all lanes of a block; the motor-angle increment goes to phi. */
-static inline void advance_block(block_t *B, int S, REAL dt, REAL h, REAL k6, REAL iTE) {
+/* S substeps of RK4 for all lanes of a block (with or without the motor's friction); the
+   motor-angle increment goes to phi. */
+PHASE void advance_substeps(block_t *B, int S, REAL dt, REAL h, REAL k6, REAL iTE, const int motor) {
     for (int l = 0; l < BLK; ++l) B->inc[l] = 0;
     for (int j = 0; j < S; ++j) {
 #pragma GCC ivdep
-        for (int l = 0; l < BLK; ++l) stage1(B, l, h, iTE);
+        for (int l = 0; l < BLK; ++l) stage1(B, l, h, iTE, motor);
 #pragma GCC ivdep
-        for (int l = 0; l < BLK; ++l) stage23(B, l, h, iTE);
+        for (int l = 0; l < BLK; ++l) stage23(B, l, h, iTE, motor);
 #pragma GCC ivdep
-        for (int l = 0; l < BLK; ++l) stage23(B, l, dt, iTE);
+        for (int l = 0; l < BLK; ++l) stage23(B, l, dt, iTE, motor);
 #pragma GCC ivdep
-        for (int l = 0; l < BLK; ++l) stage4(B, l, k6, iTE);
+        for (int l = 0; l < BLK; ++l) stage4(B, l, k6, iTE, motor);
     }
     for (int l = 0; l < BLK; ++l) B->phi[l] = B->phi[l] + (double)B->inc[l];
+}
+
+static void advance_block(block_t *B, int S, REAL dt, REAL h, REAL k6, REAL iTE) {
+    if (B->anyM)
+        advance_substeps(B, S, dt, h, k6, iTE, 1);
+    else
+        advance_substeps(B, S, dt, h, k6, iTE, 0);
 }
 
 static inline int load_block(block_t *B, int64_t i0, int64_t n,
@@ -151,11 +170,13 @@ static inline int load_block(block_t *B, int64_t i0, int64_t n,
                              const REAL *wM, const REAL *wL, const REAL *dp, const REAL *MM, const REAL *Mref,
                              const double *phi, const double *cntp, const REAL *comp) {
     int m = (int)((n - i0) < BLK ? (n - i0) : BLK);
+    B->anyM = 0;
     for (int l = 0; l < BLK; ++l) {
         int64_t i = i0 + (l < m ? l : 0);  /* pad lanes repeat lane 0 */
         B->iJM[l] = iJM[i]; B->iJL[l] = iJL[i]; B->CF[l] = CF[i]; B->DF[l] = DF[i]; B->s[l] = s[i]; B->ns[l] = -s[i];
         B->MFC[l] = MFC[i]; B->muF[l] = muF[i]; B->Mext[l] = Mext[i];
         B->MFCM[l] = MFCM[i]; B->muFM[l] = muFM[i]; B->hasM[l] = (REAL)(MFCM[i] > (REAL)0);
+        B->anyM |= (MFCM[i] != (REAL)0) | (muFM[i] != (REAL)0);
         B->wM[l] = wM[i]; B->wL[l] = wL[i]; B->dp[l] = dp[i]; B->MM[l] = MM[i]; B->Mref[l] = Mref[i];
         B->phi[l] = phi[i]; B->cntp[l] = cntp[i];
         B->cwM[l] = comp[i]; B->cwL[l] = comp[n + i]; B->cdp[l] = comp[2 * n + i]; B->cMM[l] = comp[3 * n + i];

@@ -25,13 +25,18 @@ _PLANT = ("n: int64", "S: int", "dt: REAL", "h: REAL", "k6: REAL", "iTE: REAL", 
 #: The measurement constants: speed quantum and counts per radian.
 _ENCODER = ("qw: double", "scale: double")
 
-#: add/sub/mul per system-substep in ``_kernel.c`` as written: 28 for the mode and stage 1 (shaft
-#: torque, net torques of load and motor, frictions, slopes, stage-2 state), 35 each for stages 2
-#: and 3 (shaft torque, slopes, RK4 sums, next stage's state), 46 for stage 4 and the update (shaft
-#: torque, slopes, angle increment, four Kahan updates, the stop tests' products). Compares,
-#: min/max, selects and negations are not counted, nor the per-sample encoder and controller. (129
-#: before SPEC 1.1's motor friction: 5 more per stage-1, 3 per later stage, 1 in the update.)
-FLOPS_PER_SUBSTEP = 144
+#: add/sub/mul per system-substep in ``_kernel.c`` as written, for a block of plants without motor
+#: friction (SPEC 1's model, the default population; as compiled: the vectorized loops hold 129
+#: add/sub/mul instructions per vector of lanes): 23 for the mode and stage 1 (shaft torque, net
+#: torque, friction, slopes, stage-2 state), 32 each for stages 2 and 3 (shaft torque, slopes, RK4
+#: sums, next stage's state), 42 for stage 4 and the update (shaft torque, slopes, angle increment,
+#: four Kahan updates, the stop test's product). Compares, min/max, selects and negations are not
+#: counted, nor the per-sample encoder and controller.
+FLOPS_PER_SUBSTEP = 129
+#: The same for a block with SPEC 1.1's motor friction (the kernel's second compiled variant of the
+#: substep): 15 more (the motor's net torque and Coulomb term in stage 1, ``- fric_M - mu_FM w_M`` in
+#: each stage's slope, its stop test's product).
+FLOPS_PER_SUBSTEP_MOTOR = 144
 
 #: Build facts as plain literals (``setup.py`` reads them without importing torch). ``-ffp-contract=off``
 #: keeps the arithmetic of the torch twin (no fused multiply-add), on every CPU and variant.

@@ -19,9 +19,9 @@ from sim._integrate_fast import TORQUE_FLOOR
 #: add/sub/mul per system-substep here, counted as written: 7 (shaft torque, friction) + 4 x 15
 #: (the RK4 stages' right-hand sides) + 24 (stage states) + 7 (motor-angle increment) + 41 (four
 #: Kahan updates, the stop test's product). Compares, min/max, selects and signs are not counted.
-#: The kernel does this arithmetic in 129 (stage 1 shares the mode decision's shaft torque, net torque
-#: and ``w_M - w_L``, and ``ddphi`` is ``w_M - w_L``), and SPEC 1.1's motor friction in 15 more
-#: (``sim._kernel.FLOPS_PER_SUBSTEP``, 144), which this baseline leaves out (the default population has none).
+#: The kernel does the same arithmetic in 129 (``sim._kernel.FLOPS_PER_SUBSTEP``): stage 1 shares
+#: the mode decision's shaft torque, net torque and ``w_M - w_L``, and ``ddphi`` is ``w_M - w_L``.
+#: (SPEC 1.1's motor friction, which the kernel runs in blocks of their own, is not modelled here.)
 FLOPS_PER_SUBSTEP = 139
 
 

@@ -20,7 +20,7 @@ def test_bench_sim_figures_name_the_count_and_every_line(tmp_path: Path, capsys:
     assert "kernel library: " in text
     assert f"GFLOP/s counts {FLOPS_PER_SUBSTEP} add/sub/mul per system-substep" in text
     figures = json.loads(out.read_text())
-    assert figures["flops_per_substep"] == FLOPS_PER_SUBSTEP == 144
+    assert figures["flops_per_substep"] == FLOPS_PER_SUBSTEP == 129
     lines = [(r["implementation"], r["threads"]) for r in figures["runs"]]
     assert lines[:3] == [("numpy RK4, vectorized over systems", 1),
                          ("torch eager twin (the fallback without a C compiler)", 1), ("fused C kernel", 1)]
