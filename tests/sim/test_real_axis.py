@@ -261,3 +261,25 @@ def test_replay_starts_held_and_its_kernel_equals_the_twin_with_the_new_terms():
     # held by M_hold = M_L0: within one count (the motor angle starts on a count's edge, where a
     # rounding-size motion of 1e-18 rad reads as one count)
     assert float(held.abs().max()) <= DRIVE.q_w * (1 + 1e-9)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_kernel_blocks_with_and_without_motor_friction_equal_the_twin(dtype):
+    """The kernel runs a block of 32 systems with the motor's friction only where one of them has it;
+    the twin decides for the whole batch: the same numbers either way."""
+    if load_kernel() is None:
+        pytest.skip("no C kernel")
+    p = sample_population(40, 9)
+    mu_FM = torch.zeros(40, dtype=torch.float64)
+    mu_FM[36:] = 0.002
+    M_FCM = torch.zeros(40, dtype=torch.float64)
+    M_FCM[38:] = 0.2
+    q = TwoMassParams(**{**{n: getattr(p, n) for n in PARAM_NAMES}, "mu_FM": mu_FM, "M_FCM": M_FCM})
+    ctl = Profile([5.0, -5.0, 0.0], 60)
+    a = simulate(q, DRIVE, ctl, 240, dtype=dtype, return_states=True)
+    b = simulate(q, DRIVE, ctl, 240, dtype=dtype, return_states=True, use_kernel=False)
+    for k in ("w_M", "w_L", "dphi", "M_M", "phi_M"):
+        assert torch.equal(a.states[k], b.states[k]), k
+    plain = simulate(p, DRIVE, ctl, 240, dtype=dtype, return_states=True)
+    assert torch.equal(plain.states["w_M"][:32], a.states["w_M"][:32])  # the first block: SPEC 1's numbers
+    assert not torch.equal(plain.states["w_M"][36:], a.states["w_M"][36:])
