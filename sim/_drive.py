@@ -12,7 +12,12 @@ record (SPEC 3), as vendor auto-tuners do with their signal generator and scope:
 
 A drive stops an experiment (torque reference 0) as soon as the measured speed or the measured
 travel (encoder angle from the start) passes a limit of :class:`DriveLimits`, and flags the
-record (``meta["aborted"] = True``). A simulated drive may offer ``truth()`` (the true parameters)
+record (``meta["aborted"] = True``). A real axis with a constant load torque (SPEC 1.1) is held:
+:class:`SimulatedDrive` starts every experiment at rest held by ``M_hold`` (``M_L0``), runs the
+test's levels around it, adds it to the law's torque reference in closed loop (the drive's
+holding-torque feedforward: as if the law's integrator started at ``M_hold``) and, at a stop,
+holds the axis with it instead of reference 0; its records say ``M_hold``. A simulated drive may
+offer ``truth()`` (the true parameters)
 for evaluation; the commissioning chain never decides on it.
 """
 
@@ -120,10 +125,12 @@ def limit_violation(speed: np.ndarray, T_s: float, limits: DriveLimits) -> int |
 
 class _Stopping:
     """A sim controller that stops at the limits: the inner law's reference until the measured
-    speed or travel passes a limit, then 0 for ``n_after`` samples and the run ends."""
+    speed or travel passes a limit, then the holding torque ``M_hold`` [Nm] (0 on an axis without
+    load torque) for ``n_after`` samples and the run ends."""
 
-    def __init__(self, inner: Any, limits: DriveLimits, config: DriveConfig, n_total: int, n_after: int) -> None:
-        self.inner, self.limits, self.config = inner, limits, config
+    def __init__(self, inner: Any, limits: DriveLimits, config: DriveConfig, n_total: int, n_after: int,
+                 M_hold: float = 0.0) -> None:
+        self.inner, self.limits, self.config, self.M_hold = inner, limits, config, M_hold
         self.n_total, self.n_after = n_total, n_after
         self.abort_at: int | None = None
         self.phi = 0.0
@@ -157,17 +164,18 @@ class _Stopping:
         self.length = torch.tensor(k + 1)
         M = self.inner.step(k, w_meas)
         if self.abort_at is not None:
-            return torch.zeros_like(torch.as_tensor(M, dtype=torch.float64))
+            return torch.full_like(torch.as_tensor(M, dtype=torch.float64), self.M_hold)
         cap = self.limits.torque_cap(self.config)
         return torch.as_tensor(M, dtype=torch.float64).clamp(-cap, cap)
 
 
 class _LawController:
     """A SPEC 8.1 law over a scenario as a sim controller (one system): ``M_ref[k] =
-    law.step(w_meas[k], w_ref[k]) + M_dist[k]``."""
+    law.step(w_meas[k], w_ref[k]) + M_dist[k] + M_hold`` (``M_hold`` [Nm]: the drive's holding torque,
+    SPEC 1.1; 0 on an axis without load torque)."""
 
-    def __init__(self, law: SpeedLaw, scenario: Scenario) -> None:
-        self.law, self.sc = law, scenario
+    def __init__(self, law: SpeedLaw, scenario: Scenario, M_hold: float = 0.0) -> None:
+        self.law, self.sc, self.M_hold = law, scenario, M_hold
 
     def reset(self, batch_shape: Any) -> None:
         self.law.reset()
@@ -178,7 +186,7 @@ class _LawController:
     def step(self, k: int, w_meas: torch.Tensor) -> torch.Tensor:
         i = min(k, len(self.sc) - 1)
         M = float(self.law.step(float(w_meas.reshape(-1)[0]), float(self.sc.w_ref[i]))) + float(self.sc.M_dist[i])
-        return torch.tensor(M, dtype=torch.float64)
+        return torch.tensor(M + self.M_hold if self.M_hold else M, dtype=torch.float64)
 
 
 class SimulatedDrive:
@@ -189,6 +197,7 @@ class SimulatedDrive:
     run repeated sample by sample with the stop at the limit (same noise seed: the same run up to
     the stop). ``run_closed_loop`` runs ``sim.simulate`` with the law sample by sample. ``truth()``
     gives the true parameters (evaluation only). ``tail`` [s]: samples recorded after a stop.
+    A plant with ``M_L0`` (SPEC 1.1) is held by ``M_hold = M_L0`` (see the module's docstring).
     """
 
     def __init__(self, params: TwoMassParams | dict[str, float], config: DriveConfig | None = None, *,
@@ -200,9 +209,11 @@ class SimulatedDrive:
         self.config = config or DriveConfig()
         self.seed, self.timeout, self.tail = int(seed), float(timeout), float(tail)
         self.experiments = 0
+        self.M_hold = float(self.params.M_hold[0])  # [Nm] the holding torque (SPEC 1.1; 0 without M_L0)
 
     def truth(self) -> dict[str, float]:
-        """The true parameters (``sim.PARAM_NAMES``): for evaluation, never for a decision."""
+        """The true parameters (``sim.PARAM_NAMES``, and ``sim.REAL_AXIS_NAMES`` where the plant has
+        any): for evaluation, never for a decision."""
         return self.params.to_dicts()[0]
 
     def _meta(self, rec: Record, aborted: bool) -> Record:
@@ -222,20 +233,25 @@ class SimulatedDrive:
         stop = limit_violation(rec.speed, self.config.T_s, limits)
         if stop is None:
             return self._meta(rec, False)
-        ctl = _Stopping(SwitchingController(signal, self.config, torch.float64), limits, self.config,
-                        signal.max_samples(self.config), signal.n_tail(self.config))
+        hold = resp.M_hold
+        ctl = _Stopping(SwitchingController(signal, self.config, torch.float64, M_hold=hold), limits, self.config,
+                        signal.max_samples(self.config), signal.n_tail(self.config), M_hold=self.M_hold)
         resp = simulate(self.params, self.config, ctl, signal.max_samples(self.config), dtype=torch.float64, seed=seed)
+        resp.M_hold = hold
         return self._meta(responses_to_records(resp, self.params, self.config, signal, names=["test"])[0], True)
 
     def run_closed_loop(self, law: SpeedLaw, scenario: Scenario, limits: DriveLimits) -> Record:
         self.experiments += 1
         n = len(scenario)
-        ctl = _Stopping(_LawController(law, scenario), limits, self.config, n, max(1, round(self.tail / self.config.T_s)))
+        ctl = _Stopping(_LawController(law, scenario, self.M_hold), limits, self.config, n,
+                        max(1, round(self.tail / self.config.T_s)), M_hold=self.M_hold)
         resp = simulate(self.params, self.config, ctl, n, dtype=torch.float64, seed=self.seed + self.experiments)
         m = int(resp.length.reshape(-1)[0])
         c = self.config
         meta = {"K_M": c.K_M, "T_Ei": c.T_Ei, "T_s": c.T_s, "encoder_counts": c.encoder_counts, "M_max": c.M_max,
                 "M_N": c.M_N, "current_noise_std": c.current_noise_std}
+        if self.M_hold != 0.0:
+            meta["M_hold"] = self.M_hold
         rec = Record(t=resp.t[:m].numpy().copy(), speed=resp.speed.reshape(-1)[:m].numpy().copy(),
                      current=resp.current.reshape(-1)[:m].numpy().copy(),
                      torque_ref=resp.torque_ref.reshape(-1)[:m].numpy().copy(), meta=meta, name="closed_loop")

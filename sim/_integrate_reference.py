@@ -6,10 +6,15 @@ Per system and per sample interval the ODE is integrated with ``dopri5`` (``rtol
 * sample instants (the torque reference steps there: every interval is its own solve);
 * contact / separation of the backlash (``|dphi| = s``; the damping term switches);
 * stick -> slip (``|M_S - M_ext|`` reaches ``M_FC``) and slip -> stick (``w_L`` reaches 0;
-  the load is then set to rest and stick or slip is decided from the shaft torque).
+  the load is then set to rest and stick or slip is decided from the shaft torque); ``M_ext`` is
+  the constant load torque ``M_L0`` (SPEC 1.1), plus :func:`sim.simulate`'s external load torque;
+* the motor's likewise where it has Coulomb friction (SPEC 1.1, ``M_FCM > 0``): stick -> slip
+  (``|M_M - M_S|`` reaches ``M_FCM``), slip -> stick (``w_M`` reaches 0). Its viscous friction
+  ``mu_FM w_M`` is part of the right-hand side.
 
-The friction mode is a discrete state carried between segments, so stiction is exact up to the
-event-time tolerance. Slow (Python loop per system and segment): meant for tests and checks.
+The friction modes are discrete states carried between segments, so stiction is exact up to the
+event-time tolerance. Without motor friction the right-hand side is SPEC 1's, operation for operation.
+Slow (Python loop per system and segment): meant for tests and checks.
 """
 
 from __future__ import annotations
@@ -32,8 +37,9 @@ class ReferenceIntegrator:
         f = lambda t: t.reshape(-1).to(torch.float64).tolist()  # noqa: E731
         self.J_M, self.J_L, self.C_F, self.D_F = f(params.J_M), f(params.J_L), f(params.C_F), f(params.D_F)
         self.s, self.M_FC, self.mu_F = f(params.s), f(params.M_FC), f(params.mu_F)
-        n = len(self.J_M)
-        self.M_ext = [0.0] * n if M_ext is None else f(torch.as_tensor(M_ext, dtype=torch.float64).expand(params.batch_shape))
+        self.M_FCM, self.mu_FM = f(params.M_FCM), f(params.mu_FM)
+        ext = params.M_L0 if M_ext is None else params.M_L0 + torch.as_tensor(M_ext, dtype=torch.float64)
+        self.M_ext = f(ext.expand(params.batch_shape))
         self.T_s, self.T_Ei = drive.T_s, drive.T_Ei
         self.rtol, self.atol = rtol, atol
         self.segments = 0
@@ -47,7 +53,9 @@ class ReferenceIntegrator:
         """y = [w_M, w_L, dphi, M_M, phi_M] at the start of the interval -> at its end."""
         T, t = self.T_s, 0.0
         J_M, J_L, s, M_FC, mu_F, M_ext = self.J_M[i], self.J_L[i], self.s[i], self.M_FC[i], self.mu_F[i], self.M_ext[i]
-        forced_sgn = None
+        M_FCM, mu_FM = self.M_FCM[i], self.mu_FM[i]
+        motor_coulomb, motor_friction = M_FCM > 0, M_FCM > 0 or mu_FM != 0
+        forced_sgn = forced_sgnM = None
         while T - t > 1e-15:
             M_S0 = float(self._shaft(i, y[2], y[0] - y[1]))
             net0 = M_S0 - M_ext
@@ -61,11 +69,28 @@ class ReferenceIntegrator:
                 sgn = (1.0 if w_L0 > 0 else -1.0) if w_L0 != 0.0 else (1.0 if net0 > 0 else -1.0)
             forced_sgn = None
             fric = M_FC * sgn
+            stuckM, sgnM = False, 0.0  # the motor's mode (SPEC 1.1), where it has Coulomb friction
+            if motor_coulomb:
+                netM0, w_M0 = float(y[3]) - M_S0, float(y[0])
+                if forced_sgnM is not None:
+                    sgnM = forced_sgnM
+                elif w_M0 == 0.0 and abs(netM0) <= M_FCM:
+                    stuckM = True
+                else:
+                    sgnM = (1.0 if w_M0 > 0 else -1.0) if w_M0 != 0.0 else (1.0 if netM0 > 0 else -1.0)
+            forced_sgnM = None
+            fricM = M_FCM * sgnM
 
-            def rhs(_t, yy, stuck=stuck, fric=fric):
+            def rhs(_t, yy, stuck=stuck, fric=fric, stuckM=stuckM, fricM=fricM):
                 M_S = self._shaft(i, yy[2], yy[0] - yy[1])
                 dwL = torch.zeros_like(M_S) if stuck else (M_S - M_ext - fric - mu_F * yy[1]) / J_L
-                return torch.stack([(yy[3] - M_S) / J_M, dwL, yy[0] - yy[1], (M_ref - yy[3]) / self.T_Ei, yy[0]])
+                if stuckM:
+                    dwM = torch.zeros_like(M_S)
+                elif motor_friction:
+                    dwM = (yy[3] - M_S - fricM - mu_FM * yy[0]) / J_M
+                else:
+                    dwM = (yy[3] - M_S) / J_M
+                return torch.stack([dwM, dwL, yy[0] - yy[1], (M_ref - yy[3]) / self.T_Ei, yy[0]])
 
             def g_fric(yy, stuck=stuck, sgn=sgn):
                 if stuck:
@@ -73,12 +98,19 @@ class ReferenceIntegrator:
                     return M_FC + _EPS_M - net.abs()
                 return yy[1] * sgn + _EPS_W
 
+            def g_fricM(yy, stuckM=stuckM, sgnM=sgnM):
+                if stuckM:
+                    return M_FCM + _EPS_M - (yy[3] - self._shaft(i, yy[2], yy[0] - yy[1])).abs()
+                return yy[0] * sgnM + _EPS_W
+
             g_c0 = float(y[2].abs() - s) if s > 0 else 0.0
             sign_c = 1.0 if g_c0 > 0 else (-1.0 if g_c0 < 0 else 0.0)
             t_start = t
 
             def event_fn(tt, yy, sign_c=sign_c, t_start=t_start):
                 parts = [g_fric(yy), (T - t_start) - tt]
+                if motor_coulomb:
+                    parts.append(g_fricM(yy))
                 if sign_c != 0.0:
                     parts.append(sign_c * (yy[2].abs() - s))
                 return torch.min(torch.stack([torch.as_tensor(p, dtype=torch.float64) for p in parts]))
@@ -99,8 +131,17 @@ class ReferenceIntegrator:
                     forced_sgn = 1.0 if net > 0 else -1.0
             elif float(g_fric(y)) <= 0.0:  # the load stopped: rest; stick or slip decided next
                 y[1] = 0.0
+            if stuckM:
+                y[0] = 0.0
+                if float(g_fricM(y)) <= 0.0:  # the motor breaks away in the direction of its net torque
+                    netM = float(y[3]) - float(self._shaft(i, y[2], y[0] - y[1]))
+                    forced_sgnM = 1.0 if netM > 0 else -1.0
+            elif motor_coulomb and float(g_fricM(y)) <= 0.0:  # the motor stopped
+                y[0] = 0.0
         if stuck:
             y[1] = 0.0
+        if stuckM:
+            y[0] = 0.0
         return y
 
     def advance(self, x: FastState, M_ref_applied: torch.Tensor) -> None:

@@ -20,15 +20,22 @@
    exponentially and would pass through subnormal numbers (float32 from 69 T_Ei on), each operation
    on which costs a microcode assist: the kernel ran 2.4x slower over a whole test. */
 #define TORQUE_FLOOR 1e-30
+/* The substep's phases take `motor` (0 or 1, a constant at each call: advance_block compiles them
+   twice): 1 with SPEC 1.1's motor friction, 0 without (SPEC 1's motor, its arithmetic as before:
+   the blocks of plants without motor friction run as fast as before it was added). */
+#define PHASE static inline __attribute__((always_inline))
 
 typedef struct {
     REAL iJM[BLK], iJL[BLK], CF[BLK], DF[BLK], s[BLK], ns[BLK], MFC[BLK], muF[BLK], Mext[BLK];
+    REAL MFCM[BLK], muFM[BLK], hasM[BLK];  /* motor friction (SPEC 1.1); hasM: 1 where MFCM > 0 (it may stick) */
+    int anyM;  /* some lane has motor friction (MFCM or muFM not 0) */
     REAL wM[BLK], wL[BLK], dp[BLK], MM[BLK], Mref[BLK];
     REAL cwM[BLK], cwL[BLK], cdp[BLK], cMM[BLK];  /* Kahan compensations */
     double phi[BLK], cntp[BLK];
     /* within a substep: the mode (iJLf: 1/J_L, or 0 while stuck), the next stage's state, the stage
        sums, the angle increment */
     REAL stuck[BLK], sgn[BLK], fric[BLK], iJLf[BLK];
+    REAL stuckM[BLK], sgnM[BLK], fricM[BLK], iJMf[BLK];  /* the motor's mode, likewise */
     REAL xwM[BLK], xwL[BLK], xdp[BLK], xMM[BLK];
     REAL sa[BLK], sb[BLK], sc[BLK], sd[BLK], sw[BLK], inc[BLK];
 } block_t;
@@ -44,10 +51,11 @@ static inline REAL shaft(const block_t *B, int l, REAL dp, REAL dw) {
 
 /* The right-hand side's dw_M, dw_L, dM_M given the shaft torque MS and net = MS - Mext (ddphi is dw).
    A stuck load's dw_L is a product with 0 (+-0, as in the torch twin; its speed is reset to +0 at the
-   end of the substep, so the states are those of a select, with no compare and select per stage). */
-static inline void rhs(const block_t *B, int l, REAL wL, REAL MM, REAL MS, REAL net, REAL iTE, REAL *a, REAL *b,
-                       REAL *d) {
-    *a = (MM - MS) * B->iJM[l];
+   end of the substep, so the states are those of a select, with no compare and select per stage);
+   a stuck motor's dw_M likewise. */
+PHASE void rhs(const block_t *B, int l, REAL wM, REAL wL, REAL MM, REAL MS, REAL net, REAL iTE, REAL *a,
+               REAL *b, REAL *d, const int motor) {
+    *a = motor ? (MM - MS - B->fricM[l] - B->muFM[l] * wM) * B->iJMf[l] : (MM - MS) * B->iJM[l];
     *b = (net - B->fric[l] - B->muF[l] * wL) * B->iJLf[l];
     *d = (B->Mref[l] - MM) * iTE;
 }
@@ -56,7 +64,7 @@ static inline void rhs(const block_t *B, int l, REAL wL, REAL MM, REAL MS, REAL 
    sign) and stage 1, whose shaft torque is the mode's; stage 2 or 3 (f = h, then dt: the next
    stage's state); stage 4 and the Kahan-compensated update (a load that changed sign against its
    friction stops; a motor torque below TORQUE_FLOOR is 0). Stage sums as ((k1 + 2 k2) + 2 k3) + k4. */
-static inline void stage1(block_t *B, int l, REAL h, REAL iTE) {
+PHASE void stage1(block_t *B, int l, REAL h, REAL iTE, const int motor) {
     REAL wM = B->wM[l], wL = B->wL[l], dp = B->dp[l], MM = B->MM[l];
     REAL dw = wM - wL;
     REAL MS = shaft(B, l, dp, dw);
@@ -69,37 +77,56 @@ static inline void stage1(block_t *B, int l, REAL h, REAL iTE) {
     REAL sgn = rest ? sn : sw;
     B->stuck[l] = (REAL)stuck; B->sgn[l] = sgn; B->fric[l] = B->MFC[l] * sgn;
     B->iJLf[l] = stuck ? (REAL)0 : B->iJL[l];
+    if (motor) {  /* the motor's mode: net torque M_M - M_S; stuck only with Coulomb friction (hasM) */
+        REAL netM = MM - MS;
+        int restM = wM == (REAL)0;
+        REAL anetM = netM < 0 ? -netM : netM;
+        int stuckM = restM && (anetM <= B->MFCM[l]) && (B->hasM[l] != (REAL)0);
+        REAL snM = (REAL)((netM > 0) - (netM < 0));
+        REAL swM = (REAL)((wM > 0) - (wM < 0));
+        REAL sgnM = restM ? snM : swM;
+        B->stuckM[l] = (REAL)stuckM; B->sgnM[l] = sgnM; B->fricM[l] = B->MFCM[l] * sgnM;
+        B->iJMf[l] = stuckM ? (REAL)0 : B->iJM[l];
+    }
     REAL a, b, d;
-    rhs(B, l, wL, MM, MS, net, iTE, &a, &b, &d);
+    rhs(B, l, wM, wL, MM, MS, net, iTE, &a, &b, &d, motor);
     B->sa[l] = a; B->sb[l] = b; B->sc[l] = dw; B->sd[l] = d; B->sw[l] = wM;
     B->xwM[l] = wM + h * a; B->xwL[l] = wL + h * b; B->xdp[l] = dp + h * dw; B->xMM[l] = MM + h * d;
 }
 
 /* The slopes at the stage's state xw*: its w_M, dw (= ddphi), dw_M, dw_L, dM_M. */
-static inline void stage_slopes(const block_t *B, int l, REAL iTE, REAL *wM, REAL *dw, REAL *a, REAL *b, REAL *d) {
+PHASE void stage_slopes(const block_t *B, int l, REAL iTE, REAL *wM, REAL *dw, REAL *a, REAL *b, REAL *d,
+                        const int motor) {
     REAL wL = B->xwL[l];
     *wM = B->xwM[l];
     *dw = *wM - wL;
     REAL MS = shaft(B, l, B->xdp[l], *dw);
-    rhs(B, l, wL, B->xMM[l], MS, MS - B->Mext[l], iTE, a, b, d);
+    rhs(B, l, *wM, wL, B->xMM[l], MS, MS - B->Mext[l], iTE, a, b, d, motor);
 }
 
-static inline void stage23(block_t *B, int l, REAL f, REAL iTE) {
+PHASE void stage23(block_t *B, int l, REAL f, REAL iTE, const int motor) {
     REAL wM, dw, a, b, d;
-    stage_slopes(B, l, iTE, &wM, &dw, &a, &b, &d);
+    stage_slopes(B, l, iTE, &wM, &dw, &a, &b, &d, motor);
     B->sa[l] = B->sa[l] + (REAL)2 * a; B->sb[l] = B->sb[l] + (REAL)2 * b; B->sc[l] = B->sc[l] + (REAL)2 * dw;
     B->sd[l] = B->sd[l] + (REAL)2 * d; B->sw[l] = B->sw[l] + (REAL)2 * wM;
     B->xwM[l] = B->wM[l] + f * a; B->xwL[l] = B->wL[l] + f * b; B->xdp[l] = B->dp[l] + f * dw;
     B->xMM[l] = B->MM[l] + f * d;
 }
 
-static inline void stage4(block_t *B, int l, REAL k6, REAL iTE) {
+PHASE void stage4(block_t *B, int l, REAL k6, REAL iTE, const int motor) {
     REAL wM, dw, a, b, d;
-    stage_slopes(B, l, iTE, &wM, &dw, &a, &b, &d);
+    stage_slopes(B, l, iTE, &wM, &dw, &a, &b, &d, motor);
     B->inc[l] = B->inc[l] + k6 * (B->sw[l] + wM);
     REAL y, t, x;
     x = B->wM[l]; y = k6 * (B->sa[l] + a) - B->cwM[l];
-    t = x + y; B->cwM[l] = (t - x) - y; B->wM[l] = t;
+    t = x + y;
+    if (motor) {  /* a motor with Coulomb friction that changed sign against it stops, as the load */
+        int clampM = (B->hasM[l] != (REAL)0) & ((B->stuckM[l] != (REAL)0) | (t * B->sgnM[l] < (REAL)0));
+        B->cwM[l] = clampM ? (REAL)0 : (t - x) - y;
+        B->wM[l] = clampM ? (REAL)0 : t;
+    } else {
+        B->cwM[l] = (t - x) - y; B->wM[l] = t;
+    }
     x = B->wL[l]; y = k6 * (B->sb[l] + b) - B->cwL[l];
     t = x + y;
     int clamp = (B->stuck[l] != (REAL)0) | (t * B->sgn[l] < (REAL)0);
@@ -113,32 +140,43 @@ static inline void stage4(block_t *B, int l, REAL k6, REAL iTE) {
     B->cMM[l] = gone ? (REAL)0 : (t - x) - y; B->MM[l] = gone ? (REAL)0 : t;
 }
 
-/* S substeps of RK4 for all lanes of a block; the motor-angle increment goes to phi. */
-static inline void advance_block(block_t *B, int S, REAL dt, REAL h, REAL k6, REAL iTE) {
+/* S substeps of RK4 for all lanes of a block (with or without the motor's friction); the
+   motor-angle increment goes to phi. */
+PHASE void advance_substeps(block_t *B, int S, REAL dt, REAL h, REAL k6, REAL iTE, const int motor) {
     for (int l = 0; l < BLK; ++l) B->inc[l] = 0;
     for (int j = 0; j < S; ++j) {
 #pragma GCC ivdep
-        for (int l = 0; l < BLK; ++l) stage1(B, l, h, iTE);
+        for (int l = 0; l < BLK; ++l) stage1(B, l, h, iTE, motor);
 #pragma GCC ivdep
-        for (int l = 0; l < BLK; ++l) stage23(B, l, h, iTE);
+        for (int l = 0; l < BLK; ++l) stage23(B, l, h, iTE, motor);
 #pragma GCC ivdep
-        for (int l = 0; l < BLK; ++l) stage23(B, l, dt, iTE);
+        for (int l = 0; l < BLK; ++l) stage23(B, l, dt, iTE, motor);
 #pragma GCC ivdep
-        for (int l = 0; l < BLK; ++l) stage4(B, l, k6, iTE);
+        for (int l = 0; l < BLK; ++l) stage4(B, l, k6, iTE, motor);
     }
     for (int l = 0; l < BLK; ++l) B->phi[l] = B->phi[l] + (double)B->inc[l];
 }
 
+static void advance_block(block_t *B, int S, REAL dt, REAL h, REAL k6, REAL iTE) {
+    if (B->anyM)
+        advance_substeps(B, S, dt, h, k6, iTE, 1);
+    else
+        advance_substeps(B, S, dt, h, k6, iTE, 0);
+}
+
 static inline int load_block(block_t *B, int64_t i0, int64_t n,
                              const REAL *iJM, const REAL *iJL, const REAL *CF, const REAL *DF, const REAL *s,
-                             const REAL *MFC, const REAL *muF, const REAL *Mext,
+                             const REAL *MFC, const REAL *muF, const REAL *Mext, const REAL *MFCM, const REAL *muFM,
                              const REAL *wM, const REAL *wL, const REAL *dp, const REAL *MM, const REAL *Mref,
                              const double *phi, const double *cntp, const REAL *comp) {
     int m = (int)((n - i0) < BLK ? (n - i0) : BLK);
+    B->anyM = 0;
     for (int l = 0; l < BLK; ++l) {
         int64_t i = i0 + (l < m ? l : 0);  /* pad lanes repeat lane 0 */
         B->iJM[l] = iJM[i]; B->iJL[l] = iJL[i]; B->CF[l] = CF[i]; B->DF[l] = DF[i]; B->s[l] = s[i]; B->ns[l] = -s[i];
         B->MFC[l] = MFC[i]; B->muF[l] = muF[i]; B->Mext[l] = Mext[i];
+        B->MFCM[l] = MFCM[i]; B->muFM[l] = muFM[i]; B->hasM[l] = (REAL)(MFCM[i] > (REAL)0);
+        B->anyM |= (MFCM[i] != (REAL)0) | (muFM[i] != (REAL)0);
         B->wM[l] = wM[i]; B->wL[l] = wL[i]; B->dp[l] = dp[i]; B->MM[l] = MM[i]; B->Mref[l] = Mref[i];
         B->phi[l] = phi[i]; B->cntp[l] = cntp[i];
         B->cwM[l] = comp[i]; B->cwL[l] = comp[n + i]; B->cdp[l] = comp[2 * n + i]; B->cMM[l] = comp[3 * n + i];
@@ -159,13 +197,13 @@ static inline void store_block(const block_t *B, int64_t i0, int m, int64_t n, R
 /* One sample for n systems: S substeps with the applied Mref; phi accumulates the angle. */
 void advance(int64_t n, int S, REAL dt, REAL h, REAL k6, REAL iTE, int nthreads,
              const REAL *iJM, const REAL *iJL, const REAL *CF, const REAL *DF, const REAL *s,
-             const REAL *MFC, const REAL *muF, const REAL *Mext,
+             const REAL *MFC, const REAL *muF, const REAL *Mext, const REAL *MFCM, const REAL *muFM,
              REAL *wM, REAL *wL, REAL *dp, REAL *MM, REAL *Mref, double *phi, double *cntp, REAL *comp) {
     int64_t nb = (n + BLK - 1) / BLK;
 #pragma omp parallel for schedule(static) num_threads(nthreads)
     for (int64_t b = 0; b < nb; ++b) {
         block_t B;
-        int m = load_block(&B, b * BLK, n, iJM, iJL, CF, DF, s, MFC, muF, Mext, wM, wL, dp, MM, Mref, phi, cntp, comp);
+        int m = load_block(&B, b * BLK, n, iJM, iJL, CF, DF, s, MFC, muF, Mext, MFCM, muFM, wM, wL, dp, MM, Mref, phi, cntp, comp);
         advance_block(&B, S, dt, h, k6, iTE);
         store_block(&B, b * BLK, m, n, wM, wL, dp, MM, Mref, phi, cntp, comp);
     }
@@ -177,29 +215,27 @@ void advance(int64_t n, int S, REAL dt, REAL h, REAL k6, REAL iTE, int nthreads,
    section that timed out). Returns the number of systems not yet done. */
 int64_t run_test(int64_t n, int S, REAL dt, REAL h, REAL k6, REAL iTE, int nthreads,
                  const REAL *iJM, const REAL *iJL, const REAL *CF, const REAL *DF, const REAL *s,
-                 const REAL *MFC, const REAL *muF, const REAL *Mext,
+                 const REAL *MFC, const REAL *muF, const REAL *Mext, const REAL *MFCM, const REAL *muFM,
                  REAL *wM, REAL *wL, REAL *dp, REAL *MM, REAL *Mref, double *phi, double *cntp, REAL *comp,
-                 int32_t *sec, int32_t *cnt, int32_t *nI, int32_t *nIV, int32_t *len, int32_t *tmo,
+                 int32_t *sec, int32_t *cnt, int32_t *nI, int32_t *nIV, int32_t *len, int32_t *tmo, const REAL *Mhold,
                  double qw, double scale, REAL Mstar, REAL Mlow, REAL wmax, REAL wlow, REAL Mmax,
                  int32_t n_timeout, int32_t n_tail, int64_t k0, int64_t nk, int64_t ostride, int64_t ocol0,
                  REAL *o_speed, REAL *o_torque, REAL *o_tref, int8_t *o_sec) {
     int64_t nb = (n + BLK - 1) / BLK;
     int64_t left = 0;
-    /* the reference of each section state (0 unused, 1..6, 7 tail, 8 done), clamped to +-Mmax */
+    /* the level of each section state (0 unused, 1..6, 7 tail, 8 done); the reference is
+       Mhold + level clamped to +-Mmax (SPEC 1.1: the levels around the holding torque; Mhold 0: plain) */
     REAL lev[9] = {0, Mstar, 0, -Mlow, -Mstar, 0, Mlow, 0, 0};
-    for (int q = 0; q < 9; ++q) {
-        lev[q] = lev[q] < -Mmax ? -Mmax : lev[q];
-        lev[q] = lev[q] > Mmax ? Mmax : lev[q];
-    }
 #pragma omp parallel for schedule(dynamic, 1) num_threads(nthreads) reduction(+:left)
     for (int64_t b = 0; b < nb; ++b) {
         block_t B __attribute__((aligned(64)));
         int64_t i0 = b * BLK;
-        int m = load_block(&B, i0, n, iJM, iJL, CF, DF, s, MFC, muF, Mext, wM, wL, dp, MM, Mref, phi, cntp, comp);
+        int m = load_block(&B, i0, n, iJM, iJL, CF, DF, s, MFC, muF, Mext, MFCM, muFM, wM, wL, dp, MM, Mref, phi, cntp, comp);
         int32_t csec[BLK], ccnt[BLK], cnI[BLK], cnIV[BLK], clen[BLK], ctmo[BLK], osec[BLK];
-        REAL wv[BLK];
+        REAL wv[BLK], hold[BLK];
         for (int l = 0; l < BLK; ++l) {
             int64_t i = i0 + (l < m ? l : 0);
+            hold[l] = Mhold[i];
             csec[l] = l < m ? sec[i] : 8; ccnt[l] = cnt[i]; cnI[l] = nI[i]; cnIV[l] = nIV[i];
             clen[l] = len[i]; ctmo[l] = tmo[i];
         }
@@ -243,7 +279,9 @@ int64_t run_test(int64_t n, int S, REAL dt, REAL h, REAL k6, REAL iTE, int nthre
             advance_block(&B, S, dt, h, k6, iTE);
             /* the controller's new reference applies from the next sample */
             for (int l = 0; l < BLK; ++l) {
-                REAL r = lev[csec[l]];
+                REAL r = lev[csec[l]] + hold[l];
+                r = r < -Mmax ? -Mmax : r;
+                r = r > Mmax ? Mmax : r;
                 B.Mref[l] = osec[l] < 8 ? r : B.Mref[l];
             }
         }
@@ -266,7 +304,7 @@ int64_t run_test(int64_t n, int S, REAL dt, REAL h, REAL k6, REAL iTE, int nthre
    (the expected value of the encoder's, for fits). */
 void run_replay(int64_t n, int S, REAL dt, REAL h, REAL k6, REAL iTE, int nthreads,
                 const REAL *iJM, const REAL *iJL, const REAL *CF, const REAL *DF, const REAL *s,
-                const REAL *MFC, const REAL *muF, const REAL *Mext,
+                const REAL *MFC, const REAL *muF, const REAL *Mext, const REAL *MFCM, const REAL *muFM,
                 REAL *wM, REAL *wL, REAL *dp, REAL *MM, REAL *Mref, double *phi, double *cntp, REAL *comp,
                 double qw, double scale, int32_t quantize, int32_t K, const int32_t *start, const REAL *lev,
                 int64_t k0, int64_t nk, int64_t ostride, REAL *o_speed) {
@@ -275,7 +313,7 @@ void run_replay(int64_t n, int S, REAL dt, REAL h, REAL k6, REAL iTE, int nthrea
     for (int64_t b = 0; b < nb; ++b) {
         block_t B;
         int64_t i0 = b * BLK;
-        int m = load_block(&B, i0, n, iJM, iJL, CF, DF, s, MFC, muF, Mext, wM, wL, dp, MM, Mref, phi, cntp, comp);
+        int m = load_block(&B, i0, n, iJM, iJL, CF, DF, s, MFC, muF, Mext, MFCM, muFM, wM, wL, dp, MM, Mref, phi, cntp, comp);
         /* a row with room for the whole block takes its pad lanes too: whole, aligned cache lines */
         size_t row = (size_t)(i0 + BLK <= ostride ? BLK : m) * sizeof(REAL);
         int32_t seg[BLK];

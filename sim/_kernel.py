@@ -17,21 +17,26 @@ from som_torch import CFunction, CKernel, CLibrary
 
 from sim import _config
 
-#: The step constants, the plant coefficients and the state, ``n`` systems (the first 23 arguments of each function).
+#: The step constants, the plant coefficients and the state, ``n`` systems (the first 25 arguments of each function).
 _PLANT = ("n: int64", "S: int", "dt: REAL", "h: REAL", "k6: REAL", "iTE: REAL", "nthreads: int",
-          *(f"{c}: REAL[n]" for c in ("iJM", "iJL", "CF", "DF", "s", "MFC", "muF", "Mext", "wM", "wL", "dp", "MM",
-                                      "Mref")),
+          *(f"{c}: REAL[n]" for c in ("iJM", "iJL", "CF", "DF", "s", "MFC", "muF", "Mext", "MFCM", "muFM", "wM", "wL",
+                                      "dp", "MM", "Mref")),
           "phi: double[n]", "cntp: double[n]", "comp: REAL[4, n]")
 #: The measurement constants: speed quantum and counts per radian.
 _ENCODER = ("qw: double", "scale: double")
 
-#: add/sub/mul per system-substep in ``_kernel.c`` as written (and as compiled: the vectorized
-#: loops hold 129 add/sub/mul instructions per vector of lanes): 23 for the mode and stage 1 (shaft
-#: torque, net torque, friction, slopes, stage-2 state), 32 each for stages 2 and 3 (shaft torque,
-#: slopes, RK4 sums, next stage's state), 42 for stage 4 and the update (shaft torque, slopes,
-#: angle increment, four Kahan updates, the stop test's product). Compares, min/max, selects and
-#: negations are not counted, nor the per-sample encoder and controller.
+#: add/sub/mul per system-substep in ``_kernel.c`` as written, for a block of plants without motor
+#: friction (SPEC 1's model, the default population; as compiled: the vectorized loops hold 129
+#: add/sub/mul instructions per vector of lanes): 23 for the mode and stage 1 (shaft torque, net
+#: torque, friction, slopes, stage-2 state), 32 each for stages 2 and 3 (shaft torque, slopes, RK4
+#: sums, next stage's state), 42 for stage 4 and the update (shaft torque, slopes, angle increment,
+#: four Kahan updates, the stop test's product). Compares, min/max, selects and negations are not
+#: counted, nor the per-sample encoder and controller.
 FLOPS_PER_SUBSTEP = 129
+#: The same for a block with SPEC 1.1's motor friction (the kernel's second compiled variant of the
+#: substep): 15 more (the motor's net torque and Coulomb term in stage 1, ``- fric_M - mu_FM w_M`` in
+#: each stage's slope, its stop test's product).
+FLOPS_PER_SUBSTEP_MOTOR = 144
 
 #: Build facts as plain literals (``setup.py`` reads them without importing torch). ``-ffp-contract=off``
 #: keeps the arithmetic of the torch twin (no fused multiply-add), on every CPU and variant.
@@ -45,7 +50,8 @@ KERNEL = CKernel(
     functions={
         "advance": CFunction(_PLANT),
         "run_test": CFunction((
-            *_PLANT, *(f"{c}: int32[n]" for c in ("sec", "cnt", "nI", "nIV", "len", "tmo")), *_ENCODER,
+            *_PLANT, *(f"{c}: int32[n]" for c in ("sec", "cnt", "nI", "nIV", "len", "tmo")), "Mhold: REAL[n]",
+            *_ENCODER,
             "Mstar: REAL", "Mlow: REAL", "wmax: REAL", "wlow: REAL", "Mmax: REAL", "n_timeout: int32",
             "n_tail: int32", "k0: int64", "nk: int64", "ostride: int64", "ocol0: int64",
             "o_speed: REAL[n, ostride]", "o_torque: REAL[n, ostride]", "o_tref: REAL[n, ostride]",

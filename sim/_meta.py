@@ -31,6 +31,8 @@ T_S_REL_TOL = 1e-6
 #: Metadata numbers that must be > 0 (``current_noise_std`` may be 0).
 _POSITIVE = ("K_M", "T_Ei", "T_s", "encoder_counts", "M_star", "w_max", "M_max", "M_N")
 _NUMBERS = _POSITIVE + ("current_noise_std",)
+#: Metadata numbers of any sign: ``M_hold`` [Nm] (SPEC 1.1).
+_SIGNED = ("M_hold",)
 _MAX_UNKNOWN_SHOWN = 5  # unknown keys an error message names one by one
 
 
@@ -56,6 +58,7 @@ class RecordMeta:
     M_N: float | None = None  # [Nm] the drive's rated torque
     M_max: float | None = None  # [Nm] the drive's maximum torque
     current_noise_std: float | None = None  # [A] the current sensor's noise (std), where known
+    M_hold: float | None = None  # [Nm] SPEC 1.1: the holding torque the test's levels ran around (any sign)
     timed_out: bool | tuple[bool, ...] = False  # one flag for the run, or one per section
     aborted: bool = False  # the drive stopped the run at a limit
     units: Mapping[str, str] = field(default_factory=dict)  # column -> its SI unit
@@ -130,6 +133,8 @@ def _plain_values(raw: Mapping[str, Any], where: Path | str) -> dict[str, Any]:
     for key, value in raw.items():
         if key in _NUMBERS:
             meta[key] = _number(where, key, value, positive=key in _POSITIVE)
+        elif key in _SIGNED:
+            meta[key] = _signed(where, key, value)
         else:
             try:
                 meta[key] = plain(value, f"metadata {shown(key)}")
@@ -148,6 +153,14 @@ def _number(where: Path | str, key: str, value: Any, positive: bool) -> int | fl
         raise record_error(where, f"metadata '{key}': expected a finite number {'> 0' if positive else '>= 0'}, "
                                   f"received {shown(value)}")
     return number
+
+
+def _signed(where: Path | str, key: str, value: Any) -> int | float:
+    """Metadata ``key``'s ``value`` as a Python number if finite (any sign)."""
+    try:
+        return check_real(f"metadata '{key}'", value)
+    except TypeError:
+        raise record_error(where, f"metadata '{key}': expected a finite number, received {shown(value)}") from None
 
 
 def _check_encoder_counts(meta: Mapping[str, Any], where: Path | str) -> None:

@@ -96,15 +96,21 @@ class SwitchingController:
     ``*batch``): ``sec`` (0 before I, 1..6, 7 the tail, 8 done), ``cnt`` (samples in the section),
     ``limit`` (the count that ends the section by time: II and V as many as I and IV lasted, the
     tail ``n_tail``, else never), ``length``, ``tmo`` (a bit per section that timed out).
+
+    ``M_hold`` (SPEC 1.1): holding torques [Nm] (a tensor that broadcasts to the batch, or a number);
+    the references are then ``M_hold + level`` clamped to ``+-M_max`` (before section I and after the
+    tail too: the axis stays held). None: the plain levels.
     """
 
-    def __init__(self, signal: TestSignalConfig, drive: DriveConfig, dtype: torch.dtype = torch.float32):
+    def __init__(self, signal: TestSignalConfig, drive: DriveConfig, dtype: torch.dtype = torch.float32,
+                 M_hold: torch.Tensor | float | None = None):
         self.signal, self.drive, self.dtype = signal, drive, dtype
+        self.M_hold = None if M_hold is None else torch.as_tensor(M_hold, dtype=torch.float64).to(dtype)
         M_star, _M_low, w_max, w_low = signal.levels(drive)
         n_timeout, n_tail, never = signal.n_timeout(drive), signal.n_tail(drive), torch.iinfo(torch.int32).max
         # tables by section state: none before I (0), I..VI, the tail (7), done (8)
-        levels = torch.tensor([0.0, *(v * M_star for v in SECTION_LEVELS), 0.0, 0.0], dtype=dtype)
-        self._table = torch.clamp(levels, -drive.M_max, drive.M_max)  # the reference
+        self._levels = torch.tensor([0.0, *(v * M_star for v in SECTION_LEVELS), 0.0, 0.0], dtype=dtype)
+        self._table = torch.clamp(self._levels, -drive.M_max, drive.M_max)  # the reference (plain)
         # the speed test as one compare, sgn w >= thr (sgn = +-1: exact): I w >= w_max, II w <= w_low,
         # III w <= 0, IV w <= -w_max, V w >= -w_low, VI w >= 0; none outside I..VI (NaN: never true)
         w = tuple(torch.tensor(v, dtype=dtype).item() for v in (w_max, w_low))  # rounded to dtype
@@ -159,4 +165,6 @@ class SwitchingController:
         self.sec = q = q + end  # the section from the next sample on
         self.length = torch.where(end & (q == 8), k + 1, self.length)
         self.limit = torch.where(end, torch.where(at(self._by_count, q), t, at(self._ends, q)), self.limit)
-        return at(self._table, q)
+        if self.M_hold is None:
+            return at(self._table, q)
+        return torch.clamp(at(self._levels, q) + self.M_hold, -self.drive.M_max, self.drive.M_max)

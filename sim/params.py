@@ -31,6 +31,11 @@ DERIVED_DOCS: dict[str, str] = {
 STRUCTURE_CLASSES: tuple[str, ...] = ("stiff", "elastic", "elastic_backlash", "stiff_backlash")
 
 PARAM_NAMES: tuple[str, ...] = ("J_sigma", "V_J", "f_e", "d", "backlash", "M_FC", "mu_F")
+#: SPEC 1.1's real-axis parameters (optional, default 0): constant load torque ``M_L0`` [Nm] (any
+#: sign), motor Coulomb friction ``M_FCM`` [Nm] and motor viscous friction ``mu_FM`` [Nm s/rad].
+REAL_AXIS_NAMES: tuple[str, ...] = ("M_L0", "M_FCM", "mu_FM")
+#: Every field of :class:`TwoMassParams`: :data:`PARAM_NAMES`, then :data:`REAL_AXIS_NAMES`.
+ALL_PARAM_NAMES: tuple[str, ...] = PARAM_NAMES + REAL_AXIS_NAMES
 DERIVED_NAMES: tuple[str, ...] = ("J_M", "J_L", "w_0", "w_e", "C_F", "D_F", "s")
 
 # The thresholds of SPEC 1's class rule (see :func:`class_index`).
@@ -164,19 +169,20 @@ def _as_tensor(name: str, value: Any, check_finite: bool = True) -> torch.Tensor
 #: both take (default 0) and all of them.
 _PHYSICAL_KEYS = frozenset({"J_M", "J_L", "C_F", "D_F"})
 _POPULATION_KEYS = frozenset({"J_sigma", "V_J", "f_e", "d"})
-_SHARED_KEYS = ("backlash", "M_FC", "mu_F")
-_DICT_KEYS = frozenset(PARAM_NAMES) | _PHYSICAL_KEYS
+_SHARED_KEYS = ("backlash", "M_FC", "mu_F") + REAL_AXIS_NAMES
+_DICT_KEYS = frozenset(ALL_PARAM_NAMES) | _PHYSICAL_KEYS
 
 #: The valid range of each parameter, as the error states it (checked by :func:`_out_of_range`).
 _RANGE_TEXT = {"J_sigma": "> 0", "V_J": "> 0", "f_e": "> 0", "d": "0 <= d < 1", "backlash": ">= 0", "M_FC": ">= 0",
-               "mu_F": ">= 0"}
+               "mu_F": ">= 0", "M_L0": "any finite value", "M_FCM": ">= 0", "mu_FM": ">= 0"}
 
 
 def _out_of_range(v: torch.Tensor) -> int | None:
-    """Index into :data:`PARAM_NAMES` of the first parameter with a value outside its range, or None;
-    ``v``: ``7 x n``, the rows in :data:`PARAM_NAMES` order (all finite)."""
-    positive, d, nonneg = v[:3], v[3], v[4:]
-    ok = torch.cat([(positive > 0).all(1), ((d >= 0) & (d < 1)).all()[None], (nonneg >= 0).all(1)])
+    """Index into :data:`ALL_PARAM_NAMES` of the first parameter with a value outside its range, or
+    None; ``v``: ``10 x n``, the rows in :data:`ALL_PARAM_NAMES` order (all finite; ``M_L0`` any)."""
+    positive, d, nonneg, motor = v[:3], v[3], v[4:7], v[8:]
+    ok = torch.cat([(positive > 0).all(1), ((d >= 0) & (d < 1)).all()[None], (nonneg >= 0).all(1),
+                    torch.ones(1, dtype=torch.bool), (motor >= 0).all(1)])
     if bool(ok.all()):
         return None
     return int((~ok).nonzero()[0])
@@ -215,7 +221,9 @@ class TwoMassParams:
     edit these tensors in place either, the validation and the cached derived values rely on them).
     ``J_sigma`` total inertia [kg m^2], ``V_J = J_L/J_M``, ``f_e`` eigenfrequency [Hz],
     ``d`` relative damping, ``backlash`` total width ``2s`` [rad], ``M_FC`` load Coulomb friction
-    [Nm], ``mu_F`` load viscous friction [Nm s/rad].
+    [Nm], ``mu_F`` load viscous friction [Nm s/rad]; SPEC 1.1's real-axis parts, optional (default
+    0: the model of SPEC 1): ``M_L0`` constant load torque on the load [Nm] (any sign), ``M_FCM``
+    motor Coulomb friction [Nm], ``mu_FM`` motor viscous friction [Nm s/rad].
     """
 
     J_sigma: torch.Tensor
@@ -225,9 +233,12 @@ class TwoMassParams:
     backlash: torch.Tensor
     M_FC: torch.Tensor
     mu_F: torch.Tensor
+    M_L0: torch.Tensor = 0.0  # type: ignore[assignment]  (stored as a tensor)
+    M_FCM: torch.Tensor = 0.0  # type: ignore[assignment]
+    mu_FM: torch.Tensor = 0.0  # type: ignore[assignment]
 
     def __post_init__(self) -> None:
-        ts = {n: _as_tensor(n, getattr(self, n), check_finite=False) for n in PARAM_NAMES}
+        ts = {n: _as_tensor(n, getattr(self, n), check_finite=False) for n in ALL_PARAM_NAMES}
         shape = _broadcast_shape([t.shape for t in ts.values()])
         if shape is None:
             raise ValueError(f"TwoMassParams: parameter shapes do not broadcast: "
@@ -235,14 +246,14 @@ class TwoMassParams:
         for n, t in ts.items():  # a copy of its own: the caller's tensor (or array) may change later
             object.__setattr__(self, n, torch.empty(shape, dtype=torch.float64, device=t.device).copy_(t))
         # one pass over all values (a model fit builds many small candidate batches)
-        values = torch.stack([getattr(self, n).reshape(-1) for n in PARAM_NAMES])  # 7 x n
+        values = torch.stack([getattr(self, n).reshape(-1) for n in ALL_PARAM_NAMES])  # 10 x n
         finite = torch.isfinite(values).all(1)
         if not bool(finite.all()):
-            n = PARAM_NAMES[int((~finite).nonzero()[0])]
+            n = ALL_PARAM_NAMES[int((~finite).nonzero()[0])]
             raise ValueError(f"TwoMassParams.{n}: expected finite values, received {ts[n]}")
         bad = _out_of_range(values)
         if bad is not None:
-            n, t = PARAM_NAMES[bad], ts[PARAM_NAMES[bad]]
+            n, t = ALL_PARAM_NAMES[bad], ts[ALL_PARAM_NAMES[bad]]
             raise ValueError(f"TwoMassParams.{n}: expected {_RANGE_TEXT[n]}, received range "
                              f"[{float(t.min())}, {float(t.max())}]")
 
@@ -257,10 +268,21 @@ class TwoMassParams:
         return self.J_sigma.shape[0]
 
     def __getitem__(self, index: Any) -> "TwoMassParams":
-        return TwoMassParams(**{n: getattr(self, n)[index] for n in PARAM_NAMES})
+        return TwoMassParams(**{n: getattr(self, n)[index] for n in ALL_PARAM_NAMES})
 
     def reshape(self, *shape: int) -> "TwoMassParams":
-        return TwoMassParams(**{n: getattr(self, n).reshape(*shape) for n in PARAM_NAMES})
+        return TwoMassParams(**{n: getattr(self, n).reshape(*shape) for n in ALL_PARAM_NAMES})
+
+    @property
+    def real_axis(self) -> bool:
+        """Whether any system has a SPEC 1.1 part (``M_L0``, ``M_FCM`` or ``mu_FM`` not 0)."""
+        return bool(((self.M_L0 != 0) | (self.M_FCM != 0) | (self.mu_FM != 0)).any())
+
+    @property
+    def M_hold(self) -> torch.Tensor:
+        """The torque [Nm] that holds each axis at rest before a test (SPEC 1.1): ``M_L0``, the
+        ideal holding torque (the simulated drive knows it exactly), ``*batch``."""
+        return self.M_L0
 
     # -- derived values (SPEC 1) ----------------------------------------------------------
     @functools.cached_property
@@ -291,7 +313,8 @@ class TwoMassParams:
     # -- construction / conversion ----------------------------------------------------------
     @classmethod
     def from_physical(cls, *, J_M: Any, J_L: Any, C_F: Any, D_F: Any = 0.0, backlash: Any = 0.0,
-                      M_FC: Any = 0.0, mu_F: Any = 0.0) -> "TwoMassParams":
+                      M_FC: Any = 0.0, mu_F: Any = 0.0, M_L0: Any = 0.0, M_FCM: Any = 0.0,
+                      mu_FM: Any = 0.0) -> "TwoMassParams":
         """From ``J_M, J_L`` [kg m^2], ``C_F`` [Nm/rad], ``D_F`` [Nm s/rad] (and the rest as is)."""
         J_M, J_L, C_F, D_F = (_as_tensor(n, v) for n, v in
                               (("J_M", J_M), ("J_L", J_L), ("C_F", C_F), ("D_F", D_F)))
@@ -302,19 +325,22 @@ class TwoMassParams:
         d = w_0 * D_F / (2.0 * C_F)
         w_e = w_0 * torch.sqrt(1.0 - d**2)
         return cls(J_sigma=J_sigma, V_J=J_L / J_M, f_e=w_e / (2.0 * math.pi), d=d,
-                   backlash=backlash, M_FC=M_FC, mu_F=mu_F)
+                   backlash=backlash, M_FC=M_FC, mu_F=mu_F, M_L0=M_L0, M_FCM=M_FCM, mu_FM=mu_FM)
 
     def to_dicts(self) -> list[dict[str, float]]:
-        """One dict of the seven parameters per system (flattened batch order)."""
-        cols = {n: getattr(self, n).reshape(-1).tolist() for n in PARAM_NAMES}
-        return [{n: cols[n][i] for n in PARAM_NAMES} for i in range(self.J_sigma.numel())]
+        """One dict of the parameters per system (flattened batch order): the seven of
+        :data:`PARAM_NAMES`, and those of :data:`REAL_AXIS_NAMES` where this batch has any (:attr:`real_axis`)."""
+        names = ALL_PARAM_NAMES if self.real_axis else PARAM_NAMES
+        cols = {n: getattr(self, n).reshape(-1).tolist() for n in names}
+        return [{n: cols[n][i] for n in names} for i in range(self.J_sigma.numel())]
 
     @classmethod
     def from_dicts(cls, items: Mapping[str, Any] | Iterable[Mapping[str, Any]]) -> "TwoMassParams":
         """From one dict (a single system) or a list of dicts (batch ``(n,)``).
 
-        Each dict holds the seven parameters (``backlash``, ``M_FC``, ``mu_F``, ``d`` default to 0)
-        or the physical set ``J_M, J_L, C_F`` (+ optional ``D_F``), not both (``ValueError``)."""
+        Each dict holds the seven parameters (``backlash``, ``M_FC``, ``mu_F``, ``d`` default to 0;
+        optionally ``M_L0``, ``M_FCM``, ``mu_FM``, default 0) or the physical set ``J_M, J_L, C_F``
+        (+ optional ``D_F``), not both (``ValueError``)."""
         single = isinstance(items, Mapping)
         rows = [items] if single else list(items)
         if not rows:
@@ -326,7 +352,7 @@ class TwoMassParams:
             unknown = sorted(set(row) - _DICT_KEYS)
             if unknown:
                 raise ValueError(f"TwoMassParams.from_dicts: system {i}: unknown keys {unknown}; "
-                                 f"expected {list(PARAM_NAMES)} or J_M, J_L, C_F, D_F")
+                                 f"expected {list(ALL_PARAM_NAMES)} or J_M, J_L, C_F, D_F")
             physical = sorted(set(row) & _PHYSICAL_KEYS)
             population = sorted(set(row) & _POPULATION_KEYS)
             if physical and population:
@@ -347,14 +373,15 @@ class TwoMassParams:
                                  d=row.get("d", 0.0), **rest))
         if single:
             return parts[0]
-        return cls(**{n: torch.stack([getattr(p, n) for p in parts]) for n in PARAM_NAMES})
+        return cls(**{n: torch.stack([getattr(p, n) for p in parts]) for n in ALL_PARAM_NAMES})
 
     def truth(self, drive: DriveConfig, M_star: float) -> list[dict[str, Any]]:
-        """Per system: the parameters, the derived values and the structure class name."""
+        """Per system: the parameters (those of :data:`REAL_AXIS_NAMES` too), the derived values and
+        the structure class name."""
         cls_idx = structure_class(self, drive, M_star).reshape(-1).tolist()
         dv = self.derived  # once: each derived attribute would compute all of them
         cols = {n: getattr(dv if n in TwoMassDerived._fields else self, n).reshape(-1).tolist()
-                for n in PARAM_NAMES + DERIVED_NAMES}
+                for n in ALL_PARAM_NAMES + DERIVED_NAMES}
         cols["s_N"] = self.s_N(drive).reshape(-1).tolist()
         cols["r_osc"] = self.r_osc(drive, M_star).reshape(-1).tolist()
         out = []

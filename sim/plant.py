@@ -60,7 +60,8 @@ class Response:
     ``speed`` measured [rad/s], ``current`` measured [A], ``torque`` air-gap torque ``M_M`` [Nm]
     at the samples, ``torque_ref`` applied reference [Nm], ``section`` int8 (1..6, 0 tail, -1
     padding), ``length`` int64 ``*batch``, ``timed_out`` bool ``*batch x 6``; optional ``states``
-    (``w_M, w_L, dphi, M_M, phi_M`` at the samples, same padding)."""
+    (``w_M, w_L, dphi, M_M, phi_M`` at the samples, same padding); ``M_hold`` [Nm] ``*batch``: the
+    holding torques the test's levels ran around (SPEC 1.1), None where they ran plain."""
 
     t: torch.Tensor
     speed: torch.Tensor
@@ -72,6 +73,7 @@ class Response:
     timed_out: torch.Tensor
     substeps: int
     states: dict[str, torch.Tensor] = field(default_factory=dict)
+    M_hold: torch.Tensor | None = None
 
     @property
     def batch_shape(self) -> torch.Size:
@@ -101,11 +103,13 @@ def simulate(params: TwoMassParams, drive: DriveConfig, controller: Controller, 
              method: str = "fast", dtype: torch.dtype = torch.float32, substeps: int | None = None,
              load_torque: torch.Tensor | float | None = None, seed: int = 0, return_states: bool = False,
              use_kernel: bool = True, progress: Callable[[int], None] | None = None) -> Response:
-    """Run ``controller`` in closed loop around the plant for up to ``n_samples`` samples.
+    """Run ``controller`` in closed loop around the plant for up to ``n_samples`` samples, from rest,
+    held by ``params.M_hold`` where it is not 0 (SPEC 1.1, :meth:`FastState.held`: the first
+    samples' torque is the holding torque until the controller's reference applies).
 
-    ``load_torque``: external load torque ``M_ext`` on the load side [Nm], ``*batch`` or scalar
-    (constant). ``method="reference"`` integrates with torchdiffeq in float64 (slow). ``seed``
-    (an int) seeds the current noise (see :func:`simulate_test`).
+    ``load_torque``: external load torque on the load side [Nm], ``*batch`` or scalar (constant),
+    on top of ``params.M_L0`` (not held). ``method="reference"`` integrates with torchdiffeq in
+    float64 (slow). ``seed`` (an int) seeds the current noise (see :func:`simulate_test`).
     ``use_kernel=False`` forces the torch eager twin of the fused kernel."""
     if method == "reference":
         dtype = torch.float64
@@ -120,7 +124,7 @@ def simulate(params: TwoMassParams, drive: DriveConfig, controller: Controller, 
         from sim._integrate_reference import ReferenceIntegrator  # torchdiffeq: loaded only when used
 
         ref = ReferenceIntegrator(params, drive, load_torque)
-    x = FastState.zeros(n, dtype)
+    x = FastState.held(params, dtype)
     controller.reset(shape)
     rec: dict[str, list[torch.Tensor]] = {k: [] for k in ("speed", "torque", "torque_ref", "section")}
     st: dict[str, list[torch.Tensor]] = {k: [] for k in ("w_M", "w_L", "dphi", "M_M", "phi_M")}
@@ -174,12 +178,26 @@ def _finish(out: dict[str, torch.Tensor], states: dict[str, torch.Tensor], lengt
                     states={k: r(v.masked_fill(pad, 0.0)) for k, v in states.items()})
 
 
+def hold_levels(params: TwoMassParams, around_hold: bool) -> torch.Tensor | None:
+    """The holding torques [Nm] (``*batch``) a test's levels run around (SPEC 1.1): ``params.M_hold``
+    where ``around_hold`` and some system has one (``M_L0 != 0``), else None (the plain levels)."""
+    if not isinstance(around_hold, bool):
+        raise TypeError(f"around_hold: expected a bool, received {type(around_hold).__name__}")
+    M = params.M_hold
+    return M if around_hold and bool((M != 0).any()) else None
+
+
 def simulate_test(params: TwoMassParams, drive: DriveConfig | None = None, signal: TestSignalConfig | None = None, *,
                   method: str = "fast", seed: int = 0, dtype: torch.dtype = torch.float32,
                   substeps: int | None = None, chunk_systems: int = 1024, chunk_samples: int = 2048,
-                  use_kernel: bool = True, return_states: bool = False,
+                  use_kernel: bool = True, return_states: bool = False, around_hold: bool = True,
                   progress: Callable[[int], None] | None = None) -> Response:
     """The SPEC 2 test for every system; stops when all finished (tail done) -> :class:`Response`.
+
+    Real axes (SPEC 1.1): each system starts at rest held by ``params.M_hold`` (``M_L0``); with
+    ``around_hold`` (default) the levels run around it (``M_hold + level``, clamped to ``+-M_max``,
+    ``Response.M_hold`` set where some system has ``M_L0 != 0``), else plain (held only before the
+    test). Without ``M_L0`` both are the plain test.
 
     Fast path: the fused C kernel runs the controller, the encoder and the RK4 substeps in one
     loop; systems are sorted by expected duration and run in groups of ``chunk_systems``.
@@ -205,11 +223,13 @@ def simulate_test(params: TwoMassParams, drive: DriveConfig | None = None, signa
     chunk_systems, chunk_samples = check_int("chunk_systems", chunk_systems, 1), check_int("chunk_samples", chunk_samples, 1)
     shape = params.batch_shape
     N_max = signal.max_samples(drive)
+    hold = hold_levels(params, around_hold)
     lib = load_kernel() if use_kernel else None
     if method == "reference" or lib is None or return_states:
-        ctl = SwitchingController(signal, drive, dtype)
+        ctl = SwitchingController(signal, drive, dtype, M_hold=hold)
         resp = simulate(params, drive, ctl, N_max, method=method, dtype=dtype, substeps=substeps, seed=seed,
                         return_states=return_states, use_kernel=use_kernel)
+        resp.M_hold = hold
         if progress is not None:
             progress(int(params.J_sigma.numel()))
         return resp
@@ -220,7 +240,8 @@ def simulate_test(params: TwoMassParams, drive: DriveConfig | None = None, signa
     parts = []
     for g0 in range(0, n, chunk_systems):
         idx = order[g0:g0 + chunk_systems]
-        parts.append((idx, *run_test_group(lib, flat[idx], drive, signal, S, dtype, chunk_samples, progress)))
+        parts.append((idx, *run_test_group(lib, flat[idx], drive, signal, S, dtype, chunk_samples, progress,
+                                           around_hold=around_hold)))
     N = max(int(p[2].max()) for p in parts)
     out = {k: torch.zeros(n, N, dtype=dtype) for k in ("speed", "torque", "torque_ref")}
     out["section"] = torch.full((n, N), -1, dtype=torch.int8)
@@ -233,18 +254,24 @@ def simulate_test(params: TwoMassParams, drive: DriveConfig | None = None, signa
         length[idx] = ln
         tmo[idx] = tm
     timed_out = ((tmo.unsqueeze(-1) >> torch.arange(6, dtype=torch.int32)) & 1).bool()
-    return _finish(out, {}, length, timed_out, shape, N, drive, S, seed)
+    resp = _finish(out, {}, length, timed_out, shape, N, drive, S, seed)
+    resp.M_hold = hold
+    return resp
 
 
 def run_test_group(lib: CLibrary, flat: TwoMassParams, drive: DriveConfig, signal: TestSignalConfig, S: int,
                    dtype: torch.dtype, chunk_samples: int = 2048,
-                   progress: Callable[[int], None] | None = None) -> tuple[dict[str, torch.Tensor], torch.Tensor, torch.Tensor]:
+                   progress: Callable[[int], None] | None = None, *,
+                   around_hold: bool = True) -> tuple[dict[str, torch.Tensor], torch.Tensor, torch.Tensor]:
     """The fused test for one flat group: buffers ``n x N`` (valid up to each length, rest
-    undefined), lengths (int64 ``n``) and the timeout bit masks (int32 ``n``)."""
+    undefined), lengths (int64 ``n``) and the timeout bit masks (int32 ``n``). From rest held by
+    ``flat.M_hold``; the levels around it with ``around_hold`` (see :func:`simulate_test`)."""
     n = flat.J_sigma.numel()
     N_max = signal.max_samples(drive)
     fp = FastParams.build(flat, drive, S, dtype)
-    x = FastState.zeros(n, dtype)
+    x = FastState.held(flat, dtype)
+    hold = hold_levels(flat, around_hold)
+    hold = None if hold is None else hold.reshape(-1).to(dtype).contiguous()
     c = SignalState.start(n)
     est = float(signal.expected_duration(flat.J_sigma).max()) / drive.T_s
     cap = min(N_max, int(1.25 * est) + chunk_samples)
@@ -259,7 +286,7 @@ def run_test_group(lib: CLibrary, flat: TwoMassParams, drive: DriveConfig, signa
             buf = bigger
         before = left
         left = run_test_chunk(lib, x, fp, c, drive, signal.levels(drive), signal.n_timeout(drive),
-                              signal.n_tail(drive), k0, nk, buf)
+                              signal.n_tail(drive), k0, nk, buf, M_hold=hold)
         k0 += nk
         if progress is not None and before > left:
             progress(before - left)
@@ -280,7 +307,7 @@ class SimulatedPlant:
         self.reset()
 
     def reset(self) -> None:
-        self._x = FastState.zeros(self.params.J_sigma.numel(), self.dtype)
+        self._x = FastState.held(self.params, self.dtype)
         self._w = torch.zeros(self.params.batch_shape, dtype=self.dtype)
 
     def measure(self) -> torch.Tensor:

@@ -1,5 +1,6 @@
 """Seeded population samplers: the SPEC section 1 default ranges on one drive (all overridable), and
-SPEC 3.1's envelope of drives and test runs (:func:`sample_envelope`)."""
+SPEC 3.1's envelope of drives and test runs (:func:`sample_envelope`); either with SPEC 1.1's
+real-axis parts (:class:`RealAxisRanges`: constant load torque, motor friction) on request."""
 
 from __future__ import annotations
 
@@ -47,19 +48,77 @@ class PopulationRanges:
         _check_ranges(self, log_uniform=("J_sigma", "V_J", "f_e", "backlash_deg"))
 
 
+@dataclass(frozen=True)
+class RealAxisRanges:
+    """SPEC 1.1's real-axis population, drawn on top of a population (each part independently), in
+    units of the test's ``M*`` [Nm] and ``w_max`` [rad/s], so that it scales with the drive: a share
+    ``M_L0_share`` of the systems has a constant load torque ``M_L0`` uniform in ``+-M_L0[1] M*``
+    (``|M_L0|`` uniform in ``M_L0`` over ``M*``, either sign with equal odds); a share
+    ``M_FCM_share`` has motor Coulomb friction ``M_FCM`` uniform in ``M_FCM`` over ``M*``; every
+    system has motor viscous friction ``mu_FM`` with ``mu_FM w_max / M*`` uniform in ``mu_FM`` (on
+    the reference drive and test, ``M* = 10 Nm``, ``w_max = 100 rad/s``: 0 .. 0.002 Nm s/rad, as
+    SPEC 1.1 says; it scales with the drive as :class:`EnvelopeRanges`'s ``mu_F`` does)."""
+
+    M_L0: tuple[float, float] = (0.0, 0.15)  # |M_L0| over M*, uniform
+    M_L0_share: float = 0.5  # share of systems with a load torque
+    M_FCM: tuple[float, float] = (0.0, 0.03)  # over M*, uniform
+    M_FCM_share: float = 0.5  # share of systems with motor Coulomb friction
+    mu_FM: tuple[float, float] = (0.0, 0.02)  # mu_FM w_max over M*, uniform
+
+    def __post_init__(self) -> None:
+        _check_ranges(self, log_uniform=())
+
+
+def _real_axis(u: torch.Tensor, r: RealAxisRanges, M_star: torch.Tensor | float,
+               w_max: torch.Tensor | float) -> dict[str, torch.Tensor]:
+    """``M_L0``, ``M_FCM``, ``mu_FM`` (``n`` each) from the uniforms ``u`` (``6 x n``) and each system's
+    test ``M_star`` [Nm] and ``w_max`` [rad/s] (numbers or ``n`` tensors)."""
+    lin = lambda x, rng: rng[0] + x * (rng[1] - rng[0])  # noqa: E731
+    zero = torch.zeros_like(u[0])
+    sign = torch.where(u[1] < 0.5, -1.0, 1.0).to(torch.float64)
+    M_L0 = torch.where(u[2] < r.M_L0_share, sign * lin(u[0], r.M_L0) * M_star, zero)
+    M_FCM = torch.where(u[4] < r.M_FCM_share, lin(u[3], r.M_FCM) * M_star, zero)
+    return {"M_L0": M_L0, "M_FCM": M_FCM, "mu_FM": lin(u[5], r.mu_FM) * M_star / w_max}
+
+
+#: The reference test's ``M*`` [Nm] and ``w_max`` [rad/s] (SPEC 2's defaults), on which
+#: :func:`sample_population` scales :class:`RealAxisRanges`.
+_REFERENCE_TEST = TestSignalConfig()
+
+
+def _real_axis_ranges(real_axis: RealAxisRanges | bool | None) -> RealAxisRanges | None:
+    """``real_axis`` as ranges: ``True`` the defaults, None or ``False`` none; else a ``TypeError``."""
+    if real_axis is None or real_axis is False:
+        return None
+    if real_axis is True:
+        return RealAxisRanges()
+    if not isinstance(real_axis, RealAxisRanges):
+        raise TypeError(f"real_axis: expected RealAxisRanges, a bool or None, received {type(real_axis).__name__}")
+    return real_axis
+
+
 def _log_uniform(u: torch.Tensor, lo: float, hi: float) -> torch.Tensor:
     return torch.exp(math.log(lo) + u * (math.log(hi) - math.log(lo)))
 
 
-def sample_population(n: int, seed: int, ranges: PopulationRanges | None = None) -> TwoMassParams:
-    """``n`` systems (batch shape ``(n,)``) drawn with a private generator seeded by ``seed``."""
+def sample_population(n: int, seed: int, ranges: PopulationRanges | None = None,
+                      real_axis: RealAxisRanges | bool | None = None) -> TwoMassParams:
+    """``n`` systems (batch shape ``(n,)``) drawn with a private generator seeded by ``seed``.
+
+    ``real_axis``: SPEC 1.1's real-axis population on top (``True``: :class:`RealAxisRanges`'
+    defaults; their shares of ``M*`` on the reference test, ``M* = 10 Nm``, ``w_max = 100 rad/s``),
+    drawn after the default population's draws: the same seed gives the same seven parameters
+    with or without it. None or ``False``: none (``M_L0 = M_FCM = mu_FM = 0``)."""
     if isinstance(n, bool) or not isinstance(n, int) or n < 1:
         raise ValueError(f"sample_population: expected n >= 1 (int), received {n!r}")
     if isinstance(seed, bool) or not isinstance(seed, int):
         raise TypeError(f"sample_population: expected an int seed, received {seed!r}")
     r = ranges or PopulationRanges()
+    ra = _real_axis_ranges(real_axis)
     g = torch.Generator().manual_seed(seed)
     u = torch.rand(9, n, generator=g, dtype=torch.float64)
+    extra = {} if ra is None else _real_axis(torch.rand(6, n, generator=g, dtype=torch.float64), ra,
+                                             _REFERENCE_TEST.M_star, _REFERENCE_TEST.w_max)
     backlash = torch.deg2rad(_log_uniform(u[4], *r.backlash_deg))
     backlash = torch.where(u[5] < r.backlash_zero_share, torch.zeros_like(backlash), backlash)
     return TwoMassParams(
@@ -70,6 +129,7 @@ def sample_population(n: int, seed: int, ranges: PopulationRanges | None = None)
         backlash=backlash,
         M_FC=r.M_FC[0] + u[6] * (r.M_FC[1] - r.M_FC[0]),
         mu_F=r.mu_F[0] + u[7] * (r.mu_F[1] - r.mu_F[0]),
+        **extra,
     )
 
 
@@ -128,15 +188,19 @@ class EnvelopeSample:
     cases: tuple[tuple[DriveConfig, TestSignalConfig], ...]
 
 
-def sample_envelope(n: int, seed: int, ranges: EnvelopeRanges | None = None) -> EnvelopeSample:
+def sample_envelope(n: int, seed: int, ranges: EnvelopeRanges | None = None,
+                    real_axis: RealAxisRanges | bool | None = None) -> EnvelopeSample:
     """``n`` systems on drives and test runs drawn over SPEC 3.1's envelope (:class:`EnvelopeRanges`),
     with a private generator seeded by ``seed`` (a stream of its own: :func:`sample_population`'s
-    draws for the same seed are unchanged)."""
+    draws for the same seed are unchanged). ``real_axis``: SPEC 1.1's parts on top, scaled with
+    each system's test (see :func:`sample_population`; drawn after the rest: the same seed gives
+    the same drives and mechanics with or without them)."""
     if isinstance(n, bool) or not isinstance(n, int) or n < 1:
         raise ValueError(f"sample_envelope: expected n >= 1 (int), received {n!r}")
     if isinstance(seed, bool) or not isinstance(seed, int):
         raise TypeError(f"sample_envelope: expected an int seed, received {seed!r}")
     r = ranges or EnvelopeRanges()
+    ra = _real_axis_ranges(real_axis)
     g = torch.Generator().manual_seed(seed)
     n_cells = -(-n // r.cell)
     c = torch.rand(9, n_cells, generator=g, dtype=torch.float64)
@@ -171,5 +235,6 @@ def sample_envelope(n: int, seed: int, ranges: EnvelopeRanges | None = None) -> 
         backlash=backlash,
         M_FC=lin(u[6], r.M_FC) * M_star,
         mu_F=lin(u[7], r.mu_F) * M_star / w_max,
+        **({} if ra is None else _real_axis(torch.rand(6, n, generator=g, dtype=torch.float64), ra, M_star, w_max)),
     )
     return EnvelopeSample(params, cell, tuple(cases))

@@ -13,6 +13,8 @@ by :func:`sim._meta.check_meta` and read typed as ``Record.info`` (:class:`Recor
 * ``encoder_counts`` counts per revolution, an integer 1..2^53; ``M_star``, ``M_N``, ``M_max`` [Nm]
   test, rated and maximum torque, ``w_max`` [rad/s] the test's speed limit: each > 0, optional;
 * ``current_noise_std`` [A] >= 0; ``aborted``: true/false, the drive stopped the run at a limit;
+* ``M_hold`` [Nm], any sign (SPEC 1.1): the torque that held the axis at rest before the test, and
+  around which its levels ran (``M_hold + level``); absent: the plain levels;
 * ``timed_out``: true/false (a section of the run ended by its safety timeout) or a list of
   true/false, one per section (at most 6);
 * ``units``: an object of column -> its SI unit; ``format``: ``"twomass-record/1"``;
@@ -448,7 +450,8 @@ def write_record(path: str | os.PathLike[str], record: Record, overwrite: bool =
 def responses_to_records(response: Any, params: TwoMassParams, drive: DriveConfig, signal: TestSignalConfig,
                          names: list[str] | None = None) -> list[Record]:
     """One :class:`Record` per system of a :class:`sim.plant.Response` (flattened batch order),
-    trimmed to its length, with ``meta['truth']`` holding the true parameters and class."""
+    trimmed to its length, with ``meta['truth']`` holding the true parameters and class, and
+    ``meta['M_hold']`` where the levels ran around a holding torque that is not 0 (``response.M_hold``)."""
     n = int(response.length.numel())
     L = response.length.reshape(-1).tolist()
     flat = lambda v: v.reshape(n, -1).to(torch.float64).numpy() if v.dtype.is_floating_point else v.reshape(n, -1).numpy()  # noqa: E731
@@ -456,11 +459,13 @@ def responses_to_records(response: Any, params: TwoMassParams, drive: DriveConfi
     t = response.t.numpy()
     truths = params.reshape(-1).truth(drive, signal.M_star)
     tmo = response.timed_out.reshape(n, 6).tolist()
+    hold = _holds(getattr(response, "M_hold", None), n)
     base = _base_meta(drive, signal)
     out = []
     for i in range(n):
         m = L[i]
         meta = dict(base)
+        _add_hold(meta, hold[i])
         meta["timed_out"] = [bool(b) for b in tmo[i]]
         meta["truth"] = truths[i]
         out.append(Record(t=t[:m].copy(), speed=speed[i, :m].copy(), current=current[i, :m].copy(),
@@ -471,13 +476,15 @@ def responses_to_records(response: Any, params: TwoMassParams, drive: DriveConfi
 
 def iter_records(params: TwoMassParams, drive: DriveConfig | None = None, signal: TestSignalConfig | None = None, *,
                  seed: int = 0, group: int = 512, dtype: torch.dtype = torch.float32, substeps: int | None = None,
-                 use_kernel: bool = True, progress: Any = None) -> Iterator[Record]:
+                 use_kernel: bool = True, around_hold: bool = True, progress: Any = None) -> Iterator[Record]:
     """Simulate the test for every system in duration-sorted groups and yield their records
     (named ``sysNNNNN`` by flattened input index; memory bounded by one group). Current noise
-    per record from a generator seeded with ``seed + index``."""
+    per record from a generator seeded with ``seed + index``. Real axes (SPEC 1.1): each starts
+    held by ``M_hold`` (``M_L0``); with ``around_hold`` the levels run around it and the record's
+    metadata says ``M_hold`` (where it is not 0), else they run plain (see :func:`sim.simulate_test`)."""
     from sim._integrate_fast import default_substeps
     from sim._kernel import load_kernel
-    from sim.plant import run_test_group, simulate_test
+    from sim.plant import hold_levels, run_test_group, simulate_test
 
     drive = drive or DriveConfig()
     signal = signal or TestSignalConfig()
@@ -489,12 +496,13 @@ def iter_records(params: TwoMassParams, drive: DriveConfig | None = None, signal
         idx = order[g0:g0 + group]
         sub = flat[torch.tensor(idx)]
         if lib is None:  # the torch twin; the noise below is drawn alike on both paths
-            resp = simulate_test(sub, drive, signal, dtype=dtype, substeps=S, use_kernel=False)
+            resp = simulate_test(sub, drive, signal, dtype=dtype, substeps=S, use_kernel=False, around_hold=around_hold)
             buf = {k: getattr(resp, k) for k in ("speed", "torque", "torque_ref", "section")}
             length, timed_out = resp.length, resp.timed_out
         else:
-            buf, length, tmo = run_test_group(lib, sub, drive, signal, S, dtype)
+            buf, length, tmo = run_test_group(lib, sub, drive, signal, S, dtype, around_hold=around_hold)
             timed_out = ((tmo.unsqueeze(-1) >> torch.arange(6, dtype=torch.int32)) & 1).bool()
+        hold = _holds(hold_levels(sub, around_hold), len(idx))
         truths = sub.truth(drive, signal.M_star)
         L = length.tolist()
         t_all = np.arange(int(length.max()), dtype=np.float64) * drive.T_s
@@ -502,6 +510,7 @@ def iter_records(params: TwoMassParams, drive: DriveConfig | None = None, signal
         for j, i in enumerate(idx):
             m = L[j]
             meta = _base_meta(drive, signal)
+            _add_hold(meta, hold[j])
             meta["timed_out"] = timed_out[j].tolist()
             meta["truth"] = truths[j]
             noise = np.random.default_rng(seed + i).standard_normal(m, dtype=np.float32)
@@ -511,6 +520,17 @@ def iter_records(params: TwoMassParams, drive: DriveConfig | None = None, signal
                          section=b["section"][j, :m].astype(np.int64), meta=meta, name=f"sys{i:05d}")
         if progress is not None:
             progress(len(idx))
+
+
+def _holds(M_hold: torch.Tensor | None, n: int) -> list[float]:
+    """The ``n`` holding torques [Nm] the levels ran around (flat; 0.0 each where None: plain)."""
+    return [0.0] * n if M_hold is None else M_hold.reshape(-1).to(torch.float64).tolist()
+
+
+def _add_hold(meta: dict[str, Any], M_hold: float) -> None:
+    """Metadata ``M_hold`` [Nm] where the levels ran around a holding torque that is not 0 (SPEC 1.1)."""
+    if M_hold != 0.0:
+        meta["M_hold"] = M_hold
 
 
 def _base_meta(drive: DriveConfig, signal: TestSignalConfig) -> dict[str, Any]:

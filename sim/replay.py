@@ -32,10 +32,11 @@ def replay_speed(params: TwoMassParams, drive: DriveConfig, start: torch.Tensor,
     ``speed[:, k]`` is measured at ``t_k``, then the level of sample ``k`` acts over ``[t_k, t_k+1)``.
     ``quantize=False`` returns the mean motor speed over the past sample interval instead of the
     encoder's (its expected value: an output-error fit then compares the measurement with the
-    model's noise-free speed). ``state``: the plant state at sample 0 instead of rest, ``n``
-    tensors ``w_M``, ``w_L``, ``dphi`` [rad/s, rad/s, rad] and ``M_M`` [Nm] (the motor angle
-    starts at 0; with ``quantize=False`` sample 0 reads ``w_M``). Levels are clamped to
-    ``+-drive.M_max``. ``substeps`` defaults to :func:`default_substeps`."""
+    model's noise-free speed). The plant starts at rest held by ``params.M_hold`` (SPEC 1.1; the
+    levels are the whole references: a held axis's include the holding torque). ``state``: the
+    plant state at sample 0 instead of rest, ``n`` tensors ``w_M``, ``w_L``, ``dphi`` [rad/s, rad/s,
+    rad] and ``M_M`` [Nm] (the motor angle starts at 0; with ``quantize=False`` sample 0 reads
+    ``w_M``). Levels are clamped to ``+-drive.M_max``. ``substeps`` defaults to :func:`default_substeps`."""
     flat = params if params.J_sigma.dim() == 1 else params.reshape(-1)
     n = flat.J_sigma.numel()
     if start.ndim != 2 or level.shape != start.shape or start.shape[0] != n:
@@ -47,7 +48,7 @@ def replay_speed(params: TwoMassParams, drive: DriveConfig, start: torch.Tensor,
     S = default_substeps(flat, drive) if substeps is None else substeps
     lib = load_kernel() if use_kernel else None
     fp = FastParams.build(flat, drive, S, dtype)
-    x = FastState.zeros(n, dtype)
+    x = FastState.held(flat, dtype)  # rest, held by M_hold where the plant has M_L0 (SPEC 1.1)
     if state is not None:
         if sorted(state) != ["M_M", "dphi", "w_L", "w_M"]:
             raise ValueError(f"state: expected keys ['M_M', 'dphi', 'w_L', 'w_M'], received {sorted(state)}")

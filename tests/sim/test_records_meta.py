@@ -19,7 +19,7 @@ def _record(meta: dict, n: int = 64) -> Record:
 
 def test_every_metadata_key_is_a_typed_field() -> None:
     assert META_KEYS == {f.name for f in dataclasses.fields(RecordMeta)}
-    assert len(META_KEYS) == 15
+    assert len(META_KEYS) == 16  # SPEC 3 and 3.1, and M_hold (SPEC 1.1)
 
 
 def test_info_types_the_checked_metadata() -> None:

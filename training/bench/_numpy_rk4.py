@@ -21,6 +21,7 @@ from sim._integrate_fast import TORQUE_FLOOR
 #: Kahan updates, the stop test's product). Compares, min/max, selects and signs are not counted.
 #: The kernel does the same arithmetic in 129 (``sim._kernel.FLOPS_PER_SUBSTEP``): stage 1 shares
 #: the mode decision's shaft torque, net torque and ``w_M - w_L``, and ``ddphi`` is ``w_M - w_L``.
+#: (SPEC 1.1's motor friction, which the kernel runs in blocks of their own, is not modelled here.)
 FLOPS_PER_SUBSTEP = 139
 
 

@@ -3,6 +3,9 @@
 Each system of ``--params`` runs on the reference drive or on the drive its keys give (``T_s``,
 ``encoder_counts``, ``T_Ei``, ``K_M``, ``M_N``, ``M_max``, ``current_noise_std``: checked against
 SPEC 3.1's envelope, :mod:`training.params_file`); its record's metadata carries that drive.
+A system may be a real axis (SPEC 1.1: keys ``M_L0``, ``M_FCM``, ``mu_FM``; ``--real-axis`` draws
+them for ``--population``): it is held at rest by ``M_hold = M_L0`` before the test, whose levels
+run around it (metadata ``M_hold``) unless ``--plain-levels``.
 """
 
 from __future__ import annotations
@@ -24,9 +27,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     src = parser.add_mutually_exclusive_group(required=True)
     src.add_argument("--params", type=Path, help="JSON file: one system (object) or a list of systems; keys "
                      "J_sigma, V_J, f_e, d, backlash [rad, total], M_FC, mu_F (or J_M, J_L, C_F, D_F), optional name; "
+                     "optional real-axis keys M_L0 [Nm, constant load torque, any sign], M_FCM [Nm, motor Coulomb "
+                     "friction], mu_FM [Nm s/rad, motor viscous friction] (default 0); "
                      "optional drive keys per system T_s, encoder_counts, T_Ei, K_M, M_N, M_max, current_noise_std "
                      "(default: the reference drive's; checked against the drive envelope of docs/contract.md)")
     src.add_argument("--population", type=int, metavar="N", help="draw N systems from the SPEC default population")
+    parser.add_argument("--real-axis", action="store_true",
+                        help="with --population: add SPEC 1.1's real-axis parts (M_L0 in +-0.15 M* for half of the "
+                             "systems, M_FCM 0..0.03 M* for half, mu_FM 0..0.002 Nm s/rad; on the reference test)")
+    parser.add_argument("--plain-levels", action="store_true",
+                        help="run the test's levels plain on an axis with a load torque M_L0 (held only before the "
+                             "test; default: around the holding torque M_hold = M_L0, which the metadata records)")
     parser.add_argument("--seed", type=int, default=0, help="population and noise seed (default 0)")
     parser.add_argument("--out", type=Path, required=True, help="folder for NAME.csv + NAME.json")
     parser.add_argument("--M-star", type=float, default=10.0, help="test torque M* [Nm] (default 10)")
@@ -100,9 +111,9 @@ def _runs(drives: list[Any]) -> list[tuple[int, int]]:
 
 
 def _params_text(truth: dict[str, Any]) -> str:
-    from sim import PARAM_NAMES
+    from sim import ALL_PARAM_NAMES
 
-    return ", ".join(f"{k} {truth[k]:.3g}" for k in PARAM_NAMES)
+    return ", ".join(f"{k} {truth[k]:.3g}" for k in ALL_PARAM_NAMES if k in truth)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -114,6 +125,8 @@ def run(args: argparse.Namespace) -> int:
 
     finite_number("--M-star", args.M_star)  # the drives' noise is checked at it
     seed("--seed", args.seed)
+    if args.real_axis and args.params is not None:
+        raise UserError("--real-axis: only with --population (give M_L0, M_FCM, mu_FM in the --params file instead)")
     if args.params is not None:
         plants = read_plants(args.params, "sys", M_star=args.M_star)
         params, names, drives = plants.params, plants.names, plants.drives
@@ -121,7 +134,7 @@ def run(args: argparse.Namespace) -> int:
         if args.population < 1:
             raise UserError(f"--population: expected N >= 1, received {args.population}")
         check_memory(f"--population {args.population}", args.population * BYTES_PER_SYSTEM)
-        params, names = sample_population(args.population, args.seed), None
+        params, names = sample_population(args.population, args.seed, real_axis=args.real_axis), None
         drives = [DriveConfig()] * args.population
     signal = _signal(args, drives)
     n = params.J_sigma.numel()
@@ -146,12 +159,13 @@ def run(args: argparse.Namespace) -> int:
         if args.method == "reference":
             from sim import responses_to_records, simulate_test
 
-            resp = simulate_test(part, drive, signal, method="reference", seed=part_seed)
+            resp = simulate_test(part, drive, signal, method="reference", seed=part_seed,
+                                 around_hold=not args.plain_levels)
             part_names = names[start:stop] if names is not None else [f"sys{i:05d}" for i in range(start, stop)]
             yield from responses_to_records(resp, part, drive, signal, names=part_names)
             bar.update(stop - start)
             return
-        for rec in iter_records(part, drive, signal, seed=part_seed, dtype=dtype):
+        for rec in iter_records(part, drive, signal, seed=part_seed, dtype=dtype, around_hold=not args.plain_levels):
             i = start + int(rec.name[3:])
             rec.name = names[i] if names is not None else f"sys{i:05d}"
             yield rec

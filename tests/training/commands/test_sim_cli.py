@@ -28,6 +28,31 @@ def test_simulate_population(tmp_path):
     assert len(list(tmp_path.glob("*.csv"))) == 3 and len(list(tmp_path.glob("*.json"))) == 3
 
 
+def test_simulate_real_axis_from_json_and_population(tmp_path, capsys):
+    """SPEC 1.1: M_L0, M_FCM, mu_FM in a params file; --real-axis for a population; --plain-levels."""
+    params = [{"name": "held", "J_sigma": 0.01, "V_J": 1.0, "f_e": 40.0, "d": 0.05, "M_L0": -1.5, "M_FCM": 0.2,
+               "mu_FM": 0.001}]
+    (tmp_path / "p.json").write_text(json.dumps(params))
+    for flags, folder in (([], "around"), (["--plain-levels"], "plain")):
+        out = tmp_path / folder
+        argv = ["simulate", "--params", str(tmp_path / "p.json"), "--out", str(out), "--w-max", "20", "--no-progress"]
+        assert main(argv + flags) == 0
+        rec = read_record(out / "held")
+        assert (rec.meta["truth"]["M_L0"], rec.meta["truth"]["M_FCM"], rec.meta["truth"]["mu_FM"]) == (-1.5, 0.2, 0.001)
+        assert rec.torque_ref[0] == -1.5  # held before the test
+        if flags:
+            assert "M_hold" not in rec.meta and rec.torque_ref[1] == 10.0
+        else:
+            assert rec.meta["M_hold"] == -1.5 and rec.torque_ref[1] == 8.5
+    out = tmp_path / "pop"
+    assert main(["simulate", "--population", "6", "--seed", "2", "--real-axis", "--out", str(out), "--w-max", "20",
+                 "--no-progress"]) == 0
+    truths = [read_record(p).meta["truth"] for p in sorted(out.glob("*.csv"))]
+    assert any(t["M_L0"] != 0 for t in truths) and all(0 <= t["mu_FM"] <= 0.002 for t in truths)
+    assert main(["simulate", "--params", str(tmp_path / "p.json"), "--real-axis", "--out", str(tmp_path / "x")]) == 2
+    assert "--real-axis" in capsys.readouterr().err
+
+
 def test_simulate_bad_params_file(tmp_path, capsys):
     (tmp_path / "p.json").write_text('{"J_sigma": 0.01}')
     assert main(["simulate", "--params", str(tmp_path / "p.json"), "--out", str(tmp_path)]) == 2
