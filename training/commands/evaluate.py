@@ -68,6 +68,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "drive envelope (seed --seed; drives no matrix chose), N systems each, and all together; "
                              "written to OUT/drives_envelope.md and OUT/drives_envelope.json (the confidence to "
                              "OUT/confidence_envelope.md, .json and OUT/fig_reliability_envelope.png)")
+    parser.add_argument("--real-axis", action="store_true",
+                        help="with --drives N (the matrix): the drives' populations with SPEC 1.1's load torque and "
+                             "motor friction (docs/simulator.md); written to OUT/drives_real_axis.md, .json and "
+                             "OUT/confidence_real_axis.md, .json, OUT/fig_reliability_real_axis.png")
     _progress.add_option(parser)
 
 
@@ -102,22 +106,26 @@ def _run_drives(args: argparse.Namespace) -> int:
     envelope = args.envelope_drives is not None
     if envelope and args.envelope_drives < 1:
         raise ValueError(f"--envelope-drives: expected K >= 1 drives, received {args.envelope_drives}")
-    stem = "drives_envelope" if envelope else "drives"
+    if args.real_axis and envelope:
+        raise ValueError("--real-axis: the matrix's study only, not with --envelope-drives")
+    suffix = "_envelope" if envelope else "_real_axis" if args.real_axis else ""
+    stem = f"drives{suffix}"
     md, js = args.out / f"{stem}.md", args.out / f"{stem}.json"
-    confidence_stem = "confidence_envelope" if envelope else "confidence"
+    confidence_stem = f"confidence{suffix}"
     refuse_existing([md, js, *confidence_files(args.out, confidence_stem, plots=not args.no_plots)], args.overwrite)
     identifier = Identifier.load(args.checkpoints)
     command = (f"twomass evaluate --drives {args.drives}"
                + (f" --envelope-drives {args.envelope_drives}" if envelope else "")
+               + (" --real-axis" if args.real_axis else "")
                + f" --seed {args.seed} --out {args.out}"
                + (f" --checkpoints {args.checkpoints}" if args.checkpoints is not None else ""))
     if envelope:
         runs = envelope_rows(args.envelope_drives, args.drives, args.seed, identifier)
         title = f"Identification on {args.envelope_drives} drives drawn at random over the drive envelope"
     else:
-        runs = ((name, case.description, drive_rows(case, args.drives, args.seed, identifier))
+        runs = ((name, case.description, drive_rows(case, args.drives, args.seed, identifier, real_axis=args.real_axis))
                 for name, case in DRIVES.items())
-        title = "Identification on a matrix of drives"
+        title = "Identification on a matrix of drives" + (" with real axes (SPEC 1.1)" if args.real_axis else "")
     figures, descriptions, by_drive = {}, {}, {}
     for name, words, rows in runs:  # a drive at a time: its figures as soon as they are known
         figures[name], descriptions[name], by_drive[name] = drive_figures(rows), words, rows

@@ -20,13 +20,14 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Iterator, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
 import torch
 
-from sim import (R_OSC_VISIBLE, S_N_ELASTIC, DriveConfig, EnvelopeRanges, PopulationRanges, TestSignalConfig,
+from sim import (R_OSC_VISIBLE, S_N_ELASTIC, DriveConfig, EnvelopeRanges, PopulationRanges, RealAxisRanges,
+                 TestSignalConfig,
                  TwoMassParams, inertia_of_time_scale, iter_records, sample_envelope, sample_population, time_scale)
 from training.evaluation._answers import row_values, score_rows
 from training.evaluation._confidence import warned_shares
@@ -52,6 +53,19 @@ class DriveCase:
         return PopulationRanges(J_sigma=(inertia_of_time_scale(self.time_scale[0], M, w),
                                          inertia_of_time_scale(self.time_scale[1], M, w)),
                                 M_FC=(0.0, 0.05 * M), mu_F=(0.0, 0.05 * M / w))
+
+    def population(self, n: int, seed: int, real_axis: bool = False) -> TwoMassParams:
+        """``n`` systems of :meth:`ranges` (seed ``seed``); ``real_axis``: with SPEC 1.1's parts,
+        their shares of this drive's test torque and speed (:class:`sim.RealAxisRanges`, whose
+        defaults are shares on the reference test)."""
+        if not real_axis:
+            return sample_population(n, seed, self.ranges())
+        r, reference = RealAxisRanges(), TestSignalConfig()
+        k = self.signal.M_star / reference.M_star  # the torques' scale
+        k_w = k * reference.w_max / self.signal.w_max  # the viscous friction's, M*/w_max
+        scaled = replace(r, M_L0=(r.M_L0[0] * k, r.M_L0[1] * k), M_FCM=(r.M_FCM[0] * k, r.M_FCM[1] * k),
+                         mu_FM=(r.mu_FM[0] * k_w, r.mu_FM[1] * k_w))
+        return sample_population(n, seed, self.ranges(), real_axis=scaled)
 
 
 def _case(name: str, description: str, M_N: float, w_max: float, time_scale: tuple[float, float] = (0.1, 2.0),
@@ -79,11 +93,11 @@ DRIVES: dict[str, DriveCase] = {c.name: c for c in (
 
 
 def drive_rows(case: DriveCase, n: int, seed: int, identifier: Any,
-               progress: Callable[[int], object] | None = None) -> list[dict[str, Any]]:
+               progress: Callable[[int], object] | None = None, real_axis: bool = False) -> list[dict[str, Any]]:
     """Simulate ``n`` systems of ``case`` and identify them; one row per system: ``truth``
     (true parameters, ``s_N``, ``r_osc``, ``w_e_T_Ei``, class) and ``som`` (``structure``, the
     parameters, ``n_warnings``, ``error`` and :func:`confidence_columns`)."""
-    return _rows(sample_population(n, seed, case.ranges()), case.drive, case.signal, seed, identifier, progress)
+    return _rows(case.population(n, seed, real_axis), case.drive, case.signal, seed, identifier, progress)
 
 
 def envelope_rows(drives: int, per_drive: int, seed: int, identifier: Any,

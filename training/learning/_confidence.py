@@ -29,7 +29,10 @@ from training.identification._confidence import (COVERAGE, CONFIDENCE_VERSION, F
 
 #: The seeds of the calibration's three sets: the drive matrix, the envelope drives, the reference
 #: drive's default population.
-CALIBRATION_SEEDS = {"matrix": 7101, "envelope": 7102, "reference": 7103}
+CALIBRATION_SEEDS = {"matrix": 7101, "envelope": 7102, "reference": 7103, "real_axis": 7104}
+#: The matrix drives whose real-axis population (SPEC 1.1) the calibration includes, and how many
+#: of them each: the reference drive, the coarsest and the smallest drive.
+REAL_AXIS_DRIVES = {"reference": 2, "low_res_1ms": 1, "servo_200w": 1}
 #: The fewest calibration answers of a class for a class's own conformal quantile (else the pooled one).
 MIN_CLASS_SAMPLES = 80
 #: The share of wrong answers the ``likely_wrong`` threshold may leave unwarned on the calibration
@@ -77,11 +80,17 @@ Task = tuple[str, DriveConfig, TestSignalConfig, TwoMassParams, int]
 def calibration_tasks(per_drive: int = 300, envelope_drives: int = 40, per_envelope_drive: int = 25,
                       reference: int = 1000, seeds: dict[str, int] = CALIBRATION_SEEDS) -> list[Task]:
     """The calibration's simulation tasks: (group, drive, test, systems, noise seed), each at most
-    100 systems."""
+    100 systems: ``per_drive`` systems of each matrix drive's population, as many of the real-axis
+    population on :data:`REAL_AXIS_DRIVES` (times its weight), ``envelope_drives`` drives of the
+    envelope, ``reference`` systems of the default population on the reference drive."""
     tasks: list[Task] = []
     for name, case in DRIVES.items():
         tasks += _split(f"matrix:{name}", case.drive, case.signal, sample_population(per_drive, seeds["matrix"],
                                                                                      case.ranges()), seeds["matrix"])
+    for name, weight in REAL_AXIS_DRIVES.items():
+        case = DRIVES[name]
+        tasks += _split(f"real_axis:{name}", case.drive, case.signal,
+                        case.population(weight * per_drive, seeds["real_axis"], real_axis=True), seeds["real_axis"])
     for name, drive, signal, params, seed in envelope_cases(envelope_drives, per_envelope_drive, seeds["envelope"]):
         tasks += _split(name, drive, signal, params, seed)
     reference_drive = DRIVES["reference"]
