@@ -40,7 +40,8 @@ def _record(drive: DriveConfig = DriveConfig(), signal: TestSignalConfig = TestS
 
 
 def _codes(result) -> list[str]:
-    return [w.code for w in result.warnings]
+    """The codes of the result's warnings and notes (the uncertainty remarks are notes where the maps are calibrated)."""
+    return [w.code for w in (*result.warnings, *result.notes)]
 
 
 def test_a_scaled_drive_gets_its_own_backlash(ident):
@@ -284,7 +285,7 @@ def test_an_answer_near_a_class_threshold_says_so(ident):
     """w_e T_Ei near 1 (f_e 330 Hz at T_Ei 0.5 ms): stiff or elastic is a coin toss, and the answer
     says so; far from every threshold it does not."""
     near = ident.identify(_record(f_e=330.0, backlash=0.0, V_J=1.0, J_sigma=0.05))
-    texts = [w.text for w in near.warnings if w.code == "class_near_threshold"]
+    texts = [w.text for w in (*near.warnings, *near.notes) if w.code == "class_near_threshold"]
     assert texts and texts[0].startswith("w_e_T_Ei = ")
     far = ident.identify(_record(f_e=30.0, backlash=0.0, V_J=1.0, J_sigma=0.05))
     assert far.structure == "elastic" and "class_near_threshold" not in _codes(far)

@@ -43,3 +43,48 @@ def test_calibration_of_another_version_is_refused(tmp_path) -> None:
     path.write_text("{not json")
     with pytest.raises(ValueError, match="unreadable"):
         Calibration.load(path)
+
+
+def _record(**params):
+    from sim import DriveConfig, TestSignalConfig, TwoMassParams, responses_to_records, simulate_test
+
+    drive, signal = DriveConfig(), TestSignalConfig()
+    p = TwoMassParams(**{k: float(v) for k, v in params.items()})
+    return responses_to_records(simulate_test(p, drive, signal, seed=3), p.reshape(1), drive, signal)[0]
+
+
+@pytest.fixture(scope="module")
+def shipped():
+    from training.identification import Identifier
+
+    ident = Identifier.load()
+    if ident.calibration is None:
+        pytest.fail("the shipped maps carry no confidence calibration (checkpoints/confidence.json)")
+    return ident
+
+
+def test_intervals_cover_the_truth_narrow_where_the_record_shows_it(shipped) -> None:
+    # a 30 Hz shaft whose oscillation spans hundreds of speed quanta: V_J is well determined
+    informative = shipped.identify(_record(J_sigma=0.05, V_J=1.5, f_e=30.0, d=0.02, backlash=0.0, M_FC=0.1,
+                                           mu_F=0.001))
+    # a 250 Hz shaft with a light load: its oscillation is below one speed quantum (r_osc ~0.4), the
+    # answer stiff, and the record says nothing about V_J
+    blind = shipped.identify(_record(J_sigma=0.2, V_J=0.3, f_e=250.0, d=0.02, backlash=0.0, M_FC=0.1, mu_F=0.001))
+    assert informative.structure == "elastic" and blind.structure == "stiff"
+    low, high = informative.intervals["V_J"]
+    assert low <= 1.5 <= high and high / low < 1.3
+    low, high = blind.intervals["V_J"]
+    assert low <= 0.3 <= high and high / low > 3.0
+    for res in (informative, blind):
+        assert all(res.intervals[n][0] <= res.intervals[n][1] for n in ("J_sigma", "f_e", "d", "backlash"))
+        assert res.intervals["J_sigma"][0] <= (0.05 if res is informative else 0.2) <= res.intervals["J_sigma"][1]
+
+
+def test_probabilities_sum_to_one_and_the_class_is_their_argmax(shipped, good) -> None:
+    res = shipped.identify(good)
+    p = res.quality.structure_probabilities
+    assert list(p) == list(STRUCTURE_CLASSES) and sum(p.values()) == pytest.approx(1.0, abs=1e-12)
+    assert max(p, key=p.get) == res.structure
+    assert 0.0 < res.quality.answer_probability <= 1.0
+    d = res.to_dict()
+    assert set(d["intervals"]) == set(d["parameters"]) and d["notes"] == [w.text for w in res.notes]

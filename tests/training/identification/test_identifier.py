@@ -21,7 +21,7 @@ from training.identification._policy import MapsAnswer
 from training.identification._refine import Refined
 
 #: The keys of SPEC section 9's object and of its ``quality`` (the refinement's last four).
-SPEC9_KEYS = ["structure", "parameters", "quality", "warnings"]
+SPEC9_KEYS = ["structure", "parameters", "intervals", "quality", "warnings", "notes"]  # the shipped maps are calibrated
 QUALITY_KEYS = ["structure_probabilities", "map_distance_ratio", "osc_quanta", "oscillation_fit_r2",
                 "one_mass_rel_residual", "outside_training", "section_flags", "maps_estimate", "outside_envelope"]
 REFINE_KEYS = ["maps_structure", "refine_residual", "refine_start_residual", "refined_s_N"]
@@ -56,14 +56,14 @@ def test_to_dict_gives_the_spec9_keys_in_order(ident, good):
     assert list(d) == SPEC9_KEYS
     assert res.structure in STRUCTURE_CLASSES
     assert list(d["parameters"]) == list(PARAMETER_NAMES)
-    assert list(d["quality"]) == QUALITY_KEYS + REFINE_KEYS
+    assert list(d["quality"]) == QUALITY_KEYS + REFINE_KEYS + ["answer_probability"]
     assert d["warnings"] == [w.text for w in res.warnings]
     json.dumps(d)  # plain JSON types only
 
 
 def test_without_refinement_the_refine_figures_are_absent(good):
     res = Identifier.load(refine=None).identify(good)
-    assert list(res.to_dict()["quality"]) == QUALITY_KEYS
+    assert list(res.to_dict()["quality"]) == QUALITY_KEYS + ["answer_probability"]
     assert res.quality.maps_structure is None
 
 
