@@ -225,17 +225,18 @@ def state_confidence(evidence: RecordEvidence, draft: Draft, judge: Judge) -> Dr
         total = sum(max(p, 0.0) for p in raw.values())
         p = max(raw[draft.structure], 0.0) / total if total > 0 else 0.0
         return replace(draft, confidence=inputs, probabilities=share_rest(draft.structure, max(p, 0.25), raw))
-    p_right = calibration.answer_probability(inputs)
+    probabilities = calibration.probabilities(inputs, raw)
+    p_right = min(calibration.answer_probability(inputs), probabilities[draft.structure])  # right needs the class
     notes = tuple(w for w in draft.warnings if w.code in NOTE_CODES)
     warnings = tuple(w for w in draft.warnings if w.code not in NOTE_CODES)
     if p_right < calibration.warn_below:
         why = "; ".join(w.text for w in notes[:2])
-        warnings += (IdentWarning("likely_wrong", f"the answer is right with probability {p_right:.3f}, below "
-                                                  f"{calibration.warn_below:.3f}, under which nearly all wrong answers "
-                                                  "lie: check it, or test again with a larger M* or a finer encoder" + (f" ({why})" if why else "")),)
+        warnings += (IdentWarning("likely_wrong", f"this answer is wrong with probability {1.0 - p_right:.1%} (answers "
+                                                  f"are warned from {1.0 - calibration.warn_below:.1%}): check it, or "
+                                                  "test again with a larger M* or a finer encoder"
+                                                  + (f" ({why})" if why else "")),)
     return replace(draft, warnings=warnings, notes=notes, confidence=inputs, intervals=calibration.intervals(inputs),
-                   probabilities=calibration.probabilities(inputs, raw),
-                   answer_probability=p_right)
+                   probabilities=probabilities, answer_probability=p_right)
 
 
 def answer_confidence(evidence: RecordEvidence, draft: Draft) -> ConfidenceInputs:
