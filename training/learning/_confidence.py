@@ -24,7 +24,7 @@ from sim import DriveConfig, TestSignalConfig, TwoMassParams, iter_records, samp
 from training.evaluation._drives import DRIVES, envelope_cases
 from training.evaluation._metrics import answer_wrong, relative_error, threshold_margin
 from training.identification import INTERVAL_NAMES, NOTE_CODES, Identifier
-from training.identification._confidence import (COVERAGE, CONFIDENCE_VERSION, FEATURE_NAMES, Calibration,
+from training.identification._confidence import (COVERAGE, CONFIDENCE_VERSION, Calibration,
                                                  ConfidenceInputs, LinearModel)
 
 #: The seeds of the calibration's three sets: the drive matrix, the envelope drives, the reference
