@@ -19,6 +19,8 @@ Slow (Python loop per system and segment): meant for tests and checks.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import torch
 from torchdiffeq import odeint
 
@@ -27,6 +29,32 @@ from sim.params import DriveConfig, TwoMassParams
 
 _EPS_W = 1e-12  # rad/s: a sliding load counts as stopped once it passes this past zero
 _EPS_M = 1e-12  # Nm: break-away margin over M_FC
+
+
+def _friction_mode(w: float, net: float, limit: float, forced: float | None) -> tuple[bool, float]:
+    """``(stuck, sign)`` of a body with Coulomb friction ``limit`` [Nm] at the start of a segment:
+    the ``forced`` sign of a break-away; stuck at rest while ``|net| <= limit``; else sliding in
+    the direction of its speed ``w`` (at rest: of its net torque ``net``)."""
+    if forced is not None:
+        return False, forced
+    if w == 0.0 and abs(net) <= limit:
+        return True, 0.0
+    return False, ((1.0 if w > 0 else -1.0) if w != 0.0 else (1.0 if net > 0 else -1.0))
+
+
+def _rest_or_break(y: torch.Tensor, k: int, stuck: bool, g: Callable[[torch.Tensor], torch.Tensor],
+                   net: Callable[[torch.Tensor], float], sliding: bool = True) -> float | None:
+    """After a segment that ended at an event, state ``y``'s speed ``k`` of a body: a stuck body
+    stays at rest and breaks away (the sign returned) where its event ``g`` fired, in the direction
+    of its net torque ``net``; a sliding one (where ``sliding``) whose event fired has stopped: at
+    rest, stick or slip decided by the next segment. ``None``: no break-away."""
+    if stuck:
+        y[k] = 0.0
+        if float(g(y)) <= 0.0:
+            return 1.0 if net(y) > 0 else -1.0
+    elif sliding and float(g(y)) <= 0.0:
+        y[k] = 0.0
+    return None
 
 
 class ReferenceIntegrator:
@@ -55,30 +83,15 @@ class ReferenceIntegrator:
         J_M, J_L, s, M_FC, mu_F, M_ext = self.J_M[i], self.J_L[i], self.s[i], self.M_FC[i], self.mu_F[i], self.M_ext[i]
         M_FCM, mu_FM = self.M_FCM[i], self.mu_FM[i]
         motor_coulomb, motor_friction = M_FCM > 0, M_FCM > 0 or mu_FM != 0
-        forced_sgn = forced_sgnM = None
+        forced_sgn = forced_sgnM = None  # the sign a body breaks away with, for the next segment
         while T - t > 1e-15:
             M_S0 = float(self._shaft(i, y[2], y[0] - y[1]))
             net0 = M_S0 - M_ext
-            w_L0 = float(y[1])
-            if forced_sgn is not None:
-                stuck, sgn = False, forced_sgn
-            elif w_L0 == 0.0 and abs(net0) <= M_FC:
-                stuck, sgn = True, 0.0
-            else:
-                stuck = False
-                sgn = (1.0 if w_L0 > 0 else -1.0) if w_L0 != 0.0 else (1.0 if net0 > 0 else -1.0)
-            forced_sgn = None
+            stuck, sgn = _friction_mode(float(y[1]), net0, M_FC, forced_sgn)
             fric = M_FC * sgn
-            stuckM, sgnM = False, 0.0  # the motor's mode (SPEC 1.1), where it has Coulomb friction
-            if motor_coulomb:
-                netM0, w_M0 = float(y[3]) - M_S0, float(y[0])
-                if forced_sgnM is not None:
-                    sgnM = forced_sgnM
-                elif w_M0 == 0.0 and abs(netM0) <= M_FCM:
-                    stuckM = True
-                else:
-                    sgnM = (1.0 if w_M0 > 0 else -1.0) if w_M0 != 0.0 else (1.0 if netM0 > 0 else -1.0)
-            forced_sgnM = None
+            # the motor's mode (SPEC 1.1), where it has Coulomb friction
+            stuckM, sgnM = (_friction_mode(float(y[0]), float(y[3]) - M_S0, M_FCM, forced_sgnM) if motor_coulomb
+                            else (False, 0.0))
             fricM = M_FCM * sgnM
 
             def rhs(_t, yy, stuck=stuck, fric=fric, stuckM=stuckM, fricM=fricM):
@@ -124,20 +137,12 @@ class ReferenceIntegrator:
             t += dt_seg
             if T - t <= 1e-15:
                 break
-            if stuck:
-                y[1] = 0.0
-                if float(g_fric(y)) <= 0.0:  # break-away: slide in the direction of the net torque
-                    net = float(self._shaft(i, y[2], y[0] - y[1])) - M_ext
-                    forced_sgn = 1.0 if net > 0 else -1.0
-            elif float(g_fric(y)) <= 0.0:  # the load stopped: rest; stick or slip decided next
-                y[1] = 0.0
-            if stuckM:
-                y[0] = 0.0
-                if float(g_fricM(y)) <= 0.0:  # the motor breaks away in the direction of its net torque
-                    netM = float(y[3]) - float(self._shaft(i, y[2], y[0] - y[1]))
-                    forced_sgnM = 1.0 if netM > 0 else -1.0
-            elif motor_coulomb and float(g_fricM(y)) <= 0.0:  # the motor stopped
-                y[0] = 0.0
+            # the load, then the motor: at rest where it stopped, or breaking away from rest
+            forced_sgn = _rest_or_break(y, 1, stuck, g_fric,
+                                        lambda yy: float(self._shaft(i, yy[2], yy[0] - yy[1])) - M_ext)
+            forced_sgnM = _rest_or_break(y, 0, stuckM, g_fricM,
+                                         lambda yy: float(yy[3]) - float(self._shaft(i, yy[2], yy[0] - yy[1])),
+                                         sliding=motor_coulomb)
         if stuck:
             y[1] = 0.0
         if stuckM:

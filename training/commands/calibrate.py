@@ -8,7 +8,7 @@ from pathlib import Path
 
 from training.commands import _progress
 
-HELP = "calibrate the answers' 90 % intervals and probabilities on held-out simulated records (SPEC 4.1)"
+HELP = "calibrate the answers' 90-percent intervals and probabilities on held-out simulated records (SPEC 4.1)"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -36,10 +36,10 @@ def run(args: argparse.Namespace) -> int:
     from training._pool import worker_pool
     from training.config import checkpoints_folder
     from training.errors import OutputExistsError
-    from training.identification import CHECKPOINT_FILES
-    from training.identification._confidence import FILE_NAME, maps_digests
-    from training.learning._confidence import (CALIBRATION_SEEDS, calibration_tasks, fit_calibration, load_samples,
-                                               save_samples, task_samples)
+    from training.identification import CHECKPOINT_FILES, maps_digests
+    from training.identification import CONFIDENCE_FILE as FILE_NAME
+    from training.learning import (CALIBRATION_SEEDS, calibration_tasks, fit_calibration, load_samples, save_samples,
+                                   task_samples)
 
     folder = args.checkpoints if args.checkpoints is not None else checkpoints_folder()
     target = folder / FILE_NAME

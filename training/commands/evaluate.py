@@ -89,6 +89,19 @@ def command_line(args: argparse.Namespace) -> str:
     return " ".join(parts)
 
 
+def _drive_study(args: argparse.Namespace) -> tuple[bool, str]:
+    """Whether ``--drives`` runs on envelope drives, and its files' suffix (``""``, ``"_envelope"``,
+    ``"_real_axis"``); bad values raise ``ValueError`` (one line)."""
+    if args.drives < 1:
+        raise ValueError(f"--drives: expected N >= 1 systems per drive, received {args.drives}")
+    envelope = args.envelope_drives is not None
+    if envelope and args.envelope_drives < 1:
+        raise ValueError(f"--envelope-drives: expected K >= 1 drives, received {args.envelope_drives}")
+    if args.real_axis and envelope:
+        raise ValueError("--real-axis: the matrix's study only, not with --envelope-drives")
+    return envelope, "_envelope" if envelope else "_real_axis" if args.real_axis else ""
+
+
 def _run_drives(args: argparse.Namespace) -> int:
     """``--drives N``: per drive of :data:`training.evaluation.DRIVES` (with ``--envelope-drives K``: of K
     drives drawn over the envelope, and of all of them together), N systems identified and scored."""
@@ -101,16 +114,8 @@ def _run_drives(args: argparse.Namespace) -> int:
                                      drives_markdown, envelope_rows, write_confidence)
     from training.identification import Identifier
 
-    if args.drives < 1:
-        raise ValueError(f"--drives: expected N >= 1 systems per drive, received {args.drives}")
-    envelope = args.envelope_drives is not None
-    if envelope and args.envelope_drives < 1:
-        raise ValueError(f"--envelope-drives: expected K >= 1 drives, received {args.envelope_drives}")
-    if args.real_axis and envelope:
-        raise ValueError("--real-axis: the matrix's study only, not with --envelope-drives")
-    suffix = "_envelope" if envelope else "_real_axis" if args.real_axis else ""
-    stem = f"drives{suffix}"
-    md, js = args.out / f"{stem}.md", args.out / f"{stem}.json"
+    envelope, suffix = _drive_study(args)
+    md, js = args.out / f"drives{suffix}.md", args.out / f"drives{suffix}.json"
     confidence_stem = f"confidence{suffix}"
     refuse_existing([md, js, *confidence_files(args.out, confidence_stem, plots=not args.no_plots)], args.overwrite)
     identifier = Identifier.load(args.checkpoints)

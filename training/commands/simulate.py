@@ -116,26 +116,33 @@ def _params_text(truth: dict[str, Any]) -> str:
     return ", ".join(f"{k} {truth[k]:.3g}" for k in ALL_PARAM_NAMES if k in truth)
 
 
-def run(args: argparse.Namespace) -> int:
-    import numpy as np
-    import torch
+def _plants(args: argparse.Namespace) -> tuple[Any, list[str] | None, list[Any]]:
+    """The systems to simulate, their names (``None``: numbered) and drives: from ``--params``, else
+    ``--population`` systems of the default (``--real-axis``: the real-axis) population."""
+    from sim import DriveConfig, sample_population
+    from training._checks import BYTES_PER_SYSTEM, check_memory
 
-    from sim import DriveConfig, RecordError, iter_records, sample_population, write_record
-    from training._checks import BYTES_PER_SYSTEM, check_disk, check_memory, check_sim_cost, finite_number, seed
-
-    finite_number("--M-star", args.M_star)  # the drives' noise is checked at it
-    seed("--seed", args.seed)
     if args.real_axis and args.params is not None:
         raise UserError("--real-axis: only with --population (give M_L0, M_FCM, mu_FM in the --params file instead)")
     if args.params is not None:
         plants = read_plants(args.params, "sys", M_star=args.M_star)
-        params, names, drives = plants.params, plants.names, plants.drives
-    else:
-        if args.population < 1:
-            raise UserError(f"--population: expected N >= 1, received {args.population}")
-        check_memory(f"--population {args.population}", args.population * BYTES_PER_SYSTEM)
-        params, names = sample_population(args.population, args.seed, real_axis=args.real_axis), None
-        drives = [DriveConfig()] * args.population
+        return plants.params, plants.names, plants.drives
+    if args.population < 1:
+        raise UserError(f"--population: expected N >= 1, received {args.population}")
+    check_memory(f"--population {args.population}", args.population * BYTES_PER_SYSTEM)
+    return sample_population(args.population, args.seed, real_axis=args.real_axis), None, [DriveConfig()] * args.population
+
+
+def run(args: argparse.Namespace) -> int:
+    import numpy as np
+    import torch
+
+    from sim import RecordError, iter_records, write_record
+    from training._checks import check_disk, check_memory, check_sim_cost, finite_number, seed
+
+    finite_number("--M-star", args.M_star)  # the drives' noise is checked at it
+    seed("--seed", args.seed)
+    params, names, drives = _plants(args)
     signal = _signal(args, drives)
     n = params.J_sigma.numel()
     flat = params.reshape(-1)

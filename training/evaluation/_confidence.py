@@ -140,7 +140,7 @@ class Reliability:
 
 
 @dataclass(frozen=True)
-class Calibration:
+class ProbabilityCalibration:
     """A probability's :class:`Reliability` over ``reliability.n`` answers; ``n_uncalibrated``
     answers gave none. For the class probabilities also: ``n_not_summing`` answers whose four
     probabilities do not sum to 1 (within 1e-6), ``n_not_argmax`` whose reported class is not the
@@ -203,8 +203,8 @@ class ConfidenceReport:
 
     coverage: CoverageTable
     half_widths: dict[str, dict[str, float | None]]
-    structure: Calibration
-    answer: Calibration
+    structure: ProbabilityCalibration
+    answer: ProbabilityCalibration
     warned: WarnedShares
     checks: tuple[Check, ...]
 
@@ -327,7 +327,7 @@ def expected_calibration_error(p: np.ndarray, hit: np.ndarray, bins: int = BINS)
     return ece
 
 
-def structure_calibration(rows: Sequence[dict[str, Any]], bins: int = BINS) -> Calibration:
+def structure_calibration(rows: Sequence[dict[str, Any]], bins: int = BINS) -> ProbabilityCalibration:
     """The reported class's probability against "class right", over the answers of ``rows``
     (answers without probabilities counted as uncalibrated)."""
     rows = _answered(rows)
@@ -339,18 +339,18 @@ def structure_calibration(rows: Sequence[dict[str, Any]], bins: int = BINS) -> C
     p = np.array([float(som["probabilities"][som["structure"]]) for som in kept])
     not_summing = sum(abs(sum(som["probabilities"].values()) - 1.0) > 1e-6 for som in kept)
     not_argmax = sum(som["probabilities"][som["structure"]] < max(som["probabilities"].values()) for som in kept)
-    return Calibration(reliability(p, score.class_right[keep], bins), int((~keep).sum()), int(not_summing),
+    return ProbabilityCalibration(reliability(p, score.class_right[keep], bins), int((~keep).sum()), int(not_summing),
                        int(not_argmax))
 
 
-def answer_calibration(rows: Sequence[dict[str, Any]], bins: int = BINS) -> Calibration:
+def answer_calibration(rows: Sequence[dict[str, Any]], bins: int = BINS) -> ProbabilityCalibration:
     """``answer_probability`` against "answer right" (:mod:`training.evaluation._answers`) over the
     answers of ``rows`` (``None``: uncalibrated, counted)."""
     rows = _answered(rows)
     score = score_rows(rows)
     keep = np.array([r["som"].get("answer_probability") is not None for r in rows], dtype=bool)
     p = np.array([float(r["som"]["answer_probability"]) for r, k in zip(rows, keep) if k])
-    return Calibration(reliability(p, ~score.wrong[keep], bins), int((~keep).sum()))
+    return ProbabilityCalibration(reliability(p, ~score.wrong[keep], bins), int((~keep).sum()))
 
 
 def warned_shares(rows: Sequence[dict[str, Any]]) -> WarnedShares:
@@ -361,7 +361,7 @@ def warned_shares(rows: Sequence[dict[str, Any]]) -> WarnedShares:
                         int((wrong & ~score.warned).sum()), int(score.failed.sum()))
 
 
-def _checks(cov: CoverageTable, structure: Calibration, answer: Calibration, warned: WarnedShares) -> tuple[Check, ...]:
+def _checks(cov: CoverageTable, structure: ProbabilityCalibration, answer: ProbabilityCalibration, warned: WarnedShares) -> tuple[Check, ...]:
     lo, hi = COVERAGE_BAND
     out = []
     for name in cov.parameters:
@@ -448,7 +448,7 @@ def confidence_markdown(report: ConfidenceReport, command: str, descriptions: Ma
     shown = [p for p in HALF_WIDTH_SHOWN if p in names]
     lines += markdown_table(["drive", *shown], [[d, *(_fmt(w[p], 3) for p in shown)]
                                                 for d, w in report.half_widths.items()])
-    lines += ["", "## Calibration of the probabilities", "",
+    lines += ["", "## ProbabilityCalibration of the probabilities", "",
               f"Expected calibration error (top label, {BINS} equal-width bins; target <= {ECE_MAX:g}): the reported "
               "class's probability against \"class right\", answer_probability against \"answer right\" (not wrong: "
               "class right, an elastic answer within E_30, J_sigma within 30 %).", ""]
@@ -529,7 +529,7 @@ def write_confidence(report: ConfidenceReport, out: Path, stem: str, command: st
     from som_torch import atomic_write
     from training._json import dumps
     from training.figures import plots_available, save_png
-    from training.figures._style import PLOT_HINT
+    from training.figures import PLOT_HINT
 
     out.mkdir(parents=True, exist_ok=True)
     figure, note = None, ""

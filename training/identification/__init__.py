@@ -5,6 +5,8 @@ from ._analysis import FEATURE_NAMES, FEATURE_VERSION, REFERENCE_DRIVE, Analysis
 from ._drive import DriveValues
 from ._envelope import FILE_NAME as ENVELOPE_FILE, SPEC_ENVELOPE, Envelope, inside_envelope, trained_envelope
 from ._batch import CHUNK, ReadRecord
+from ._confidence import COVERAGE as CONFIDENCE_COVERAGE
+from ._confidence import CONFIDENCE_VERSION, FILE_NAME as CONFIDENCE_FILE, Calibration, ConfidenceInputs, LinearModel, maps_digests
 from ._features import eigenfrequency_features, extra_features, structure_and_peaks, structure_features
 from ._identifier import Identifier
 from ._limits import BACKLASH_VISIBLE_COUNTS, backlash_resolution, motor_lead
@@ -22,7 +24,8 @@ from ._sections import SectionSplit, detect_sections
 from ._interval_text import MAY_BE_ZERO, interval_text
 
 __all__ = [
-    "Identifier", "IdentificationPolicy", "ReadRecord", "CHUNK", "IdentificationResult", "IdentificationFailure", "Outcome", "Parameters", "Quality",
+    "Identifier", "IdentificationPolicy", "Calibration", "ConfidenceInputs", "CONFIDENCE_FILE", "CONFIDENCE_VERSION",
+    "CONFIDENCE_COVERAGE", "LinearModel", "maps_digests", "ReadRecord", "CHUNK", "IdentificationResult", "IdentificationFailure", "Outcome", "Parameters", "Quality",
     "IdentWarning", "WARNING_CODES", "NOTE_CODES", "PARAMETER_NAMES", "PARAMETER_UNITS", "INTERVAL_NAMES", "Intervals",
     "interval_text", "MAY_BE_ZERO",
     "analyze", "Analysis", "FEATURE_NAMES", "FEATURE_VERSION", "REFERENCE_DRIVE", "DriveValues",

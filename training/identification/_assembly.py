@@ -97,8 +97,8 @@ def assemble(evidence: RecordEvidence, judge: Judge) -> IdentificationResult:
     draft = _maps_draft(evidence)
     for step in ADJUSTMENTS:
         draft = step(evidence, draft, judge)
-    return IdentificationResult(draft.structure, draft.parameters, _quality(evidence, draft, judge.policy), draft.warnings,
-                                evidence.name, draft.intervals, draft.notes, draft.confidence)
+    return IdentificationResult(draft.structure, draft.parameters, _quality(evidence, draft, judge.policy),
+                                draft.warnings, evidence.name, draft.intervals, draft.notes, draft.confidence)
 
 
 def _maps_draft(evidence: RecordEvidence) -> Draft:
@@ -372,7 +372,8 @@ def _quality(evidence: RecordEvidence, draft: Draft, policy: IdentificationPolic
                                                   refined_s_N=refined.s_N))
     angle = {} if gap is None else dict(angle_ratio=gap.angle_ratio)  # only refined records are checked in the angle
     return Quality(
-        structure_probabilities=draft.probabilities if draft.probabilities is not None else answer.probabilities, map_distance_ratio=answer.distance_ratio,
+        structure_probabilities=draft.probabilities if draft.probabilities is not None else answer.probabilities,
+        map_distance_ratio=answer.distance_ratio,
         osc_quanta=analysis.osc_quanta, oscillation_fit_r2=analysis.feature("r2_fit"),
         one_mass_rel_residual=analysis.fit.rel_residual,
         outside_training=answer.outside_training or any("trained" in f.outside for f in evidence.drive_findings),

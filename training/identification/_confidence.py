@@ -55,9 +55,10 @@ FEATURE_NAMES: tuple[str, ...] = (
     *(f"class_{c}" for c in STRUCTURE_CLASSES), "maps_agree", "refined", "log_refine_residual",
     "log_refine_evidence", "log_osc_quanta", "r2_fit", "log_one_mass_residual", "log_map_distance", "p_map_class",
     "class_margin", "class_margin_maps", *(f"margin_{q}" for q in CLASS_THRESHOLDS),
-    *(f"margin_maps_{q}" for q in CLASS_THRESHOLDS), "refine_gain", "log_f_e_T_s", "log_f_e_T_Ei", "log_V_J", "log_d", "log_s_N",
-    "maps_refined_f_e", "maps_refined_V_J", "log_noise", "log_T_s", "log_counts", "log_time_scale", "log_T_Ei_T_s",
-    "friction", "viscous", "log_backlash_bound", "log_std_J_sigma", "log_std_M_FC", "log_std_mu_F", *(f"remark_{c}" for c in REMARK_CODES))
+    *(f"margin_maps_{q}" for q in CLASS_THRESHOLDS), "refine_gain", "log_f_e_T_s", "log_f_e_T_Ei", "log_V_J",
+    "log_d", "log_s_N", "maps_refined_f_e", "maps_refined_V_J", "log_noise", "log_T_s", "log_counts",
+    "log_time_scale", "log_T_Ei_T_s", "friction", "viscous", "log_backlash_bound", "log_std_J_sigma",
+    "log_std_M_FC", "log_std_mu_F", *(f"remark_{c}" for c in REMARK_CODES))
 
 
 @dataclass(frozen=True)
@@ -118,7 +119,8 @@ def _log10(x: float | None, low: float, high: float) -> float:
 
 def confidence_inputs(analysis: Analysis, structure: str, parameters: Parameters, points: dict[str, float], *,
                       maps_structure: str, maps_probabilities: Mapping[str, float], map_distance: float,
-                      margins: tuple[Mapping[str, float], Mapping[str, float]], maps_elastic: tuple[float, float, float],
+                      margins: tuple[Mapping[str, float], Mapping[str, float]],
+                      maps_elastic: tuple[float, float, float],
                       refine: tuple[float, float, float] | None, backlash_bound: float | None,
                       remarks: Sequence[str]) -> ConfidenceInputs:
     """One answer's :class:`ConfidenceInputs` (``margins``: :func:`class_margins` of the answer's and
@@ -144,7 +146,8 @@ def confidence_inputs(analysis: Analysis, structure: str, parameters: Parameters
               min(points["mu_F"] * drive.w_max / drive.M_star, 1.0),
               _log10(backlash_bound / drive.q_phi if backlash_bound else None, 1e-2, 1e6),
               _log10(fit.std[0] / abs(fit.J_sigma), 1e-7, 10.0),
-              _log10(fit.std[2] / drive.M_star, 1e-7, 10.0), _log10(fit.std[1] * drive.w_max / drive.M_star, 1e-7, 10.0),
+              _log10(fit.std[2] / drive.M_star, 1e-7, 10.0),
+              _log10(fit.std[1] * drive.w_max / drive.M_star, 1e-7, 10.0),
               *(float(c in codes) for c in REMARK_CODES)]
     scales = {"backlash": 2.0 * drive.q_phi, "M_FC": 0.01 * drive.M_star, "mu_F": 0.01 * drive.M_star / drive.w_max}
     return ConfidenceInputs(np.asarray(values, dtype=np.float64), dict(points), scales, structure)

@@ -21,11 +21,10 @@ from typing import Any
 import numpy as np
 
 from sim import DriveConfig, TestSignalConfig, TwoMassParams, iter_records, sample_population
-from training.evaluation._drives import DRIVES, envelope_cases
-from training.evaluation._metrics import answer_wrong, relative_error, threshold_margin
-from training.identification import INTERVAL_NAMES, NOTE_CODES, Identifier
-from training.identification._confidence import (COVERAGE, CONFIDENCE_VERSION, Calibration,
-                                                 ConfidenceInputs, LinearModel)
+from training.evaluation import DRIVES, answer_wrong, envelope_cases, relative_error, threshold_margin
+from training.identification import CONFIDENCE_COVERAGE as COVERAGE
+from training.identification import (CONFIDENCE_VERSION, INTERVAL_NAMES, NOTE_CODES, Calibration, ConfidenceInputs,
+                                     Identifier, LinearModel)
 
 #: The seeds of the calibration's three sets: the drive matrix, the envelope drives, the reference
 #: drive's default population.

@@ -28,8 +28,9 @@ from training.config import checkpoints_folder
 from training.identification import Identifier
 
 REPO = Path(__file__).resolve().parents[3]
-#: The files a checkpoint folder holds (the shipped manifest lists them).
-FILES = ["V_J.pt", "backlash.pt", "envelope.json", "f_e.pt", "structure.pt"]
+#: The files a checkpoint folder holds (the shipped manifest lists them; ``confidence.json``: the
+#: calibration of the answers' confidence, tied to the maps).
+FILES = ["V_J.pt", "backlash.pt", "confidence.json", "envelope.json", "f_e.pt", "structure.pt"]
 
 
 @pytest.fixture()
@@ -237,8 +238,8 @@ def test_the_shipped_manifest_lists_every_file_loaded():
     from training.identification import CHECKPOINT_FILES
 
     listed = json.loads((checkpoints_folder() / "manifest.json").read_text())["files"]
-    assert sorted(CHECKPOINT_FILES) == sorted(listed) == FILES
-    assert st.verify_manifest(checkpoints_folder(), required=CHECKPOINT_FILES) == listed
+    assert sorted([*CHECKPOINT_FILES, "confidence.json"]) == sorted(listed) == FILES
+    assert st.verify_manifest(checkpoints_folder(), required=[*CHECKPOINT_FILES, "confidence.json"]) == listed
 
 
 class _Evil:
