@@ -62,7 +62,7 @@ def test_a_gap_the_speed_hides_shows_in_the_angle(backlash_deg, found):
     assert gap.backlash == pytest.approx(math.radians(backlash_deg), rel=0.3)
 
 
-def test_the_identifier_answers_a_gap_from_the_angle_with_a_warning():
+def test_the_identifier_answers_a_gap_from_the_angle_with_a_remark():
     """The maps and the speed's refinement answered this shaft ``stiff``, unwarned but for the
     resolution's bound; the angle shows its gap: ``stiff_backlash`` with its width and the warning
     that it rests on a few encoder counts."""
@@ -75,9 +75,9 @@ def test_the_identifier_answers_a_gap_from_the_angle_with_a_warning():
         return ident.identify(rec)
 
     res = identify(0.3)
-    assert res.structure == "stiff_backlash" and res.has_warning("backlash_from_angle")
+    assert res.structure == "stiff_backlash" and res.has_note("backlash_from_angle")
     assert res.parameters.backlash == pytest.approx(math.radians(0.3), rel=0.3)
     assert 0.0 < res.quality.angle_ratio < 0.85 and res.quality.maps_structure is not None
     plain = identify(0.0)
-    assert plain.structure == "stiff" and not plain.has_warning("backlash_from_angle")
+    assert plain.structure == "stiff" and not plain.has_note("backlash_from_angle")
     assert plain.quality.angle_ratio is None
