@@ -97,7 +97,10 @@ class Identifier:
         maps, else an error)."""
         folder = Path(folder) if folder is not None else checkpoints_folder()
         calibrated = (folder / CONFIDENCE_FILE).exists()
-        digests = st.verify_manifest(folder, required=CHECKPOINT_FILES + ((CONFIDENCE_FILE,) if calibrated else ()))
+        digests = st.verify_manifest(folder, required=CHECKPOINT_FILES)
+        if calibrated and CONFIDENCE_FILE not in digests:  # e.g. maps trained anew into a calibrated folder
+            raise ValueError(f"{folder}: {CONFIDENCE_FILE} is not listed in the manifest (made for earlier maps?): "
+                             f"rerun `twomass calibrate --checkpoints {folder} --overwrite`, or remove it")
         maps = {name: load_map(folder / f"{name}.pt") for name in MAP_SPECS}
         calibration = Calibration.load(folder / CONFIDENCE_FILE) if calibrated else None
         if calibration is not None:

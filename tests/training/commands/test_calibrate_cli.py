@@ -53,3 +53,6 @@ def test_a_calibration_of_other_maps_is_refused(maps, tmp_path, capsys) -> None:
     (maps / "confidence.json").write_text(text)  # the manifest's digest no longer matches: tampering is refused
     with pytest.raises(Exception, match="confidence.json"):
         Identifier.load(maps)
+    st.write_manifest(maps, files=list(CHECKPOINT_FILES))  # as `twomass train` leaves a folder it trains into
+    with pytest.raises(ValueError, match="not listed in the manifest.*twomass calibrate"):
+        Identifier.load(maps)
