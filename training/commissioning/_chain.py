@@ -67,9 +67,14 @@ UNCERTAIN_CODES: frozenset[str] = frozenset({"unlike_training_data", "oscillatio
                                              "likely_wrong"})
 #: With calibrated intervals (SPEC 4.1) the intervals carry the uncertainty (the other codes are the
 #: answer's notes); these warnings still widen the set (R7c): the intervals hold for records like the
-#: calibration's, inside the envelope and the maps' training, and ``likely_wrong`` says the answer
-#: itself is likely wrong.
-CALIBRATED_UNCERTAIN_CODES: frozenset[str] = frozenset({"drive_outside_training", "outside_envelope", "likely_wrong"})
+#: calibration's, inside the envelope and the maps' training. So does an answer more likely wrong
+#: than right (:data:`DOUBTFUL_ANSWER`), named ``likely_wrong``.
+CALIBRATED_UNCERTAIN_CODES: frozenset[str] = frozenset({"drive_outside_training", "outside_envelope"})
+#: The calibrated answer probability below which the design treats the answer as doubtful (R7c and
+#: R7b): the identification warns ``likely_wrong`` from a much higher level (so that nearly every
+#: wrong answer is warned), where the answer is still far more often right than wrong and its
+#: intervals already hold it.
+DOUBTFUL_ANSWER: float = 0.5
 #: Identification codes (warnings or notes) that say the oscillation is not determined at all, or
 #: the answer likely wrong (rule R7b as for ``stiff``: the set covers what the test cannot exclude).
 UNDETERMINED_CODES: frozenset[str] = frozenset({"refine_partial_fit", "oscillation_below_quantum", "likely_wrong"})
@@ -395,14 +400,26 @@ def _uncertain(result: Any) -> list[str]:
     :data:`UNCERTAIN_CODES`, or of :data:`CALIBRATED_UNCERTAIN_CODES` where the result has
     calibrated intervals, that concern them; ``outside_training``: :func:`elastic_doubts`); empty
     when nothing says so."""
-    return elastic_doubts(result, UNCERTAIN_CODES if _intervals(result) is None else CALIBRATED_UNCERTAIN_CODES)
+    if _intervals(result) is None:
+        return elastic_doubts(result, UNCERTAIN_CODES)
+    return sorted({*elastic_doubts(result, CALIBRATED_UNCERTAIN_CODES), *(["likely_wrong"] if _doubtful(result) else [])})
+
+
+def _doubtful(result: Any) -> bool:
+    """A calibrated answer more likely wrong than right (:data:`DOUBTFUL_ANSWER`; where the result
+    gives no answer probability: its ``likely_wrong`` warning)."""
+    p = getattr(result.quality, "answer_probability", None)
+    if p is None:
+        return any(w.code == "likely_wrong" for w in result.warnings)
+    return p < DOUBTFUL_ANSWER
 
 
 def _undetermined(result: Any) -> list[str]:
     """The codes of :data:`UNDETERMINED_CODES` among the result's warnings or notes (with a
-    calibration the oscillation's codes arrive as notes: what the test cannot show stays so)."""
-    remarks = {w.code for w in (*result.warnings, *getattr(result, "notes", ()))}
-    return sorted(UNDETERMINED_CODES & remarks)
+    calibration the oscillation's codes arrive as notes: what the test cannot show stays so), with
+    ``likely_wrong`` only where the answer is doubtful (:func:`_doubtful`)."""
+    remarks = {w.code for w in (*result.warnings, *getattr(result, "notes", ()))} - {"likely_wrong"}
+    return sorted(UNDETERMINED_CODES & (remarks | ({"likely_wrong"} if _doubtful(result) else set())))
 
 
 def _run_candidates(run: ChainRun, plan: LoopPlan, kind: str) -> list[PlantRun]:

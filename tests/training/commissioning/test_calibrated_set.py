@@ -130,6 +130,18 @@ def test_likely_wrong_limits_the_design_as_the_old_uncertainty_warnings_did():
     assert limited.figures["w_c"] < 0.8 * plain.figures["w_c"]
 
 
+def test_a_likely_wrong_answer_still_more_likely_right_designs_on_its_intervals():
+    """``likely_wrong`` warns from a high answer probability (so that nearly every wrong answer is
+    warned); an answer right with probability 0.9 is no doubtful answer for the design: its
+    calibrated intervals hold it, no R7c, no R7b."""
+    warned = identification_result("elastic", ELASTIC, intervals=NARROW, answer_probability=0.9,
+                                   warnings=(("likely_wrong", "this answer is wrong with probability 10.0%"),))
+    proposal = _propose(_run(warned))
+    plain = _propose(_run(identification_result("elastic", ELASTIC, intervals=NARROW, answer_probability=0.999)))
+    assert not any(r.startswith(("R7c", "R7b")) for r in proposal.rules)
+    assert proposal.figures["w_c"] == pytest.approx(plain.figures["w_c"])
+
+
 @pytest.mark.parametrize("code", sorted(NOTE_CODES - {"refine_partial_fit", "oscillation_below_quantum"}))
 def test_a_note_alone_neither_refuses_nor_widens(code):
     """An uncertainty remark that arrives as a note (a calibrated answer): permitted, no R7c, no
