@@ -125,11 +125,6 @@ class Intervals:
             raise KeyError(f"interval: expected one of {list(INTERVAL_NAMES)}, received {name!r}")
         return getattr(self, name)
 
-    def relative_half_width(self, name: str, value: float) -> float:
-        """Half the interval's width over ``value`` (inf where ``value`` is 0)."""
-        low, high = self[name]
-        return 0.5 * (high - low) / abs(value) if value else float("inf")
-
     def to_dict(self) -> dict[str, list[float]]:
         return {n: list(getattr(self, n)) for n in INTERVAL_NAMES}
 
