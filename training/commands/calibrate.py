@@ -48,6 +48,8 @@ def run(args: argparse.Namespace) -> int:
     for name in ("per_drive", "envelope_drives", "reference"):
         if getattr(args, name) < 0:
             raise ValueError(f"--{name.replace('_', '-')}: expected >= 0, received {getattr(args, name)}")
+    if args.workers is not None and args.workers < 1:
+        raise ValueError(f"--workers: expected >= 1, received {args.workers}")
     digests = st.verify_manifest(folder, required=CHECKPOINT_FILES)
     if args.samples is not None and args.samples.exists():
         samples = load_samples(args.samples)

@@ -83,18 +83,20 @@ def calibration_tasks(per_drive: int = 300, envelope_drives: int = 40, per_envel
     population on :data:`REAL_AXIS_DRIVES` (times its weight), ``envelope_drives`` drives of the
     envelope, ``reference`` systems of the default population on the reference drive."""
     tasks: list[Task] = []
-    for name, case in DRIVES.items():
+    for name, case in DRIVES.items() if per_drive > 0 else ():
         tasks += _split(f"matrix:{name}", case.drive, case.signal, sample_population(per_drive, seeds["matrix"],
                                                                                      case.ranges()), seeds["matrix"])
-    for name, weight in REAL_AXIS_DRIVES.items():
+    for name, weight in REAL_AXIS_DRIVES.items() if per_drive > 0 else ():
         case = DRIVES[name]
         tasks += _split(f"real_axis:{name}", case.drive, case.signal,
                         case.population(weight * per_drive, seeds["real_axis"], real_axis=True), seeds["real_axis"])
-    for name, drive, signal, params, seed in envelope_cases(envelope_drives, per_envelope_drive, seeds["envelope"]):
+    for name, drive, signal, params, seed in (envelope_cases(envelope_drives, per_envelope_drive, seeds["envelope"])
+                                              if envelope_drives > 0 else ()):
         tasks += _split(name, drive, signal, params, seed)
-    reference_drive = DRIVES["reference"]
-    tasks += _split("reference_population", reference_drive.drive, reference_drive.signal,
-                    sample_population(reference, seeds["reference"]), seeds["reference"])
+    if reference > 0:
+        reference_drive = DRIVES["reference"]
+        tasks += _split("reference_population", reference_drive.drive, reference_drive.signal,
+                        sample_population(reference, seeds["reference"]), seeds["reference"])
     return tasks
 
 
@@ -131,7 +133,16 @@ def save_samples(samples: Sequence[CalibrationSample], path: str | os.PathLike[s
 
 
 def load_samples(path: str | os.PathLike[str]) -> list[CalibrationSample]:
-    return [CalibrationSample.from_dict(json.loads(line)) for line in Path(path).read_text().splitlines() if line]
+    """The samples :func:`save_samples` wrote; ``ValueError`` (one line naming the file and line) else."""
+    out = []
+    for k, line in enumerate(Path(path).read_text().splitlines(), 1):
+        try:
+            if line:
+                out.append(CalibrationSample.from_dict(json.loads(line)))
+        except (ValueError, KeyError, TypeError, AttributeError) as err:
+            raise ValueError(f"{path}: line {k}: not a calibration sample of `twomass calibrate --samples` "
+                             f"({type(err).__name__}: {err})") from None
+    return out
 
 
 # -- the fit -----------------------------------------------------------------------------------

@@ -56,3 +56,21 @@ def test_a_calibration_of_other_maps_is_refused(maps, tmp_path, capsys) -> None:
     st.write_manifest(maps, files=list(CHECKPOINT_FILES))  # as `twomass train` leaves a folder it trains into
     with pytest.raises(ValueError, match="not listed in the manifest.*twomass calibrate"):
         Identifier.load(maps)
+
+
+@pytest.mark.parametrize("args, says", [(["--workers", "0"], "--workers: expected >= 1"),
+                                        (["--per-drive", "-1"], "--per-drive: expected >= 0"),
+                                        (["--per-drive", "0", "--envelope-drives", "0", "--reference", "0"],
+                                         "at least 200 calibration answers")])
+def test_bad_counts_are_refused_in_one_line(maps, capsys, args, says) -> None:
+    assert main(["calibrate", "--checkpoints", str(maps), *args]) == 2
+    err = capsys.readouterr().err
+    assert says in err and len(err.strip().splitlines()) == 1
+
+
+def test_a_samples_file_of_something_else_is_refused_naming_it(maps, tmp_path, capsys) -> None:
+    bad = tmp_path / "bad.jsonl"
+    bad.write_text('{"features": [1]}\n')
+    assert main(["calibrate", "--checkpoints", str(maps), "--samples", str(bad)]) == 2
+    err = capsys.readouterr().err
+    assert f"{bad}: line 1: not a calibration sample" in err and len(err.strip().splitlines()) == 1
