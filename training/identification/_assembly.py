@@ -266,7 +266,7 @@ ADJUSTMENTS: tuple[Step, ...] = (warn_maps, take_angle_or_refinement, warn_below
 def maps_parameters(analysis: Analysis, answer: MapsAnswer) -> Parameters:
     """The maps' elastic parameters (none for ``stiff``) on STEP 2's one-mass values."""
     fit = analysis.fit
-    one_mass = dict(J_sigma=fit.J_sigma, M_FC=max(fit.M_FC, 0.0), mu_F=max(fit.mu_F, 0.0), backlash=0.0)
+    one_mass = dict(J_sigma=fit.J_sigma, M_FC=max(fit.M_FC, 0.0), mu_F=max(fit.mu_F, 0.0), M_L0=fit.M_0, backlash=0.0)
     if answer.structure == "stiff":
         return Parameters(**one_mass)
     derived = two_mass_derived(fit.J_sigma, answer.V_J, answer.f_e, answer.d)
@@ -287,7 +287,7 @@ def refined_parameters(analysis: Analysis, refined: Refined | HiddenGap) -> tupl
     derived = two_mass_derived(J_sigma, refined.V_J, refined.f_e, refined.d)
     structure = spec_class(analysis, J_sigma, refined.V_J, refined.f_e, refined.d,
                            normalized_backlash(refined.backlash, analysis.M_N, derived.C_F))
-    one_mass = dict(J_sigma=J_sigma, M_FC=M_FC, mu_F=mu_F)
+    one_mass = dict(J_sigma=J_sigma, M_FC=M_FC, mu_F=mu_F, M_L0=fit.M_0)
     if structure == "stiff":
         return structure, Parameters(**one_mass, backlash=0.0)
     # the backlash is measured even where the class calls it negligible (elastic)

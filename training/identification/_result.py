@@ -14,11 +14,13 @@ from typing import Any, ClassVar
 from training.errors import CodedWarning
 
 #: The parameters of SPEC section 9, in output order (SI units; ``backlash`` = total width ``2s``).
-PARAMETER_NAMES: tuple[str, ...] = ("J_sigma", "V_J", "J_M", "J_L", "f_e", "C_F", "d", "backlash", "M_FC", "mu_F")
+PARAMETER_NAMES: tuple[str, ...] = ("J_sigma", "V_J", "J_M", "J_L", "f_e", "C_F", "d", "backlash", "M_FC", "mu_F",
+                                     "M_L0", "M_FCM", "mu_FM")
 
 #: The unit of each parameter of :data:`PARAMETER_NAMES` (SI; ``"-"``: dimensionless).
 PARAMETER_UNITS: dict[str, str] = {"J_sigma": "kg m^2", "V_J": "-", "J_M": "kg m^2", "J_L": "kg m^2", "f_e": "Hz",
-                                   "C_F": "Nm/rad", "d": "-", "backlash": "rad", "M_FC": "Nm", "mu_F": "Nm s/rad"}
+                                   "C_F": "Nm/rad", "d": "-", "backlash": "rad", "M_FC": "Nm", "mu_F": "Nm s/rad",
+                                   "M_L0": "Nm", "M_FCM": "Nm", "mu_FM": "Nm s/rad"}
 
 
 #: Every warning code the identification emits, with what it means.
@@ -73,7 +75,7 @@ NOTE_CODES: frozenset[str] = frozenset({
     "backlash_from_angle", "class_undecided", "class_near_threshold", "answer_outside_envelope", "implausible_output"})
 
 #: The parameters that carry a 90 % interval (SPEC 4.1), in output order.
-INTERVAL_NAMES: tuple[str, ...] = PARAMETER_NAMES
+INTERVAL_NAMES: tuple[str, ...] = PARAMETER_NAMES[:10]
 
 
 @dataclass(frozen=True)
@@ -85,7 +87,9 @@ class IdentWarning(CodedWarning):
 
 @dataclass(frozen=True)
 class Parameters:
-    """Identified parameters in SI units; ``None`` where not identified (e.g. ``f_e`` of a stiff mechanic)."""
+    """Identified parameters in SI units; ``None`` where not identified (e.g. ``f_e`` of a stiff mechanic).
+    ``M_FC``, ``mu_F``: the load's friction; ``M_L0``: the constant load torque, ``M_FCM``, ``mu_FM``:
+    the motor's friction (SPEC 1.1)."""
 
     J_sigma: float | None = None
     V_J: float | None = None
@@ -97,6 +101,9 @@ class Parameters:
     backlash: float | None = None
     M_FC: float | None = None
     mu_F: float | None = None
+    M_L0: float | None = None
+    M_FCM: float | None = None
+    mu_FM: float | None = None
 
     def to_dict(self) -> dict[str, float | None]:
         return {n: getattr(self, n) for n in PARAMETER_NAMES}
