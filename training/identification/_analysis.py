@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -106,6 +106,12 @@ class Analysis:
     def feature(self, name: str) -> float:
         return float(self.features[FEATURE_INDEX[name]])
 
+    @property
+    def M_L0(self) -> float:
+        """The constant load torque [Nm] (SPEC 1.1): the holding torque the levels ran around plus
+        STEP 2's constant torque ``M_0`` over them."""
+        return self.drive.M_hold + self.fit.M_0
+
 
 def analyze(record: Record) -> Analysis:
     """Sections, one-mass fit and features of one record (a validated copy of it: columns may be
@@ -169,6 +175,20 @@ def applied_torque(record: Record, split: SectionSplit, T_Ei: float) -> np.ndarr
     return lfilter([0.0, 1.0 - a], [1.0, -a], ref)
 
 
+def around_hold(record: Record) -> Record:
+    """A held axis's record (SPEC 1.1: metadata ``M_hold`` [Nm], the levels ran around it) as SPEC 2's
+    test: its torque (or current) and ``torque_ref`` less the holding torque; any other record itself.
+    The analysis reads this view (its one-mass offset ``M_0`` is then ``M_L0 - M_hold``)."""
+    M_hold = record.meta.get("M_hold")
+    K_M = record.meta.get("K_M")
+    if not M_hold or (record.torque is None and not K_M):  # (a current without K_M is refused later)
+        return record
+    shifted = {"torque": record.torque - M_hold} if record.torque is not None else {
+        "current": record.current - M_hold / K_M}
+    ref = None if record.torque_ref is None else record.torque_ref - M_hold
+    return replace(record, torque_ref=ref, **shifted)
+
+
 def _test_length_hint(split: SectionSplit, T_s: float) -> str:
     """What the test's length says of the mechanics it can show: section I lasts about the test's
     time scale ``tau = J_sigma w_max / M*``, and a mechanic below ``0.5 / tau`` hardly moves its
@@ -179,6 +199,7 @@ def _test_length_hint(split: SectionSplit, T_s: float) -> str:
 
 
 def _analyze(record: Record) -> Analysis:
+    record = around_hold(record)
     check_record(record)  # units and metadata against the signals
     T_s = record.T_s
     torque = record.motor_torque

@@ -266,7 +266,8 @@ ADJUSTMENTS: tuple[Step, ...] = (warn_maps, take_angle_or_refinement, warn_below
 def maps_parameters(analysis: Analysis, answer: MapsAnswer) -> Parameters:
     """The maps' elastic parameters (none for ``stiff``) on STEP 2's one-mass values."""
     fit = analysis.fit
-    one_mass = dict(J_sigma=fit.J_sigma, M_FC=max(fit.M_FC, 0.0), mu_F=max(fit.mu_F, 0.0), M_L0=fit.M_0, backlash=0.0)
+    one_mass = dict(J_sigma=fit.J_sigma, M_FC=max(fit.M_FC, 0.0), mu_F=max(fit.mu_F, 0.0), M_L0=analysis.M_L0,
+                    backlash=0.0)
     if answer.structure == "stiff":
         return Parameters(**one_mass)
     derived = two_mass_derived(fit.J_sigma, answer.V_J, answer.f_e, answer.d)
@@ -280,14 +281,17 @@ def refined_parameters(analysis: Analysis, refined: Refined | HiddenGap) -> tupl
     """The refined elastic parameters and backlash width; the structure follows SPEC's class
     rule on the refined values (the maps' class and estimate stay in ``quality``). A ``stiff``
     result keeps the one-mass answer. ``J_sigma``, ``M_FC``, ``mu_F``: the whole-record fit's
-    where STEP 2's was not trusted."""
+    where STEP 2's was not trusted; ``M_FC``, ``M_FCM``: STEP 2's Coulomb friction split between
+    the load and the motor where the refinement split it (``M_FCM`` 0 where it found no motor share)."""
     fit = analysis.fit
     J_sigma, M_FC, mu_F = ((fit.J_sigma, max(fit.M_FC, 0.0), max(fit.mu_F, 0.0)) if refined.J_sigma is None
                            else (refined.J_sigma, refined.M_FC, refined.mu_F))
+    if refined.M_FCM is not None and refined.J_sigma is None:  # the split stage's load share
+        M_FC = refined.M_FC
     derived = two_mass_derived(J_sigma, refined.V_J, refined.f_e, refined.d)
     structure = spec_class(analysis, J_sigma, refined.V_J, refined.f_e, refined.d,
                            normalized_backlash(refined.backlash, analysis.M_N, derived.C_F))
-    one_mass = dict(J_sigma=J_sigma, M_FC=M_FC, mu_F=mu_F, M_L0=fit.M_0)
+    one_mass = dict(J_sigma=J_sigma, M_FC=M_FC, mu_F=mu_F, M_L0=analysis.M_L0, M_FCM=refined.M_FCM or 0.0)
     if structure == "stiff":
         return structure, Parameters(**one_mass, backlash=0.0)
     # the backlash is measured even where the class calls it negligible (elastic)

@@ -64,7 +64,8 @@ class DriveValues:
     """What the identification uses of the drive and of the test, each with its ``source``
     (``"record"``, ``"estimated"`` or ``"default"``): ``T_s``, ``T_Ei`` [s], ``encoder_counts``,
     ``M_star``, ``w_max`` [rad/s], ``M_N``, ``M_max`` [Nm] (``None``: not given), and
-    ``current_noise`` [Nm]: the std of the measured torque's noise (estimated)."""
+    ``current_noise`` [Nm]: the std of the measured torque's noise (estimated), ``M_hold`` [Nm]: the
+    holding torque the test's levels ran around (SPEC 1.1; 0 where the record names none: plain levels)."""
 
     T_s: float
     T_Ei: float
@@ -75,6 +76,7 @@ class DriveValues:
     M_max: float | None
     current_noise: float
     sources: dict[str, str] = field(default_factory=dict)
+    M_hold: float = 0.0
 
     @property
     def q_w(self) -> float:
@@ -139,7 +141,9 @@ def drive_values(record: Record, split: SectionSplit, torque: np.ndarray) -> tup
     M_max = meta.get("M_max")
     sources["M_max"] = "record" if M_max is not None else "none"
     sources["current_noise"] = "estimated"
-    return DriveValues(T_s=T_s, T_Ei=float(T_Ei), encoder_counts=int(counts), M_star=M_star, w_max=float(w_max),
+    M_hold = meta.get("M_hold")
+    sources["M_hold"] = "record" if M_hold is not None else "none"
+    return DriveValues(M_hold=0.0 if M_hold is None else float(M_hold), T_s=T_s, T_Ei=float(T_Ei), encoder_counts=int(counts), M_star=M_star, w_max=float(w_max),
                        M_N=float(M_N), M_max=None if M_max is None else float(M_max),
                        current_noise=torque_noise(torque, split, T_s, float(T_Ei)), sources=sources), warnings
 

@@ -34,7 +34,7 @@ from training.identification._batch import ReadRecord, analysis_outcome, answere
 from training.identification._envelope import Envelope, trained_envelope
 from training.identification._maps import (CHECKPOINT_FILES, MAP_SPECS, MapMetadata, TrainedMap, from_correction,
                                             load_map, recall_targets)
-from training.identification._policy import (IdentificationPolicy, MapsAnswer, angle_checked_when, refined_when,
+from training.identification._policy import (IdentificationPolicy, MapsAnswer, angle_checked_when, held_torque, refined_when,
                                              s_N_on_record, spec_class)
 from training.identification._refine import (RefineConfig, RefineProblem, Refined, find_hidden_gap, refine,
                                              torque_reference)
@@ -216,7 +216,7 @@ class Identifier:
         todo = [i for i, record in enumerate(evidence)
                 if refined_when(record.analysis, record.maps, record.drive_findings, self.policy)]
         problems = [self._problem(evidence[i].analysis, evidence[i].maps) for i in todo]
-        return {i: _Refinement(problem, refined)
+        return {i: _Refinement(problem.with_friction_of(refined), refined)
                 for i, problem, refined in zip(todo, problems, refine(problems, self.refine))}
 
     def _recall(self, analyses: Sequence[Analysis]) -> list[MapsAnswer]:
@@ -251,11 +251,12 @@ class Identifier:
         """The refinement of one maps' answer: the record's replayed test signal, STEP 2's
         one-mass values, and the maps' ``f_e``, ``V_J``, ``d``, ``s_N`` as the start."""
         bounds, fit = analysis.sections.bounds, analysis.fit
-        start, level = torque_reference(bounds, analysis.M_star)
+        start, level = torque_reference(bounds, analysis.M_star, analysis.drive.M_hold)
         segments = np.concatenate([bounds, [[bounds[5, 1], len(fit.speed)]]])  # the six sections and the tail
         segments = segments[segments[:, 1] > segments[:, 0]]  # a record that ends with VI has no tail
         return RefineProblem(speed=fit.speed, start=start, level=level, segments=segments, J_sigma=fit.J_sigma,
                              M_FC=max(fit.M_FC, 0.0), mu_F=max(fit.mu_F, 0.0), T_s=analysis.T_s, T_Ei=analysis.T_Ei,
                              encoder_counts=analysis.encoder_counts, M_N=analysis.M_N, free_one_mass=bool(fit.warnings),
+                             M_L0=held_torque(analysis, self.policy),
                              theta=np.array([math.log10(answer.f_e), math.log10(answer.V_J), answer.d,
                                              math.log10(max(answer.s_N, self.policy.start_s_N_floor))]))

@@ -43,6 +43,13 @@ class IdentificationPolicy:
     damping_cap: float = 0.9
     #: the smallest ``s_N`` the refinement starts from (its coordinate is ``log10 s_N``).
     start_s_N_floor: float = 1e-3
+    #: the refinement's model carries STEP 2's constant torque ``M_0`` as a load torque ``M_L0`` (SPEC 1.1,
+    #: held at rest, the gap closed on the loaded side) only where it reaches this share of ``M*`` and
+    #: ``load_torque_sigmas`` of its standard deviation: an axis without one starts with its gap open
+    #: (measured on the reference drive's default population: carrying every fitted offset, down to
+    #: 1e-4 M*, cost 10 points of the backlash widths within 30 %).
+    load_torque_floor: float = 0.005
+    load_torque_sigmas: float = 3.0
     #: the share of ``w_osc``'s variance the oscillation fit must explain for a stiff answer to name
     #: the mode its record shows (``Quality.stiff_mode_Hz``): at and above it, every such fit on the
     #: matrix drives' records put the mode within 2 % of the true one.
@@ -51,7 +58,8 @@ class IdentificationPolicy:
     def __post_init__(self) -> None:
         check_settings(self, {
             "visible_quanta": POSITIVE, "stiff_sure": SHARE, "class_evidence": POSITIVE, "partial_fit_residual": POSITIVE,
-            "class_margin": SHARE, "damping_cap": SHARE, "start_s_N_floor": POSITIVE, "mode_fit_r2": SHARE})
+            "class_margin": SHARE, "damping_cap": SHARE, "start_s_N_floor": POSITIVE, "mode_fit_r2": SHARE,
+            "load_torque_floor": SHARE, "load_torque_sigmas": POSITIVE})
 
 
 @dataclass(frozen=True)
@@ -184,3 +192,12 @@ def class_quantities(analysis: Analysis, J_sigma: float, V_J: float, f_e: float,
 def spec_class(analysis: Analysis, J_sigma: float, V_J: float, f_e: float, d: float, s_N: float) -> str:
     """SPEC's class (:func:`sim.class_index`) of a two-mass model on the record's drive."""
     return STRUCTURE_CLASSES[int(class_index(**class_quantities(analysis, J_sigma, V_J, f_e, d, s_N)))]
+
+
+def held_torque(analysis: Analysis, policy: IdentificationPolicy) -> float:
+    """The load torque ``M_L0`` [Nm] the refinement's model carries: :attr:`Analysis.M_L0` where the
+    record ran around a holding torque or STEP 2's constant torque is significant
+    (:attr:`IdentificationPolicy.load_torque_floor`), else 0."""
+    M_0, std = analysis.fit.M_0, analysis.fit.std[3]
+    significant = abs(M_0) > max(policy.load_torque_floor * analysis.M_star, policy.load_torque_sigmas * std)
+    return analysis.M_L0 if significant or analysis.drive.M_hold != 0.0 else 0.0

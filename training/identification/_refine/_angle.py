@@ -71,7 +71,8 @@ class AngleSettings:
 class HiddenGap:
     """The gap model found in the angle: ``f_e`` [Hz], ``V_J``, ``d``, ``s_N``, ``backlash`` = ``2s``
     [rad]; ``angle_ratio``, its angle error over that of the best model without a gap.
-    ``J_sigma``, ``M_FC``, ``mu_F``: None (STEP 2's stand)."""
+    ``J_sigma``, ``mu_F``: None (STEP 2's stand); ``M_FC``, ``M_FCM``: the load's and the motor's
+    Coulomb friction of the problem where it split them (else None: STEP 2's stand)."""
 
     f_e: float
     V_J: float
@@ -80,8 +81,9 @@ class HiddenGap:
     backlash: float
     angle_ratio: float
     J_sigma: None = None
-    M_FC: None = None
+    M_FC: float | None = None
     mu_F: None = None
+    M_FCM: float | None = None
 
 
 def angle_basis(segments: np.ndarray, N: int, stride: int = 1) -> np.ndarray:
@@ -146,7 +148,8 @@ def hidden_gap(p: RefineProblem, settings: AngleSettings, search: SearchSettings
     s_N = float(10.0 ** theta[3])
     if ratio >= settings.win or s_N < settings.s_N_clear * S_N_ELASTIC:
         return None
-    return HiddenGap(**p.answer(theta, s_N), angle_ratio=ratio)
+    split = {"M_FC": p.M_FC, "M_FCM": p.M_FCM} if p.M_FCM > 0 else {}
+    return HiddenGap(**p.answer(theta, s_N), angle_ratio=ratio, **split)
 
 
 STAGE = Stage("angle", "the identifier's call: a stiff answer whose speed could hide a gap, or a dropped maps' gap",

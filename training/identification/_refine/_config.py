@@ -18,6 +18,7 @@ from training.identification._refine._replay import BatchSettings
 from training.identification._refine._rescue import RescueSettings
 from training.identification._refine._retry import RetrySettings
 from training.identification._refine._search import SearchSettings
+from training.identification._refine._split import SplitSettings
 from training.identification._refine._space import COORDINATES, FREE_COORDINATES, HIGH, LOW, NO_GAP
 
 __all__ = ["COORDINATES", "FREE_COORDINATES", "HIGH", "LOW", "NO_GAP", "RefineConfig"]
@@ -35,6 +36,7 @@ class RefineConfig:
     climb: ClimbSettings = ClimbSettings()
     rattle: RattleSettings = RattleSettings()
     choose: ChooseSettings = ChooseSettings()
+    split: SplitSettings = SplitSettings()
     free: FreeSettings = FreeSettings()
     polish: PolishSettings = PolishSettings()
     retry: RetrySettings = RetrySettings()

@@ -19,6 +19,9 @@ The stages, in order (:data:`PIPELINE`; each a module with its settings, :data:`
 - ``climb``: a second exploration up the ridge of stiff shafts with a gap (:mod:`._climb`);
 - ``rattle``: the windows after a zero-torque section replayed from its start (:mod:`._rattle`);
 - ``choose``: the finalists compete on the whole record (:mod:`._choose`);
+- ``split``: STEP 2's Coulomb friction shared between the motor and the load over the finalists;
+  where a share goes to the motor, the finalists compete again with it, the free stage, the polish
+  and the retry run on both, and the split model wins only by evidence (:mod:`._split`);
 - ``free``: ``J_sigma``, ``M_FC``, ``mu_F`` searched too where STEP 2's fit is not trusted (:mod:`._free`);
 - ``polish``: Levenberg-Marquardt steps on the whole record (:mod:`._polish`);
 - ``retry``: a poor polished fit polished again from a lighter damping and from the maps' answer
@@ -35,7 +38,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from training.identification._refine import (_angle, _choose, _climb, _explore, _free, _polish, _rattle, _rescue,
-                                             _retry)
+                                             _retry, _split)
 from training.identification._refine._angle import HiddenGap, hidden_gap
 from training.identification._refine._choose import Choice, choose
 from training.identification._refine._climb import climb, climbs
@@ -46,19 +49,22 @@ from training.identification._refine._polish import polish as polish_lanes
 from training.identification._refine._polish import polished
 from training.identification._refine._problem import RefineProblem, Refined
 from training.identification._refine._rattle import rattle, rattles
-from training.identification._refine._replay import detrended_cost, relative_rms, replay_drive
+from training.identification._refine._replay import detrended_cost, quantization_energy, relative_rms, replay_drive
 from training.identification._refine._rescue import rescues, survey
 from training.identification._refine._retry import retry
 from training.identification._refine._search import Scored
 from training.identification._refine._space import HIGH, LOW
+from training.identification._refine._split import motor_share, splits
 from training.identification._refine._stage import Stage
 from training.identification._refine._windows import ScoreWindows, score_windows
 
 #: The stages by name, each with its settings class, entry point and when it runs.
 STAGES: dict[str, Stage] = {module.STAGE.name: module.STAGE for module in
-                            (_explore, _rescue, _climb, _rattle, _choose, _free, _polish, _retry, _angle)}
+                            (_explore, _rescue, _climb, _rattle, _choose, _split, _free, _polish, _retry,
+                                                         _angle)}
 #: The order the stages run in (``angle`` by the identifier, after the others).
-PIPELINE: tuple[str, ...] = ("explore", "rescue", "climb", "rattle", "choose", "free", "polish", "retry", "angle")
+PIPELINE: tuple[str, ...] = ("explore", "rescue", "climb", "rattle", "choose", "split", "free", "polish", "retry",
+                              "angle")
 
 
 @dataclass(frozen=True)
@@ -134,10 +140,25 @@ def _chosen(p: RefineProblem, choice: Choice, explored: int, config: RefineConfi
         fit = free_one_mass(p, best, config.free, config.search, config.seed, rng, replay_drive(p))
         best, n_sims = fit.theta, n_sims + fit.n_sims
         best_cost = float(detrended_cost(p, best[None], choice.basis, replay_drive(p))[0])
+    split = {"M_FC": p.M_FC, "M_FCM": p.M_FCM} if p.M_FCM > 0 else {}
     return Refined(**p.answer(best, float(10.0 ** best[3])), residual=relative_rms(best_cost, choice.measured),
                    start_residual=relative_rms(float(choice.cost[0]), choice.measured),
                    dof=sum(b - a - Q.shape[1] for a, b, Q in choice.basis), n_sims=n_sims,
-                   **(one_mass_values(best) if len(best) > 4 else {}))
+                   **{**split, **(one_mass_values(best) if len(best) > 4 else {})})
+
+
+def motor_shares(problems: list[RefineProblem], choices: list[Choice], finalists: list[np.ndarray],
+                 config: RefineConfig) -> dict[int, float]:
+    """The split stage's scan (:func:`._split.motor_share`) over each problem's ``finalists``: the
+    problems whose friction it would put partly on the motor, with that share."""
+    asked = {i: finalists[i] for i, p in enumerate(problems) if splits(p, config.split)}
+    noise = {i: noise_energy(problems[i], choices[i]) for i in asked}
+    return {i: s for i, s in motor_share(problems, asked, config.split, config.batch, noise).items() if s > 0}
+
+
+def noise_energy(p: RefineProblem, choice: Choice) -> float:
+    """The quantization's expected detrended energy over the samples ``choice`` scores."""
+    return quantization_energy(p, sum(b - a for a, b, _ in choice.basis))
 
 
 def polish(problems: list[RefineProblem], chosen: list[Refined], measured: list[float],
@@ -159,11 +180,24 @@ def find_hidden_gap(p: RefineProblem, config: RefineConfig) -> HiddenGap | None:
 def refine(problems: list[RefineProblem], config: RefineConfig | None = None) -> list[Refined]:
     """Refine each problem's ``theta`` through :data:`PIPELINE` (up to the angle); one
     :class:`Refined` per problem, each the same whatever the other problems (every search starts
-    from ``config.seed``; records on the same drive and of similar length run packed in one replay)."""
+    from ``config.seed``; records on the same drive and of similar length run packed in one replay).
+    A refined model with motor friction (``M_FCM``) was polished on its problem with that split
+    (:meth:`RefineProblem.with_motor_share`)."""
     config = config or RefineConfig()
     rngs = [np.random.default_rng(config.seed) for _ in problems]
     windows = [explore_windows(p, config.explore) for p in problems]
     explored = _window_stages(problems, windows, config, rngs)
-    choices = choose(problems, [e.finalists for e in explored], config.batch)
-    chosen = [_chosen(p, c, e.n_sims, config, rng) for p, c, e, rng in zip(problems, choices, explored, rngs)]
-    return polish(problems, chosen, [c.measured for c in choices], config)
+    finalists = [e.finalists for e in explored]
+    choices = choose(problems, finalists, config.batch)
+    split = {i: problems[i].with_motor_share(s) for i, s in motor_shares(problems, choices, finalists, config).items()}
+    split_choices = dict(zip(split, choose(list(split.values()), [finalists[i] for i in split], config.batch)))
+    lanes = [*zip(problems, choices, explored, rngs),
+             *((split[i], split_choices[i], explored[i], np.random.default_rng(config.seed)) for i in split)]
+    chosen = [_chosen(p, c, e.n_sims, config, rng) for p, c, e, rng in lanes]
+    done = polish([p for p, *_ in lanes], chosen, [c.measured for _, c, *_ in lanes], config)
+    out = done[:len(problems)]
+    for k, i in enumerate(split, start=len(problems)):  # the split wins only by evidence (:class:`SplitSettings`)
+        gain = (out[i].residual ** 2 - done[k].residual ** 2) * choices[i].measured
+        if gain > config.split.evidence * noise_energy(problems[i], choices[i]):
+            out[i] = done[k]
+    return out

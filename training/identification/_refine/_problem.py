@@ -4,7 +4,7 @@ switching test's torque reference the models are replayed under."""
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -17,7 +17,9 @@ class RefineProblem:
     (``start`` int ``K``, ``level`` ``K`` [Nm]); scored ``segments`` ``(L, 2)`` half-open sample
     ranges; STEP 2's ``J_sigma``, ``M_FC``, ``mu_F``; the drive (``T_s``, ``T_Ei``,
     ``encoder_counts``, ``M_N`` for ``s_N``); the start ``theta`` over :data:`COORDINATES`
-    (``s_N`` of 1e-3 or less stands for no backlash)."""
+    (``s_N`` of 1e-3 or less stands for no backlash); SPEC 1.1's parts: the constant load torque
+    ``M_L0`` [Nm] (STEP 2's offset; the model starts at rest held by it) and the motor's Coulomb
+    friction ``M_FCM`` [Nm] (``M_FC`` is then the load's: :meth:`with_motor_share` splits STEP 2's)."""
 
     speed: np.ndarray
     start: np.ndarray
@@ -32,6 +34,22 @@ class RefineProblem:
     M_N: float
     theta: np.ndarray
     free_one_mass: bool = False
+    M_L0: float = 0.0
+    M_FCM: float = 0.0
+
+    @property
+    def coulomb(self) -> float:
+        """The Coulomb friction of motor and load together [Nm] (STEP 2's ``M_FC``)."""
+        return self.M_FC + self.M_FCM
+
+    def with_motor_share(self, share: float) -> RefineProblem:
+        """This problem with the share ``share`` (0..1) of :attr:`coulomb` on the motor, the rest on the load."""
+        return replace(self, M_FC=(1.0 - share) * self.coulomb, M_FCM=share * self.coulomb)
+
+    def with_friction_of(self, refined: Refined) -> RefineProblem:
+        """This problem with the motor's share of the Coulomb friction that ``refined`` found (itself
+        where it found none)."""
+        return self.with_motor_share(refined.M_FCM / self.coulomb) if refined.M_FCM else self
 
     def J_sigma_of(self, theta: np.ndarray) -> np.ndarray:
         """``J_sigma`` [kg m^2] of ``theta`` ``*batch x 4`` (STEP 2's) or ``x 7`` (its own)."""
@@ -55,7 +73,8 @@ class Refined:
     the maps' answer over the measured oscillation (both detrended the same way; about the
     quantization noise over the oscillation for a perfect model), ``dof`` the samples they are
     taken over less the trends removed; ``n_sims`` simulated models; ``J_sigma``, ``M_FC``,
-    ``mu_F``: refined one-mass values where the free stage won (else None: STEP 2's stand)."""
+    ``mu_F``: refined one-mass values where the free stage won (else None: STEP 2's stand);
+    ``M_FC``, ``M_FCM``: the load's and the motor's Coulomb friction where the split stage ran."""
 
     f_e: float
     V_J: float
@@ -69,6 +88,7 @@ class Refined:
     J_sigma: float | None = None
     M_FC: float | None = None
     mu_F: float | None = None
+    M_FCM: float | None = None
 
     @property
     def evidence(self) -> float:
@@ -81,13 +101,14 @@ class Refined:
         return math.inf if self.residual == 0.0 else gain * self.dof / self.residual ** 2
 
 
-def torque_reference(bounds: np.ndarray, M_star: float) -> tuple[np.ndarray, np.ndarray]:
+def torque_reference(bounds: np.ndarray, M_star: float, M_hold: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """The switching test's torque reference (SPEC 2) from its six section ``bounds`` ``(6, 2)``:
-    0 before section I, :data:`sim.SECTION_LEVELS` ``x M*`` over the sections, 0 in the tail.
+    0 before section I, :data:`sim.SECTION_LEVELS` ``x M*`` over the sections, 0 in the tail, each
+    around the holding torque ``M_hold`` [Nm] (SPEC 1.1; 0: the plain levels).
     Returns ``start`` (int ``8``) and ``level`` (``8`` [Nm]) for :func:`sim.replay.replay_speed`."""
     bounds = np.asarray(bounds, dtype=np.int64)
     if bounds.shape != (6, 2):
         raise ValueError(f"bounds: expected shape (6, 2), received {bounds.shape}")
     start = np.concatenate([[0], bounds[:, 0], [bounds[5, 1]]])
-    level = M_star * np.array([0.0, *sim.SECTION_LEVELS, 0.0])
+    level = M_hold + M_star * np.array([0.0, *sim.SECTION_LEVELS, 0.0])
     return start, level

@@ -96,19 +96,20 @@ def finite(E: np.ndarray) -> np.ndarray:
 
 
 def model_values(p: RefineProblem, theta: np.ndarray) -> dict[str, np.ndarray]:
-    """The :data:`sim.PARAM_NAMES` values ``C`` of the candidates ``theta`` ``C x 4`` or ``C x 7``
-    (backlash ``2s = 2 s_N M_N / C_F``)."""
+    """The :data:`sim.ALL_PARAM_NAMES` values ``C`` of the candidates ``theta`` ``C x 4`` or ``C x 7``
+    (backlash ``2s = 2 s_N M_N / C_F``; the problem's ``M_L0`` and ``M_FCM``, no motor viscous friction)."""
     C = theta.shape[0]
     return {"J_sigma": p.J_sigma_of(theta), "V_J": 10.0 ** theta[:, 1], "f_e": 10.0 ** theta[:, 0], "d": theta[:, 2],
             "backlash": sim.gap_width(10.0 ** theta[:, 3], p.M_N, p.C_F(theta)),
             "M_FC": theta[:, 5] if theta.shape[1] > 4 else np.full(C, max(p.M_FC, 0.0)),
-            "mu_F": theta[:, 6] if theta.shape[1] > 4 else np.full(C, max(p.mu_F, 0.0))}
+            "mu_F": theta[:, 6] if theta.shape[1] > 4 else np.full(C, max(p.mu_F, 0.0)),
+            "M_L0": np.full(C, p.M_L0), "M_FCM": np.full(C, max(p.M_FCM, 0.0)), "mu_FM": np.zeros(C)}
 
 
 def sim_params(values: dict[str, np.ndarray]) -> sim.TwoMassParams:
     """:func:`model_values` (or several concatenated) as the simulator's parameters."""
     return sim.TwoMassParams(**{n: torch.from_numpy(np.ascontiguousarray(values[n], dtype=np.float64))
-                                for n in sim.PARAM_NAMES})
+                                for n in sim.ALL_PARAM_NAMES})
 
 
 def simulate(p: RefineProblem, theta: np.ndarray, drive: sim.DriveConfig) -> np.ndarray:
@@ -123,7 +124,7 @@ def simulate_packed(items: list[tuple[RefineProblem, np.ndarray]], drive: sim.Dr
     of 32 models fill up and run on all cores): one ``N_i x C_i`` error per item (``rows``: only
     these samples of each item's record, ``R_i x C_i``)."""
     values = [model_values(p, th) for p, th in items]
-    flat = {n: np.concatenate([v[n] for v in values]) for n in sim.PARAM_NAMES}
+    flat = {n: np.concatenate([v[n] for v in values]) for n in sim.ALL_PARAM_NAMES}
     N = max(len(p.speed) for p, _ in items)
     K = max(len(p.start) for p, _ in items)
     start = np.concatenate([np.broadcast_to(np.pad(p.start, (0, K - len(p.start)), constant_values=2**30),

@@ -94,7 +94,7 @@ def window_speeds(items: list[tuple[RefineProblem, np.ndarray, ScoreWindows, boo
     their own per item, at most ``batch.led_samples`` lane-samples each. An oscillation
     still ringing from before a window is not in its start state (the exploring score tolerates
     it; the polish simulates the whole record)."""
-    names = sim.PARAM_NAMES + ("w_M", "dphi", "M_M", "M_new", "lead")
+    names = sim.ALL_PARAM_NAMES + ("w_M", "dphi", "M_M", "M_new", "M_lead", "lead")
     flat: dict[str, list[np.ndarray]] = {n: [] for n in names}
     led: list[tuple[np.ndarray, dict[str, np.ndarray]] | None] = []  # per item: its plain lanes' mask, its led lanes
     for p, theta, w, with_lead in items:
@@ -102,15 +102,18 @@ def window_speeds(items: list[tuple[RefineProblem, np.ndarray, ScoreWindows, boo
         lead = np.broadcast_to(w.lead if with_lead else np.zeros(J, dtype=np.int64), (C, J))
         first = w.at - lead  # C x J: the first simulated sample
         w_M = p.speed[first]
-        M_prev = np.where(first > 0, level_at(p, first - 1), 0.0)  # C x J (rest before the record)
+        M_prev = np.where(first > 0, level_at(p, first - 1), p.level[0])  # C x J (before the record: the hold)
         m = model_values(p, theta)
         dv = sim.two_mass_derived(m["J_sigma"], m["V_J"], m["f_e"], m["d"])
-        friction = m["M_FC"][:, None] * np.sign(w_M) + max(p.mu_F, 0.0) * w_M  # C x J
-        M_S = dv.J_L[:, None] * (M_prev - friction) / m["J_sigma"][:, None] + friction  # C x J: rigid motion
+        sgn = np.sign(w_M)
+        load = m["M_FC"][:, None] * sgn + max(p.mu_F, 0.0) * w_M + p.M_L0  # C x J: the load's friction and torque
+        motor = m["M_FCM"][:, None] * sgn  # the motor's friction
+        M_S = dv.J_L[:, None] * (M_prev - motor - load) / m["J_sigma"][:, None] + load  # C x J: rigid motion
         lane = {**{n: np.repeat(v, J) for n, v in m.items()},  # C*J, window index fastest
                 "w_M": w_M.reshape(-1), "dphi": (M_S / dv.C_F[:, None] + (m["backlash"] / 2.0)[:, None]
                                                  * np.sign(M_S)).reshape(-1),
-                "M_M": M_prev.reshape(-1), "M_new": np.tile(w.M_new, C), "lead": lead.reshape(-1)}
+                "M_M": M_prev.reshape(-1), "M_new": np.tile(w.M_new, C), "M_lead": level_at(p, first).reshape(-1),
+                "lead": lead.reshape(-1)}
         plain = lane["lead"] == 0
         for n in names:
             flat[n].append(lane[n][plain])
@@ -141,10 +144,11 @@ def window_speeds(items: list[tuple[RefineProblem, np.ndarray, ScoreWindows, boo
 
 def _replay_windows(lanes: dict[str, np.ndarray], drive: sim.DriveConfig, substeps: int, length: int) -> np.ndarray:
     """Motor speed ``lanes x length`` [rad/s] of :func:`window_speeds`' lanes: each from its start
-    state, at 0 over its first ``lead`` samples (a zero-torque section) and at ``M_new`` after."""
+    state, at ``M_lead`` over its first ``lead`` samples (a zero-torque section, around a held
+    axis's hold) and at ``M_new`` after."""
     state = {"w_M": lanes["w_M"], "w_L": lanes["w_M"], "dphi": lanes["dphi"], "M_M": lanes["M_M"]}
     start = np.stack([np.zeros_like(lanes["lead"]), lanes["lead"]], 1)  # lanes x 2
-    level = np.stack([np.where(lanes["lead"] > 0, 0.0, lanes["M_new"]), lanes["M_new"]], 1)
+    level = np.stack([np.where(lanes["lead"] > 0, lanes["M_lead"], lanes["M_new"]), lanes["M_new"]], 1)
     return replay_speed(sim_params(lanes), drive, torch.from_numpy(start), torch.from_numpy(level), length,
                         quantize=False, state=state, substeps=substeps).numpy()  # lanes x length (a view)
 
