@@ -45,6 +45,19 @@ class LimitsTooTight(CommissioningError):
         self.needed = dict(needed)
 
 
+class AxisNotHeld(CommissioningError):
+    """The drive does not hold the axis at rest (SPEC 1.1): in the rest check before the first test
+    run the axis drifted with the drive's holding torque on and the speed loop off; no test runs.
+    ``code``: ``axis_not_held``; ``drift`` [rad] the largest travel, ``duration`` [s] the check's
+    length, ``peak_speed`` [rad/s] its largest measured speed."""
+
+    code: ClassVar[str] = "axis_not_held"
+
+    def __init__(self, message: str, drift: float, duration: float, peak_speed: float) -> None:
+        super().__init__(message)
+        self.drift, self.duration, self.peak_speed = float(drift), float(duration), float(peak_speed)
+
+
 class ExperimentPending(Exception):
     """Not an error: a file-based drive has written the experiment it wants and waits for its
     recording (``twomass commission --resume DIR`` goes on once it is there). ``request``: the

@@ -13,7 +13,8 @@ R4, R5 in the order of ``CONTROLLER_RULES``, fallback F1), ``_design`` (the unce
 by optimization), ``_frf`` (the measured frequency response,
 :class:`MeasuredResponse`: the multisine and the estimate), ``_measure`` (its experiment planned
 on the identified model's loop), ``_tuning`` (scenario, cost, Nelder-Mead), ``_report`` (one
-drive's report, the summary over many), ``_filedrive`` (a drive that exchanges experiments as files
+drive's report, the summary over many), ``_rest`` (the rest check before the first test: does the drive hold the axis? SPEC 1.1),
+``_filedrive`` (a drive that exchanges experiments as files
 with a person at a real drive), ``_guard`` (every drive call bounded in time, every record checked
 at once and held against the user's limits: a passed limit ends the experiments,
 :class:`LimitBreach`). docs/design.md lists the stages and rules in order.
@@ -25,12 +26,13 @@ from ._excitation import ExcitationResult, ExcitationRules, adapt_test_signal, c
 from ._filedrive import ExperimentPending, FileDrive
 from ._frf import FRF_SETTINGS, FRFSettings, MeasuredResponse
 from ._guard import MEASURED_TORQUE_ALLOWANCE, LimitBreach, PassedLimit, close_drive
-from ._law import NotchSpec, PISpeedLaw
+from ._law import HoldLaw, NotchSpec, PISpeedLaw
 from ._loop import (LinearPlant, Margins, Mechanics, ModelSet, bode, linear_plant, load_peak_dB, loop_figures, margins, mechanics_from,
                     model_set, reference_to_load)
 from ._permission import (BLOCKING_WARNING_CODES, COMMISSIONING_WARNING_CODES, REFUSAL_RULES, CommissioningWarning,
                           Permission, may_propose_controller)
 from ._report import CommissioningReport, PlantRun, summarize, summary_text
+from ._rest import REST_SETTINGS, RestCheck, RestSettings
 from ._rules import ControllerProposal, ControllerSpec, propose_cautious, propose_controller, robust_models, uncertainty_set
 from ._tuning import (LOOP_VERDICTS, TuningResult, TuningScenario, closed_loop_cost, load_estimate, loop_verdict, plan_scenario,
                       tune_controller)
@@ -49,5 +51,5 @@ __all__ = [
     "closed_loop_cost", "load_estimate", "loop_verdict", "LOOP_VERDICTS", "UncertaintySet", "MechanicsBounds",
     "uncertainty_set", "DesignSearch",
     "optimize_loop", "load_peak_dB", "reference_to_load", "MeasuredResponse", "FRFSettings", "FRF_SETTINGS", "check_limits",
-    "trusted_inertia",
+    "trusted_inertia", "HoldLaw", "RestCheck", "RestSettings", "REST_SETTINGS",
 ]

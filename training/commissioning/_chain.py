@@ -2,9 +2,10 @@
 section 4: named stages applied in order (:data:`STAGES`), each reading what the earlier ones left
 in the run's :class:`ChainState` and adding its own.
 
+    hold      the rest check (SPEC 1.1, :mod:`._rest`): does the drive hold the axis? (else ``AxisNotHeld``)
     excite    adapt the test signal on the drive (E0-E12, ``drive.run_test``)
     identify  what the shipped maps say of the accepted test record (V1 when the identifier fails)
-    validate  re-simulate the identified model under the record's test signal
+    validate  re-simulate the identified model (with ``M_L0``, from rest held) under the record's test signal
     guard     the limits handed to the drive for the closed-loop runs (E9: less the stop headroom)
     permit    may a model-based controller be proposed? (V1-V6)
     design    optimize the law over the uncertainty set (R6, R7, R4, R5), tune on the identified model, plan the experiment
@@ -39,8 +40,8 @@ from training._settings import (AT_LEAST_ONE, FLAG, NON_NEGATIVE_OR_INF, POSITIV
 from training.errors import CommissioningError, LimitPassed, one_line
 
 from ._bands import f1_bands, hidden_bands, widen
-from ._excitation import (ExcitationResult, ExcitationRules, adapt_test_signal, guarded_limits, measure_response, stop_headroom,
-                          trusted_inertia)
+from ._excitation import (ExcitationResult, ExcitationRules, adapt_test_signal, check_limits, guarded_limits, measure_response,
+                          stop_headroom, trusted_inertia)
 from ._frf import FRF_SETTINGS, FRFSettings, MeasuredResponse
 from ._measure import measured_response, plan_frf
 from ._guard import CONFIG_KEYS, CheckedDrive, passed_limits, record_peaks
@@ -48,6 +49,7 @@ from ._loop import linear_plant, margins
 from ._permission import (CommissioningWarning, IdentificationFailed, IdentificationOutcome, Permission, may_propose_controller,
                           outside_training)
 from ._report import CommissioningReport, PlantRun
+from ._rest import REST_SETTINGS, RestCheck, RestSettings, check_rest
 from ._design import MechanicsBounds, elastic_doubts
 from ._rules import ControllerProposal, ControllerSpec, propose_cautious, propose_controller, uncertainty_set
 from ._tuning import (BOUNDED_VERDICTS, applied_torque_gain, Gains, TuningResult, TuningScenario, closed_loop_cost, loop_verdict,
@@ -122,6 +124,7 @@ class CommissioningConfig:
         measure_response: run the frequency-response experiment on the chosen model-based loop
             and the design again with it (stages ``measure``, ``redesign``); False: skip both (faster).
         frf: the frequency-response experiment's settings (:class:`FRFSettings`).
+        rest: the rest check before the first test run (:class:`RestSettings`).
     """
 
     spec: ControllerSpec = field(default_factory=ControllerSpec)
@@ -145,6 +148,7 @@ class CommissioningConfig:
     drive_timeout: float | None = 600.0
     measure_response: bool = True
     frf: FRFSettings = FRF_SETTINGS
+    rest: RestSettings = REST_SETTINGS
 
     def __post_init__(self) -> None:
         check_settings(self, {
@@ -155,7 +159,8 @@ class CommissioningConfig:
             "max_samples": Interval(MIN_EXPERIMENT_SAMPLES, integer=True), "osc_visible_ratio": NON_NEGATIVE_OR_INF,
             "uncertain_spread": Interval(0.0, 1.0, open_high=True), "uncertain_damping": SHARE, "hidden_resonances": FLAG,
             "fallback_resonance_factor": Interval(1.0, finite=False), "min_scenario_quanta": NON_NEGATIVE_OR_INF,
-            "drive_timeout": OrNone(POSITIVE), "measure_response": FLAG, "frf": InstanceOf(FRFSettings)})
+            "drive_timeout": OrNone(POSITIVE), "measure_response": FLAG, "frf": InstanceOf(FRFSettings),
+            "rest": InstanceOf(RestSettings)})
 
 
 class RecordIdentifier(Protocol):
@@ -256,6 +261,8 @@ class ChainState:
     """What the stages have produced so far: the report's fields. A chain that a passed limit ends
     reports what its state holds then."""
 
+    rest: RestCheck | None = None
+    """The rest check before the first test run (None: not run yet)."""
     excitation: ExcitationResult | None = None
     identification: IdentificationOutcome | None = None
     validation: ValidationResult | None = None
@@ -369,6 +376,21 @@ def _model_params(result: Any) -> dict[str, float | None]:
     return out
 
 
+def _simulated_model(result: Any) -> dict[str, float | None]:
+    """The model the chain simulates against a record: the seven parameters (:func:`_model_params`)
+    and the real axis's ``M_L0``, ``M_FCM``, ``mu_FM`` (SPEC 1.1; 0 where not identified), so
+    that it starts at rest held by its ``M_L0`` as the drive holds the axis."""
+    real = {k: getattr(result.parameters, k) for k in sim.REAL_AXIS_NAMES}
+    return {**_model_params(result), **{k: 0.0 if v is None else float(v) for k, v in real.items()}}
+
+
+def _holding_torque(result: Any) -> float:
+    """The torque [Nm] that holds the axis, where the delivered law's integrator starts (SPEC 1.1):
+    the identified constant load torque ``M_L0``, 0 where the identification gives none."""
+    M_L0 = result.parameters.M_L0
+    return 0.0 if M_L0 is None else float(M_L0)
+
+
 def _accepted(excitation: ExcitationResult) -> dict[str, Any]:
     """The log entry of the test record the identification used (the last one the drive did not stop)."""
     kept = [e for e in excitation.log if not e["aborted"]]
@@ -456,7 +478,9 @@ def _check_applied_law(run: ChainRun, law: Any, record: sim.Record, scenario: Tu
     the law replayed (reset) on the record (:func:`applied_torque_gain`); the margins rest on that law."""
     if "loop_unlike_model" in {w.code for w in run.warnings}:
         return
-    gain = applied_torque_gain(law, np.asarray(record.speed, dtype=np.float64), record.torque_ref, scenario.scenario(),
+    held = float(record.meta.get("M_hold", 0.0))  # the drive's holding torque on the law's output (SPEC 1.1)
+    torque = None if record.torque_ref is None else np.asarray(record.torque_ref, dtype=np.float64) - held
+    gain = applied_torque_gain(law, np.asarray(record.speed, dtype=np.float64), torque, scenario.scenario(),
                                run.loop_limits.torque_cap(run.config))
     tolerance = scenario.torque_gain_tolerance
     if gain is not None and not 1 / tolerance <= gain <= tolerance:
@@ -502,6 +526,7 @@ def _propose(run: ChainRun) -> ControllerProposal:
                                   spread=settings.uncertain_spread if r7c else None,
                                   damping=settings.uncertain_damping if r7c else None, doubts=tuple(why), bounds=bounds)
     proposal = propose_controller(result.structure, params, run.config, spec, notch_at=notch_at, uncertainty=uncertainty)
+    proposal = replace(proposal, M_hold=_holding_torque(result))
     if r7c:
         f_es, V_Js, (d_lo, _) = uncertainty.spans()
         proposal = replace(proposal, rules=(f"R7c identification uncertain ({', '.join(why)}): the set's f_e "
@@ -559,7 +584,7 @@ def _fallback_plan(run: ChainRun) -> LoopPlan:
     if _positive(params["f_e"]) and _positive(params["V_J"]):  # the identified resonance too, trusted or not
         factor = settings.fallback_resonance_factor
         widen(bands, params["V_J"], params["f_e"] / factor, params["f_e"] * factor)
-    proposal = propose_cautious(J, config, spec, bands=bands)
+    proposal = replace(propose_cautious(J, config, spec, bands=bands), M_hold=_holding_torque(result))
     if J < identified_J:
         proposal = replace(proposal, rules=proposal.rules + (
             f"F1 J_sigma from the test run's rigid-body fit ({J:.4g} kg m^2), "
@@ -583,6 +608,18 @@ def _model_based_delivery(run: ChainRun, design: LoopPlan, trial: LoopTrial) -> 
 
 
 # --------------------------------------------------------------------------- the stages, in order
+
+
+def _check_hold(run: ChainRun) -> None:
+    """SPEC 1.1: before any test, the limits' E0 check (where the rules refuse uninformative limits),
+    then the rest check (:func:`check_rest`): a drive that does not hold the axis raises
+    :class:`training.errors.AxisNotHeld` and nothing is excited."""
+    rules = run.settings.rules
+    if rules.refuse_uninformative_limits:
+        check_limits(run.limits, run.config, rules)
+    run.say(f"{run.name}: checking that the drive holds the axis at rest")
+    run.state.rest = check_rest(run.drive, run.config, run.limits, run.settings.rest)
+    run.lap("rest_check")
 
 
 def _excite(run: ChainRun) -> None:
@@ -614,7 +651,7 @@ def _validate(run: ChainRun) -> None:
     validation = None
     if result.ok:
         try:
-            validation = validate_model(_model_params(result), run.config, excitation.record, mode=settings.validation_mode,
+            validation = validate_model(_simulated_model(result), run.config, excitation.record, mode=settings.validation_mode,
                                         osc_metric=settings.osc_metric)
         except ValueError as err:
             run.warn("validation_not_run", f"validation failed: {one_line(err)}")
@@ -805,6 +842,7 @@ def _deliver(run: ChainRun) -> None:
 
 #: The chain, in order (module docstring): each stage reads the run's state and adds its own.
 STAGES: tuple[tuple[str, Callable[[ChainRun], None]], ...] = (
+    ("hold", _check_hold),
     ("excite", _excite),
     ("identify", _identify_record),
     ("validate", _validate),
@@ -944,7 +982,8 @@ def _report(run: ChainRun, excitation: ExcitationResult, M_star: float) -> Commi
         timings=run.timings, name=run.name, breach=run.drive.breach, measured=state.measured,
         redesign=None if state.redesign is None else state.redesign.proposal,
         redesign_runs=[] if state.redesign_trial is None else state.redesign_trial.runs, redesign_kept=state.redesign_kept,
-        redesign_reason=state.redesign_reason, load_peak_dB=_load_peak(state.delivered), limited_by=_limited_by(state))
+        redesign_reason=state.redesign_reason, load_peak_dB=_load_peak(state.delivered), limited_by=_limited_by(state),
+        rest=state.rest)
 
 
 def _limited_by(state: ChainState) -> str:

@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["NotchSpec", "PISpeedLaw", "as_notches", "MAX_NOTCHES"]
+__all__ = ["NotchSpec", "PISpeedLaw", "HoldLaw", "as_notches", "MAX_NOTCHES"]
 
 #: The most notches the law applies in series (SPEC 8.1: up to two).
 MAX_NOTCHES: int = 2
@@ -152,3 +152,21 @@ class PISpeedLaw:
             u = v
         out = np.clip(u, -self.M_max, self.M_max)
         return float(out) if out.ndim == 0 else out
+
+
+class HoldLaw:
+    """The speed loop off: a law (SPEC 8.1 contract) whose torque reference is 0 at every sample, so
+    that the drive's own holding torque ``M_hold`` (SPEC 1.1: what a drive adds to every law's
+    output on a held axis) holds the axis alone. The chain's rest check runs it
+    (:func:`training.commissioning._rest.check_rest`); a drive that loads ``params`` reads
+    ``{"type": "hold"}``: no speed controller, the holding torque only."""
+
+    def __init__(self) -> None:
+        self.params: dict[str, Any] = {"type": "hold"}
+
+    def reset(self) -> None:
+        """Nothing to reset: the law has no state."""
+
+    def step(self, w_meas: Any, w_ref: Any) -> float:
+        """``M_ref = 0`` [Nm] whatever the speeds (the drive adds its holding torque)."""
+        return 0.0

@@ -23,6 +23,7 @@ from training._json import json_safe
 from ._excitation import ExcitationResult
 from ._frf import MeasuredResponse
 from ._guard import LimitBreach
+from ._rest import RestCheck
 from ._permission import CommissioningWarning, IdentificationOutcome, Permission
 from ._rules import ControllerProposal
 from ._tuning import BOUNDED_VERDICTS, UNSCORED_VERDICTS, USABLE_VERDICTS, Gains, TuningResult, TuningScenario
@@ -105,7 +106,8 @@ class CommissioningReport:
     same law), ``redesign_runs`` its candidates on the drive, ``redesign_kept`` (it is delivered) and
     ``redesign_reason``; ``load_peak_dB``: the delivered loop's worst reference-to-load-speed peak over the
     design set (None: not known, or none delivered); ``limited_by``: why the delivered loop is below
-    what the identified model allows (empty: nothing limits it but the model). ``breach``: the record that showed one of the user's limits
+    what the identified model allows (empty: nothing limits it but the model). ``rest``: the rest
+    check before the first test run (SPEC 1.1: the drive held the axis; None: not run). ``breach``: the record that showed one of the user's limits
     passed (SPEC 8.2; None: none did): the experiments ended there, nothing is delivered, and the
     stages the chain had not reached are None (``identification``, ``validation``, ``permission``)
     or empty.
@@ -142,6 +144,7 @@ class CommissioningReport:
     redesign_reason: str = ""
     load_peak_dB: float | None = None
     limited_by: str = ""
+    rest: RestCheck | None = None
 
     def __post_init__(self) -> None:
         if self.breach is not None and self.delivered is not None:
@@ -192,6 +195,7 @@ class CommissioningReport:
             "name": self.name,
             "drive": self.config.to_dict(),
             "limits": {"w_max": self.limits.w_max, "travel": self.limits.travel, "M_max": self.limits.M_max},
+            "rest_check": None if self.rest is None else self.rest.to_dict(),
             "excitation": {"informative": ex.informative, "reason": ex.reason, "log": ex.log},
             "identification": None if self.identification is None else self.identification.to_dict(),
             "validation": None if v is None else {
@@ -238,6 +242,8 @@ class CommissioningReport:
         if self.breach is not None:
             L.append(f"STOPPED: {self.breach.text()}")
         notes = self._warning_lines()
+        if self.rest is not None:
+            L.append(f"0 rest check: {self.rest.text()}")
         L += self._excitation_lines() + notes["test"] + self._identification_lines()
         if self.validation is not None:
             v = self.validation
@@ -355,6 +361,9 @@ class CommissioningReport:
         L = [f"8 delivered: {_controller_text(d)}",
              f"   guaranteed margins (worst of {len(d.models.plants)} models: {m.model}): PM {m.phase_margin:.1f} deg, "
              f"GM {m.gain_margin_dB:.1f} dB; crossover w_c {d.figures['w_c']:.4g} rad/s on the design model"]
+        if d.M_hold != 0.0:
+            L.append(f"   holding torque M_hold {d.M_hold:.4g} Nm (the identified M_L0): the law's integrator starts there "
+                     f"(the drive's holding-torque feedforward)")
         if self.load_peak_dB is not None:
             L.append(f"   reference-to-load-speed peak {self.load_peak_dB:.2f} dB, the worst over the design set")
         if self.limited_by:

@@ -110,7 +110,10 @@ class ControllerProposal:
     :class:`Margins` over ``models`` (the guarantee's set); ``load_peak_dB``: the worst
     reference-to-load peak over the set's plants; ``lowest_w_c``: the lowest crossover over the
     set; ``limited_by``: what bounds the crossover; ``rules``: the rule lines (each starts with
-    its code).
+    its code). ``M_hold`` [Nm]: the holding torque (SPEC 1.1), where the law's integrator starts on
+    the drive (the identified constant load torque ``M_L0``; 0 on an axis without one): a drive that
+    holds the axis adds it to the law's output (its feedforward), one that loads the law starts the
+    integrator there. The linear design does not see it (a constant torque does not change the loop).
     """
 
     concept: str
@@ -129,6 +132,7 @@ class ControllerProposal:
     lowest_w_c: float = math.nan
     limited_by: str = ""
     max_load_peak_dB: float = SEARCH.max_load_peak_dB
+    M_hold: float = 0.0
 
     @property
     def notch(self) -> Notches:
@@ -162,7 +166,7 @@ class ControllerProposal:
             "margins": {"phase_margin": m.phase_margin, "gain_margin_dB": m.gain_margin_dB, "w_c": m.w_c,
                         "stable": m.stable, "worst_model": m.model},
             "load_peak_dB": _finite_or_none(self.load_peak_dB), "lowest_w_c": _finite_or_none(self.lowest_w_c),
-            "limited_by": self.limited_by,
+            "limited_by": self.limited_by, "M_hold": self.M_hold,
             "rules": list(self.rules), "rule_codes": [r.split(" ", 1)[0] for r in self.rules], "warnings": list(self.warnings),
         }
 

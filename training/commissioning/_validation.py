@@ -91,6 +91,7 @@ def _as_sim_params(params: Any, drive: Any) -> Any:
     row = {k: params.get(k) for k in sim.PARAM_NAMES}
     if row["V_J"] is None or row["f_e"] is None:
         row.update(sim.one_mass_stand_in(float(drive.T_s)))
+    row.update({k: params[k] for k in sim.REAL_AXIS_NAMES if k in params})  # SPEC 1.1: M_L0 holds the model at rest
     row = {k: (0.0 if v is None else float(v)) for k, v in row.items()}
     return sim.TwoMassParams.from_dicts(row)
 
@@ -184,7 +185,9 @@ def validate_model(
 
     Args:
         params: identified model: ``sim.TwoMassParams`` (one system) or a dict of the seven
-            parameters (``V_J``/``f_e`` None: one-mass surrogate).
+            parameters (``V_J``/``f_e`` None: one-mass surrogate), optionally with SPEC 1.1's
+            ``M_L0``, ``M_FCM``, ``mu_FM`` (None or absent: 0); a model with ``M_L0`` starts at
+            rest held by it, as the drive holds the axis (the recorded ``torque_ref`` holds it).
         drive: DriveConfig.
         record: sim Response (one system) or Record: ``speed`` ``N`` [rad/s], ``torque_ref`` ``N``
             [Nm] (needed for ``mode="replay"``), for ``"switching"`` ``meta`` with ``M_star``,

@@ -16,7 +16,7 @@ from training.commissioning._frf import FRFSettings  # noqa: E402
 from training.commissioning._loop import LoopAnalysis  # noqa: E402
 from training.commissioning._tuning import ScenarioSizing, SearchSettings  # noqa: E402
 
-ORDER = ("excite", "identify", "validate", "guard", "permit", "design", "try", "measure", "redesign", "fallback", "deliver")
+ORDER = ("hold", "excite", "identify", "validate", "guard", "permit", "design", "try", "measure", "redesign", "fallback", "deliver")
 
 
 def test_the_stages_run_in_the_documented_order():

@@ -177,8 +177,12 @@ def test_file_drive_stops_and_resumes(tmp_path, stub):
 
 
 def sim_law(params):
-    """A drive's own controller loaded from the law's parameters (as a real drive would)."""
-    from training.commissioning import NotchSpec, PISpeedLaw
+    """A drive's own controller loaded from the law's parameters (as a real drive would): the speed
+    loop off for the rest check (``type`` ``hold``), else the PI law."""
+    from training.commissioning import HoldLaw, NotchSpec, PISpeedLaw
+
+    if params["type"] == "hold":
+        return HoldLaw()
 
     return PISpeedLaw(params["Kp"], params["Ti"], T_s=params["T_s"], M_max=params["M_max"], T_f=params["T_f"],
                       notch=tuple(NotchSpec(**n) for n in params["notches"]))
@@ -216,7 +220,8 @@ def test_command_runs_a_drive_from_a_file_and_a_pending_folder(tmp_path, capsys)
     (folder / "drive.json").write_text(json.dumps({"config": remote_plant.CONFIG, "limits": {"w_max": 20, "travel": 5}}))
     assert main(["commission", "--resume", str(folder), "--no-progress"]) == 0
     assert "001_request.json" in capsys.readouterr().out
-    assert json.loads((folder / "001_request.json").read_text())["kind"] == "test"
+    first = json.loads((folder / "001_request.json").read_text())  # the rest check: the speed loop off
+    assert first["kind"] == "closed_loop" and first["law"] == {"type": "hold"}
 
 
 def test_the_chain_reads_identification_codes_only():

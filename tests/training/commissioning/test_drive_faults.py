@@ -16,7 +16,8 @@ import pytest
 sim = pytest.importorskip("sim")
 
 from training.cli import main  # noqa: E402
-from training.commissioning import CommissioningConfig, ExcitationRules, FileDrive, adapt_test_signal, commission  # noqa: E402
+from training.commissioning import (CommissioningConfig, ExcitationRules, FileDrive, HoldLaw, adapt_test_signal,  # noqa: E402
+                                    commission)
 from training.commissioning._tuning import TuningScenario, loop_verdict, response_figures  # noqa: E402
 from training.errors import CommissioningError, ExperimentPending  # noqa: E402
 
@@ -124,10 +125,18 @@ def test_a_recording_of_another_experiment_is_refused(tmp_path, stub):
     ident = stub("elastic", faulty_drives.PLANT)
     with pytest.raises(ExperimentPending) as pending:
         commission(FileDrive(tmp_path), LIMITS, identifier=ident, config=FAST)
-    req = json.loads(Path(pending.value.request).read_text())
-    rec = sim.SimulatedDrive(faulty_drives.PLANT).run_test(2 * req["M_star"], req["w_max"], sim.DriveLimits(**req["limits"]))
+    rest = json.loads(Path(pending.value.request).read_text())  # the rest check, answered as asked
+    answer = sim.SimulatedDrive(faulty_drives.PLANT)
+    rec = answer.run_closed_loop(HoldLaw(), sim.Scenario(np.array(rest["scenario"]["w_ref"]), np.array(rest["scenario"]["M_dist"])),
+                                 sim.DriveLimits(**rest["limits"]))
     rec.meta.pop("aborted", None)
     sim.write_record(tmp_path / "001", rec)
+    with pytest.raises(ExperimentPending) as pending:
+        commission(FileDrive(tmp_path), LIMITS, identifier=ident, config=FAST)
+    req = json.loads(Path(pending.value.request).read_text())
+    rec = answer.run_test(2 * req["M_star"], req["w_max"], sim.DriveLimits(**req["limits"]))
+    rec.meta.pop("aborted", None)
+    sim.write_record(tmp_path / "002", rec)
     with pytest.raises(CommissioningError, match="another experiment"):
         commission(FileDrive(tmp_path), LIMITS, identifier=ident, config=FAST)
 
