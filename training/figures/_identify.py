@@ -132,8 +132,7 @@ def _text(result: IdentificationResult, a: Analysis, n: int) -> str:
     for name in PARAMETER_NAMES:
         value = getattr(result.parameters, name)
         row = f"  {name:9} {number(value):>10}  {PARAMETER_UNITS[name]:8}"
-        shown = iv is not None and name in INTERVAL_NAMES
-        lines.append((row + " " + interval_text(name, value, iv[name])) if shown else row.rstrip())
+        lines.append((row + " " + interval_text(name, value, iv[name])) if iv is not None else row.rstrip())
     if iv is None:
         lines.append("  " + NO_CALIBRATION)
     lines += ["", "quality"]

@@ -40,14 +40,18 @@ from training.identification._analysis import Analysis
 from training.identification._result import INTERVAL_NAMES, WARNING_CODES, Intervals, Parameters
 
 #: Version of the features and of the calibration file's layout.
-CONFIDENCE_VERSION = "twomass-confidence-v1"
+CONFIDENCE_VERSION = "twomass-confidence-v2"
 #: The calibration's file in a checkpoints folder.
 FILE_NAME = "confidence.json"
 #: The intervals' coverage (SPEC 4.1).
 COVERAGE = 0.9
 
-#: The parameters whose coordinate is ``asinh(value / scale)`` (they may be 0); the others' is ``log``.
-ZERO_CAPABLE = ("backlash", "M_FC", "mu_F")
+#: The parameters whose coordinate is ``asinh(value / scale)`` (they may be 0; their values are
+#: clipped at 0), the signed load torque's too (not clipped); the others' is ``log``.
+ZERO_CAPABLE = ("backlash", "M_FC", "mu_F", "M_FCM", "mu_FM")
+SIGNED = ("M_L0",)
+#: The parameters whose coordinate is ``asinh`` (:data:`ZERO_CAPABLE` and :data:`SIGNED`).
+ASINH = ZERO_CAPABLE + SIGNED
 #: The remarks whose presence is a feature (every code but the calibration's own).
 REMARK_CODES = tuple(c for c in WARNING_CODES if c != "likely_wrong")
 
@@ -58,7 +62,8 @@ FEATURE_NAMES: tuple[str, ...] = (
     *(f"margin_maps_{q}" for q in CLASS_THRESHOLDS), "refine_gain", "log_f_e_T_s", "log_f_e_T_Ei", "log_V_J",
     "log_d", "log_s_N", "maps_refined_f_e", "maps_refined_V_J", "log_noise", "log_T_s", "log_counts",
     "log_time_scale", "log_T_Ei_T_s", "friction", "viscous", "log_backlash_bound", "log_std_J_sigma",
-    "log_std_M_FC", "log_std_mu_F", *(f"remark_{c}" for c in REMARK_CODES))
+    "log_std_M_FC", "log_std_mu_F", "load_torque", "held", "motor_friction",
+    *(f"remark_{c}" for c in REMARK_CODES))
 
 
 @dataclass(frozen=True)
@@ -74,13 +79,16 @@ class ConfidenceInputs:
     structure: str
 
     def coordinate(self, name: str, value: float) -> float:
-        """``value`` of parameter ``name`` in its coordinate (:data:`ZERO_CAPABLE`: asinh; else log)."""
-        if name in ZERO_CAPABLE:
+        """``value`` of parameter ``name`` in its coordinate (:data:`ZERO_CAPABLE`, :data:`SIGNED`: asinh;
+        else log)."""
+        if name in ASINH:
             return math.asinh(value / self.scales[name])
         return math.log(max(value, 1e-300))
 
     def value(self, name: str, coordinate: float) -> float:
         """The inverse of :meth:`coordinate` (a zero-capable value clipped at 0)."""
+        if name in SIGNED:
+            return self.scales[name] * math.sinh(coordinate)
         if name in ZERO_CAPABLE:
             return max(self.scales[name] * math.sinh(coordinate), 0.0)
         return math.exp(coordinate)
@@ -89,7 +97,8 @@ class ConfidenceInputs:
 def stand_in_points(parameters: Parameters, maps_elastic: tuple[float, float, float], J_sigma_fit: float,
                     friction_fit: tuple[float, float]) -> dict[str, float]:
     """Every parameter's point: the answer's value, else its stand-in (``maps_elastic`` =
-    ``(f_e, V_J, d)`` of the maps, the one-mass fit's ``J_sigma`` and ``(M_FC, mu_F)``, backlash 0;
+    ``(f_e, V_J, d)`` of the maps, the one-mass fit's ``J_sigma`` and ``(M_FC, mu_F)``, backlash and
+    the real-axis parts 0;
     the derived ``J_M``, ``J_L``, ``C_F`` of those)."""
     J_sigma = parameters.J_sigma if parameters.J_sigma is not None else abs(J_sigma_fit)
     f_e, V_J, d = (v if v is not None else m for v, m in zip((parameters.f_e, parameters.V_J, parameters.d),
@@ -98,7 +107,8 @@ def stand_in_points(parameters: Parameters, maps_elastic: tuple[float, float, fl
     return {"J_sigma": J_sigma, "V_J": V_J, "J_M": derived.J_M, "J_L": derived.J_L, "f_e": f_e, "C_F": derived.C_F,
             "d": d, "backlash": parameters.backlash or 0.0,
             "M_FC": parameters.M_FC if parameters.M_FC is not None else max(friction_fit[0], 0.0),
-            "mu_F": parameters.mu_F if parameters.mu_F is not None else max(friction_fit[1], 0.0)}
+            "mu_F": parameters.mu_F if parameters.mu_F is not None else max(friction_fit[1], 0.0),
+            "M_L0": parameters.M_L0 or 0.0, "M_FCM": parameters.M_FCM or 0.0, "mu_FM": parameters.mu_FM or 0.0}
 
 
 def class_margins(quantities: Mapping[str, float]) -> dict[str, float]:
@@ -148,8 +158,11 @@ def confidence_inputs(analysis: Analysis, structure: str, parameters: Parameters
               _log10(fit.std[0] / abs(fit.J_sigma), 1e-7, 10.0),
               _log10(fit.std[2] / drive.M_star, 1e-7, 10.0),
               _log10(fit.std[1] * drive.w_max / drive.M_star, 1e-7, 10.0),
-              *(float(c in codes) for c in REMARK_CODES)]
-    scales = {"backlash": 2.0 * drive.q_phi, "M_FC": 0.01 * drive.M_star, "mu_F": 0.01 * drive.M_star / drive.w_max}
+              min(abs(points["M_L0"]) / drive.M_star, 1.0), float(drive.M_hold != 0.0),
+              min(points["M_FCM"] / drive.M_star, 1.0), *(float(c in codes) for c in REMARK_CODES)]
+    torque, viscous = 0.01 * drive.M_star, 0.01 * drive.M_star / drive.w_max
+    scales = {"backlash": 2.0 * drive.q_phi, "M_FC": torque, "mu_F": viscous, "M_L0": torque, "M_FCM": torque,
+              "mu_FM": viscous}
     return ConfidenceInputs(np.asarray(values, dtype=np.float64), dict(points), scales, structure)
 
 

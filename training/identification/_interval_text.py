@@ -7,9 +7,9 @@ import math
 
 from ._result import INTERVAL_NAMES
 
-#: The parameters that may be 0 (no backlash, no friction): their interval always reads
-#: ``[low .. high]``, never relative to a value that may be 0 or below the resolution.
-MAY_BE_ZERO: frozenset[str] = frozenset({"backlash", "M_FC", "mu_F"})
+#: The parameters that may be 0 (no backlash, no friction, no load torque): their interval always
+#: reads ``[low .. high]``, never relative to a value that may be 0 or below the resolution.
+MAY_BE_ZERO: frozenset[str] = frozenset({"backlash", "M_FC", "mu_F", "M_L0", "M_FCM", "mu_FM"})
 
 #: The relative form is used while the interval's upper side lies within this share of the value
 #: (above it, e.g. a damping of 0.02 in [0.004, 0.13], ``[low .. high]`` reads better than +500 %).

@@ -75,7 +75,7 @@ NOTE_CODES: frozenset[str] = frozenset({
     "backlash_from_angle", "class_undecided", "class_near_threshold", "answer_outside_envelope", "implausible_output"})
 
 #: The parameters that carry a 90 % interval (SPEC 4.1), in output order.
-INTERVAL_NAMES: tuple[str, ...] = PARAMETER_NAMES[:10]
+INTERVAL_NAMES: tuple[str, ...] = PARAMETER_NAMES
 
 
 @dataclass(frozen=True)
@@ -126,6 +126,9 @@ class Intervals:
     backlash: tuple[float, float]
     M_FC: tuple[float, float]
     mu_F: tuple[float, float]
+    M_L0: tuple[float, float]
+    M_FCM: tuple[float, float]
+    mu_FM: tuple[float, float]
 
     def __getitem__(self, name: str) -> tuple[float, float]:
         if name not in INTERVAL_NAMES:

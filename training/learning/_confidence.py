@@ -24,7 +24,7 @@ from sim import DriveConfig, TestSignalConfig, TwoMassParams, iter_records, samp
 from training.evaluation import DRIVES, answer_wrong, envelope_cases, relative_error, threshold_margin
 from training.identification import CONFIDENCE_COVERAGE as COVERAGE
 from training.identification import (CONFIDENCE_VERSION, INTERVAL_NAMES, NOTE_CODES, Calibration, ConfidenceInputs,
-                                     Identifier, LinearModel, ZERO_CAPABLE)
+                                     Identifier, LinearModel, ASINH)
 
 #: The seeds of the calibration's three sets: the drive matrix, the envelope drives, the reference
 #: drive's default population.
@@ -170,7 +170,7 @@ def fit_calibration(samples: Sequence[CalibrationSample], provenance: dict[str, 
     classes = np.array([s.inputs.structure for s in samples])
     scale, quantile = {}, {}
     for name in INTERVAL_NAMES:
-        floor = _ERROR_FLOOR["asinh" if name in ZERO_CAPABLE else "log"]
+        floor = _ERROR_FLOOR["asinh" if name in ASINH else "log"]
         e = coordinate_errors(samples, name)
         coef, intercept = _ridge(Z, np.log(e + floor), RIDGE_SCALE)
         model = LinearModel(mean, std, coef, intercept)

@@ -151,7 +151,8 @@ def motor_shares(problems: list[RefineProblem], choices: list[Choice], finalists
                  config: RefineConfig) -> dict[int, float]:
     """The split stage's scan (:func:`._split.motor_share`) over each problem's ``finalists``: the
     problems whose friction it would put partly on the motor, with that share."""
-    asked = {i: finalists[i] for i, p in enumerate(problems) if splits(p, config.split)}
+    best = {i: np.argsort(c.cost)[:config.split.finalists] for i, c in enumerate(choices)}
+    asked = {i: finalists[i][best[i]] for i, p in enumerate(problems) if splits(p, config.split)}
     noise = {i: noise_energy(problems[i], choices[i]) for i in asked}
     return {i: s for i, s in motor_share(problems, asked, config.split, config.batch, noise).items() if s > 0}
 

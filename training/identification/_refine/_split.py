@@ -31,12 +31,14 @@ class SplitSettings:
     error lies ``evidence`` below the error with all friction on the load, in units of the
     quantization's expected error over the record (else no motor friction)."""
 
-    steps: int = 10  # shares 0, 1/steps, ..., 1
+    steps: int = 5  # shares 0, 1/steps, ..., 1
+    finalists: int = 4  # the choice's best finalists replayed at every share
     min_friction: float = 0.002  # of the test's torque step M*
     evidence: float = 0.5  # the error's drop, in quantization energies, for a motor share
 
     def __post_init__(self) -> None:
-        check_settings(self, {"steps": AT_LEAST_ONE, "min_friction": NON_NEGATIVE, "evidence": NON_NEGATIVE})
+        check_settings(self, {"steps": AT_LEAST_ONE, "finalists": AT_LEAST_ONE, "min_friction": NON_NEGATIVE,
+                              "evidence": NON_NEGATIVE})
 
 
 def splits(p: RefineProblem, settings: SplitSettings) -> bool:
