@@ -89,14 +89,15 @@ class Identifier:
 
     @classmethod
     def load(cls, folder: str | os.PathLike[str] | None = None, *,
-             refine: RefineConfig | None = RefineConfig()) -> "Identifier":
+             refine: RefineConfig | None = RefineConfig(), calibrated: bool = True) -> "Identifier":
         """Load every map of ``folder`` (default: :func:`training.config.checkpoints_folder`, the
         shipped maps unless ``$TWOMASS_CHECKPOINTS`` names others) after checking the manifest's
         SHA-256 of each file; the manifest must list every file read (:data:`CHECKPOINT_FILES`, and
         the confidence calibration ``confidence.json`` where the folder has one: made for these
-        maps, else an error)."""
+        maps, else an error). ``calibrated=False``: the maps alone, whatever calibration the folder
+        holds (what ``twomass calibrate`` calibrates)."""
         folder = Path(folder) if folder is not None else checkpoints_folder()
-        calibrated = (folder / CONFIDENCE_FILE).exists()
+        calibrated = calibrated and (folder / CONFIDENCE_FILE).exists()
         digests = st.verify_manifest(folder, required=CHECKPOINT_FILES)
         if calibrated and CONFIDENCE_FILE not in digests:  # e.g. maps trained anew into a calibrated folder
             raise ValueError(f"{folder}: {CONFIDENCE_FILE} is not listed in the manifest (made for earlier maps?): "

@@ -109,8 +109,7 @@ def _split(group: str, drive: DriveConfig, signal: TestSignalConfig, params: Two
 def task_samples(task: Task, checkpoints: str | os.PathLike[str] | None = None) -> list[CalibrationSample]:
     """Simulate and identify one task's systems without a calibration; one sample per answer."""
     group, drive, signal, params, seed = task
-    loaded = Identifier.load(checkpoints)
-    identifier = Identifier(loaded.maps, loaded.refine, loaded.envelope, policy=loaded.policy)
+    identifier = Identifier.load(checkpoints, calibrated=False)
     records = list(iter_records(params, drive, signal, seed=seed))
     out = []
     for record, result in zip(records, identifier.identify_records(records)):
