@@ -32,7 +32,8 @@ EXIT_OK, EXIT_SOME_ERRORS = 0, 1
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.epilog = ("output: one JSON object per line, numbers in SI units: J_sigma, J_M, J_L [kg m^2], V_J [-], "
-                     "f_e [Hz], C_F [Nm/rad], d [-], backlash [rad, total width 2s], M_FC [Nm], mu_F [Nm s/rad]; "
+                     "f_e [Hz], C_F [Nm/rad], d [-], backlash [rad, total width 2s], M_FC, mu_F [Nm, Nm s/rad] of "
+                     "the load, M_L0 [Nm] the constant load torque, M_FCM, mu_FM [Nm, Nm s/rad] of the motor; "
                      "exit status: 0 all records identified, 1 some records have an 'error' (the others are "
                      "answered), 2 bad usage (no files, unusable checkpoints, --out exists)")
     parser.add_argument("files", nargs="*", metavar="FILE",

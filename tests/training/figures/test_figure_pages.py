@@ -79,8 +79,9 @@ def test_identify_page_draws_each_interval_as_a_bar_over_the_value(good, identif
     calibrated class probabilities and P(answer right); the bars span interval / value, clipped."""
     _, result, analysis = identified
     p = result.parameters
-    bounds = {n: (0.9 * getattr(p, n), 1.2 * getattr(p, n)) for n in PARAMETER_NAMES}
-    bounds |= {"d": (0.0, 10.0 * p.d), "backlash": (0.0, 2.0 * p.backlash)}
+    bounds = {n: (0.9 * getattr(p, n), 1.2 * getattr(p, n)) for n in PARAMETER_NAMES[:10]}
+    bounds |= {"d": (0.0, 10.0 * p.d), "backlash": (0.0, 2.0 * p.backlash), "M_L0": (-0.01, 0.01), "M_FCM": (0.0, 0.01),
+               "mu_FM": (0.0, 1e-4)}
     calibrated = dataclasses.replace(result, intervals=Intervals(**bounds),
                                      quality=dataclasses.replace(result.quality, answer_probability=0.87))
     fig = identify_figure(good, calibrated, analysis)

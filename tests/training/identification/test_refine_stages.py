@@ -12,10 +12,10 @@ import pytest
 from training.identification._refine import (PIPELINE, STAGES, AngleSettings, BatchSettings, ChooseSettings,
                                              ClimbSettings, ExploreSettings, FreeSettings, PolishSettings,
                                              RattleSettings, RefineConfig, RescueSettings, RetrySettings,
-                                             SearchSettings, Stage)
+                                             SearchSettings, SplitSettings, Stage)
 
-SETTINGS = (ExploreSettings, RescueSettings, ClimbSettings, RattleSettings, ChooseSettings, FreeSettings,
-            PolishSettings, RetrySettings, AngleSettings, SearchSettings, BatchSettings)
+SETTINGS = (ExploreSettings, RescueSettings, ClimbSettings, RattleSettings, ChooseSettings, SplitSettings,
+            FreeSettings, PolishSettings, RetrySettings, AngleSettings, SearchSettings, BatchSettings)
 
 
 def test_every_stage_of_the_pipeline_is_registered_once_with_its_settings_in_the_config():
@@ -44,7 +44,8 @@ def test_settings_are_frozen_dataclasses_whose_fields_say_what_they_are(settings
     (SearchSettings, "elites", 1), (SearchSettings, "spread", (0.1, 0.1)), (SearchSettings, "memory", -0.1),
     (ExploreSettings, "window_periods", 0.0), (ExploreSettings, "rounds", -1), (ExploreSettings, "grid_f_e", 0),
     (ExploreSettings, "window_max", math.nan), (RescueSettings, "rounds", -1), (ClimbSettings, "grid_f_e", 0),
-    (RattleSettings, "finalists", -1), (ChooseSettings, "finalists", 0), (FreeSettings, "friction_start", (0.1,)),
+    (RattleSettings, "finalists", -1), (ChooseSettings, "finalists", 0), (SplitSettings, "steps", 0),
+    (SplitSettings, "evidence", -1.0), (FreeSettings, "friction_start", (0.1,)),
     (FreeSettings, "f_e_per_octave", 0), (PolishSettings, "steps", (1e-3,)), (PolishSettings, "samples_per_period", 0),
     (RetrySettings, "damping", 0.0), (RetrySettings, "damping", 1.5), (AngleSettings, "samples", 0),
     (AngleSettings, "grid_top", 0.0), (BatchSettings, "length_ratio", 0.0), (BatchSettings, "led_lanes", 0),

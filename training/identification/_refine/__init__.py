@@ -16,9 +16,10 @@ from ._replay import BatchSettings
 from ._rescue import RescueSettings
 from ._retry import RetrySettings
 from ._search import SearchSettings
+from ._split import SplitSettings
 from ._stage import Stage
 
 __all__ = ["AngleSettings", "BatchSettings", "ChooseSettings", "ClimbSettings", "ExploreSettings", "FreeSettings",
            "HiddenGap", "PIPELINE", "PolishSettings", "RattleSettings", "RefineConfig", "RefineProblem", "Refined",
-           "RescueSettings", "RetrySettings", "STAGES", "SearchSettings", "Stage", "find_hidden_gap", "refine",
+           "RescueSettings", "RetrySettings", "STAGES", "SearchSettings", "SplitSettings", "Stage", "find_hidden_gap", "refine",
            "torque_reference"]

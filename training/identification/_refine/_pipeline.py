@@ -60,8 +60,7 @@ from training.identification._refine._windows import ScoreWindows, score_windows
 
 #: The stages by name, each with its settings class, entry point and when it runs.
 STAGES: dict[str, Stage] = {module.STAGE.name: module.STAGE for module in
-                            (_explore, _rescue, _climb, _rattle, _choose, _split, _free, _polish, _retry,
-                                                         _angle)}
+                            (_explore, _rescue, _climb, _rattle, _choose, _split, _free, _polish, _retry, _angle)}
 #: The order the stages run in (``angle`` by the identifier, after the others).
 PIPELINE: tuple[str, ...] = ("explore", "rescue", "climb", "rattle", "choose", "split", "free", "polish", "retry",
                               "angle")

@@ -26,10 +26,16 @@ from training.identification._refine._stage import Stage
 @dataclass(frozen=True)
 class SplitSettings:
     """The motor's share of the Coulomb friction is searched on ``steps + 1`` evenly spaced shares
-    from 0 to 1 where STEP 2's Coulomb friction reaches ``min_friction`` of the test's torque step
-    (below it the split moves nothing a model could show). The lowest share wins only where its
-    error lies ``evidence`` below the error with all friction on the load, in units of the
-    quantization's expected error over the record (else no motor friction)."""
+    from 0 to 1, for the choice's ``finalists`` best models, where STEP 2's Coulomb friction reaches
+    ``min_friction`` of the test's torque step (below it the split moves nothing a model could show).
+    The lowest share goes on only where its error lies ``evidence`` below the error with all
+    friction on the load, in units of the quantization's expected error over the record; the
+    pipeline then polishes the split model beside the plain one, and the split one wins only by the
+    same ``evidence`` (a share scanned at a model fitted without it is partly a fudge: on the
+    default population, 13 of 57 scans found a share, 2 of 100 answers kept one after the polish).
+    Measured on the reference drive, SPEC 1.1's motor-friction population (100 systems): ``M_FC``
+    within 1 % of ``M*`` 67 -> 76 %, ``M_FCM`` 67 -> 75 %; the steps and finalists were cut from
+    10 and all without a loss."""
 
     steps: int = 5  # shares 0, 1/steps, ..., 1
     finalists: int = 4  # the choice's best finalists replayed at every share
