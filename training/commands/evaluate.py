@@ -68,10 +68,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "drive envelope (seed --seed; drives no matrix chose), N systems each, and all together; "
                              "written to OUT/drives_envelope.md and OUT/drives_envelope.json (the confidence to "
                              "OUT/confidence_envelope.md, .json and OUT/fig_reliability_envelope.png)")
-    parser.add_argument("--real-axis", action="store_true",
+    parser.add_argument("--real-axis", nargs="?", const="both", default=None, metavar="EFFECT",
                         help="with --drives N (the matrix): the drives' populations with SPEC 1.1's load torque and "
-                             "motor friction (docs/simulator.md); written to OUT/drives_real_axis.md, .json and "
-                             "OUT/confidence_real_axis.md, .json, OUT/fig_reliability_real_axis.png")
+                             "motor friction (docs/simulator.md): EFFECT both (the default: SPEC 1.1's population), "
+                             "load (the load torque M_L0 alone) or motor (the motor friction M_FCM, mu_FM alone); the "
+                             "figures gain M_L0 within 5 %%, M_FC and M_FCM within 1 %% of M*; written to "
+                             "OUT/drives_real_axis.md, .json and OUT/confidence_real_axis.md, .json, "
+                             "OUT/fig_reliability_real_axis.png (with load or motor: drives_real_axis_load.md etc.)")
+    parser.add_argument("--drive-names", default=None, metavar="LIST",
+                        help="with --drives N (the matrix): only these drives, comma-separated, each NAME or NAME=K "
+                             "(K systems instead of N), e.g. reference=200,servo_200w,low_res_1ms (default: all six)")
     _progress.add_option(parser)
 
 
@@ -91,15 +97,46 @@ def command_line(args: argparse.Namespace) -> str:
 
 def _drive_study(args: argparse.Namespace) -> tuple[bool, str]:
     """Whether ``--drives`` runs on envelope drives, and its files' suffix (``""``, ``"_envelope"``,
-    ``"_real_axis"``); bad values raise ``ValueError`` (one line)."""
+    ``"_real_axis"``, ``"_real_axis_<effect>"`` but for ``both``); bad values raise ``ValueError`` (one line)."""
+    from training.evaluation import real_axis_effect
+
     if args.drives < 1:
         raise ValueError(f"--drives: expected N >= 1 systems per drive, received {args.drives}")
     envelope = args.envelope_drives is not None
     if envelope and args.envelope_drives < 1:
         raise ValueError(f"--envelope-drives: expected K >= 1 drives, received {args.envelope_drives}")
-    if args.real_axis and envelope:
-        raise ValueError("--real-axis: the matrix's study only, not with --envelope-drives")
-    return envelope, "_envelope" if envelope else "_real_axis" if args.real_axis else ""
+    for option, value in (("--real-axis", args.real_axis), ("--drive-names", args.drive_names)):
+        if value is not None and envelope:
+            raise ValueError(f"{option}: the matrix's study only, not with --envelope-drives")
+    if args.real_axis is None:
+        return envelope, "_envelope" if envelope else ""
+    try:
+        real_axis_effect(args.real_axis)
+    except ValueError as err:
+        raise ValueError(f"--real-axis: {err}") from None
+    return False, "_real_axis" + ("" if args.real_axis == "both" else f"_{args.real_axis}")
+
+
+def _drive_counts(args: argparse.Namespace) -> dict[str, int]:
+    """``--drive-names``: drive name of :data:`training.evaluation.DRIVES` -> systems (``NAME=K``, else
+    ``--drives``), in the order given; without it every drive with ``--drives``. Bad values: ``ValueError``."""
+    from training.evaluation import DRIVES
+
+    if args.drive_names is None:
+        return {name: args.drives for name in DRIVES}
+    counts: dict[str, int] = {}
+    for item in (v.strip() for v in args.drive_names.split(",") if v.strip()):
+        name, _, k = item.partition("=")
+        if name not in DRIVES:
+            raise ValueError(f"--drive-names: expected drives of {', '.join(DRIVES)}, received {name!r}")
+        if name in counts:
+            raise ValueError(f"--drive-names: drive {name!r} given twice")
+        if k and not (k.isdigit() and int(k) >= 1):
+            raise ValueError(f"--drive-names: expected NAME=K with K >= 1 systems, received {item!r}")
+        counts[name] = int(k) if k else args.drives
+    if not counts:
+        raise ValueError(f"--drive-names: expected at least one drive, received {args.drive_names!r}")
+    return counts
 
 
 def _run_drives(args: argparse.Namespace) -> int:
@@ -111,29 +148,28 @@ def _run_drives(args: argparse.Namespace) -> int:
     from training._json import dumps
     from training.figures import refuse_existing
     from training.evaluation import (DRIVES, confidence_files, confidence_report, drive_figures, drive_rows,
-                                     drives_markdown, envelope_rows, write_confidence)
+                                     drives_markdown, envelope_rows, real_axis_effect, write_confidence)
     from training.identification import Identifier
 
     envelope, suffix = _drive_study(args)
+    counts = _drive_counts(args)
     md, js = args.out / f"drives{suffix}.md", args.out / f"drives{suffix}.json"
     confidence_stem = f"confidence{suffix}"
     refuse_existing([md, js, *confidence_files(args.out, confidence_stem, plots=not args.no_plots)], args.overwrite)
     identifier = Identifier.load(args.checkpoints)
-    command = (f"twomass evaluate --drives {args.drives}"
-               + (f" --envelope-drives {args.envelope_drives}" if envelope else "")
-               + (" --real-axis" if args.real_axis else "")
-               + f" --seed {args.seed} --out {args.out}"
-               + (f" --checkpoints {args.checkpoints}" if args.checkpoints is not None else ""))
+    command = _drives_command(args, envelope, counts)
+    real_axis = args.real_axis is not None
+    ranges = real_axis_effect(args.real_axis) if real_axis else False
     if envelope:
         runs = envelope_rows(args.envelope_drives, args.drives, args.seed, identifier)
         title = f"Identification on {args.envelope_drives} drives drawn at random over the drive envelope"
     else:
-        runs = ((name, case.description, drive_rows(case, args.drives, args.seed, identifier, real_axis=args.real_axis))
-                for name, case in DRIVES.items())
-        title = "Identification on a matrix of drives" + (" with real axes (SPEC 1.1)" if args.real_axis else "")
+        runs = ((name, DRIVES[name].description,
+                 drive_rows(DRIVES[name], k, args.seed, identifier, real_axis=ranges)) for name, k in counts.items())
+        title = "Identification on a matrix of drives" + _real_axis_words(args.real_axis)
     figures, descriptions, by_drive = {}, {}, {}
     for name, words, rows in runs:  # a drive at a time: its figures as soon as they are known
-        figures[name], descriptions[name], by_drive[name] = drive_figures(rows), words, rows
+        figures[name], descriptions[name], by_drive[name] = drive_figures(rows, real_axis), words, rows
         print(f"{name}: {json.dumps(figures[name])}", file=sys.stderr)
     if envelope:
         every = [r for rows in by_drive.values() for r in rows]
@@ -147,6 +183,24 @@ def _run_drives(args: argparse.Namespace) -> int:
                                   f"Confidence of the answers: {title[0].lower()}{title[1:]}", plots=not args.no_plots)
     print(f"wrote {md}, {js} and " + ", ".join(str(p) for p in confidence))
     return 0
+
+
+def _drives_command(args: argparse.Namespace, envelope: bool, counts: dict[str, int]) -> str:
+    """The command that reproduces a ``--drives`` run (``counts``: :func:`_drive_counts`)."""
+    real_axis = "" if args.real_axis is None else " --real-axis" + ("" if args.real_axis == "both"
+                                                                     else f" {args.real_axis}")
+    names = "" if args.drive_names is None else " --drive-names " + ",".join(f"{n}={k}" for n, k in counts.items())
+    return (f"twomass evaluate --drives {args.drives}"
+            + (f" --envelope-drives {args.envelope_drives}" if envelope else "") + real_axis + names
+            + f" --seed {args.seed} --out {args.out}"
+            + (f" --checkpoints {args.checkpoints}" if args.checkpoints is not None else ""))
+
+
+def _real_axis_words(effect: str | None) -> str:
+    """The real-axis effect (``--real-axis``) in a title: nothing without one."""
+    if effect is None:
+        return ""
+    return " with real axes (SPEC 1.1)" + ("" if effect == "both" else f": the {effect} part alone")
 
 
 def _check_grid(f_e: tuple[float, ...], backlash_deg: tuple[float, ...]) -> None:

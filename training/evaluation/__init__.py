@@ -6,7 +6,8 @@ from ._confidence import (ProbabilityCalibration, ConfidenceReport, Coverage, Co
                           WarnedShares, answer_calibration, confidence_files, confidence_markdown, confidence_report,
                           coverage_table, expected_calibration_error, median_half_width, reliability,
                           reliability_figure, structure_calibration, warned_shares, write_confidence)
-from ._drives import DRIVES, DriveCase, drive_figures, drive_rows, drives_markdown, envelope_cases, envelope_rows
+from ._drives import (DRIVES, REAL_AXIS_EFFECTS, REAL_AXIS_FIGURES, DriveCase, drive_figures, drive_rows, drives_markdown,
+                      envelope_cases, envelope_rows, real_axis_effect, real_axis_figures)
 from ._cache import load_cached, method_config, save_cached, source_digest
 from ._iv4 import (ARXResult, IV4Result, IV4TwoMass, TwoMassEstimate, arx, identify_iv4, iv4, mean_torque,
                    two_mass_from_discrete)
@@ -19,6 +20,7 @@ from ._summary import summarize
 
 __all__ = [
     "DRIVES", "DriveCase", "drive_rows", "drive_figures", "drives_markdown", "envelope_rows", "envelope_cases",
+    "REAL_AXIS_EFFECTS", "real_axis_effect", "REAL_AXIS_FIGURES", "real_axis_figures",
     "answer_wrong", "ELASTIC_CLASSES",
     "score_rows", "AnswerScores", "confidence_report", "coverage_table", "median_half_width",
     "expected_calibration_error", "reliability", "structure_calibration", "answer_calibration", "warned_shares",

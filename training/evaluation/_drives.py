@@ -14,6 +14,11 @@ over the gaps the record can show: those whose motor lead (:func:`training.ident
 backlash resolution's angle path) reaches :data:`~training.identification.BACKLASH_VISIBLE_COUNTS`
 encoder counts (for the structure: every system but those whose backlash counts in the class rule,
 ``s_N >= 0.1``, and stays below that lead).
+
+On SPEC 1.1's real axes (``--real-axis EFFECT``, :data:`REAL_AXIS_EFFECTS`: the load torque alone,
+the motor friction alone, or both) the figures gain, over every system (a failed analysis counts as
+off; an answer's ``None`` as 0): ``M_L0`` within 5 % of the test torque ``M*``, ``M_FC`` and ``M_FCM``
+each within 1 % of ``M*``.
 """
 
 from __future__ import annotations
@@ -54,18 +59,43 @@ class DriveCase:
                                          inertia_of_time_scale(self.time_scale[1], M, w)),
                                 M_FC=(0.0, 0.05 * M), mu_F=(0.0, 0.05 * M / w))
 
-    def population(self, n: int, seed: int, real_axis: bool = False) -> TwoMassParams:
-        """``n`` systems of :meth:`ranges` (seed ``seed``); ``real_axis``: with SPEC 1.1's parts,
-        their shares of this drive's test torque and speed (:class:`sim.RealAxisRanges`, whose
-        defaults are shares on the reference test)."""
-        if not real_axis:
+    def population(self, n: int, seed: int, real_axis: RealAxisRanges | bool = False) -> TwoMassParams:
+        """``n`` systems of :meth:`ranges` (seed ``seed``); ``real_axis``: with SPEC 1.1's parts
+        (``True``: :class:`sim.RealAxisRanges`' defaults, SPEC 1.1's population; ranges: those, e.g. an
+        effect of :data:`REAL_AXIS_EFFECTS`), their shares of this drive's test torque and speed (the
+        ranges are shares on the reference test). The same seed draws the same systems and parts
+        whatever the ranges' shares (a part a range leaves out is 0 where it would be drawn)."""
+        if real_axis is False:
             return sample_population(n, seed, self.ranges())
-        r, reference = RealAxisRanges(), TestSignalConfig()
+        if real_axis is True:
+            real_axis = RealAxisRanges()
+        if not isinstance(real_axis, RealAxisRanges):
+            raise TypeError(f"real_axis: expected RealAxisRanges or a bool, received {type(real_axis).__name__}")
+        r, reference = real_axis, TestSignalConfig()
         k = self.signal.M_star / reference.M_star  # the torques' scale
         k_w = k * reference.w_max / self.signal.w_max  # the viscous friction's, M*/w_max
         scaled = replace(r, M_L0=(r.M_L0[0] * k, r.M_L0[1] * k), M_FCM=(r.M_FCM[0] * k, r.M_FCM[1] * k),
                          mu_FM=(r.mu_FM[0] * k_w, r.mu_FM[1] * k_w))
         return sample_population(n, seed, self.ranges(), real_axis=scaled)
+
+
+#: SPEC 1.1's real-axis parts one at a time and together (``twomass evaluate --real-axis EFFECT``):
+#: ``both`` SPEC 1.1's population (``M_L0`` on half of the systems, ``M_FCM`` on half, ``mu_FM`` on
+#: all); ``load`` the constant load torque alone (``M_L0`` on half, no motor friction); ``motor`` the
+#: motor friction alone (``M_FCM`` on half, ``mu_FM`` on all, no ``M_L0``). Shares of the reference
+#: test's ``M*`` and ``w_max`` (:meth:`DriveCase.population` scales them to the drive).
+REAL_AXIS_EFFECTS: dict[str, RealAxisRanges] = {
+    "both": RealAxisRanges(),
+    "load": replace(RealAxisRanges(), M_FCM_share=0.0, mu_FM=(0.0, 0.0)),
+    "motor": replace(RealAxisRanges(), M_L0_share=0.0),
+}
+
+
+def real_axis_effect(name: str) -> RealAxisRanges:
+    """The ranges of the effect ``name`` of :data:`REAL_AXIS_EFFECTS`; another name: ``ValueError``."""
+    if name not in REAL_AXIS_EFFECTS:
+        raise ValueError(f"expected an effect of {', '.join(REAL_AXIS_EFFECTS)}, received {name!r}")
+    return REAL_AXIS_EFFECTS[name]
 
 
 def _case(name: str, description: str, M_N: float, w_max: float, time_scale: tuple[float, float] = (0.1, 2.0),
@@ -93,10 +123,12 @@ DRIVES: dict[str, DriveCase] = {c.name: c for c in (
 
 
 def drive_rows(case: DriveCase, n: int, seed: int, identifier: Any,
-               progress: Callable[[int], object] | None = None, real_axis: bool = False) -> list[dict[str, Any]]:
-    """Simulate ``n`` systems of ``case`` and identify them; one row per system: ``truth``
-    (true parameters, ``s_N``, ``r_osc``, ``w_e_T_Ei``, class) and ``som`` (``structure``, the
-    parameters, ``n_warnings``, ``error`` and :func:`confidence_columns`)."""
+               progress: Callable[[int], object] | None = None,
+               real_axis: RealAxisRanges | bool = False) -> list[dict[str, Any]]:
+    """Simulate ``n`` systems of ``case`` (``real_axis`` as :meth:`DriveCase.population`) and identify
+    them; one row per system: ``truth`` (true parameters, ``s_N``, ``r_osc``, ``w_e_T_Ei``, class,
+    the test torque ``M_star`` [Nm]) and ``som`` (``structure``, the parameters, ``n_warnings``,
+    ``error`` and :func:`confidence_columns`)."""
     return _rows(case.population(n, seed, real_axis), case.drive, case.signal, seed, identifier, progress)
 
 
@@ -137,6 +169,7 @@ def _rows(params: TwoMassParams, drive: DriveConfig, signal: TestSignalConfig, s
         truth = dict(rec.info.truth)
         truth["w_e_T_Ei"] = truth["w_e"] * drive.T_Ei
         truth["gap_counts"] = motor_lead(truth["backlash"], truth["V_J"]) / drive.q_phi
+        truth["M_star"] = signal.M_star  # the scale of the real-axis torques' figures
         som: dict[str, Any] = {"structure": None, "n_warnings": 0, "error": None}
         if out.ok:
             som.update(out.parameters.to_dict(), structure=out.structure, n_warnings=len(out.warnings),
@@ -157,8 +190,33 @@ def confidence_columns(result: Any) -> dict[str, Any]:
             "warning_codes": [w.code for w in result.warnings], "note_codes": [w.code for w in result.notes]}
 
 
-def drive_figures(rows: Sequence[dict[str, Any]]) -> dict[str, Any]:
-    """The figures of one drive (module docstring), in percent, with the counts they rest on."""
+#: The real-axis figures of :func:`drive_figures`: name -> (parameter, tolerance as a share of the
+#: test torque ``M*``).
+REAL_AXIS_FIGURES: dict[str, tuple[str, float]] = {"M_L0_5": ("M_L0", 0.05), "M_FC_1": ("M_FC", 0.01),
+                                                   "M_FCM_1": ("M_FCM", 0.01)}
+
+
+def real_axis_figures(rows: Sequence[dict[str, Any]]) -> dict[str, float | None]:
+    """Of :data:`REAL_AXIS_FIGURES`, each the share [%] of ``rows`` whose estimate lies within its
+    tolerance times the row's ``truth["M_star"]`` [Nm] of the truth (an answer's ``None``: not
+    identified, counts as 0; a failed analysis counts as off); ``None`` without rows. A row without
+    ``M_star``: ``ValueError``."""
+    if not rows:
+        return {name: None for name in REAL_AXIS_FIGURES}
+    M_star = row_values(rows, "truth", "M_star")
+    if np.isnan(M_star).any():
+        raise ValueError("real-axis figures: expected every row's truth to hold the test torque M_star [Nm]")
+    answered = np.array([r["som"]["error"] is None for r in rows], dtype=bool)
+    out: dict[str, float | None] = {}
+    for name, (key, share) in REAL_AXIS_FIGURES.items():
+        off = np.abs(np.nan_to_num(row_values(rows, "som", key), nan=0.0) - row_values(rows, "truth", key))
+        out[name] = float(100.0 * (answered & (off <= share * M_star)).mean())  # a NaN truth: off
+    return out
+
+
+def drive_figures(rows: Sequence[dict[str, Any]], real_axis: bool = False) -> dict[str, Any]:
+    """The figures of one drive (module docstring), in percent, with the counts they rest on;
+    ``real_axis``: with :func:`real_axis_figures` (rows of a real-axis population)."""
     truth = {k: row_values(rows, "truth", k) for k in ("w_e_T_Ei", "s_N", "r_osc", "backlash")}
     far = threshold_margin({k: truth[k] for k in ("w_e_T_Ei", "s_N", "r_osc")}) >= 0.2
     score = score_rows(rows)
@@ -186,7 +244,8 @@ def drive_figures(rows: Sequence[dict[str, Any]]) -> dict[str, Any]:
             "backlash_30_visible": pct(bl, visible), "n_backlash_visible": int(visible.sum()),
             "silent_wrong": pct(silent, every), "warned": pct(score.warned, every),
             "right_warned": shares.right_warned, "n_right": shares.n_right,
-            "wrong_unwarned": shares.wrong_unwarned, "n_wrong": shares.n_wrong}
+            "wrong_unwarned": shares.wrong_unwarned, "n_wrong": shares.n_wrong,
+            **(real_axis_figures(rows) if real_axis else {})}
 
 
 def drives_markdown(figures: dict[str, dict[str, Any]], command: str, descriptions: dict[str, str] | None = None,
@@ -206,6 +265,10 @@ def drives_markdown(figures: dict[str, dict[str, Any]], command: str, descriptio
              f"{fmt(f['backlash_30'])} ({f['n_backlash']})", f"{fmt(f['backlash_30_visible'])} ({f['n_backlash_visible']})",
              fmt(f["silent_wrong"]), fmt(f["warned"]), f"{fmt(f['right_warned'])} ({f['n_right']})",
              f"{fmt(f['wrong_unwarned'])} ({f['n_wrong']})"] for name, f in figures.items()]
+    real_axis = bool(figures) and all(k in f for f in figures.values() for k in REAL_AXIS_FIGURES)
+    if real_axis:  # the real-axis torques' columns
+        header += ["M_L0 5 % of M*", "M_FC 1 % of M*", "M_FCM 1 % of M*"]
+        rows = [row + [fmt(f[k]) for k in REAL_AXIS_FIGURES] for row, f in zip(rows, figures.values())]
     lines = [f"# {title}", "", f"Made by `{command}`.", "", *markdown_table(header, rows)]
     lines += ["", "Figures in %. Structure over systems >= 20 % from every class threshold; E_x over elastic + "
               f"elastic_backlash, E_30 visible over those whose r_osc reaches {R_OSC_VISIBLE:g} (the oscillation "
@@ -214,5 +277,8 @@ def drives_markdown(figures: dict[str, dict[str, Any]], command: str, descriptio
               f"systems with s_N >= {S_N_ELASTIC:g} whose lead stays below that); silent wrong: class wrong, or an "
               "elastic answer outside E_30, or J_sigma off by 30 %, with no warning (a failed analysis is not silent); "
               "right warned: of the answers that are not wrong, those with a warning (SPEC 4.1: at most 10 %); wrong "
-              "unwarned: of the wrong answers (failed analyses left out), those with none (at most 1 %).", ""]
+              "unwarned: of the wrong answers (failed analyses left out), those with none (at most 1 %)."
+              + (" M_L0, M_FC, M_FCM: of all systems those whose estimate lies within 5 %, 1 %, 1 % of the "
+                 "test torque M* of the truth (an answer without it counts as 0, a failed analysis as off)."
+                 if real_axis else ""), ""]
     return "\n".join(lines)
