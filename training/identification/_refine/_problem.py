@@ -38,6 +38,11 @@ class RefineProblem:
     M_FCM: float = 0.0
 
     @property
+    def held(self) -> bool:
+        """Whether the levels ran around a holding torque (SPEC 1.1: the level before the test is it)."""
+        return bool(self.level[0] != 0.0)
+
+    @property
     def coulomb(self) -> float:
         """The Coulomb friction of motor and load together [Nm] (STEP 2's ``M_FC``)."""
         return self.M_FC + self.M_FCM
