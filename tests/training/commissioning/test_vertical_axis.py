@@ -112,3 +112,18 @@ def test_a_drive_holding_the_axis_right_passes_the_rest_check():
             with pytest.raises(AxisNotHeld):
                 check_rest(checked, CONFIG, LIMITS.for_drive(CONFIG))
         assert np.all(checked.experiments[0][1].torque_ref[1:] == pytest.approx(hold))
+
+
+def test_the_real_identifier_commissions_a_held_vertical_axis():
+    """End to end with the shipped maps: the held records are identified around their hold, the
+    validation passes on the identified M_L0, and the law starts at it."""
+    from training.identification import Identifier
+
+    M_L0 = 0.1 * CONFIG.M_N
+    rep = commission(sim.SimulatedDrive({**ELASTIC, "M_L0": M_L0}, CONFIG), LIMITS, identifier=Identifier.load(),
+                     config=FAST)
+    assert rep.identification is not None and rep.identification.structure == "elastic"
+    assert rep.validation.passed, rep.validation.reason
+    assert rep.delivered is not None and rep.fallback is None
+    M_star = rep.excitation.log[-1]["M_star"]
+    assert abs(rep.delivered.M_hold - M_L0) <= 0.05 * M_star
