@@ -282,7 +282,8 @@ def refined_parameters(analysis: Analysis, refined: Refined | HiddenGap) -> tupl
     rule on the refined values (the maps' class and estimate stay in ``quality``). A ``stiff``
     result keeps the one-mass answer. ``J_sigma``, ``M_FC``, ``mu_F``: the whole-record fit's
     where STEP 2's was not trusted; ``M_FC``, ``M_FCM``: STEP 2's Coulomb friction split between
-    the load and the motor where the refinement split it (``M_FCM`` 0 where it found no motor share)."""
+    the load and the motor where the refinement split it (``M_FCM`` 0 where it found no motor share);
+    ``M_L0``: the load torque the refined model carried (the analysis's where none was refined)."""
     fit = analysis.fit
     J_sigma, M_FC, mu_F = ((fit.J_sigma, max(fit.M_FC, 0.0), max(fit.mu_F, 0.0)) if refined.J_sigma is None
                            else (refined.J_sigma, refined.M_FC, refined.mu_F))
@@ -291,7 +292,8 @@ def refined_parameters(analysis: Analysis, refined: Refined | HiddenGap) -> tupl
     derived = two_mass_derived(J_sigma, refined.V_J, refined.f_e, refined.d)
     structure = spec_class(analysis, J_sigma, refined.V_J, refined.f_e, refined.d,
                            normalized_backlash(refined.backlash, analysis.M_N, derived.C_F))
-    one_mass = dict(J_sigma=J_sigma, M_FC=M_FC, mu_F=mu_F, M_L0=analysis.M_L0, M_FCM=refined.M_FCM or 0.0)
+    M_L0 = analysis.M_L0 if refined.M_L0 is None else refined.M_L0
+    one_mass = dict(J_sigma=J_sigma, M_FC=M_FC, mu_F=mu_F, M_L0=M_L0, M_FCM=refined.M_FCM or 0.0)
     if structure == "stiff":
         return structure, Parameters(**one_mass, backlash=0.0)
     # the backlash is measured even where the class calls it negligible (elastic)

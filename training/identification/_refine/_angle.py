@@ -72,7 +72,8 @@ class HiddenGap:
     """The gap model found in the angle: ``f_e`` [Hz], ``V_J``, ``d``, ``s_N``, ``backlash`` = ``2s``
     [rad]; ``angle_ratio``, its angle error over that of the best model without a gap.
     ``J_sigma``, ``mu_F``: None (STEP 2's stand); ``M_FC``, ``M_FCM``: the load's and the motor's
-    Coulomb friction of the problem where it split them (else None: STEP 2's stand)."""
+    Coulomb friction of the problem where it split them (else None: STEP 2's stand); ``M_L0``: None
+    (the analysis's stands)."""
 
     f_e: float
     V_J: float
@@ -84,6 +85,7 @@ class HiddenGap:
     M_FC: float | None = None
     mu_F: None = None
     M_FCM: float | None = None
+    M_L0: None = None
 
 
 def angle_basis(segments: np.ndarray, N: int, stride: int = 1) -> np.ndarray:

@@ -140,19 +140,22 @@ def _chosen(p: RefineProblem, choice: Choice, explored: int, config: RefineConfi
         best, n_sims = fit.theta, n_sims + fit.n_sims
         best_cost = float(detrended_cost(p, best[None], choice.basis, replay_drive(p))[0])
     split = {"M_FC": p.M_FC, "M_FCM": p.M_FCM} if p.M_FCM > 0 else {}
-    return Refined(**p.answer(best, float(10.0 ** best[3])), residual=relative_rms(best_cost, choice.measured),
+    return Refined(**p.answer(best, float(10.0 ** best[3])), M_L0=p.M_L0,
+                   residual=relative_rms(best_cost, choice.measured),
                    start_residual=relative_rms(float(choice.cost[0]), choice.measured),
                    dof=sum(b - a - Q.shape[1] for a, b, Q in choice.basis), n_sims=n_sims,
                    **{**split, **(one_mass_values(best) if len(best) > 4 else {})})
 
 
 def _trusted_load(p: RefineProblem, choice: Choice, config: RefineConfig) -> RefineProblem:
-    """``p`` without its load torque where the free stage will search its one-mass part and the axis
-    was not held: STEP 2's constant torque is then its model error, not a load (measured on a 5 Hz
-    shaft of the fast spindle: 0.8 Nm of 5, ``J_sigma`` 41 % off with it, 3 % without)."""
-    if p.held or not p.M_L0 or not frees(p, choice.best, config.free):
+    """``p`` with the hold as its load torque (0 where the axis was not held) where the free stage
+    will search its one-mass part: STEP 2's constant torque is then its model error, not a load
+    (measured: a 5 Hz shaft of the fast spindle read 0.8 Nm of 5 on an axis without any, ``J_sigma``
+    41 % off with it, 3 % without; soft shafts on the 200 W servo, held, 0.1-0.5 Nm of 0.64 over
+    their hold, ``J_sigma`` 13-300 % off)."""
+    if not frees(p, choice.best, config.free):
         return p
-    return replace(p, M_L0=0.0)
+    return replace(p, M_L0=float(p.level[0]))
 
 
 def motor_shares(problems: list[RefineProblem], choices: list[Choice], finalists: list[np.ndarray],

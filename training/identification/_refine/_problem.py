@@ -79,7 +79,8 @@ class Refined:
     quantization noise over the oscillation for a perfect model), ``dof`` the samples they are
     taken over less the trends removed; ``n_sims`` simulated models; ``J_sigma``, ``M_FC``,
     ``mu_F``: refined one-mass values where the free stage won (else None: STEP 2's stand);
-    ``M_FC``, ``M_FCM``: the load's and the motor's Coulomb friction where the split stage ran."""
+    ``M_FC``, ``M_FCM``: the load's and the motor's Coulomb friction where the split stage ran;
+    ``M_L0``: the load torque the model carried."""
 
     f_e: float
     V_J: float
@@ -94,6 +95,7 @@ class Refined:
     M_FC: float | None = None
     mu_F: float | None = None
     M_FCM: float | None = None
+    M_L0: float | None = None
 
     @property
     def evidence(self) -> float:
