@@ -39,7 +39,8 @@ DEFAULT_PLANTS: tuple[tuple[str, dict[str, float]], ...] = (
 _ROWS: tuple[tuple[str, str, float], ...] = (
     ("J_sigma", "kg*m^2", 1.0), ("V_J", "-", 1.0), ("J_M", "kg*m^2", 1.0), ("J_L", "kg*m^2", 1.0),
     ("f_e", "Hz", 1.0), ("C_F", "Nm/rad", 1.0), ("d", "-", 1.0), ("backlash", "deg", 180.0 / math.pi),
-    ("M_FC", "Nm", 1.0), ("mu_F", "Nm*s/rad", 1.0),
+    ("M_FC", "Nm", 1.0), ("mu_F", "Nm*s/rad", 1.0), ("M_L0", "Nm", 1.0), ("M_FCM", "Nm", 1.0),
+    ("mu_FM", "Nm*s/rad", 1.0),
 )
 
 

@@ -80,7 +80,8 @@ def test_readme_json_example_is_what_demo_json_prints(capsys):
 
 
 _TRUTH = {"structure": "elastic", "s_N": 0.04, "r_osc": 44.0, "J_sigma": 0.05, "V_J": 1.0, "J_M": 0.025,
-          "J_L": 0.025, "f_e": 30.0, "C_F": 444.0, "d": 0.02, "backlash": 0.0017, "M_FC": 0.2, "mu_F": 0.001}
+          "J_L": 0.025, "f_e": 30.0, "C_F": 444.0, "d": 0.02, "backlash": 0.0017, "M_FC": 0.2, "mu_F": 0.001,
+          "M_L0": 0.1, "M_FCM": 0.05, "mu_FM": 0.0001}
 
 
 def _result(intervals, answer_probability):
@@ -114,7 +115,7 @@ def test_demo_prints_each_values_90_percent_interval_and_the_calibrated_probabil
 
     bounds = dict(J_sigma=(0.0499, 0.0501), V_J=(0.8, 1.3), J_M=(0.024, 0.026), J_L=(0.02, 0.024),
                   f_e=(29.7, 30.3), C_F=(400.0, 500.0), d=(0.004, 0.13), backlash=(0.0, 0.00349066),
-                  M_FC=(0.15, 0.25), mu_F=(0.0, 0.002))
+                  M_FC=(0.15, 0.25), mu_F=(0.0, 0.002), M_L0=(-0.01, 0.01), M_FCM=(0.0, 0.01), mu_FM=(0.0, 1e-4))
     text = _print(_result(Intervals(**bounds), 0.42))
     rows = _table_rows(text)
     assert "90 % interval" in text and "no calibration" not in text

@@ -33,7 +33,8 @@ TEST_RUN = SimpleNamespace(log=[{"aborted": False, "M_star": 10.0, "osc_quanta":
 def _intervals(f_e: tuple[float, float], V_J: tuple[float, float], d: tuple[float, float],
                J_sigma: tuple[float, float] = (0.049, 0.051), J_M: tuple[float, float] = (0.024, 0.026)) -> Intervals:
     return Intervals(J_sigma=J_sigma, V_J=V_J, J_M=J_M, J_L=(0.024, 0.026), f_e=f_e, C_F=(800.0, 1000.0), d=d,
-                     backlash=(0.0, 1e-4), M_FC=(0.18, 0.22), mu_F=(0.0009, 0.0011))
+                     backlash=(0.0, 1e-4), M_FC=(0.18, 0.22), mu_F=(0.0009, 0.0011), M_L0=(-0.01, 0.01),
+                     M_FCM=(0.0, 0.01), mu_FM=(0.0, 1e-4))
 
 
 NARROW = _intervals(f_e=(29.0, 31.5), V_J=(0.95, 1.04), d=(0.02, 0.04))
