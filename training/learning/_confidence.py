@@ -177,7 +177,8 @@ def fit_calibration(samples: Sequence[CalibrationSample], provenance: dict[str, 
     for name in INTERVAL_NAMES:
         floor = _ERROR_FLOOR["asinh" if name in ASINH else "log"]
         e = coordinate_errors(samples, name)
-        on = real_axis if name in REAL_AXIS_NAMES else np.ones(len(samples), dtype=bool)  # its calibration records
+        # its calibration records: the real-axis parts' on the real-axis records (all where there are none)
+        on = real_axis if name in REAL_AXIS_NAMES and real_axis.any() else np.ones(len(samples), dtype=bool)
         coef, intercept = _ridge(Z[on], np.log(e[on] + floor), RIDGE_SCALE)
         model = LinearModel(mean, std, coef, intercept)
         scores = e[on] / np.exp(model(X[on]))

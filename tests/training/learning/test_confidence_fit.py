@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from training.identification._confidence import FEATURE_NAMES, ConfidenceInputs
+from training.identification._confidence import ASINH, FEATURE_NAMES, ConfidenceInputs
 from training.identification._result import INTERVAL_NAMES
 from training.learning._confidence import (CalibrationSample, _logistic, conformal_quantile, fit_calibration,
                                            warn_threshold)
@@ -52,7 +52,7 @@ def _samples(n: int, seed: int) -> list[CalibrationSample]:
         sigma = 0.1 if x[5] else 0.01
         truth = {k: 1.0 for k in INTERVAL_NAMES}
         points = {k: math.exp(rng.normal(0.0, sigma if k == "f_e" else 0.02)) for k in INTERVAL_NAMES}
-        inputs = ConfidenceInputs(x, points, {"backlash": 1.0, "M_FC": 1.0, "mu_F": 1.0}, "stiff")
+        inputs = ConfidenceInputs(x, points, {k: 1.0 for k in ASINH}, "stiff")
         errors = {"f_e": 0.0, "V_J": 0.0, "J_sigma": 0.0}
         out.append(CalibrationSample(inputs, truth, "stiff" if i % 10 else "elastic", errors, (), "synthetic"))
     return out
