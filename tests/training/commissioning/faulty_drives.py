@@ -98,8 +98,9 @@ class SpeedRunawayDrive(sim.SimulatedDrive):
 
 
 class LoopRunawayDrive(sim.SimulatedDrive):
-    """Test runs as asked; its closed loop ignores the limits and follows 100 times the speed
-    reference. ``calls``: every experiment it ran, in order."""
+    """Test runs and the rest check (the law ``{"type": "hold"}``) as asked; its speed-loop closed
+    loops ignore the limits and follow 100 times the speed reference. ``calls``: every experiment
+    it ran, in order (``rest``, ``test``, ``closed_loop``)."""
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
@@ -110,6 +111,9 @@ class LoopRunawayDrive(sim.SimulatedDrive):
         return super().run_test(M_star, w_max, limits)
 
     def run_closed_loop(self, law: Any, scenario: sim.Scenario, limits: sim.DriveLimits) -> sim.Record:
+        if law.params.get("type") == "hold":
+            self.calls.append("rest")
+            return super().run_closed_loop(law, scenario, limits)
         self.calls.append("closed_loop")
         fast = sim.Scenario(100.0 * scenario.w_ref, scenario.M_dist)
         return super().run_closed_loop(law, fast, sim.DriveLimits(w_max=1e9, travel=1e9, M_max=limits.M_max))

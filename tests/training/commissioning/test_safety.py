@@ -19,7 +19,7 @@ sim = pytest.importorskip("sim")
 
 from training.cli import main  # noqa: E402
 from training.commissioning import CommissioningConfig, FileDrive, commission  # noqa: E402
-from training.errors import CommissioningError, ExperimentPending  # noqa: E402
+from training.errors import AxisNotHeld, CommissioningError, ExperimentPending  # noqa: E402
 
 HERE = Path(__file__).parent
 sys.path.insert(0, str(HERE))
@@ -43,27 +43,30 @@ def _one_error_line(capsys, *words):
 
 
 def test_a_drive_applying_more_torque_than_asked_ends_the_experiments_at_once(stub):
-    """8 x the asked torque against a 5 Nm cap: the second test run measures 8 Nm; nothing runs
-    after it, nothing is delivered, the report's text and JSON say which limit, by how much, where."""
+    """8 x the asked torque against a 5 Nm cap: the rest check (torque 0) passes, the second test
+    run (experiment 3) measures 8 Nm; nothing runs after it, nothing is delivered, the report's
+    text and JSON say which limit, by how much, where."""
     drive = faulty_drives.torque8()
     rep = commission(drive, sim.DriveLimits(w_max=20.0, travel=5.0, M_max=5.0), identifier=stub("elastic", PLANT), config=FAST)
     b = rep.breach
     assert b is not None and [p.limit for p in b.passed] == ["measured torque"]
-    assert drive.experiments == b.experiment == 2 and b.kind == "test run" and b.M_star == pytest.approx(1.0)
+    assert drive.experiments == b.experiment == 3 and b.kind == "test run" and b.M_star == pytest.approx(1.0)
     assert b.passed[0].value == pytest.approx(8.0, rel=0.01) and b.passed[0].bound == 5.0
     assert rep.delivered is None and not rep.runs and rep.identification is None
     d = json.loads(json.dumps(rep.to_dict()))
-    assert d["delivered"] is None and d["breach"]["experiment"] == 2 and d["breach"]["passed"][0]["limit"] == "measured torque"
+    assert d["delivered"] is None and d["breach"]["experiment"] == 3 and d["breach"]["passed"][0]["limit"] == "measured torque"
     text = rep.to_text()
-    assert "limit passed in experiment 2 (test run, M* 1 Nm): measured torque 8 Nm > cap 5 Nm (x1.6)" in text
-    assert "8 delivered: none (limit passed in experiment 2)" in text
+    assert "limit passed in experiment 3 (test run, M* 1 Nm): measured torque 8 Nm > cap 5 Nm (x1.6)" in text
+    assert "8 delivered: none (limit passed in experiment 3)" in text
     assert "measured torque 8" in next(ln for ln in text.splitlines() if "outside the limits" in ln)  # the check names torque
 
 
-def test_a_drive_ignoring_the_limits_ends_at_its_first_record(stub):
+def test_a_drive_ignoring_the_limits_ends_at_its_first_test_record(stub):
+    """The rest check (experiment 1) holds the axis; the first test run (experiment 2) runs away."""
     drive = faulty_drives.speed_runaway()
     rep = commission(drive, LIMITS, identifier=stub("elastic", PLANT), config=FAST)
-    assert drive.experiments == 1 and rep.breach.experiment == 1 and rep.delivered is None
+    assert rep.rest is not None and rep.rest.held
+    assert drive.experiments == 2 and rep.breach.experiment == 2 and rep.breach.kind == "test run" and rep.delivered is None
     assert {p.limit for p in rep.breach.passed} & {"speed", "travel"}
     assert rep.excitation.code == "limit_passed" and rep.excitation.log[-1]["decision"] == "stop"
 
@@ -74,11 +77,43 @@ def test_a_closed_loop_past_the_limits_gets_no_further_run_and_no_fallback(stub)
     plant = dict(PLANT, J_sigma=0.01)
     drive = faulty_drives.LoopRunawayDrive(plant)
     rep = commission(drive, LIMITS, identifier=stub("elastic", plant), config=FAST)
+    assert drive.calls[0] == "rest" and drive.calls.count("rest") == 1  # the rest check, as asked
     assert drive.calls[-1] == "closed_loop" and drive.calls.count("closed_loop") == 1
     assert rep.breach.kind == "closed loop 0" and rep.breach.experiment == len(drive.calls)
     assert "speed" in {p.limit for p in rep.breach.passed}
     assert rep.delivered is None and rep.fallback is None and not rep.fallback_runs
     assert rep.proposal is not None and rep.identification.ok  # what the chain had reached is reported
+
+
+class _FallingDrive(sim.SimulatedDrive):
+    """In its closed loops a 30 Nm load it does not hold pulls the axis, the limits ignored.
+    ``calls``: the law type (``hold``, ``PI``) or ``test`` of every experiment, in order."""
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self.calls = []
+
+    def run_test(self, M_star, w_max, limits):
+        self.calls.append("test")
+        return super().run_test(M_star, w_max, limits)
+
+    def run_closed_loop(self, law, scenario, limits):
+        self.calls.append(law.params["type"])
+        falling = sim.Scenario(scenario.w_ref, scenario.M_dist + 30.0)
+        return super().run_closed_loop(law, falling, sim.DriveLimits(w_max=1e9, travel=1e9, M_max=limits.M_max))
+
+
+def test_a_limit_passed_in_the_rest_check_ends_the_experiments_at_once(stub):
+    """The axis falls past the 10 rad/s limit while it should rest (experiment 1, before any test):
+    nothing runs after it, one line names the limit, the experiment and the rest check."""
+    drive, ident = _FallingDrive(PLANT), stub("elastic", PLANT)
+    with pytest.raises(AxisNotHeld) as err:
+        commission(drive, sim.DriveLimits(w_max=10.0, travel=5.0), identifier=ident, config=FAST)
+    message = str(err.value)
+    assert drive.calls == ["hold"] and drive.experiments == 1 and not ident.records
+    assert "limit passed in experiment 1 (rest check): speed" in message and "> limit 10 rad/s" in message
+    assert "no further experiment ran" in message and "\n" not in message
+    assert err.value.peak_speed > 10.0
 
 
 class _EagerDrive(sim.SimulatedDrive):
@@ -102,7 +137,7 @@ def test_command_reports_a_passed_limit_in_one_line(tmp_path, capsys):
     out = tmp_path / "out.json"
     assert main(["commission", "--drive", f"{DRIVES}:torque8", *USER_LIMITS, "--M-max", "5", "--json", str(out), "--quiet",
                  "--no-progress"]) == 3
-    _one_error_line(capsys, "drive 'drive'", "limit passed in experiment 2", "measured torque 8 Nm > cap 5 Nm",
+    _one_error_line(capsys, "drive 'drive'", "limit passed in experiment 3", "measured torque 8 Nm > cap 5 Nm",
                     "no controller delivered")
     rep = json.loads(out.read_text())["reports"][0]
     assert rep["delivered"] is None and rep["breach"]["passed"][0]["limit"] == "measured torque"
@@ -156,16 +191,30 @@ def _answer(rec, folder: Path, n: int, drop=()) -> None:
     meta.write_text(json.dumps({k: v for k, v in json.loads(meta.read_text()).items() if k not in drop}))
 
 
+def _rest_answered(folder: Path, ident, answer: sim.SimulatedDrive, cfg=FAST) -> dict:
+    """Request 001 (the rest check: the speed loop off) answered by ``answer`` as asked; the next request."""
+    from training.commissioning import HoldLaw
+
+    rest = _pending(folder, ident, cfg)
+    assert rest["experiment"] == 1 and rest["kind"] == "closed_loop" and rest["law"] == {"type": "hold"}
+    scenario = sim.Scenario(np.array(rest["scenario"]["w_ref"]), np.array(rest["scenario"]["M_dist"]))
+    _answer(answer.run_closed_loop(HoldLaw(), scenario, sim.DriveLimits(**rest["limits"])), folder, 1)
+    return _pending(folder, ident, cfg)
+
+
 def test_resume_a_recording_past_the_limits_is_a_breach(tmp_path, stub):
-    """The drive ran the requested test away to 50 rad/s against the 20 rad/s limit."""
+    """The drive ran the requested test (experiment 2, after the rest check) away to 50 rad/s
+    against the 20 rad/s limit."""
     folder, ident = _folder(tmp_path), stub("elastic", PLANT)
-    req = _pending(folder, ident)
+    req = _rest_answered(folder, ident, sim.SimulatedDrive(PLANT))
+    assert req["experiment"] == 2 and req["kind"] == "test"
     rec = sim.SimulatedDrive(PLANT).run_test(req["M_star"], 50.0, sim.DriveLimits(w_max=1e3, travel=1e3))
     rec.meta["w_max"] = req["w_max"]
-    _answer(rec, folder, 1)
+    _answer(rec, folder, 2)
     rep = commission(FileDrive(folder), LIMITS, identifier=ident, config=FAST)
-    assert rep.breach.experiment == 1 and "speed" in {p.limit for p in rep.breach.passed} and rep.delivered is None
-    assert not (folder / "002_request.json").exists()  # nothing more is asked for
+    assert rep.breach.experiment == 2 and rep.breach.kind == "test run" and rep.delivered is None
+    assert "speed" in {p.limit for p in rep.breach.passed}
+    assert not (folder / "003_request.json").exists()  # nothing more is asked for
 
 
 @pytest.mark.parametrize("column", ["torque_ref", "current"])
@@ -173,12 +222,12 @@ def test_resume_refuses_a_recording_of_another_torque(tmp_path, stub, column):
     """5 x the requested M_star (its JSON without M_star): another experiment, by its torque
     reference, or by its measured torque where it has none."""
     folder, ident = _folder(tmp_path), stub("elastic", PLANT)
-    req = _pending(folder, ident)
+    req = _rest_answered(folder, ident, sim.SimulatedDrive(PLANT))
     rec = sim.SimulatedDrive(PLANT).run_test(5 * req["M_star"], req["w_max"], sim.DriveLimits(**req["limits"]))
     if column == "current":
         rec.torque_ref = None
-    _answer(rec, folder, 1, drop=("M_star", "w_max"))
-    with pytest.raises(CommissioningError, match="001.csv: its (torque_ref|measured torque) reaches .* another experiment"):
+    _answer(rec, folder, 2, drop=("M_star", "w_max"))
+    with pytest.raises(CommissioningError, match=r"002\.csv: its (torque_ref|measured torque) reaches .* another experiment"):
         commission(FileDrive(folder), LIMITS, identifier=ident, config=FAST)
 
 
@@ -186,34 +235,37 @@ def test_resume_recordings_need_not_repeat_the_drive_config(tmp_path, stub):
     """drive.json's config holds K_M, T_Ei, encoder_counts, M_N, M_max, T_s: a recording may leave
     them out; one that states another value is refused naming its file."""
     folder, ident = _folder(tmp_path), stub("elastic", PLANT)
-    req = _pending(folder, ident)
+    req = _rest_answered(folder, ident, sim.SimulatedDrive(PLANT))
     rec = sim.SimulatedDrive(PLANT).run_test(req["M_star"], req["w_max"], sim.DriveLimits(**req["limits"]))
-    _answer(rec, folder, 1, drop=("K_M", "T_Ei", "T_s", "encoder_counts", "M_N", "M_max", "current_noise_std"))
-    assert _pending(folder, ident)["experiment"] == 2
-    meta = json.loads((folder / "001.json").read_text())
-    (folder / "001.json").write_text(json.dumps({**meta, "K_M": 2.0}))
-    with pytest.raises(CommissioningError, match=r"001\.json: K_M 2 disagrees with the drive's config in drive\.json"):
+    _answer(rec, folder, 2, drop=("K_M", "T_Ei", "T_s", "encoder_counts", "M_N", "M_max", "current_noise_std"))
+    assert _pending(folder, ident)["experiment"] == 3
+    meta = json.loads((folder / "002.json").read_text())
+    (folder / "002.json").write_text(json.dumps({**meta, "K_M": 2.0}))
+    with pytest.raises(CommissioningError, match=r"002\.json: K_M 2 disagrees with the drive's config in drive\.json"):
         commission(FileDrive(folder), LIMITS, identifier=ident, config=FAST)
 
 
 def _sim_law(params):
+    """A speed-loop law loaded from the request's ``law`` (the PI law; the rest check is answered
+    by :func:`_rest_answered`)."""
     from training.commissioning import NotchSpec, PISpeedLaw
 
-    n = params["notch"]
+    if params["type"] != "PI":
+        raise ValueError(f"law type {params['type']!r}: expected the PI law")
     return PISpeedLaw(params["Kp"], params["Ti"], T_s=params["T_s"], M_max=params["M_max"], T_f=params["T_f"],
-                      notch=None if n is None else NotchSpec(**n))
+                      notch=tuple(NotchSpec(**n) for n in params["notches"]))
 
 
 def test_resume_refuses_a_closed_loop_recording_of_another_length(tmp_path, stub):
     folder, ident, cfg = _folder(tmp_path), stub("stiff", ONE_MASS), replace(FAST, tune=False)
     answer = sim.SimulatedDrive(STIFF)
-    for n in range(1, 20):
-        req = _pending(folder, ident, cfg)
-        if req["kind"] == "closed_loop":
-            break
+    req, n = _rest_answered(folder, ident, answer, cfg), 2  # request 001: the rest check, answered as asked
+    while req["kind"] != "closed_loop":
+        if n >= 20:
+            pytest.fail("no closed-loop experiment was asked for after the rest check")
         _answer(answer.run_test(req["M_star"], req["w_max"], sim.DriveLimits(**req["limits"])), folder, n)
-    else:
-        pytest.fail("no closed-loop experiment was asked for")
+        req, n = _pending(folder, ident, cfg), n + 1
+    assert req["experiment"] == n and req["law"]["type"] == "PI"
     scenario = sim.Scenario(np.array(req["scenario"]["w_ref"])[:500], np.array(req["scenario"]["M_dist"])[:500])
     _answer(answer.run_closed_loop(_sim_law(req["law"]), scenario, sim.DriveLimits(**req["limits"])), folder, n)
     with pytest.raises(CommissioningError, match=rf"{n:03d}\.csv: 500 samples, the requested scenario has"):
@@ -258,13 +310,15 @@ def test_a_boolean_timed_out_still_gets_an_answer():
 
 
 @pytest.mark.parametrize("meta", [{"timed_out": "yes"}, {"T_Ei": "fast"}, {"serial": "X1"}])
-def test_a_malformed_record_is_a_fault_of_the_first_experiment(stub, meta):
+def test_a_malformed_record_is_a_fault_of_the_first_test_run(stub, meta):
+    """The rest check (experiment 1) is answered as asked; the first test record (experiment 2)
+    is malformed: nothing runs after it."""
     drive = faulty_drives.MetaDrive(PLANT)
     drive.meta = meta
     ident = stub("elastic", PLANT)
-    with pytest.raises(CommissioningError, match=rf"drive\.run_test: the record of experiment 1: .*{next(iter(meta))}"):
+    with pytest.raises(CommissioningError, match=rf"drive\.run_test: the record of experiment 2: .*{next(iter(meta))}"):
         commission(drive, LIMITS, identifier=ident, config=FAST)
-    assert drive.tests == 1 and not ident.records
+    assert drive.tests == 1 and drive.experiments == 2 and not ident.records
 
 
 # --------------------------------------------------------------------------- drive faults
@@ -282,8 +336,12 @@ def test_a_cut_closed_loop_record_is_a_fault_not_a_stop(stub):
 
 
 def test_a_closed_loop_record_longer_than_the_scenario_is_a_fault_even_when_stopped(stub):
-    with pytest.raises(CommissioningError, match=r"drive\.run_closed_loop returned 1500 samples for a scenario of 1200"):
-        commission(faulty_drives.LongLoopDrive(PLANT), LIMITS, identifier=stub("elastic", PLANT), config=FAST)
+    """Every closed loop of this drive is 300 samples too long: the rest check's (200 samples, the
+    first experiment) is the fault; no test runs."""
+    drive, ident = faulty_drives.LongLoopDrive(PLANT), stub("elastic", PLANT)
+    with pytest.raises(CommissioningError, match=r"drive\.run_closed_loop returned 500 samples for a scenario of 200"):
+        commission(drive, LIMITS, identifier=ident, config=FAST)
+    assert drive.experiments == 1 and not ident.records
 
 
 def test_a_drive_json_nested_too_deeply_is_one_line(tmp_path):
@@ -294,6 +352,6 @@ def test_a_drive_json_nested_too_deeply_is_one_line(tmp_path):
 
 def test_a_record_sampled_otherwise_than_the_config_is_a_fault(stub):
     ident = stub("elastic", PLANT)
-    with pytest.raises(CommissioningError, match=r"experiment 1: its T_s 0\.00025 s .* config T_s 0\.000125 s"):
+    with pytest.raises(CommissioningError, match=r"experiment 2: its T_s 0\.00025 s .* config T_s 0\.000125 s"):
         commission(faulty_drives.WrongTsDrive(PLANT), LIMITS, identifier=ident, config=FAST)
     assert not ident.records
