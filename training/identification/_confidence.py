@@ -52,6 +52,8 @@ ZERO_CAPABLE = ("backlash", "M_FC", "mu_F", "M_FCM", "mu_FM")
 SIGNED = ("M_L0",)
 #: The parameters whose coordinate is ``asinh`` (:data:`ZERO_CAPABLE` and :data:`SIGNED`).
 ASINH = ZERO_CAPABLE + SIGNED
+#: The largest coordinate an interval's end takes (``exp``/``sinh`` of it stay finite: 1e86).
+COORDINATE_BOUND = 200.0
 #: The remarks whose presence is a feature (every code but the calibration's own).
 REMARK_CODES = tuple(c for c in WARNING_CODES if c != "likely_wrong")
 
@@ -86,7 +88,10 @@ class ConfidenceInputs:
         return math.log(max(value, 1e-300))
 
     def value(self, name: str, coordinate: float) -> float:
-        """The inverse of :meth:`coordinate` (a zero-capable value clipped at 0)."""
+        """The inverse of :meth:`coordinate` (a zero-capable value clipped at 0; the coordinate clipped
+        to +-:data:`COORDINATE_BOUND`, so that a record far from the calibration's gets a vast but
+        finite interval, not an overflow)."""
+        coordinate = min(max(coordinate, -COORDINATE_BOUND), COORDINATE_BOUND)
         if name in SIGNED:
             return self.scales[name] * math.sinh(coordinate)
         if name in ZERO_CAPABLE:
