@@ -144,7 +144,7 @@ def free_bounds(p: RefineProblem, settings: FreeSettings) -> tuple[np.ndarray, n
     """The free stage's bounds over :data:`FREE_COORDINATES` (``J_sigma`` within
     ``settings.J_sigma_decades`` of STEP 2's, ``M_FC`` from 0 to the test's ``M*``, ``mu_F`` from 0
     to ``M* / w_max``) and the scales of its three coordinates (1, ``M*``, ``M* / w_max``)."""
-    M_star = float(np.abs(p.level - p.level[0]).max())  # the levels around a held axis's hold
+    M_star = p.M_star
     w_max = max(float(np.abs(p.speed).max()), 1e-9)  # (a record at rest)
     J = math.log10(p.J_sigma)
     scale = np.array([1.0, M_star, M_star / w_max])

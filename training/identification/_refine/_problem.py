@@ -38,9 +38,9 @@ class RefineProblem:
     M_FCM: float = 0.0
 
     @property
-    def held(self) -> bool:
-        """Whether the levels ran around a holding torque (SPEC 1.1: the level before the test is it)."""
-        return bool(self.level[0] != 0.0)
+    def M_star(self) -> float:
+        """The test's torque step ``M*`` [Nm]: the largest level around the one before the test (the hold)."""
+        return float(np.abs(self.level - self.level[0]).max())
 
     @property
     def coulomb(self) -> float:

@@ -49,8 +49,7 @@ class SplitSettings:
 
 def splits(p: RefineProblem, settings: SplitSettings) -> bool:
     """Whether the friction of ``p`` is worth splitting (:class:`SplitSettings`)."""
-    M_star = float(np.abs(p.level - p.level[0]).max())
-    return p.coulomb > settings.min_friction * M_star
+    return p.coulomb > settings.min_friction * p.M_star
 
 
 def motor_share(problems: list[RefineProblem], finalists: dict[int, np.ndarray], settings: SplitSettings,
