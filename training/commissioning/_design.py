@@ -28,7 +28,7 @@ from ._law import MAX_NOTCHES, NotchSpec
 from ._loop import (LinearPlant, Mechanics, ModelSet, closed_loop_matrices, controller_parts, drive_value, linear_plant,
                     load_transfer, margin_arrays)
 
-__all__ = ["UncertaintySet", "MechanicsBounds", "BOUNDED_PARAMETERS", "DesignSearch", "SEARCH", "OptimizedLoop", "optimize_loop", "elastic_doubts",
+__all__ = ["UncertaintySet", "MechanicsBounds", "GAP_OPEN_MARGINS", "BOUNDED_PARAMETERS", "DesignSearch", "SEARCH", "OptimizedLoop", "optimize_loop", "elastic_doubts",
            "measured_peaks", "trusted_response", "NON_ELASTIC_QUANTITIES"]
 
 #: Quantities of the identification's envelope findings (``quality.outside_envelope``) that say
@@ -53,6 +53,12 @@ def elastic_doubts(result: Any, codes: Iterable[str]) -> list[str]:
         why.append("outside_training")
     return why
 
+
+#: Rule R6: the phase [deg] and gain [dB] margins a backlash plant's decoupled motor keeps (the gap
+#: open is a state the loop passes through: stable with room, so that it does not limit-cycle; the
+#: guarantee's 45 deg and 6 dB there cost 2-3x the crossover of plants above 100 Hz, measured in
+#: docs/commissioning.md, section 3).
+GAP_OPEN_MARGINS: tuple[float, float] = (15.0, 1.5)
 
 #: The parameters a :class:`MechanicsBounds` spans (those the design's models vary).
 BOUNDED_PARAMETERS: tuple[str, ...] = ("J_sigma", "V_J", "f_e", "d", "J_M")
@@ -130,12 +136,14 @@ def measured_peaks(measured: MeasuredResponse, J_sigma: float, *, min_ratio: flo
 
 
 class Member(NamedTuple):
-    """One mechanic of an :class:`UncertaintySet`: its ``mechanics``, ``label``, and whether it is
-    a ``hidden`` resonance (a worst case of what a test cannot exclude, not the identified plant)."""
+    """One mechanic of an :class:`UncertaintySet`: its ``mechanics``, ``label``, whether it is a
+    ``hidden`` resonance (a worst case of what a test cannot exclude, not the identified plant),
+    and whether it is ``transient`` (a state the plant passes through: the decoupled motor)."""
 
     mechanics: Mechanics
     label: str
     hidden: bool = False
+    transient: bool = False
 
 
 @dataclass(frozen=True)
@@ -152,7 +160,9 @@ class UncertaintySet:
     identified mechanic is taken with the SPEC's first-order current loop, every member with
     ``current_loop_damping``'s second-order lag plus ``extra_delay`` samples of dead time (the
     hidden resonances with both). ``decoupled_motor``: a backlash
-    plant's motor alone while the gap is open (one mass ``J_sigma / (1 + V_J)``, rule R6).
+    plant's motor alone while the gap is open (one mass ``J_sigma / (1 + V_J)``, rule R6): a state
+    the loop passes through, held to ``gap_open_margins`` (phase [deg], gain [dB]: stable with room,
+    so that the loop does not limit-cycle) instead of the guarantee's margins, its load not counted.
     ``hidden``: resonances a test run cannot exclude (``V_J -> (f_lo, f_hi)`` [Hz], rule R7b,
     at damping ``hidden_d``), replaced by ``measured`` (the trusted part of the plant's measured
     frequency response) where there is one; a resonance the measurement found (and the model
@@ -176,6 +186,7 @@ class UncertaintySet:
     measured_f_spread: float = 0.05
     doubts: tuple[str, ...] = ()
     bounds: MechanicsBounds | None = None
+    gap_open_margins: tuple[float, float] = GAP_OPEN_MARGINS
 
     def __post_init__(self) -> None:
         if self.bounds is not None and not isinstance(self.bounds, MechanicsBounds):
@@ -221,7 +232,7 @@ class UncertaintySet:
                     end = replace(m, J_sigma=J, **low_d)
                     out.append(Member(end, f"J_sigma {J:.4g} kg m^2, " + _label(end) if m.two_mass else _label(end)))
         if m.two_mass and self.decoupled_motor:
-            out.append(Member(Mechanics(self.decoupled_J(), mu_F=m.mu_F), "decoupled motor (backlash gap open)"))
+            out.append(Member(Mechanics(self.decoupled_J(), mu_F=m.mu_F), "decoupled motor (backlash gap open)", transient=True))
         if self.hidden and self.measured is None:
             out += [Member(h, f"hidden resonance {_label(h)}", hidden=True)
                     for h in _hidden_mechanics(m.J_sigma, self.hidden, self.hidden_d, self.hidden_points_per_decade,
@@ -242,18 +253,19 @@ class UncertaintySet:
         The load peak counts on the identified mechanic's members, not on the hidden resonances:
         those sit at the envelope's lowest damping, a worst case for stability; a load held below
         6 dB there would bind any loop to a fiftieth of their anti-resonance, whatever the plant."""
-        plants, labels, checked = [linear_plant(self.mechanics, drive)], [_label(self.mechanics)], [True]
+        plants, labels, checked, transient = [linear_plant(self.mechanics, drive)], [_label(self.mechanics)], [True], [False]
         variant = f", 2nd-order current loop, +{self.extra_delay} sample delay"
-        for i, (mech, label, hidden) in enumerate(self.members()):
-            load = not hidden
+        for i, (mech, label, hidden, passing) in enumerate(self.members()):
             if i and hidden:
                 plants.append(linear_plant(mech, drive))
                 labels.append(label)
-                checked.append(load)
+                checked.append(not hidden)
+                transient.append(passing)
             plants.append(linear_plant(mech, drive, current_loop_damping=self.current_loop_damping, extra_delay=self.extra_delay))
             labels.append(label + variant)
-            checked.append(load)
-        return ModelSet(tuple(plants), tuple(labels), self.measured, tuple(checked))
+            checked.append(not hidden)
+            transient.append(passing)
+        return ModelSet(tuple(plants), tuple(labels), self.measured, tuple(checked), tuple(transient), self.gap_open_margins)
 
     def describe(self) -> str:
         """One line: what the set holds."""
@@ -268,7 +280,9 @@ class UncertaintySet:
             parts.append(f"f_e +-{self.f_e_spread:.0%}, V_J +-{self.V_J_spread:.0%}, d x{self.d_scale[0]:g}..{self.d_scale[1]:g} "
                          "(the interim spread: the identification carries no calibrated intervals)")
         if m.two_mass and self.decoupled_motor:
-            parts.append(f"the decoupled motor {'J_sigma/(1+V_J)' if b is None else 'J_M'} = {self.decoupled_J():.4g} kg m^2")
+            pm, gm = self.gap_open_margins
+            parts.append(f"the decoupled motor {'J_sigma/(1+V_J)' if b is None else 'J_M'} = {self.decoupled_J():.4g} kg m^2 "
+                         f"(gap open: PM >= {pm:g} deg, GM >= {gm:g} dB)")
         if self.hidden and self.measured is None:
             parts.append("hidden resonances " + ", ".join(f"V_J {v:g}: {lo:.3g}..{hi:.3g} Hz" for v, (lo, hi) in self.hidden.items()))
         if self.measured is not None:
@@ -368,8 +382,9 @@ class OptimizedLoop:
 @dataclass
 class _Model:
     """One model of the set as the search sees it: grid ``w``, ``z``, responses ``G``, ``G_L``
-    (None: the measured response, no load), its plant (None: measured), label, and the law's
-    notch and low-pass responses on its grid per option."""
+    (None: its load does not count), its plant (None: measured), label, the law's notch and
+    low-pass responses on its grid per option, and whether it is a transient state
+    (:attr:`ModelSet.transient`: held to the set's transient margins)."""
 
     label: str
     T_s: float
@@ -380,6 +395,7 @@ class _Model:
     plant: LinearPlant | None
     N: np.ndarray
     F: np.ndarray
+    transient: bool = False
     kills: int = 0
 
 
@@ -406,12 +422,11 @@ def _prepare(models: ModelSet, T_s: float, notch_options: list[tuple[NotchSpec, 
     """Each model's grid and responses, with the notch and low-pass options' responses on it."""
     T_fs = np.array(search.filter_samples) * T_s
     out = []
-    for plant, label, checked, (w, G, G_L) in zip(models.plants, models.labels, models.load_checked or (True,) * len(models.plants),
-                                                 models.responses()):
+    for i, (plant, label, (w, G, G_L)) in enumerate(zip(models.plants, models.labels, models.responses())):
         z = np.exp(1j * w * plant.T_s)
-        out.append(_Model(label, T_s, w, z, G, G_L if checked else None, plant,
+        out.append(_Model(label, T_s, w, z, G, G_L if models.load_counts(i) else None, plant,
                           np.array([controller_parts(T_s, z, notch=n)["notch"] for n in notch_options]),
-                          controller_parts(T_s, z, T_f=T_fs[:, None])["lowpass"]))
+                          controller_parts(T_s, z, T_f=T_fs[:, None])["lowpass"], models.is_transient(i)))
     if models.measured is not None:
         m = models.measured
         z = np.exp(1j * m.w * m.T_s)
@@ -460,7 +475,12 @@ class _Context:
     search: DesignSearch
     pm_min: float
     gm_min: float
+    transient_margins: tuple[float, float] = (0.0, 0.0)
     evaluations: int = 0
+
+    def required(self, model: _Model) -> tuple[float, float]:
+        """The phase [deg] and gain [dB] margins ``model`` must keep."""
+        return self.transient_margins if model.transient else (self.pm_min, self.gm_min)
 
     def law(self, shape: np.ndarray, w_c: float) -> tuple[float, float, float, tuple[NotchSpec, ...]]:
         """``(Kp, Ti, T_f, notches)`` of one shape at the target crossover ``w_c``."""
@@ -529,13 +549,14 @@ def _level(ctx: _Context, candidates: np.ndarray, w_c: float) -> _Level:
         if not len(idx):
             break
         sub = shapes[idx]
-        chk = _check(model, Kp[idx], sub[:, 0], sub[:, 1], sub[:, 2], w_c, s, ctx.pm_min, ctx.gm_min)
+        pm_min, gm_min = ctx.required(model)
+        chk = _check(model, Kp[idx], sub[:, 0], sub[:, 1], sub[:, 2], w_c, s, pm_min, gm_min)
         ctx.evaluations += len(idx)
-        slack[idx] = np.minimum(slack[idx], _slack(chk, ctx.pm_min, ctx.gm_min, max_peak))
+        slack[idx] = np.minimum(slack[idx], _slack(chk, pm_min, gm_min, max_peak))
         if model is ctx.models[0]:
             crossover[idx] = chk.w_c
         for j in np.nonzero(~chk.ok)[0]:
-            why[int(candidates[idx[j]])] = _failure(chk, j, ctx.pm_min, ctx.gm_min, max_peak, model.label)
+            why[int(candidates[idx[j]])] = _failure(chk, j, pm_min, gm_min, max_peak, model.label)
         model.kills += int((~chk.ok).sum())
         alive[idx[~chk.ok]] = False
     ok = np.nonzero(alive)[0]
@@ -603,22 +624,22 @@ def optimize_loop(models: ModelSet, drive: Any, *, J_sigma: float, notch_at: Seq
     notch_options = _notch_options(notch_at, d, T_s, search)
     shapes = np.array(_shapes(notch_options, search), dtype=np.int64)
     ctx = _Context(_prepare(models, T_s, notch_options, search), notch_options, shapes, J_sigma, T_s, search,
-                   min_phase_margin, min_gain_margin_dB)
+                   min_phase_margin, min_gain_margin_dB, models.transient_margins)
     best, above = _search(ctx, 1.5 / (T_Ei + 2 * T_s))
     found = best is not None
     w_r = best.w_c if found else search.w_c_min
     shape = shapes[best.chosen] if found else shapes[0]
     Kp, Ti, T_f, notches = ctx.law(shape, w_r)
-    each = models.each(Kp, Ti, T_f, notches)
+    lasting = [m for i, m in enumerate(models.each(Kp, Ti, T_f, notches)) if not models.is_transient(i)]
     peaks = models.load_peaks_dB(Kp, Ti, T_f, notches)
-    worst = min(each, key=lambda m: (m.stable, min(m.phase_margin - min_phase_margin, m.gain_margin_dB - min_gain_margin_dB)))
-    crossovers = [m.w_c for m in each if math.isfinite(m.w_c)]
+    worst = min(lasting, key=lambda m: (m.stable, min(m.phase_margin - min_phase_margin, m.gain_margin_dB - min_gain_margin_dB)))
+    crossovers = [m.w_c for m in lasting if math.isfinite(m.w_c)]
     if not found:
         limited = "no gain down to the search's lowest keeps the constraints"
     elif above is None:
         limited = "the search's highest gain (the current loop and the sampling)"
     else:
         limited = f"Kp x {above.w_c / best.w_c:.3g}: " + above.why.get(int(best.chosen), "every shape misses a constraint")
-    return OptimizedLoop(Kp, Ti, T_f, notches, each[0].w_c, found, min(m.phase_margin for m in each),
-                         min(m.gain_margin_dB for m in each), float(peaks.max(initial=-math.inf)), worst.model,
+    return OptimizedLoop(Kp, Ti, T_f, notches, lasting[0].w_c, found, min(m.phase_margin for m in lasting),
+                         min(m.gain_margin_dB for m in lasting), float(peaks.max(initial=-math.inf)), worst.model,
                          min(crossovers, default=math.nan), limited, ctx.evaluations)

@@ -174,8 +174,10 @@ class ExcitationRules:
     min_time_scale: float = 0.02
     """E12: the envelope's shortest test time scale ``J_sigma w_max / M_star`` [s] (what the maps were
     trained on): an informative run below it on a trusted inertia gets one probe inside it."""
-    time_scale_margin: float = 1.5
-    """E12: that probe aims at this many times ``min_time_scale``."""
+    time_scale_margin: float = 1.15
+    """E12: that probe aims at this many times ``min_time_scale`` (room for the identified inertia's
+    difference from the rigid-body fit's, a few %; more would cost torque, and a probe at less torque
+    may no longer show the oscillation)."""
     probe_min_lengthening: float = 1.2
     """E11: a probe must make section I at least this many times longer than the run it is planned from."""
 
@@ -1103,18 +1105,22 @@ class _Session:
 
     def into_envelope(self, reason: str) -> ProbeOutcome | None:
         """E12: an informative run whose time scale ``J w_max / M_star`` on its trusted inertia lies
-        below ``min_time_scale`` gets one probe at ``time_scale_margin`` times it (less torque, same
-        ``w_max``) where its rigid travel fits, used when informative; None: no probe."""
+        below ``min_time_scale`` gets one probe at ``time_scale_margin`` times it: the same torque and
+        more speed where the run's speed cap (E6) allows it (the oscillation stays as visible), else
+        that cap's speed and less torque; where its rigid travel fits, used when informative; None:
+        no probe."""
         rules, base = self.rules, self.last_kept
         J = trusted_J(base.figures, rules)
         if J is None or J * base.plan.w_max / base.plan.M_star >= rules.min_time_scale:
             return None
         M_F = max(base.figures.rigid_M_F, 0.0)
-        M_star = J * base.plan.w_max / (rules.time_scale_margin * rules.min_time_scale)
+        target = rules.time_scale_margin * rules.min_time_scale  # [s]
+        w_max = max(min(target * base.plan.M_star / J, base.speed_cap(base.plan.M_star, base.plan.w_ceiling)), base.plan.w_max)
+        M_star = min(J * w_max / target, base.plan.M_star)
         room = rules.travel_margin * guarded_limits(self.limits, 0.0, self.config, rules).travel
-        if M_star < M_F / rules.rigid_friction_share or rigid_travel(base.plan.w_max, M_star, J * (1 + rules.trust_margin), M_F) > room:
+        if M_star < M_F / rules.rigid_friction_share or rigid_travel(w_max, M_star, J * (1 + rules.trust_margin), M_F) > room:
             return None
-        run = self.run(RunPlan(M_star, base.plan.w_max), None)
+        run = self.run(RunPlan(M_star, w_max, w_ceiling=base.plan.w_ceiling), None)
         done = self.accepted(run)
         lacks = ", ".join(run.deficits.names()) if not run.figures.aborted else "stopped by the drive"
         entry = _log_entry(len(self.log), run, RuleDecision(run.plan, verdict="informative" if done else RUN_AGAIN,

@@ -471,12 +471,17 @@ class ModelSet:
     plus the identified model as it is (``plants``, named by ``labels``); and, where the plant's
     frequency response was measured, that response at its trusted frequencies (``measured``: a
     non-parametric model; its margins count, its stability is judged on the parametric models).
-    ``load_checked``: per plant, whether its reference-to-load peak counts (default: every one)."""
+    ``load_checked``: per plant, whether its reference-to-load peak counts (default: every one).
+    ``transient``: per plant, whether it is a state the plant only passes through (a backlash
+    plant's decoupled motor while the gap is open): held to ``transient_margins`` (phase [deg], gain
+    [dB]) instead of the guarantee's, and its load peak does not count (default: none is)."""
 
     plants: tuple[LinearPlant, ...]
     labels: tuple[str, ...]
     measured: MeasuredResponse | None = None
     load_checked: tuple[bool, ...] | None = None
+    transient: tuple[bool, ...] | None = None
+    transient_margins: tuple[float, float] = (0.0, 0.0)
     _responses: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = field(default_factory=list, compare=False, repr=False)
 
     #: The label of the measured response among the models.
@@ -501,13 +506,24 @@ class ModelSet:
             out.append(loop_margins(C * F * self.measured.G, self.measured.w, True, self.MEASURED))
         return out
 
+    def is_transient(self, i: int) -> bool:
+        """Whether plant ``i`` is a transient state (:attr:`transient`)."""
+        return bool(self.transient) and i < len(self.plants) and self.transient[i]
+
+    def load_counts(self, i: int) -> bool:
+        """Whether plant ``i``'s reference-to-load peak counts (:attr:`load_checked`, never on a transient one)."""
+        return (self.load_checked[i] if self.load_checked else True) and not self.is_transient(i)
+
     def margins(self, Kp: float, Ti: float, T_f: float = 0.0, notch: Notches = None) -> Margins:
-        """The worst margins over the set (any unstable model: ``stable`` False); ``w_c`` the first
-        model's (the identified one), ``model`` the worst model's label."""
-        each = self.each(Kp, Ti, T_f, notch)
+        """The worst margins over the set's lasting models; ``stable`` False where any model is
+        unstable or a transient one misses :attr:`transient_margins` (then ``model`` names it, else
+        the worst model's label); ``w_c`` the first model's (the identified one)."""
+        every = self.each(Kp, Ti, T_f, notch)
+        each = [m for i, m in enumerate(every) if not self.is_transient(i)]
         worst_pm = min(each, key=lambda m: m.phase_margin)
         worst_gm = min(each, key=lambda m: m.gain_margin_dB)
-        unstable = [m for m in each if not m.stable]
+        unstable = [m for i, m in enumerate(every)
+                    if not (m.meets(*self.transient_margins) if self.is_transient(i) else m.stable)]
         worst = unstable[0] if unstable else (worst_pm if worst_pm.phase_margin - 40 <= worst_gm.gain_margin_dB - 6 else worst_gm)
         return Margins(worst_pm.phase_margin, worst_gm.gain_margin_dB, each[0].w_c, not unstable, worst.model)
 
@@ -515,7 +531,7 @@ class ModelSet:
         """The peak of the reference-to-load response [dB] on every plant whose load counts
         (:func:`reference_to_load`; ``-inf`` on the others)."""
         out = []
-        checked = self.load_checked or (True,) * len(self.plants)
+        checked = [self.load_counts(i) for i in range(len(self.plants))]
         for p, load, (w, G, G_L) in zip(self.plants, checked, self.responses()):
             C, F = _controller_response(Kp, Ti, T_f, notch, p.T_s, np.exp(1j * w * p.T_s))
             out.append(20 * np.log10(np.abs(load_transfer(C, F, G, G_L)).max()) if load else -np.inf)

@@ -23,7 +23,7 @@ import sim
 from training._settings import NON_NEGATIVE, POSITIVE, Constraint, InstanceOf, Interval, Pair, Values, check_settings
 from training.errors import CommissioningError
 
-from ._design import (SEARCH, DesignSearch, MechanicsBounds, OptimizedLoop, UncertaintySet, measured_peaks, optimize_loop,
+from ._design import (GAP_OPEN_MARGINS, SEARCH, DesignSearch, MechanicsBounds, OptimizedLoop, UncertaintySet, measured_peaks, optimize_loop,
                       trusted_response)
 from ._frf import MeasuredResponse
 from ._law import NotchSpec, PISpeedLaw
@@ -79,6 +79,12 @@ class ControllerSpec:
     """F1, R7b: eigenfrequencies per decade of a band (a lightly damped resonance is narrow; its worst case moves smoothly)."""
     class_min_points: int = 5
     """F1, R7b: fewest eigenfrequencies of a band."""
+    gap_open_phase_margin: float = GAP_OPEN_MARGINS[0]
+    """R6: the phase margin [deg] the decoupled motor of a backlash plant keeps: a state the loop
+    passes through while the gap is open, held stable with room (no limit cycle), not to the
+    guarantee's margins (docs/commissioning.md, section 3) ..."""
+    gap_open_gain_margin_dB: float = GAP_OPEN_MARGINS[1]
+    """R6: ... and its gain margin [dB]."""
 
     def __post_init__(self) -> None:
         check_settings(self, _SPEC_CONSTRAINTS, CommissioningError)
@@ -90,7 +96,8 @@ _SPEC_CONSTRAINTS: dict[str, Constraint] = {
     "d_scale": Pair(POSITIVE), "current_loop_damping": POSITIVE, "extra_delay": Interval(0, integer=True),
     "min_coherence": Interval(0.0, 1.0), "peak_ratio": POSITIVE, "search": InstanceOf(DesignSearch),
     "class_d": NON_NEGATIVE, "class_points_per_decade": POSITIVE, "class_min_points": Interval(1, integer=True),
-    "class_f_e": Pair(POSITIVE), "class_V_J": Values(POSITIVE, empty=False),
+    "class_f_e": Pair(POSITIVE), "class_V_J": Values(POSITIVE, empty=False), "gap_open_phase_margin": Interval(0.0, 90.0),
+    "gap_open_gain_margin_dB": NON_NEGATIVE,
 }
 
 
@@ -197,7 +204,8 @@ def uncertainty_set(mechanics: Any, spec: ControllerSpec, *, structure: str = "s
                           current_loop_damping=spec.current_loop_damping, extra_delay=spec.extra_delay,
                           decoupled_motor=structure in _BACKLASH and m.two_mass, hidden=hidden, hidden_d=spec.class_d,
                           hidden_points_per_decade=spec.class_points_per_decade, hidden_min_points=spec.class_min_points,
-                          measured=trusted, doubts=doubts)
+                          measured=trusted, doubts=doubts,
+                          gap_open_margins=(spec.gap_open_phase_margin, spec.gap_open_gain_margin_dB))
 
 
 def robust_models(mechanics: Any, config: Any, spec: ControllerSpec, *,
@@ -263,8 +271,10 @@ def r6_backlash(inputs: DesignInputs, design: Design) -> Design:
         return design.noted("R6 backlash: no inertia ratio identified, the decoupled motor is not in the set",
                             warnings=design.warnings + warning)
     m = inputs.mechanics
+    pm, gm = inputs.uncertainty.gap_open_margins
     return design.noted(f"R6 backlash: the decoupled motor J_sigma/(1+V_J) = {m.J_sigma / (1 + m.V_J):.4g} kg m^2 "
-                        f"(gain x {1 + m.V_J:.3g} while the gap is open) in the guarantee's set", warnings=design.warnings + warning)
+                        f"(gain x {1 + m.V_J:.3g} while the gap is open) in the guarantee's set, kept stable with PM >= {pm:g} deg, "
+                        f"GM >= {gm:g} dB", warnings=design.warnings + warning)
 
 
 def r7_model_set(inputs: DesignInputs, design: Design) -> Design:

@@ -140,3 +140,68 @@ def test_a_measured_resonance_keeps_its_worst_cases_where_the_measurement_unders
     assert {float(lab.split("V_J ")[1].split(",")[0]) for lab in worst} == set(bands)
     m = margins(linear_plant(true, DRIVE), prop.Kp, prop.Ti, prop.T_f, prop.notch)
     assert m.stable and m.meets(45.0 - 1.0, 6.0 - 0.2)
+
+
+def test_a_transient_member_is_held_to_its_own_margins_and_its_load_does_not_count():
+    """A hand-made set: a one-mass plant and, as a transient state, its motor alone (a quarter of
+    the inertia: four times the loop gain). The set's margins are the lasting plant's; the transient
+    one only has to keep ``transient_margins`` (else ``stable`` False, named), its load peak is -inf."""
+    lasting, light = linear_plant(Mechanics(0.05), DRIVE), linear_plant(Mechanics(0.0125), DRIVE)
+    Kp, Ti = 0.05 * 300.0, 7 / 300.0
+    alone, gap = margins(lasting, Kp, Ti), margins(light, Kp, Ti)
+    assert gap.stable and 15.0 < gap.phase_margin < alone.phase_margin - 10  # the light one is closer to the edge
+    labels = ("lasting", "gap open")
+    relaxed = ModelSet((lasting, light), labels, transient=(False, True), transient_margins=(15.0, 1.5))
+    m = relaxed.margins(Kp, Ti)
+    assert m.stable and m.phase_margin == pytest.approx(alone.phase_margin) and m.gain_margin_dB == pytest.approx(alone.gain_margin_dB)
+    strict = ModelSet((lasting, light), labels, transient=(False, True), transient_margins=(gap.phase_margin + 1.0, 0.0))
+    assert not strict.margins(Kp, Ti).stable and strict.margins(Kp, Ti).model == "gap open"
+    peaks = relaxed.load_peaks_dB(Kp, Ti)
+    assert math.isfinite(peaks[0]) and peaks[1] == -math.inf
+    plain = ModelSet((lasting, light), labels)
+    assert plain.margins(Kp, Ti).phase_margin == pytest.approx(gap.phase_margin)
+
+
+BACKLASH = dict(J_sigma=0.107, V_J=0.64, f_e=436.0, d=0.073, backlash=0.006, M_FC=0.3, mu_F=0.0025)
+
+
+def _backlash_design(gap_open_margins: tuple[float, float]):
+    from training.commissioning._design import UncertaintySet
+    from training.commissioning._loop import mechanics_from
+
+    u = UncertaintySet(mechanics_from(BACKLASH), decoupled_motor=True, gap_open_margins=gap_open_margins)
+    models = u.models(DRIVE)
+    loop = optimize_loop(models, DRIVE, J_sigma=BACKLASH["J_sigma"], notch_at=(436.0,), d=0.073, min_phase_margin=45.0,
+                         min_gain_margin_dB=6.0)
+    return u, models, loop
+
+
+def test_the_gap_open_state_costs_less_bandwidth_and_keeps_its_margins():
+    """R6 holds a backlash plant's decoupled motor to its own margins (stable with room), not to the
+    guarantee's: a 436 Hz shaft gets a faster loop, the decoupled motor keeps PM >= 15 deg and GM >=
+    1.5 dB on its pessimistic current loop, and every lasting model keeps the guarantee."""
+    _, strict_models, strict = _backlash_design((45.0, 6.0))
+    u, models, loop = _backlash_design((15.0, 1.5))
+    assert strict.found and loop.found and loop.w_c > 1.2 * strict.w_c
+    each = models.each(loop.Kp, loop.Ti, loop.T_f, loop.notches)
+    gap = [m for i, m in enumerate(each) if models.is_transient(i)]
+    assert len(gap) == 1 and gap[0].meets(15.0, 1.5)
+    assert models.margins(loop.Kp, loop.Ti, loop.T_f, loop.notches).meets(45.0, 6.0)
+    assert loop.phase_margin >= 45.0 and loop.gain_margin_dB >= 6.0  # reported over the lasting models only
+
+
+def test_the_faster_backlash_loop_does_not_limit_cycle_on_the_nonlinear_plant():
+    """The loop designed with the gap-open margins runs on the simulator's nonlinear plant (backlash,
+    Coulomb friction): steps from rest and a disturbance torque, no sustained oscillation
+    (the bench's criterion, :func:`training.bench._commission.oscillates`)."""
+    from training.bench._commission import limit_cycle_scenario, oscillates
+    from training.commissioning import PISpeedLaw
+
+    _, _, loop = _backlash_design((15.0, 1.5))
+    drive = sim.SimulatedDrive(BACKLASH)
+    config, limits = drive.config, sim.DriveLimits(w_max=20.0, travel=5.0)
+    law = PISpeedLaw(loop.Kp, loop.Ti, T_s=config.T_s, M_max=config.M_max, T_f=loop.T_f, notch=loop.notches or None)
+    scenario, n, w_s = limit_cycle_scenario(loop.w_c, loop.Kp, limits, config)
+    record = drive.run_closed_loop(law, scenario, limits)
+    q_w = 2 * math.pi / (config.encoder_counts * config.T_s)
+    assert not record.meta.get("aborted") and not oscillates(np.asarray(record.speed, dtype=float), n, w_s, q_w)

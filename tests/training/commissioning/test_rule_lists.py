@@ -125,10 +125,13 @@ def test_notch_frequencies_and_the_decoupled_motor_by_hand():
     assert r4_notch_frequencies(stiff, Design()) == Design() and r6_backlash(stiff, Design()) == Design()
     backlash = _inputs("elastic_backlash", soft, spec)
     noted = r6_backlash(backlash, Design())
-    motor = [m for m, label, _ in backlash.uncertainty.members() if label.startswith("decoupled motor")]
+    members = [m for m in backlash.uncertainty.members() if m.label.startswith("decoupled motor")]
+    motor = [m.mechanics for m in members]
     assert noted.rules[-1].startswith("R6") and len(motor) == 1 and not motor[0].two_mass
     assert motor[0].J_sigma == pytest.approx(0.05 / 2.0)
-    assert not any(label.startswith("decoupled") for _, label, _ in _inputs("elastic", soft, spec).uncertainty.members())
+    assert members[0].transient and not any(m.transient for m in backlash.uncertainty.members() if m not in members)
+    assert "PM >= 15 deg, GM >= 1.5 dB" in noted.rules[-1]
+    assert not any(m.label.startswith("decoupled") for m in _inputs("elastic", soft, spec).uncertainty.members())
 
 
 def test_hidden_resonances_unpack_as_before():
