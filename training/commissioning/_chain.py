@@ -278,6 +278,9 @@ class ChainState:
     redesign_trial: LoopTrial | None = None
     redesign_kept: bool = False
     """The redesigned loop settled on the drive, not worse than the first: it is delivered."""
+    gap_open_cycled: bool = False
+    """A model-based candidate limit-cycled on the drive while the design held the decoupled motor
+    only to the gap-open margins: every later design holds it to the guarantee's (R6)."""
     redesign_reason: str = ""
     """Why the redesign is or is not delivered, or why nothing was measured (one line; empty where
     the experiment did not apply)."""
@@ -499,10 +502,16 @@ def _choose(runs: list[PlantRun]) -> int | None:
     return min(settled, key=lambda i: (runs[i].cost, i))
 
 
-def _design_spec(settings: CommissioningConfig, result: Any) -> ControllerSpec:
+def _design_spec(run: ChainRun) -> ControllerSpec:
     """The guarantee's spec of a model-based design: ``settings.spec`` (an uncertain identification
-    widens the design's set, R7c in :func:`_propose`, not the margins)."""
-    return settings.spec
+    widens the design's set, R7c in :func:`_propose`, not the margins); once a candidate limit-cycled
+    on the drive (:attr:`ChainState.gap_open_cycled`), the decoupled motor held to the guarantee's
+    margins (R6)."""
+    spec = run.settings.spec
+    if not run.state.gap_open_cycled:
+        return spec
+    return replace(spec, gap_open_phase_margin=max(spec.gap_open_phase_margin, spec.min_phase_margin),
+                   gap_open_gain_margin_dB=max(spec.gap_open_gain_margin_dB, spec.min_gain_margin_dB))
 
 
 def _propose(run: ChainRun) -> ControllerProposal:
@@ -514,7 +523,7 @@ def _propose(run: ChainRun) -> ControllerProposal:
     lighter damping)."""
     settings, result = run.settings, run.result
     params, why = _model_params(result), _uncertain(result)
-    spec = _design_spec(settings, result)
+    spec = _design_spec(run)
     intervals = _intervals(result)
     bounds = None if intervals is None else MechanicsBounds.from_intervals(intervals)
     hidden = notch_at = None
@@ -527,6 +536,9 @@ def _propose(run: ChainRun) -> ControllerProposal:
                                   damping=settings.uncertain_damping if r7c else None, doubts=tuple(why), bounds=bounds)
     proposal = propose_controller(result.structure, params, run.config, spec, notch_at=notch_at, uncertainty=uncertainty)
     proposal = replace(proposal, M_hold=_holding_torque(result))
+    if run.state.gap_open_cycled:
+        proposal = replace(proposal, rules=("R6 a loop with the decoupled motor at the gap-open margins limit-cycled on the drive: "
+                                            "designed again with the guarantee's margins there",) + proposal.rules)
     if r7c:
         f_es, V_Js, (d_lo, _) = uncertainty.spans()
         proposal = replace(proposal, rules=(f"R7c identification uncertain ({', '.join(why)}): the set's f_e "
@@ -546,7 +558,7 @@ def _tune(run: ChainRun, proposal: ControllerProposal) -> tuple[TuningResult | N
     scenario, _ = plan_scenario(proposal, [], config, run.limits, limit_use=settings.limit_use,
                                 max_samples=settings.max_samples)
     run.say(f"{run.name}: tuning on the identified model ({settings.tune_evaluations} evaluations)")
-    tuning = tune_controller(proposal, config, scenario, _design_spec(settings, run.result),
+    tuning = tune_controller(proposal, config, scenario, _design_spec(run),
                              max_evaluations=settings.tune_evaluations)
     tuned = tuning.controller
     if tuned is not proposal:
@@ -788,15 +800,33 @@ def _redesign(run: ChainRun) -> None:
 
 
 def _try_design(run: ChainRun) -> None:
-    """The design's candidates on the drive; the best one not worse than the proposal is chosen."""
-    design = run.state.design
-    if design is None:
+    """The design's candidates on the drive; the best one not worse than the proposal is chosen.
+    Where none settled, one limit-cycled, and the design held the decoupled motor only to the
+    gap-open margins (R6): designed again with the guarantee's margins there, and its candidates run."""
+    state = run.state
+    if state.design is None:
         return
-    runs = _run_candidates(run, design, "closed loop")
+    runs = _run_candidates(run, state.design, "closed loop")
+    chosen = _choose(runs)
+    if chosen is None and any(r.verdict == "limit_cycle" for r in runs) and _gap_open_relaxed(run, state.design.proposal):
+        state.gap_open_cycled = True
+        strict = _propose(run)
+        if strict.meets(_design_spec(run)):
+            run.say(f"{run.name}: a candidate limit-cycled: the design again with the guarantee's margins on the decoupled motor")
+            state.design = _plan_loop(run, strict)
+            runs = _run_candidates(run, state.design, "closed loop (gap open at the guarantee's margins)")
+            chosen = _choose(runs)
     run.lap("drive_runs")
-    run.state.design_trial = trial = LoopTrial(runs, _choose(runs))
+    state.design_trial = trial = LoopTrial(runs, chosen)
     if trial.chosen is None:
         run.warn("loop_not_settled", "no candidate loop settled on the drive")
+
+
+def _gap_open_relaxed(run: ChainRun, proposal: ControllerProposal) -> bool:
+    """Whether ``proposal``'s set holds a decoupled motor (R6) to less than the guarantee's margins."""
+    spec = _design_spec(run)
+    relaxed = spec.gap_open_phase_margin < spec.min_phase_margin or spec.gap_open_gain_margin_dB < spec.min_gain_margin_dB
+    return relaxed and any(proposal.models.transient or ())
 
 
 def _fall_back(run: ChainRun) -> None:

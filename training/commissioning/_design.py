@@ -58,7 +58,7 @@ def elastic_doubts(result: Any, codes: Iterable[str]) -> list[str]:
 #: open is a state the loop passes through: stable with room, so that it does not limit-cycle; the
 #: guarantee's 45 deg and 6 dB there cost 2-3x the crossover of plants above 100 Hz, measured in
 #: docs/commissioning.md, section 3).
-GAP_OPEN_MARGINS: tuple[float, float] = (15.0, 1.5)
+GAP_OPEN_MARGINS: tuple[float, float] = (30.0, 3.0)
 
 #: The parameters a :class:`MechanicsBounds` spans (those the design's models vary).
 BOUNDED_PARAMETERS: tuple[str, ...] = ("J_sigma", "V_J", "f_e", "d", "J_M")

@@ -15,7 +15,7 @@ import pytest
 sim = pytest.importorskip("sim")
 
 from training.commissioning import CommissioningConfig, ControllerSpec, may_propose_controller, uncertainty_set  # noqa: E402
-from training.commissioning._chain import _propose  # noqa: E402
+from training.commissioning._chain import ChainState, _propose  # noqa: E402
 from training.commissioning._design import MechanicsBounds, UncertaintySet  # noqa: E402
 from training.commissioning._loop import Mechanics  # noqa: E402
 from training.identification import NOTE_CODES, WARNING_CODES, Intervals  # noqa: E402
@@ -43,7 +43,7 @@ WIDE = _intervals(f_e=(21.0, 40.0), V_J=(0.7, 1.4), d=(0.012, 0.06))
 
 def _run(result) -> SimpleNamespace:
     """What :func:`_propose` reads of a chain run."""
-    return SimpleNamespace(settings=CommissioningConfig(), result=result, config=DRIVE, state=SimpleNamespace(measured=None),
+    return SimpleNamespace(settings=CommissioningConfig(), result=result, config=DRIVE, state=ChainState(),
                            excitation=TEST_RUN)
 
 

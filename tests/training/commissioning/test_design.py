@@ -18,8 +18,8 @@ sim = pytest.importorskip("sim")
 
 from training.commissioning import CommissioningConfig, ControllerSpec, NotchSpec, linear_plant, margins, propose_controller  # noqa: E402
 from training.commissioning._bands import hidden_bands  # noqa: E402
-from training.commissioning._chain import UNCERTAIN_CODES, _propose, _uncertain  # noqa: E402
-from training.commissioning._design import elastic_doubts, optimize_loop  # noqa: E402
+from training.commissioning._chain import UNCERTAIN_CODES, ChainState, _propose, _uncertain  # noqa: E402
+from training.commissioning._design import GAP_OPEN_MARGINS, elastic_doubts, optimize_loop  # noqa: E402
 from training.commissioning._frf import MeasuredResponse  # noqa: E402
 from training.commissioning._loop import Mechanics, ModelSet, load_peak_dB  # noqa: E402
 
@@ -74,7 +74,7 @@ def _with_finding(quantity: str, code: str = "outside_envelope"):
 
 def _run(result) -> SimpleNamespace:
     """What :func:`_propose` reads of a chain run (an elastic answer: no hidden resonances)."""
-    return SimpleNamespace(settings=CommissioningConfig(), result=result, config=DRIVE, state=SimpleNamespace(measured=None),
+    return SimpleNamespace(settings=CommissioningConfig(), result=result, config=DRIVE, state=ChainState(),
                            excitation=None)
 
 
@@ -178,14 +178,15 @@ def _backlash_design(gap_open_margins: tuple[float, float]):
 
 def test_the_gap_open_state_costs_less_bandwidth_and_keeps_its_margins():
     """R6 holds a backlash plant's decoupled motor to its own margins (stable with room), not to the
-    guarantee's: a 436 Hz shaft gets a faster loop, the decoupled motor keeps PM >= 15 deg and GM >=
-    1.5 dB on its pessimistic current loop, and every lasting model keeps the guarantee."""
+    guarantee's: a 436 Hz shaft gets a faster loop, the decoupled motor keeps the gap-open margins
+    (PM >= 30 deg, GM >= 3 dB) on its pessimistic current loop, and every lasting model keeps the guarantee."""
     _, strict_models, strict = _backlash_design((45.0, 6.0))
-    u, models, loop = _backlash_design((15.0, 1.5))
+    u, models, loop = _backlash_design(GAP_OPEN_MARGINS)
+    assert GAP_OPEN_MARGINS == (30.0, 3.0) and u.gap_open_margins == GAP_OPEN_MARGINS
     assert strict.found and loop.found and loop.w_c > 1.2 * strict.w_c
     each = models.each(loop.Kp, loop.Ti, loop.T_f, loop.notches)
     gap = [m for i, m in enumerate(each) if models.is_transient(i)]
-    assert len(gap) == 1 and gap[0].meets(15.0, 1.5)
+    assert len(gap) == 1 and gap[0].meets(*GAP_OPEN_MARGINS) and not gap[0].meets(45.0, 6.0)
     assert models.margins(loop.Kp, loop.Ti, loop.T_f, loop.notches).meets(45.0, 6.0)
     assert loop.phase_margin >= 45.0 and loop.gain_margin_dB >= 6.0  # reported over the lasting models only
 
@@ -197,7 +198,7 @@ def test_the_faster_backlash_loop_does_not_limit_cycle_on_the_nonlinear_plant():
     from training.bench._commission import limit_cycle_scenario, oscillates
     from training.commissioning import PISpeedLaw
 
-    _, _, loop = _backlash_design((15.0, 1.5))
+    _, _, loop = _backlash_design(GAP_OPEN_MARGINS)
     drive = sim.SimulatedDrive(BACKLASH)
     config, limits = drive.config, sim.DriveLimits(w_max=20.0, travel=5.0)
     law = PISpeedLaw(loop.Kp, loop.Ti, T_s=config.T_s, M_max=config.M_max, T_f=loop.T_f, notch=loop.notches or None)
@@ -205,3 +206,41 @@ def test_the_faster_backlash_loop_does_not_limit_cycle_on_the_nonlinear_plant():
     record = drive.run_closed_loop(law, scenario, limits)
     q_w = 2 * math.pi / (config.encoder_counts * config.T_s)
     assert not record.meta.get("aborted") and not oscillates(np.asarray(record.speed, dtype=float), n, w_s, q_w)
+
+
+def test_a_limit_cycle_on_the_drive_designs_again_with_the_guarantees_margins_on_the_decoupled_motor(monkeypatch):
+    """Stage ``try`` with the drive's verdicts stubbed: the first design's candidates limit-cycle, so
+    the chain designs again with the decoupled motor held to 45 deg and 6 dB (a slower loop, R6 says
+    why) and runs its candidates; a design whose candidates only do not settle is not designed again."""
+    from training.commissioning import _chain
+
+    answer = identification_result("elastic_backlash", BACKLASH)
+    tried: list = []
+
+    def candidates(run, plan, kind):
+        tried.append(plan.proposal)
+        verdict = "limit_cycle" if len(tried) == 1 else None
+        return [SimpleNamespace(verdict=verdict, settled=verdict is None, usable=verdict is None, cost=1.0)]
+
+    monkeypatch.setattr(_chain, "_run_candidates", candidates)
+    monkeypatch.setattr(_chain, "_plan_loop", lambda run, proposal: SimpleNamespace(proposal=proposal))
+    run = SimpleNamespace(settings=CommissioningConfig(), result=answer, config=DRIVE, excitation=None,
+                          state=_chain.ChainState(), lap=lambda *a: None, say=lambda *a: None, warned=[], name="plant")
+    run.warn = lambda code, text: run.warned.append(code)
+    run.state.design = SimpleNamespace(proposal=_propose(run))
+    first = run.state.design.proposal
+    _chain._try_design(run)
+    second = run.state.design.proposal
+    assert run.state.gap_open_cycled and len(tried) == 2 and run.state.design_trial.chosen == 0 and not run.warned
+    assert second.rules[0].startswith("R6 a loop with the decoupled motor at the gap-open margins limit-cycled")
+    assert any("kept stable with PM >= 45 deg, GM >= 6 dB" in r for r in second.rules)
+    assert any("kept stable with PM >= 30 deg, GM >= 3 dB" in r for r in first.rules)
+    assert second.figures["w_c"] < first.figures["w_c"]
+    tried.clear()
+    monkeypatch.setattr(_chain, "_run_candidates", lambda run, plan, kind: tried.append(1) or [SimpleNamespace(
+        verdict="slow", settled=False, usable=False, cost=1.0)])
+    again = SimpleNamespace(**{**vars(run), "state": _chain.ChainState(), "warned": []})
+    again.warn = lambda code, text: again.warned.append(code)
+    again.state.design = SimpleNamespace(proposal=first)
+    _chain._try_design(again)
+    assert tried == [1] and not again.state.gap_open_cycled and again.warned == ["loop_not_settled"]

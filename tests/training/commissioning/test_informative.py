@@ -147,10 +147,25 @@ def test_the_refused_soft_plant_gets_a_model_based_loop():
     assert max(e["w_M"] for e in drive.experiments) <= LIMITS.w_max and max(e["phi_M"] for e in drive.experiments) <= LIMITS.travel
 
 
+def test_the_time_scale_probe_keeps_the_torque_and_raises_the_speed_where_the_speed_cap_allows():
+    """Plant 23 (304 Hz): its informative run at 16 Nm and 6.53 rad/s has the time scale 0.0197 s,
+    just below the envelope's 0.02 s (the identification then warned ``outside_envelope`` and R7c
+    widened the design's set to +-50 %); E12 runs it again at the same 16 Nm and more speed, to
+    1.15 x 0.02 s on the run's trusted inertia (a probe at less torque did not show the oscillation)."""
+    res, w_M, phi_M = _adapt(STUDY[23])
+    last, before = res.log[-1], res.log[-2]
+    assert res.informative and last["reason"].startswith("E12") and res.record is res.records[-1]
+    assert last["M_star"] == before["M_star"] and last["w_max"] > before["w_max"]
+    assert before["rigid_J"] * before["w_max"] / before["M_star"] < 0.02
+    assert last["w_max"] == pytest.approx(1.15 * 0.02 * last["M_star"] / before["rigid_J"], rel=1e-9)
+    assert w_M <= LIMITS.w_max and phi_M <= LIMITS.travel
+
+
 def test_an_informative_run_below_the_envelopes_time_scale_gets_one_probe_inside_it():
     """Plant 41 (171 Hz, backlash): its informative run at 4 Nm has the time scale J w_max / M* of
-    0.017 s, below the envelope's 0.02 s (its answer failed validation, V3); E12 runs it again at
-    less torque, inside the envelope (the study: then validated, a model-based loop)."""
+    0.017 s, below the envelope's 0.02 s (its answer failed validation, V3); E12 runs it again inside
+    the envelope: the run's speed cap leaves no room for more speed, so at less torque (the study:
+    then validated, a model-based loop)."""
     plant = STUDY[41]
     before, _, _ = _adapt(plant, rules=ExcitationRules(min_time_scale=0.0))
     res, w_M, phi_M = _adapt(plant)

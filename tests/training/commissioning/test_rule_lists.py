@@ -130,7 +130,7 @@ def test_notch_frequencies_and_the_decoupled_motor_by_hand():
     assert noted.rules[-1].startswith("R6") and len(motor) == 1 and not motor[0].two_mass
     assert motor[0].J_sigma == pytest.approx(0.05 / 2.0)
     assert members[0].transient and not any(m.transient for m in backlash.uncertainty.members() if m not in members)
-    assert "PM >= 15 deg, GM >= 1.5 dB" in noted.rules[-1]
+    assert "PM >= 30 deg, GM >= 3 dB" in noted.rules[-1]
     assert not any(m.label.startswith("decoupled") for m in _inputs("elastic", soft, spec).uncertainty.members())
 
 
