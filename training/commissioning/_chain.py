@@ -278,6 +278,10 @@ class ChainState:
     redesign_trial: LoopTrial | None = None
     redesign_kept: bool = False
     """The redesigned loop settled on the drive, not worse than the first: it is delivered."""
+    measured_unlike: float | None = None
+    """The measured response's gain near the crossover over the identified model's, where it lies
+    outside :attr:`FRFSettings.model_gain_factor` (``loop_unlike_model``; None: alike or not
+    measured): the model is not redesigned on."""
     gap_open_cycled: bool = False
     """A model-based candidate limit-cycled on the drive while the design held the decoupled motor
     only to the gap-open margins: every later design holds it to the guarantee's (R6)."""
@@ -746,6 +750,7 @@ def _measure(run: ChainRun) -> None:
     ratio = measured.model_gain_ratio(proposal.figures["w_c"], settings.frf.min_coherence)
     factor = settings.frf.model_gain_factor
     if ratio is not None and not 1 / factor <= ratio <= factor:
+        state.measured_unlike = ratio
         run.warn("loop_unlike_model", f"the measured frequency response near the crossover is {ratio:.3g} x the identified "
                                       "model's: the margins guaranteed on the model may not hold on this drive (a torque "
                                       "scale or K_M off? a plant unlike the model?)")
@@ -773,9 +778,14 @@ def _not_worse(new: PlantRun, new_plan: LoopPlan, old: PlantRun, old_plan: LoopP
 def _redesign(run: ChainRun) -> None:
     """With a measured response: the design again (:func:`_propose` reads it); a new law is tuned,
     planned and run on the drive, and kept for delivery where one of its candidates settled and is
-    not worse than the first design's chosen run (:func:`_not_worse`)."""
+    not worse than the first design's chosen run (:func:`_not_worse`). Not where the measurement
+    says the plant does not follow the model near the crossover (:attr:`ChainState.measured_unlike`)."""
     state, settings = run.state, run.settings
     if state.measured is None:
+        return
+    if state.measured_unlike is not None:
+        state.redesign_reason = (f"no redesign: the measured response near the crossover is {state.measured_unlike:.3g} x the "
+                                 "identified model's, and a design on a model the plant does not follow keeps no margins")
         return
     proposal = _propose(run)
     if not proposal.meets(settings.spec):

@@ -244,3 +244,17 @@ def test_a_limit_cycle_on_the_drive_designs_again_with_the_guarantees_margins_on
     again.state.design = SimpleNamespace(proposal=first)
     _chain._try_design(again)
     assert tried == [1] and not again.state.gap_open_cycled and again.warned == ["loop_not_settled"]
+
+
+def test_no_redesign_where_the_measured_response_is_unlike_the_model(monkeypatch):
+    """A measurement whose gain near the crossover is 0.39 x the model's (``loop_unlike_model``: a
+    wrong answer, or a backlash gap open at the measurement's small amplitude) is no basis for a
+    redesign: the first design stays, and the reason says why (a study plant answered ``stiff``
+    for a 21 Hz shaft with a 0.016 rad gap got a redesign at 575 rad/s with true PM 35 deg before)."""
+    from training.commissioning import _chain
+
+    called = []
+    monkeypatch.setattr(_chain, "_propose", lambda run: called.append(1))
+    run = SimpleNamespace(settings=CommissioningConfig(), state=_chain.ChainState(measured=object(), measured_unlike=0.387))
+    _chain._redesign(run)
+    assert not called and run.state.redesign is None and "0.387 x the identified model's" in run.state.redesign_reason
