@@ -256,14 +256,15 @@ class UncertaintySet:
         plants, labels, checked, transient = [linear_plant(self.mechanics, drive)], [_label(self.mechanics)], [True], [False]
         variant = f", 2nd-order current loop, +{self.extra_delay} sample delay"
         for i, (mech, label, hidden, passing) in enumerate(self.members()):
+            load = not hidden
             if i and hidden:
                 plants.append(linear_plant(mech, drive))
                 labels.append(label)
-                checked.append(not hidden)
+                checked.append(load)
                 transient.append(passing)
             plants.append(linear_plant(mech, drive, current_loop_damping=self.current_loop_damping, extra_delay=self.extra_delay))
             labels.append(label + variant)
-            checked.append(not hidden)
+            checked.append(load)
             transient.append(passing)
         return ModelSet(tuple(plants), tuple(labels), self.measured, tuple(checked), tuple(transient), self.gap_open_margins)
 
