@@ -249,8 +249,8 @@ def test_a_limit_cycle_on_the_drive_designs_again_with_the_guarantees_margins_on
 def test_no_redesign_where_the_measured_response_is_unlike_the_model(monkeypatch):
     """A measurement whose gain near the crossover is 0.39 x the model's (``loop_unlike_model``: a
     wrong answer, or a backlash gap open at the measurement's small amplitude) is no basis for a
-    redesign: the first design stays, and the reason says why (a study plant answered ``stiff``
-    for a 21 Hz shaft with a 0.016 rad gap got a redesign at 575 rad/s with true PM 35 deg before)."""
+    redesign: the first design stays, and the reason says why (a redesign of the study's likely-wrong
+    ``stiff`` answer for a 21 Hz shaft with a 0.016 rad gap reaches 575 rad/s and true PM 35 deg)."""
     from training.commissioning import _chain
 
     called = []
