@@ -5,7 +5,7 @@ on the running loop and design again with it, deliver, report.
 
 Rooms: ``_chain`` (the chain as named stages applied in order, :data:`STAGES`; its settings; the
 identifier's protocol, :class:`RecordIdentifier`; the drive's is :class:`sim.Drive`),
-``_excitation`` (test signal E0-E12, the rules applied in the order of ``EXCITATION_RULES``),
+``_excitation`` (test signal E0-E13, the rules applied in the order of ``EXCITATION_RULES``),
 ``_bands`` (what a test run cannot exclude), ``_validation`` (re-simulation), ``_permission``
 (refusal rules V1-V6, warning codes), ``_law`` (the PI speed law of SPEC 8.1), ``_loop`` (linear
 loop analysis, margins, load peak, model sets), ``_rules`` (controller rules R6, R7 with R7b and R7c,

@@ -3,7 +3,7 @@ section 4: named stages applied in order (:data:`STAGES`), each reading what the
 in the run's :class:`ChainState` and adding its own.
 
     hold      the rest check (SPEC 1.1, :mod:`._rest`): does the drive hold the axis? (else ``AxisNotHeld``)
-    excite    adapt the test signal on the drive (E0-E12, ``drive.run_test``)
+    excite    adapt the test signal on the drive (E0-E13, ``drive.run_test``)
     identify  what the shipped maps say of the accepted test record (V1 when the identifier fails)
     validate  re-simulate the identified model (with ``M_L0``, from rest held) under the record's test signal
     guard     the limits handed to the drive for the closed-loop runs (E9: less the stop headroom)
@@ -639,7 +639,7 @@ def _check_hold(run: ChainRun) -> None:
 
 
 def _excite(run: ChainRun) -> None:
-    """E0-E12: the test signal adapted on the drive until its response is informative."""
+    """E0-E13: the test signal adapted on the drive until its response is informative."""
     run.say(f"{run.name}: adapting the test signal")
     excitation = adapt_test_signal(run.drive, run.limits, run.settings.rules, log=run.test_log)
     run.state.excitation = excitation
@@ -658,6 +658,22 @@ def _identify_record(run: ChainRun) -> None:
     else:
         run.say(f"{run.name}: identifying")
         run.state.identification = _identify(run.identifier, excitation.record)
+    if excitation.replaced is None or not run.state.identification.ok:
+        return
+    before = _identify(run.identifier, excitation.replaced)  # the run the E12/E13 probe replaced
+    p_probe, p_before = _answer_probability(run.state.identification), _answer_probability(before)
+    if p_probe is not None and p_before is not None and p_before > p_probe:
+        run.state.identification = before
+        run.state.excitation = replace(excitation, record=excitation.replaced, reason=(
+            f"{excitation.reason}; its answer is right with probability {p_probe:.1%}, the run before it's with "
+            f"{p_before:.1%}: the run before it is identified"))
+
+
+def _answer_probability(result: Any) -> float | None:
+    """The calibrated probability that an identification answer is right (None: no answer, or an
+    identifier without a calibration)."""
+    p = getattr(getattr(result, "quality", None), "answer_probability", None) if result.ok else None
+    return None if p is None else float(p)
 
 
 def _validate(run: ChainRun) -> None:

@@ -73,7 +73,7 @@ __all__ = ["EXCITATION_ENDS", "EXCITATION_RULES", "ExcitationRules", "Excitation
 
 @dataclass(frozen=True)
 class ExcitationRules:
-    """The test-signal rules' settings (docs/commissioning.md, E0-E12); checked on construction."""
+    """The test-signal rules' settings (docs/commissioning.md, E0-E13); checked on construction."""
 
     M_star_start: float = 0.1
     """E1: the first ``M_star`` as a share of the torque cap (small: the plant is unknown)."""
@@ -180,6 +180,12 @@ class ExcitationRules:
     may no longer show the oscillation)."""
     probe_min_lengthening: float = 1.2
     """E11: a probe must make section I at least this many times longer than the run it is planned from."""
+    max_friction_share: float = sim.EnvelopeRanges().M_FC[1]
+    """E13: the envelope's largest Coulomb friction over ``M_star`` (what the maps were trained on): an
+    informative run whose rigid-body friction lies above it gets one probe at more torque."""
+    friction_share_margin: float = 0.8
+    """E13: that probe aims at this share of ``max_friction_share`` (room for the rigid-body fit's
+    friction against the identified one)."""
 
     def __post_init__(self) -> None:
         check_settings(self, _RULE_INTERVALS, CommissioningError)
@@ -201,6 +207,7 @@ _RULE_INTERVALS: dict[str, Interval] = {
     "trust_max_residual": NON_NEGATIVE, "trust_min_periods": NON_NEGATIVE, "trust_exact_residual": NON_NEGATIVE,
     "probe_max_residual": NON_NEGATIVE, "probe_min_periods": NON_NEGATIVE, "min_time_scale": NON_NEGATIVE,
     "time_scale_margin": Interval(1.0), "probe_min_lengthening": Interval(1.0, open_low=True),
+    "max_friction_share": POSITIVE, "friction_share_margin": Interval(0.0, 1.0, open_low=True),
 }
 
 
@@ -225,6 +232,9 @@ class ExcitationResult:
     needed: dict[str, float] = field(default_factory=dict)
     """Where no informative test fitted: the limits to raise (``"w_max"`` [rad/s], ``"travel"`` [rad])
     and the smallest value that lets one fit."""
+    replaced: Any = None
+    """The informative run's record that an E12/E13 probe replaced as ``record`` (None: no such probe);
+    the chain identifies both and keeps the answer more likely right."""
 
 
 # --------------------------------------------------------------------------- measuring one run
@@ -1015,7 +1025,7 @@ def _log_entry(iteration: int, run: ExcitationRun, decision: RuleDecision) -> di
 
 def adapt_test_signal(drive: Any, limits: sim.DriveLimits, rules: ExcitationRules | None = None, *,
                       log: list[dict[str, Any]] | None = None) -> ExcitationResult:
-    """Adapt ``M_star`` and ``w_max`` until the test record is informative (rules E0-E12).
+    """Adapt ``M_star`` and ``w_max`` until the test record is informative (rules E0-E13).
 
     Args:
         drive: a SPEC 8.1 drive (``config``, ``run_test(M_star, w_max, limits) -> Record``).
@@ -1054,7 +1064,8 @@ def adapt_test_signal(drive: Any, limits: sim.DriveLimits, rules: ExcitationRule
         code, reason, needed, probes = outcome.code, outcome.reason, outcome.needed, outcome.unused
         kept = kept if outcome.record is None else outcome.record
     return ExcitationResult(record=kept, records=session.records, log=session.log, informative=code == "informative",
-                            reason=reason, code=code, probes=probes, needed=needed)
+                            reason=reason, code=code, probes=probes, needed=needed,
+                            replaced=None if outcome is None else outcome.replaced)
 
 
 #: The ends of the rules after which E11 plans long-section probes.
@@ -1104,33 +1115,42 @@ class _Session:
         return not run.figures.aborted and (not deficits.any or (deficits.only_hidden and run.plan.M_star >= self.M_cap))
 
     def into_envelope(self, reason: str) -> ProbeOutcome | None:
-        """E12: an informative run whose time scale ``J w_max / M_star`` on its trusted inertia lies
-        below ``min_time_scale`` gets one probe at ``time_scale_margin`` times it: the same torque and
-        more speed where the run's speed cap (E6) allows it (the oscillation stays as visible), else
-        that cap's speed and less torque; where its rigid travel fits, used when informative; None:
-        no probe."""
-        rules, base = self.rules, self.last_kept
+        """E12, E13: an informative run on a trusted inertia ``J`` whose time scale ``J w_max / M_star``
+        lies below ``min_time_scale`` (E12), or whose rigid-body friction lies above
+        ``max_friction_share`` of ``M_star`` (E13), gets one probe inside the envelope: the torque
+        raised to ``friction_share_margin`` of that share where the friction asks for it (within the
+        torque cap), the speed raised towards ``time_scale_margin`` times ``min_time_scale`` where the
+        run's speed cap (E6) allows it (the oscillation stays as visible), else that cap's speed and
+        less torque; where its rigid travel fits, used when informative; None: no probe."""
+        rules, base, base_record = self.rules, self.last_kept, self.kept[-1]
         J = trusted_J(base.figures, rules)
-        if J is None or J * base.plan.w_max / base.plan.M_star >= rules.min_time_scale:
+        if J is None:
             return None
         M_F = max(base.figures.rigid_M_F, 0.0)
+        short = J * base.plan.w_max / base.plan.M_star < rules.min_time_scale
+        rubbing = M_F > rules.max_friction_share * base.plan.M_star
+        if not (short or rubbing):
+            return None
         target = rules.time_scale_margin * rules.min_time_scale  # [s]
-        w_max = max(min(target * base.plan.M_star / J, base.speed_cap(base.plan.M_star, base.plan.w_ceiling)), base.plan.w_max)
-        M_star = min(J * w_max / target, base.plan.M_star)
+        M_star = max(base.plan.M_star, min(M_F / (rules.friction_share_margin * rules.max_friction_share), self.M_cap))
+        w_max = max(min(target * M_star / J, base.speed_cap(M_star, base.plan.w_ceiling)), base.plan.w_max)
+        M_star = min(J * w_max / target, M_star) if target > 0 else M_star
         room = rules.travel_margin * guarded_limits(self.limits, 0.0, self.config, rules).travel
         if M_star < M_F / rules.rigid_friction_share or rigid_travel(w_max, M_star, J * (1 + rules.trust_margin), M_F) > room:
             return None
+        if (M_star, w_max) == (base.plan.M_star, base.plan.w_max):  # the envelope asks for more than the limits allow
+            return None
+        rule, aim = ("E12", "inside the envelope's time scale") if short else ("E13", "inside the envelope's friction share")
         run = self.run(RunPlan(M_star, w_max, w_ceiling=base.plan.w_ceiling), None)
         done = self.accepted(run)
         lacks = ", ".join(run.deficits.names()) if not run.figures.aborted else "stopped by the drive"
         entry = _log_entry(len(self.log), run, RuleDecision(run.plan, verdict="informative" if done else RUN_AGAIN,
                                                             decision="accept" if done else "not used",
-                                                            reason="E12 probe inside the envelope's time scale" +
-                                                                   ("" if done else f": {lacks}")))
+                                                            reason=f"{rule} probe {aim}" + ("" if done else f": {lacks}")))
         if done:
             self.log.append(entry)
-            return ProbeOutcome("informative", f"informative (E12 probe at M_star {M_star:.3g} Nm, inside the envelope's "
-                                               f"time scale)", {}, [], self.records[-1])
+            return ProbeOutcome("informative", f"informative ({rule} probe at M_star {M_star:.3g} Nm, {aim})", {}, [],
+                                self.records[-1], base_record)
         return ProbeOutcome("informative", reason, {}, [entry])
 
     def probe(self, code: str, reason: str) -> ProbeOutcome:
@@ -1171,6 +1191,8 @@ class ProbeOutcome:
     needed: dict[str, float]
     unused: list[dict[str, Any]]
     record: Any = None
+    replaced: Any = None
+    """The record an accepted E12/E13 probe replaced."""
 
 
 def _probe_reason(reason: str, outlook: ProbeOutlook) -> str:

@@ -277,7 +277,7 @@ class CommissioningReport:
         return out
 
     def _excitation_lines(self) -> list[str]:
-        L = ["1 test signal (rules E0-E12; stop at: the speed limit handed to the drive, the user's less the headroom after a stop):",
+        L = ["1 test signal (rules E0-E13; stop at: the speed limit handed to the drive, the user's less the headroom after a stop):",
              "   run  M* [Nm]  w_max [rad/s]  stop at [rad/s]  peak w [rad/s]  travel [rad]  osc [q_w]  decision"]
         for e in self.excitation.log:
             L.append(f"   {e['iteration']:3d}  {e['M_star']:7.3g}  {e['w_max']:13.4g}  {e.get('stop_at', math.nan):15.4g}  {e['peak_speed']:14.4g}  "

@@ -77,3 +77,42 @@ def test_a_bad_setting_is_named(settings, name, value):
 def test_mechanics_out_of_range_are_named(params, name):
     with pytest.raises(ValueError, match=f"^{name}: expected"):
         mechanics_from(params)
+
+
+class _Answer:
+    """An identification answer stub: ``ok`` and a calibrated ``quality.answer_probability``."""
+
+    def __init__(self, p):
+        self.ok, self.quality = True, type("Quality", (), {"answer_probability": p})()
+
+
+class _ByRecord:
+    """An identifier whose answer's probability is the record's own (a dict ``{"p": ...}``)."""
+
+    def identify(self, record):
+        return _Answer(record["p"])
+
+
+def _identified(p_probe, p_before):
+    """``_identify_record`` on an excitation whose E12/E13 probe (P ``p_probe``) replaced a run (P ``p_before``)."""
+    from training.commissioning._excitation import ExcitationResult
+
+    probe, before = {"p": p_probe}, {"p": p_before}
+    excitation = ExcitationResult(record=probe, informative=True, reason="informative (E13 probe)", code="informative",
+                                  replaced=before)
+    state = type("State", (), {"excitation": excitation, "identification": None})()
+    run = type("Run", (), {"excitation": excitation, "state": state, "identifier": _ByRecord(), "name": "p",
+                           "say": lambda self, msg: None, "warn": lambda self, code, text: None})()
+    _chain._identify_record(run)
+    return state
+
+
+def test_the_record_an_envelope_probe_replaced_is_identified_too_and_the_answer_more_likely_right_kept():
+    kept = _identified(0.3, 0.9)  # the probe's answer is less likely right: the run before it is identified
+    assert kept.identification.quality.answer_probability == 0.9 and kept.excitation.record == {"p": 0.9}
+    assert "30.0%" in kept.excitation.reason and "90.0%" in kept.excitation.reason
+    probe = _identified(0.9, 0.3)
+    assert probe.identification.quality.answer_probability == 0.9 and probe.excitation.record == {"p": 0.9}
+    assert probe.excitation.reason == "informative (E13 probe)"
+    uncalibrated = _identified(None, 0.9)  # no calibrated number: the probe's record stands
+    assert uncalibrated.excitation.record == {"p": None}
