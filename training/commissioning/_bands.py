@@ -84,6 +84,17 @@ def widen(bands: dict[float, tuple[float, float]], V_J: float, lo: float, hi: fl
     bands[V_J] = (min(old_lo, lo), max(old_hi, hi))
 
 
+def narrowed(a: dict[float, tuple[float, float]], b: dict[float, tuple[float, float]]) -> dict[float, tuple[float, float]]:
+    """The bands two test runs of one plant allow together: per ``V_J`` of both the overlap of its
+    bands (a resonance either run excludes is excluded); where they do not overlap (the runs
+    disagree), the two together."""
+    out = dict(a)
+    for V_J, (lo, hi) in b.items():
+        old_lo, old_hi = out.get(V_J, (lo, hi))
+        out[V_J] = (max(old_lo, lo), min(old_hi, hi)) if max(old_lo, lo) <= min(old_hi, hi) else (min(old_lo, lo), max(old_hi, hi))
+    return out
+
+
 def f1_bands(entry: dict[str, Any], J_sigma: float, config: Any, class_V_J: tuple[float, ...], class_f_e: tuple[float, float],
              *, min_osc_quanta: float, osc_visible_ratio: float,
              settings: BandSettings | None = None) -> dict[float, tuple[float, float]]:

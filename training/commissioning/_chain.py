@@ -26,6 +26,7 @@ they are never used for a decision.
 
 from __future__ import annotations
 
+import functools
 import math
 import time
 from collections.abc import Callable
@@ -39,7 +40,7 @@ from training._settings import (AT_LEAST_ONE, FLAG, NON_NEGATIVE_OR_INF, POSITIV
                                 Interval, OneOf, OrNone, check_settings)
 from training.errors import CommissioningError, LimitPassed, one_line
 
-from ._bands import f1_bands, hidden_bands, widen
+from ._bands import f1_bands, hidden_bands, narrowed, widen
 from ._excitation import (ExcitationResult, ExcitationRules, adapt_test_signal, check_limits, guarded_limits, measure_response,
                           stop_headroom, trusted_inertia)
 from ._frf import FRF_SETTINGS, FRFSettings, MeasuredResponse
@@ -404,6 +405,13 @@ def _accepted(excitation: ExcitationResult) -> dict[str, Any]:
     return kept[-1] if kept else excitation.log[-1]
 
 
+def _informative_entries(excitation: ExcitationResult) -> list[dict[str, Any]]:
+    """The log entries of the informative test runs: the accepted one and, where an E12/E13 probe
+    replaced a run (:attr:`ExcitationResult.replaced`), the run before it (the last kept one before)."""
+    kept = [e for e in excitation.log if not e["aborted"]]
+    return kept[-2:] if excitation.replaced is not None and len(kept) > 1 else [_accepted(excitation)]
+
+
 def _test_J(excitation: ExcitationResult) -> float:
     """The one-mass inertia the accepted test run's mean acceleration gives, ``M* / accel`` [kg m^2]
     (friction makes it larger, never smaller; inf when the run had no acceleration to measure):
@@ -594,8 +602,10 @@ def _fallback_plan(run: ChainRun) -> LoopPlan:
     spec, identified_J = settings.spec, float(result.parameters.J_sigma)
     trusted = trusted_inertia(excitation, settings.rules)
     J = identified_J if trusted is None else min(identified_J, trusted)
-    bands = f1_bands(_accepted(excitation), J, config, spec.class_V_J, spec.class_f_e, min_osc_quanta=settings.rules.min_osc_quanta,
-                     osc_visible_ratio=settings.osc_visible_ratio)
+    bands = functools.reduce(narrowed, (f1_bands(entry, J, config, spec.class_V_J, spec.class_f_e,
+                                                 min_osc_quanta=settings.rules.min_osc_quanta,
+                                                 osc_visible_ratio=settings.osc_visible_ratio)
+                                        for entry in _informative_entries(excitation)))
     params = _model_params(result)
     if _positive(params["f_e"]) and _positive(params["V_J"]):  # the identified resonance too, trusted or not
         factor = settings.fallback_resonance_factor

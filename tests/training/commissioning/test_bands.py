@@ -73,3 +73,12 @@ def test_stiff_answer_keeps_the_margins_on_resonances_it_cannot_exclude(test, tr
         assert m.stable and m.phase_margin >= 35 and m.gain_margin_dB >= 5
     m = margins(linear_plant(plant, DRIVE, current_loop_damping=1.0, extra_delay=1), plain.Kp, plain.Ti, plain.T_f)
     assert not (m.stable and m.phase_margin >= 35 and m.gain_margin_dB >= 5)  # without them: the design on J_sigma misses
+
+
+def test_two_runs_of_one_plant_allow_the_overlap_of_their_bands_and_both_where_they_disagree():
+    from training.commissioning._bands import narrowed
+
+    a = {0.2: (5.0, 76.3), 1.0: (5.0, 135.0), 5.0: (20.0, 30.0)}
+    b = {0.2: (12.9, 61.9), 1.0: (12.9, 135.0), 5.0: (40.0, 50.0)}
+    assert narrowed(a, b) == {0.2: (12.9, 61.9), 1.0: (12.9, 135.0), 5.0: (20.0, 50.0)}
+    assert narrowed(a, {}) == a and narrowed({}, b) == b
