@@ -91,7 +91,8 @@ def narrowed(a: dict[float, tuple[float, float]], b: dict[float, tuple[float, fl
     out = dict(a)
     for V_J, (lo, hi) in b.items():
         old_lo, old_hi = out.get(V_J, (lo, hi))
-        out[V_J] = (max(old_lo, lo), min(old_hi, hi)) if max(old_lo, lo) <= min(old_hi, hi) else (min(old_lo, lo), max(old_hi, hi))
+        both = (max(old_lo, lo), min(old_hi, hi))
+        out[V_J] = both if both[0] <= both[1] else (min(old_lo, lo), max(old_hi, hi))
     return out
 
 
