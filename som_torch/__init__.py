@@ -13,13 +13,14 @@ from ._checkpoint import (FORMAT_VERSION, CheckpointError, file_sha256, load_che
                           verify_manifest, write_manifest)
 from ._files import atomic_write
 from ._grid import TOPOLOGIES, Grid
+from ._local import fit_local_linear
 from ._init import INITS, init_linear, init_random, initialize, map_seeds
 from ._native import available as native_available
 from ._options import NEIGHBOURHOODS, SCHEDULES
 from ._quality import (degree_of_order, hit_counts, quality_report, quantization_error, topographic_error,
                        u_matrix)
 from ._recall import Recall, best_matching_units, distances, recall
-from ._som import SOM
+from ._som import SOM, LocalLinear
 from ._tensorboard import log_config, log_images, log_scalars, tensorboard_hook
 from ._train import fit, train_batch, train_online
 
@@ -27,7 +28,7 @@ __all__ = [
     "SOM", "Grid", "TOPOLOGIES",
     "initialize", "init_random", "init_linear", "map_seeds", "INITS",
     "fit", "train_online", "train_batch", "NEIGHBOURHOODS", "SCHEDULES", "native_available",
-    "distances", "best_matching_units", "recall", "Recall",
+    "distances", "best_matching_units", "recall", "Recall", "LocalLinear", "fit_local_linear",
     "quantization_error", "topographic_error", "u_matrix", "hit_counts", "degree_of_order", "quality_report",
     "save_checkpoint", "load_checkpoint", "CheckpointError", "FORMAT_VERSION",
     "write_manifest", "verify_manifest", "file_sha256", "atomic_write",

@@ -20,11 +20,15 @@ import torch
 
 from ._files import atomic_write
 from ._grid import Grid
+from ._local import LocalLinear, check_local
 from ._som import SOM
 
 FORMAT = "som_torch.checkpoint"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
+#: The versions this som_torch reads: 1 has no local linear read-out.
+_READS = (1, 2)
 _TENSORS = ("weights", "active", "offset", "scale")
+_LOCAL = ("local_intercepts", "local_slopes", "local_lower", "local_upper")  # present where the maps have a local linear read-out
 
 
 class CheckpointError(ValueError):
@@ -56,6 +60,9 @@ def save_checkpoint(path: str | os.PathLike, som: SOM, extra_metadata: dict[str,
     }
     tensors = {"weights": som.weights.detach().cpu().contiguous(), "active": som.active.contiguous(),
                "offset": som.offset.contiguous(), "scale": som.scale.contiguous()}
+    if som.local is not None:
+        tensors |= {f"local_{name}": getattr(som.local, name).detach().cpu().contiguous()
+                    for name in ("intercepts", "slopes", "lower", "upper")}
     digest = _digest(header, tensors)
     payload = {**header, "tensors": tensors, "sha256": digest}
     atomic_write(path, lambda f: torch.save(payload, f))
@@ -146,7 +153,26 @@ def _unreadable(path: Path, err: Exception) -> str:
 
 
 #: Tensors whose values must all be finite: a NaN or inf weight would fail every recall, late.
-_FINITE = ("weights", "offset", "scale")
+_FINITE = ("weights", "offset", "scale") + _LOCAL
+
+
+def _check_finite(path: Path, tensors: dict[str, torch.Tensor]) -> None:
+    """A :class:`CheckpointError` naming the first of :data:`_FINITE` in ``tensors`` with a NaN or inf."""
+    for name in (n for n in _FINITE if n in tensors):
+        t = tensors[name]
+        if t.is_floating_point() and not bool(torch.isfinite(t).all()):
+            bad = int((~torch.isfinite(t)).sum())
+            raise CheckpointError(f"{path}: {name}: {bad} of {t.numel()} values are NaN or infinite; the maps cannot "
+                                  "be used")
+
+
+def _som(header: dict[str, Any], tensors: dict[str, torch.Tensor]) -> SOM:
+    """The maps a checked checkpoint holds, with their local linear read-out where it has one."""
+    som = SOM(Grid.from_dict(header["grid"]), header["component_names"], tensors["active"], weights=tensors["weights"],
+              offset=tensors["offset"], scale=tensors["scale"], dtype=tensors["weights"].dtype)
+    if "local_slopes" in tensors:
+        som.local = check_local(som, LocalLinear(*(tensors[name] for name in _LOCAL)))
+    return som
 
 
 def load_checkpoint(path: str | os.PathLike, *, expected_sha256: str | None = None) -> tuple[SOM, dict[str, Any]]:
@@ -167,11 +193,13 @@ def load_checkpoint(path: str | os.PathLike, *, expected_sha256: str | None = No
         got = payload.get("format") if isinstance(payload, dict) else type(payload).__name__
         raise CheckpointError(f"{path}: not a {FORMAT} file (format {got!r})")
     version = payload.get("format_version")
-    if version != FORMAT_VERSION:
-        raise CheckpointError(f"{path}: format version {version!r} is not supported (this som_torch reads version {FORMAT_VERSION})")
+    if version not in _READS:
+        raise CheckpointError(f"{path}: format version {version!r} is not supported (this som_torch reads versions "
+                              f"{', '.join(map(str, _READS))})")
     try:
         header = {k: payload[k] for k in ("format", "format_version", "grid", "component_names", "metadata_json")}
         tensors = {k: payload["tensors"][k] for k in _TENSORS}
+        tensors |= {k: t for k, t in payload["tensors"].items() if k in _LOCAL}
         stored = str(payload["sha256"])
     except (KeyError, TypeError) as err:
         raise CheckpointError(f"{path}: incomplete checkpoint, missing entry {err}") from None
@@ -182,16 +210,9 @@ def load_checkpoint(path: str | os.PathLike, *, expected_sha256: str | None = No
         raise CheckpointError(f"{path}: content hash mismatch (stored {stored[:12]}..., computed {computed[:12]}...): file was modified or damaged")
     if expected_sha256 is not None and expected_sha256 != stored:
         raise CheckpointError(f"{path}: content hash {stored[:12]}... differs from the expected {expected_sha256[:12]}...")
-    for name in _FINITE:
-        t = tensors[name]
-        if t.is_floating_point() and not bool(torch.isfinite(t).all()):
-            bad = int((~torch.isfinite(t)).sum())
-            raise CheckpointError(f"{path}: {name}: {bad} of {t.numel()} values are NaN or infinite; the maps cannot "
-                                  "be used")
+    _check_finite(path, tensors)
     try:
-        som = SOM(Grid.from_dict(header["grid"]), header["component_names"], tensors["active"],
-                  weights=tensors["weights"], offset=tensors["offset"], scale=tensors["scale"],
-                  dtype=tensors["weights"].dtype)
+        som = _som(header, tensors)
         metadata = json.loads(header["metadata_json"])
     except (ValueError, TypeError, KeyError, AttributeError, RecursionError) as err:
         raise CheckpointError(f"{path}: inconsistent checkpoint ({_detail(err)})") from None

@@ -121,14 +121,20 @@ def recall(som: SOM, features: torch.Tensor, *, interpolate: int = 1, eps: float
     """Recall: best match on active components, read-out of all components (raw units).
 
     ``interpolate = k > 1`` averages the ``k`` nearest units weighted by ``1 / (distance + eps)``.
+    Maps with a local linear read-out (``som.local``, :func:`som_torch.fit_local_linear`) read each
+    unit's inactive components at the sample, within the range of the unit's data (NaN features
+    count as at the unit's weights).
     ``features``: raw ``M x C``, ``*batch x M x C`` or ``... x n_active`` (see :func:`distances`).
     A sample without an active non-NaN feature gets unit ``-1``, distance NaN and NaN values.
     """
     _check_k(som, interpolate, "interpolate")
-    units, d2 = _best_matching_units(som, features, interpolate)
+    f = _features(som, features)  # *batch x M x C
+    units, d2 = _best_matching_units(som, f, interpolate)
     w = som.raw_weights  # *batch x U x C
     flat = units.reshape(*som.batch_shape, -1)  # *batch x (M*k)
     picked = torch.gather(w, -2, flat.clamp_min(0).unsqueeze(-1).expand(*flat.shape, som.n_components))  # *batch x (M*k) x C
+    if som.local is not None:
+        picked = _read_local(som, f, flat, picked, interpolate)
     picked = torch.where(flat.unsqueeze(-1) >= 0, picked, torch.nan)  # no match: NaN read-out
     if interpolate == 1:
         return Recall(units, d2.sqrt(), picked, list(som.component_names))
@@ -136,3 +142,23 @@ def recall(som: SOM, features: torch.Tensor, *, interpolate: int = 1, eps: float
     wt = 1.0 / (d2.sqrt() + eps)  # *batch x M x k
     values = (wt.unsqueeze(-1) * picked).sum(-2) / wt.sum(-1, keepdim=True)  # *batch x M x C
     return Recall(units[..., 0], d2[..., 0].sqrt(), values, list(som.component_names))
+
+
+def _read_local(som: SOM, f: torch.Tensor, flat: torch.Tensor, picked: torch.Tensor, k: int) -> torch.Tensor:
+    """``picked`` (``*batch x (M*k) x C``: the ``k`` units ``flat`` of each sample of ``f``, ``*batch x
+    M x C``) with its inactive components read through the units' local linear maps."""
+    local = som.local
+    mask = som.active.reshape(-1, som.n_components)[0]  # C: shared by all maps (checked when fitted)
+    u = flat.clamp_min(0)  # *batch x (M*k)
+
+    def at_units(t: torch.Tensor) -> torch.Tensor:  # *batch x U x tail -> *batch x (M*k) x tail
+        rows = t.flatten(u.dim())  # *batch x U x prod(tail)
+        return torch.gather(rows, -2, u.unsqueeze(-1).expand(*u.shape, rows.shape[-1])).unflatten(
+            -1, t.shape[u.dim():]).to(torch.float64)
+
+    x = som.normalize(f)[..., mask].repeat_interleave(k, dim=-2)  # *batch x (M*k) x A: each sample once per unit
+    dx = torch.nan_to_num(x - at_units(som.weights[..., mask]), nan=0.0)  # *batch x (M*k) x A
+    value = at_units(local.intercepts) + (at_units(local.slopes) @ dx.unsqueeze(-1)).squeeze(-1)  # *batch x (M*k) x T
+    out = picked.clone()
+    out[..., ~mask] = torch.minimum(torch.maximum(value, at_units(local.lower)), at_units(local.upper))
+    return out

@@ -4,7 +4,8 @@ per-component normalization."""
 from __future__ import annotations
 
 import operator
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 
 import torch
 
@@ -31,6 +32,27 @@ def _as_numbers(value, name: str, dtype: torch.dtype | None = None) -> torch.Ten
         raise TypeError(f"{name}: expected a tensor of numbers, received {type(value).__name__}") from None
 
 
+@dataclass(frozen=True)
+class LocalLinear:
+    """Per map and unit, the inactive components' values near the unit.
+
+    intercepts: ``*batch x U x T`` (raw units), the value at the unit's weights; slopes:
+    ``*batch x U x T x A`` (raw units per normalized active unit); lower, upper: ``*batch x U x T``
+    (raw units), the range of the values the unit's model was fitted on. ``T`` inactive and ``A``
+    active components, in the order of the maps' (shared) mask. At a sample whose normalized active
+    components are ``x``, unit ``u`` reads ``intercepts[u] + slopes[u] @ (x - w[u, active])``,
+    clipped to ``[lower[u], upper[u]]``: a local linear map does not extrapolate beyond its data."""
+
+    intercepts: torch.Tensor
+    slopes: torch.Tensor
+    lower: torch.Tensor
+    upper: torch.Tensor
+
+    def map(self, fn: Callable[[torch.Tensor], torch.Tensor]) -> "LocalLinear":
+        """The same read-out with ``fn`` applied to each tensor (indexing, device moves)."""
+        return LocalLinear(fn(self.intercepts), fn(self.slopes), fn(self.lower), fn(self.upper))
+
+
 class SOM:
     """A batch of self-organizing maps sharing one grid and one list of components.
 
@@ -44,7 +66,11 @@ class SOM:
             columns (data 0 or NaN) and mark them inactive.
         offset, scale: ``*batch x C``: ``normalized = (raw - offset) / scale``. Identity by
             default; :meth:`fit_normalization` sets them from data. Stored with the map.
+        local: the units' local linear read-out (:func:`som_torch.fit_local_linear`) or None.
+            Setting ``weights`` or the normalization drops it (it describes the old weights).
     """
+
+    local: LocalLinear | None
 
     def __init__(
         self,
@@ -105,6 +131,15 @@ class SOM:
         except RuntimeError as err:
             raise ValueError(f"{name}: expected *batch x C = {(*self.batch_shape, C)}, received {tuple(t.shape)}") from err
 
+    @property
+    def weights(self) -> torch.Tensor:
+        return self._weights
+
+    @weights.setter
+    def weights(self, value: torch.Tensor) -> None:
+        self._weights = value
+        self.local = None  # a local linear read-out describes the old weights
+
     # --- shapes -------------------------------------------------------------------------
     @property
     def batch_shape(self) -> torch.Size:
@@ -131,12 +166,17 @@ class SOM:
         w = self.weights[idx]
         if w.dim() < 2 or w.shape[-2:] != self.weights.shape[-2:]:
             raise IndexError(f"index {idx!r} reaches into U x C; index batch dims {tuple(self.batch_shape)} only")
-        return SOM(self.grid, self.component_names, self.active[idx], weights=w.clone(),
-                   offset=self.offset[idx], scale=self.scale[idx], dtype=w.dtype)
+        out = SOM(self.grid, self.component_names, self.active[idx], weights=w.clone(),
+                  offset=self.offset[idx], scale=self.scale[idx], dtype=w.dtype)
+        if self.local is not None:
+            out.local = self.local.map(lambda t: t[idx].clone())
+        return out
 
     def clone(self) -> "SOM":
-        return SOM(self.grid, self.component_names, self.active, weights=self.weights.clone(),
-                   offset=self.offset, scale=self.scale, dtype=self.weights.dtype)
+        out = SOM(self.grid, self.component_names, self.active, weights=self.weights.clone(),
+                  offset=self.offset, scale=self.scale, dtype=self.weights.dtype)
+        out.local = self.local  # immutable: shared
+        return out
 
     @property
     def device(self) -> torch.device:
@@ -147,8 +187,11 @@ class SOM:
         device = torch.device(device)
         if device == self.device:
             return self
-        return SOM(self.grid, self.component_names, self.active.to(device), weights=self.weights.to(device),
-                   offset=self.offset.to(device), scale=self.scale.to(device), dtype=self.weights.dtype)
+        out = SOM(self.grid, self.component_names, self.active.to(device), weights=self.weights.to(device),
+                  offset=self.offset.to(device), scale=self.scale.to(device), dtype=self.weights.dtype)
+        if self.local is not None:
+            out.local = self.local.map(lambda t: t.to(device))
+        return out
 
     def __repr__(self) -> str:
         return (f"SOM(grid={self.grid.rows}x{self.grid.cols} {self.grid.topology}, batch_shape={tuple(self.batch_shape)}, "
@@ -195,6 +238,7 @@ class SOM:
         ``"none"`` resets to the identity. Constant components get scale 1. Call before training.
         """
         data = self.check_data(data, min_samples=1)
+        self.local = None  # a local linear read-out is in the old normalized units
         if mode == "none":
             self.offset.zero_()
             self.scale.fill_(1.0)

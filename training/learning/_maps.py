@@ -44,6 +44,8 @@ class TrainConfig:
     interpolate: int = 4
     seed: int = 0
     mode: str = "online"
+    local_radius: float = 1.5  # maps with a local linear read-out (MapSpec.local_linear): som_torch.fit_local_linear
+    local_ridge: float = 1e-3
 
     def __post_init__(self) -> None:
         if min(self.rows, self.cols) < 2 or self.ensemble < 1 or self.epochs < 1:
@@ -174,6 +176,8 @@ def train_map(spec: MapSpec, dataset: Dataset, config: TrainConfig, *, progress:
             for *_, recorded in parts:
                 CallRecorder.replay(recorded, writer)
         som, seconds = _assemble([p[:3] for p in parts], config.ensemble)
+    if spec.local_linear:
+        som = st.fit_local_linear(som, torch.as_tensor(rows), radius=config.local_radius, ridge=config.local_ridge)
     data = torch.as_tensor(rows, dtype=torch.float32).expand(config.ensemble, *rows.shape)  # E x N x C
     trained = TrainedMap(spec, som)
     distance = recall_targets(trained, calibration[:, : len(spec.features)], config.interpolate)["distance"]

@@ -58,3 +58,25 @@ def test_the_manifest_lists_only_what_training_wrote(dataset, tmp_path):
     with pytest.raises(OutputExistsError, match="finished training run") as err:
         train_maps(dataset, ck, CONFIG)
     assert "another config" not in str(err.value)
+
+
+def test_the_f_e_and_V_J_maps_read_out_through_local_linear_maps_closer_to_their_rows(dataset, tmp_path):
+    import numpy as np
+
+    import som_torch as st
+    from training.identification import load_map, recall_targets
+    from training.learning import training_matrix
+
+    train_maps(dataset, tmp_path / "ck", CONFIG)
+    for name, spec in MAP_SPECS.items():
+        trained = load_map(tmp_path / "ck" / f"{name}.pt")
+        assert (trained.som.local is not None) == spec.local_linear, name
+        if not spec.local_linear:
+            continue
+        som = trained.som
+        flat = st.SOM(som.grid, som.component_names, som.active, weights=som.weights, offset=som.offset, scale=som.scale)
+        rows = training_matrix(spec, dataset)
+        feats, target = rows[:, : len(spec.features)], rows[:, len(spec.features)]
+        local = recall_targets(trained, feats, 1)[spec.targets[0]]
+        plain = recall_targets(type(trained)(spec, flat, trained.metadata), feats, 1)[spec.targets[0]]
+        assert np.abs(local - target).mean() < 0.8 * np.abs(plain - target).mean(), name
