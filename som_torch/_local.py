@@ -100,14 +100,12 @@ def _ranges(y: torch.Tensor, keep: torch.Tensor, units: torch.Tensor, near: torc
     """The least and greatest ``y`` (``B x N x T``) of the kept rows whose unit (``units``, ``B x N``)
     lies in each unit's neighbourhood (``near``, bool ``U x U``): ``B x U x T`` each (inf, -inf where none)."""
     B, T = y.shape[0], y.shape[-1]
-    index = units.clamp_min(0).unsqueeze(-1).expand_as(y)  # B x N x T
-    keep = keep.unsqueeze(-1) & (units >= 0).unsqueeze(-1)
-    at_unit = [torch.full((B, U, T), fill, dtype=torch.float64).scatter_reduce_(
-        1, index, torch.where(keep, y, fill), reduce, include_self=True) for fill, reduce in ((torch.inf, "amin"),
-                                                                                              (-torch.inf, "amax"))]
+    index = units.clamp_min(0).unsqueeze(-1).expand_as(y)  # B x N x T (a row without a match is not kept)
     u, v = near.nonzero().unbind(-1)  # the pairs (unit, a unit of its neighbourhood)
     out = []
-    for values, fill, reduce in zip(at_unit, (torch.inf, -torch.inf), ("amin", "amax")):
-        pooled = torch.full((B, U, T), fill, dtype=torch.float64)
-        out.append(pooled.scatter_reduce_(1, u.view(1, -1, 1).expand(B, -1, T), values[:, v], reduce, include_self=True))
+    for fill, reduce in ((torch.inf, "amin"), (-torch.inf, "amax")):
+        at_unit = torch.full((B, U, T), fill, dtype=torch.float64).scatter_reduce_(
+            1, index, torch.where(keep.unsqueeze(-1), y, fill), reduce)  # B x U x T: each unit's own rows
+        out.append(torch.full((B, U, T), fill, dtype=torch.float64).scatter_reduce_(
+            1, u.view(1, -1, 1).expand(B, -1, T), at_unit[:, v], reduce))  # pooled over the neighbourhood
     return out[0], out[1]
