@@ -4,6 +4,8 @@ squares on the data that the unit's grid neighbourhood holds."""
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import torch
 
 from ._recall import _best_matching_units
@@ -35,21 +37,22 @@ def check_local(som: SOM, local: LocalLinear) -> LocalLinear:
     return local.map(lambda t: t.to(som.device, som.weights.dtype))
 
 
-def fit_local_linear(som: SOM, data: torch.Tensor, *, radius: float = 1.5, ridge: float = 1e-3) -> SOM:
+def fit_local_linear(som: SOM, data: torch.Tensor, *, radius: float = 1.5,
+                     ridge: float | Sequence[float] | torch.Tensor = 1e-3) -> SOM:
     """A copy of ``som`` whose units read out through local linear maps (:class:`LocalLinear`).
 
     Each unit's model is fitted by least squares on the rows of ``data`` (raw ``N x C`` or
     ``*batch x N x C``; rows with a NaN are left out) whose best-matching unit lies within grid
     distance ``radius`` of it (1.5: the unit and its 8 neighbours on a rectangular grid, 6 on a
     hexagonal one), centred on the unit's weights; ``ridge`` times the row count penalizes the
-    slopes (normalized units), not the intercept; the read-out stays within the least and greatest
-    value of those rows. A unit whose neighbourhood holds no row keeps its weights and gets zero
-    slopes. All maps must share one active mask."""
+    slopes (normalized units), not the intercept: one number, or one per active component (``A``,
+    in the mask's order: a group of many weakly informative components held closer to zero); the
+    read-out stays within the least and greatest value of those rows. A unit whose neighbourhood
+    holds no row keeps its weights and gets zero slopes. All maps must share one active mask."""
     if not (isinstance(radius, (int, float)) and radius >= 0):
         raise ValueError(f"radius: expected a grid distance >= 0, received {radius!r}")
-    if not (isinstance(ridge, (int, float)) and ridge > 0):
-        raise ValueError(f"ridge: expected a positive number, received {ridge!r}")
     mask = shared_mask(som, "fit_local_linear")
+    penalty = torch.diag(torch.cat([torch.zeros(1, dtype=torch.float64), _ridges(ridge, int(mask.sum()))]))
     data = som.check_data(data, min_samples=1)  # *batch x N x C
     B, C, U = som.batch_shape.numel(), som.n_components, som.n_units
     data = data.reshape(B, -1, C)  # B x N x C
@@ -81,8 +84,7 @@ def fit_local_linear(som: SOM, data: torch.Tensor, *, radius: float = 1.5, ridge
     gram = S @ szz @ S.transpose(-1, -2)
     rhs = S @ szy  # B x U x (1 + A) x T
     n = szz[..., 0, 0]  # B x U: rows per neighbourhood
-    penalty = torch.diag(torch.cat([torch.zeros(1), torch.ones(A)]).to(torch.float64))
-    gram = gram + ridge * n[..., None, None] * penalty
+    gram = gram + n[..., None, None] * penalty
     empty = n < 0.5
     gram = torch.where(empty[..., None, None], torch.eye(1 + A, dtype=torch.float64), gram)
     rhs = torch.where(empty[..., None, None], torch.cat([w_out.unsqueeze(-2), torch.zeros(B, U, A, T, dtype=torch.float64)], -2), rhs)
@@ -93,6 +95,20 @@ def fit_local_linear(som: SOM, data: torch.Tensor, *, radius: float = 1.5, ridge
     out.local = check_local(out, LocalLinear(*(t.reshape(*som.batch_shape, *t.shape[1:]) for t in (
         solution[..., 0, :], solution[..., 1:, :].transpose(-1, -2), lower, upper))))  # *batch x U x ...
     return out
+
+
+def _ridges(ridge: float | Sequence[float] | torch.Tensor, A: int) -> torch.Tensor:
+    """``ridge`` as ``A`` positive float64 penalties; a ValueError (one line) otherwise."""
+    scalar = isinstance(ridge, (int, float)) and not isinstance(ridge, bool)
+    try:
+        f64 = torch.float64
+        r = torch.full((A,), float(ridge), dtype=f64) if scalar else torch.as_tensor(ridge, dtype=f64)
+    except (TypeError, ValueError, RuntimeError):
+        r = None
+    if r is None or r.shape != (A,) or not bool((r > 0).all()):  # NaN fails > 0
+        raise ValueError(f"ridge: expected a positive number or {A} positive numbers (one per active component), "
+                         f"received {ridge!r}")
+    return r
 
 
 def _ranges(y: torch.Tensor, keep: torch.Tensor, units: torch.Tensor, near: torch.Tensor,

@@ -35,9 +35,10 @@ def test_a_plane_is_read_out_exactly_where_the_weights_alone_are_off(interpolate
     assert som.local is None and local.local is not None  # a copy: the trained maps are unchanged
 
 
-def _reference_fit(som: st.SOM, data: torch.Tensor, radius: float, ridge: float) -> tuple[torch.Tensor, ...]:
+def _reference_fit(som: st.SOM, data: torch.Tensor, radius: float,
+                   ridge: tuple[float, float]) -> tuple[torch.Tensor, ...]:
     """Unit by unit, map by map: least squares of y on [1, x - w] over the rows whose best match lies
-    within ``radius``, and their least and greatest y (the slow, obvious way)."""
+    within ``radius`` (``ridge`` per slope), and their least and greatest y (the slow, obvious way)."""
     units, _ = st.best_matching_units(som, data)  # B x N
     x = som.normalize(data)[..., :2]  # B x N x 2
     d2 = som.grid.distances2
@@ -52,21 +53,23 @@ def _reference_fit(som: st.SOM, data: torch.Tensor, radius: float, ridge: float)
                 continue
             lo[m, u], hi[m, u] = data[rows, 2].min(), data[rows, 2].max()
             z = torch.cat([torch.ones(len(rows), 1, dtype=torch.float64), x[m, rows] - som.weights[m, u, :2]], 1)
-            gram = z.T @ z + ridge * len(rows) * torch.diag(torch.tensor([0.0, 1.0, 1.0], dtype=torch.float64))
+            gram = z.T @ z + len(rows) * torch.diag(torch.tensor([0.0, *ridge], dtype=torch.float64))
             sol = torch.linalg.solve(gram, z.T @ data[rows, 2:])
             b[m, u], a[m, u, 0] = sol[0], sol[1:, 0]
     return b, a, lo, hi
 
 
-@pytest.mark.parametrize("radius", [0.0, 1.0, 1.5, 2.5])
-def test_the_vectorized_fit_equals_a_unit_by_unit_least_squares(radius):
+@pytest.mark.parametrize(("radius", "ridge"), [(0.0, 0.01), (1.0, 0.01), (1.5, 0.01), (2.5, 0.01), (1.5, (0.01, 3.0)),
+                                             (1.0, torch.tensor([2.0, 1e-4]))])
+def test_the_vectorized_fit_equals_a_unit_by_unit_least_squares(radius, ridge):
     data = _plane(300)
     data[:, 2] += torch.sin(3.0 * data[:, 0]) * data[:, 1]  # not a plane: the fits differ per unit
     som = _trained(data, st.Grid(5, 5))
     som.weights = som.weights.clone()
     som.weights[:, 0] = 50.0  # a unit far from every row: no data in its neighbourhood
-    local = st.fit_local_linear(som, data, radius=radius, ridge=0.01).local
-    b, a, lo, hi = _reference_fit(som, data, radius, 0.01)
+    local = st.fit_local_linear(som, data, radius=radius, ridge=ridge).local
+    per_slope = (ridge, ridge) if isinstance(ridge, float) else tuple(map(float, ridge))
+    b, a, lo, hi = _reference_fit(som, data, radius, per_slope)
     torch.testing.assert_close(local.intercepts, b)
     torch.testing.assert_close(local.slopes, a)
     torch.testing.assert_close(local.lower, lo)
@@ -110,8 +113,9 @@ def test_maps_with_different_masks_or_bad_options_are_refused():
     som = st.SOM(st.Grid(3, 3), ["x0", "x1", "y"], [[True, True, False], [True, False, False]], batch_shape=(2,))
     with pytest.raises(ValueError, match="one active mask"):
         st.fit_local_linear(som, data)
-    with pytest.raises(ValueError, match="ridge"):
-        st.fit_local_linear(_trained(data), data, ridge=0.0)
+    for ridge in (0.0, (0.1,), (0.1, -1.0), (0.1, float("nan")), "0.1", True):
+        with pytest.raises(ValueError, match="ridge: expected a positive number or 2 positive numbers"):
+            st.fit_local_linear(_trained(data), data, ridge=ridge)
     with pytest.raises(ValueError, match="radius"):
         st.fit_local_linear(_trained(data), data, radius=-1)
 

@@ -13,7 +13,7 @@ from ._features import eigenfrequency_features, extra_features, structure_and_pe
 from ._identifier import Identifier
 from ._limits import BACKLASH_VISIBLE_COUNTS, backlash_resolution, motor_lead
 from ._maps import CORRECTIONS, MAP_SPECS, SUBSETS, TARGETS, from_correction, MapSpec, TrainedMap, load_map, recall_targets
-from ._maps import CHECKPOINT_FILES, DISTANCE_QUANTILES, MapMetadata
+from ._maps import CHECKPOINT_FILES, DISTANCE_QUANTILES, EIG_BINS, MapMetadata
 from ._policy import IdentificationPolicy
 from ._one_mass import FORMULATIONS, OneMassFit, fit_one_mass, speed_from_position
 from ._oscillation import OscillationFit, fit_oscillation
@@ -36,7 +36,7 @@ __all__ = [
     "eigenfrequency_features", "structure_features", "structure_and_peaks", "extra_features", "fit_oscillation",
     "OscillationFit",
     "check_record", "MAP_SPECS", "MapSpec", "TrainedMap", "TARGETS", "CORRECTIONS", "from_correction", "SUBSETS", "load_map", "recall_targets",
-    "CHECKPOINT_FILES", "DISTANCE_QUANTILES", "MapMetadata",
+    "CHECKPOINT_FILES", "DISTANCE_QUANTILES", "EIG_BINS", "MapMetadata",
     "refine", "RefineConfig", "RefineProblem", "Refined", "torque_reference",
     "BACKLASH_VISIBLE_COUNTS", "backlash_resolution", "motor_lead",
 ]

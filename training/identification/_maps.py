@@ -105,13 +105,15 @@ class MapSpec:
 _FIT = ("log10_f_fit", "log10_V_J_fit", "d_fit", "r2_fit")
 _SHAPE = _HARM + ("thd", "log2_f_ratio_zero", "log2_f_ratio_07")
 _DRIVE = ("log10_f_T_s", "log10_w_T_Ei", "log10_f_tau", "log10_noise")  # the drive, seen from the oscillation
-_EIG = tuple(n for n in FEATURE_NAMES if n.startswith("eig_bin_"))
+#: The eigenfrequency histogram's bins (:data:`._features.EIG_NAMES`): many correlated features, each weakly
+#: informative and noisy at coarse sampling; a local linear read-out holds their slopes closer to zero.
+EIG_BINS = tuple(n for n in FEATURE_NAMES if n.startswith("eig_bin_"))
 MAP_SPECS: dict[str, MapSpec] = {
     s.name: s for s in (
         MapSpec("structure", _SHAPE + _FIT + ("log10_osc_quanta",) + _DRIVE + GAP_NAMES,
                 ("log10_s_star", "log10_w_e_T_Ei", "log10_r_osc") + tuple(f"p_{c}" for c in STRUCTURE_CLASSES)),
         MapSpec("f_e", _FIT + ("log10_f_peak", "log10_f_zc", "thd", "log2_f_ratio_zero", "log2_f_ratio_07") + _DRIVE
-                + _EIG, ("dlog10_f_e", "d"), "visible", local_linear=True),
+                + EIG_BINS, ("dlog10_f_e", "d"), "visible", local_linear=True),
         MapSpec("V_J", _FIT + ("log10_V_J_amp", "thd", "log10_osc_quanta") + _DRIVE, ("dlog10_V_J",), "visible",
                 local_linear=True),
         MapSpec("backlash", _SHAPE + _FIT + ("log10_V_J_amp", "log10_osc_quanta") + _DRIVE + GAP_NAMES,

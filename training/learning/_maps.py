@@ -16,7 +16,7 @@ import som_torch as st
 from training._distributed import CallRecorder, Group, process_group
 from training.errors import OutputExistsError
 from training.figures import log_map_figures
-from training.identification import (CHECKPOINT_FILES, DISTANCE_QUANTILES, ENVELOPE_FILE, FEATURE_NAMES,
+from training.identification import (CHECKPOINT_FILES, DISTANCE_QUANTILES, EIG_BINS, ENVELOPE_FILE, FEATURE_NAMES,
                                      FEATURE_VERSION, MAP_SPECS, SUBSETS, TARGETS, MapSpec, TrainedMap, load_map,
                                      recall_targets, trained_envelope)
 from training.learning._dataset import Dataset
@@ -46,6 +46,7 @@ class TrainConfig:
     mode: str = "online"
     local_radius: float = 1.5  # maps with a local linear read-out (MapSpec.local_linear): som_torch.fit_local_linear
     local_ridge: float = 1e-3
+    local_ridge_bins: float = 0.1  # on the slopes of the eigenfrequency bins (EIG_BINS): see local_ridges
 
     def __post_init__(self) -> None:
         if min(self.rows, self.cols) < 2 or self.ensemble < 1 or self.epochs < 1:
@@ -143,6 +144,15 @@ def _assemble(parts: list[tuple[list[int], st.SOM | None, float]], ensemble: int
     return whole, sum(t for _, _, t in parts)
 
 
+def local_ridges(spec: MapSpec, config: TrainConfig) -> list[float]:
+    """The local linear read-out's ridge per feature of ``spec``: ``local_ridge_bins`` on the 25
+    eigenfrequency bins, ``local_ridge`` on the rest. Held-out training rows alone prefer the small
+    ridge everywhere, but with it on the bins the ``f_e`` map reads one in eight elastic records of a
+    corner of the envelope (1 ms, 2^13 counts: each bin noisier, 25 correlated slopes adding up)
+    1.3-2.5x too high (docs/results.md, "The bins' own ridge")."""
+    return [config.local_ridge_bins if name in EIG_BINS else config.local_ridge for name in spec.features]
+
+
 def train_map(spec: MapSpec, dataset: Dataset, config: TrainConfig, *, progress: bool = False,
               writer: Any = None, calibration_share: float = 0.1, device: str | torch.device = "cpu") -> TrainedMap:
     """Train the ensemble of ``spec`` on its subset of ``dataset``; with a TensorBoard ``writer``,
@@ -177,7 +187,8 @@ def train_map(spec: MapSpec, dataset: Dataset, config: TrainConfig, *, progress:
                 CallRecorder.replay(recorded, writer)
         som, seconds = _assemble([p[:3] for p in parts], config.ensemble)
     if spec.local_linear:
-        som = st.fit_local_linear(som, torch.as_tensor(rows), radius=config.local_radius, ridge=config.local_ridge)
+        som = st.fit_local_linear(som, torch.as_tensor(rows), radius=config.local_radius,
+                                  ridge=local_ridges(spec, config))
     data = torch.as_tensor(rows, dtype=torch.float32).expand(config.ensemble, *rows.shape)  # E x N x C
     trained = TrainedMap(spec, som)
     distance = recall_targets(trained, calibration[:, : len(spec.features)], config.interpolate)["distance"]

@@ -80,3 +80,19 @@ def test_the_f_e_and_V_J_maps_read_out_through_local_linear_maps_closer_to_their
         local = recall_targets(trained, feats, 1)[spec.targets[0]]
         plain = recall_targets(type(trained)(spec, flat, trained.metadata), feats, 1)[spec.targets[0]]
         assert np.abs(local - target).mean() < 0.8 * np.abs(plain - target).mean(), name
+
+
+def test_the_eigenfrequency_bins_slopes_are_held_closer_to_zero_than_with_one_ridge(dataset):
+    import som_torch as st
+    from training.identification import EIG_BINS
+    from training.learning import local_ridges, train_map, training_matrix
+
+    spec = MAP_SPECS["f_e"]
+    ridges = dict(zip(spec.features, local_ridges(spec, CONFIG)))
+    assert sorted(n for n, r in ridges.items() if r == CONFIG.local_ridge_bins) == sorted(EIG_BINS)
+    assert {r for n, r in ridges.items() if n not in EIG_BINS} == {CONFIG.local_ridge}
+    trained = train_map(spec, dataset, CONFIG)
+    one = st.fit_local_linear(trained.som, training_matrix(spec, dataset), radius=CONFIG.local_radius,
+                              ridge=CONFIG.local_ridge)
+    bins = [i for i, n in enumerate(spec.features) if n in EIG_BINS]
+    assert trained.som.local.slopes[..., bins].abs().mean() < 0.5 * one.local.slopes[..., bins].abs().mean()
