@@ -61,8 +61,8 @@ def save_checkpoint(path: str | os.PathLike, som: SOM, extra_metadata: dict[str,
     tensors = {"weights": som.weights.detach().cpu().contiguous(), "active": som.active.contiguous(),
                "offset": som.offset.contiguous(), "scale": som.scale.contiguous()}
     if som.local is not None:
-        tensors |= {f"local_{name}": getattr(som.local, name).detach().cpu().contiguous()
-                    for name in ("intercepts", "slopes", "lower", "upper")}
+        tensors |= {name: getattr(som.local, name.removeprefix("local_")).detach().cpu().contiguous()
+                    for name in _LOCAL}
     digest = _digest(header, tensors)
     payload = {**header, "tensors": tensors, "sha256": digest}
     atomic_write(path, lambda f: torch.save(payload, f))
