@@ -117,13 +117,14 @@ class Recall:
         return self.values[..., self.component_names.index(name)]
 
 
-def recall(som: SOM, features: torch.Tensor, *, interpolate: int = 1, eps: float = 1e-12) -> Recall:
+def recall(som: SOM, features: torch.Tensor, *, interpolate: int = 1, eps: float = 1e-12,
+           local: bool = True) -> Recall:
     """Recall: best match on active components, read-out of all components (raw units).
 
     ``interpolate = k > 1`` averages the ``k`` nearest units weighted by ``1 / (distance + eps)``.
     Maps with a local linear read-out (``som.local``, :func:`som_torch.fit_local_linear`) read each
     unit's inactive components at the sample, within the range of the unit's data (NaN features
-    count as at the unit's weights).
+    count as at the unit's weights); ``local=False`` reads the units' own weights instead.
     ``features``: raw ``M x C``, ``*batch x M x C`` or ``... x n_active`` (see :func:`distances`).
     A sample without an active non-NaN feature gets unit ``-1``, distance NaN and NaN values.
     """
@@ -133,7 +134,7 @@ def recall(som: SOM, features: torch.Tensor, *, interpolate: int = 1, eps: float
     w = som.raw_weights  # *batch x U x C
     flat = units.reshape(*som.batch_shape, -1)  # *batch x (M*k)
     picked = torch.gather(w, -2, flat.clamp_min(0).unsqueeze(-1).expand(*flat.shape, som.n_components))  # *batch x (M*k) x C
-    if som.local is not None:
+    if local and som.local is not None:
         picked = _read_local(som, f, flat, picked, interpolate)
     picked = torch.where(flat.unsqueeze(-1) >= 0, picked, torch.nan)  # no match: NaN read-out
     if interpolate == 1:

@@ -33,6 +33,8 @@ def test_a_plane_is_read_out_exactly_where_the_weights_alone_are_off(interpolate
     torch.testing.assert_close(st.recall(local, q[:, :2], interpolate=interpolate)["y"],
                                exact.expand(2, -1), atol=1e-8, rtol=0)
     assert som.local is None and local.local is not None  # a copy: the trained maps are unchanged
+    torch.testing.assert_close(st.recall(local, q[:, :2], interpolate=interpolate, local=False).values,
+                               st.recall(som, q[:, :2], interpolate=interpolate).values, atol=0, rtol=0)
 
 
 def _reference_fit(som: st.SOM, data: torch.Tensor, radius: float,

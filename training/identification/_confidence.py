@@ -17,10 +17,15 @@ made by ``twomass calibrate``) holds
   truth lies inside for at least 90 % of answers of each class);
 - two logistic models: P(the class is right) and P(the answer is right: class right, an elastic
   answer within ``E_30``, ``J_sigma`` within 30 %), and the probability below which an answer is
-  warned ``likely_wrong``.
+  warned ``likely_wrong``. Besides the features they read the log-odds of the *class rule's
+  probability* of the reported class (:func:`rule_probabilities`): SPEC 1's rule applied to the
+  answer's ``backlash``, ``f_e``, ``V_J``, ``J_sigma`` scattered as normals of their calibrated
+  intervals. A class quantity near its threshold, relative to how sure the record makes it, is a
+  probability there, not a warning.
 
 The class probabilities are P(class right) for the reported class and the rest shared among
-the other classes as the structure map weighs them (never above the reported class's).
+the other classes by the mean of the rule's probabilities and the structure map's weights (none
+above the reported class's).
 """
 
 from __future__ import annotations
@@ -28,19 +33,21 @@ from __future__ import annotations
 import json
 import math
 import os
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from sim import CLASS_THRESHOLDS, STRUCTURE_CLASSES, normalized_backlash, two_mass_derived
+from sim import (CLASS_THRESHOLDS, S_N_ELASTIC, S_N_STIFF_BACKLASH, STRUCTURE_CLASSES, gap_width, normalized_backlash,
+                 two_mass_derived)
 from training.identification._analysis import Analysis
+from training.identification._policy import class_quantities
 from training.identification._result import INTERVAL_NAMES, WARNING_CODES, Intervals, Parameters
 
 #: Version of the features and of the calibration file's layout.
-CONFIDENCE_VERSION = "twomass-confidence-v2"
+CONFIDENCE_VERSION = "twomass-confidence-v3"
 #: The calibration's file in a checkpoints folder.
 FILE_NAME = "confidence.json"
 #: The intervals' coverage (SPEC 4.1).
@@ -68,17 +75,28 @@ FEATURE_NAMES: tuple[str, ...] = (
     *(f"remark_{c}" for c in REMARK_CODES))
 
 
+#: What :attr:`ConfidenceInputs.rule` holds: the backlash widths [rad] at which ``s_N`` reaches its
+#: two thresholds (at the answer's ``C_F``), and ``ln(w_e T_Ei)``, ``ln(r_osc)`` of the answer's point.
+RULE_NAMES: tuple[str, ...] = ("backlash_low", "backlash_high", "ln_w_e_T_Ei", "ln_r_osc")
+#: The logistic models' inputs: the features and the log-odds of the class rule's probability.
+MODEL_FEATURE_NAMES: tuple[str, ...] = FEATURE_NAMES + ("rule_log_odds",)
+#: A normal's 90 % half-width in standard deviations (``NormalDist().inv_cdf(0.95)``).
+Z_90 = 1.6448536269514722
+
+
 @dataclass(frozen=True)
 class ConfidenceInputs:
     """What the calibration reads of one answer: ``features`` ``(F,)`` in the order of
     :data:`FEATURE_NAMES`; per parameter of :data:`INTERVAL_NAMES` its ``points`` (the answer's
     value, or what stands in for one the answer leaves out: the maps' elastic values of a stiff
-    answer, 0 for a backlash not identified) and the ``scales`` of the zero-capable coordinates."""
+    answer, 0 for a backlash not identified), the ``scales`` of the zero-capable coordinates, and
+    where the point lies against the class rule (``rule``: :data:`RULE_NAMES`)."""
 
     features: np.ndarray
     points: dict[str, float]
     scales: dict[str, float]
     structure: str
+    rule: dict[str, float]
 
     def coordinate(self, name: str, value: float) -> float:
         """``value`` of parameter ``name`` in its coordinate (:data:`ZERO_CAPABLE`, :data:`SIGNED`: asinh;
@@ -168,7 +186,36 @@ def confidence_inputs(analysis: Analysis, structure: str, parameters: Parameters
     torque, viscous = 0.01 * drive.M_star, 0.01 * drive.M_star / drive.w_max
     scales = {"backlash": 2.0 * drive.q_phi, "M_FC": torque, "mu_F": viscous, "M_L0": torque, "M_FCM": torque,
               "mu_FM": viscous}
-    return ConfidenceInputs(np.asarray(values, dtype=np.float64), dict(points), scales, structure)
+    q = class_quantities(analysis, points["J_sigma"], V_J, f_e, d, s_N)
+    rule = {"backlash_low": float(gap_width(S_N_ELASTIC, drive.M_N, points["C_F"])),
+            "backlash_high": float(gap_width(S_N_STIFF_BACKLASH, drive.M_N, points["C_F"])),
+            "ln_w_e_T_Ei": math.log(q["w_e_T_Ei"]), "ln_r_osc": math.log(max(q["r_osc"], 1e-300))}
+    return ConfidenceInputs(np.asarray(values, dtype=np.float64), dict(points), scales, structure, rule)
+
+
+def rule_probabilities(inputs: ConfidenceInputs, half_width: Callable[[str], float]) -> dict[str, float]:
+    """The four classes' probabilities under SPEC 1's class rule where ``backlash``, ``f_e``,
+    ``V_J`` and ``J_sigma`` scatter independently as normals in their coordinates, each with the
+    standard deviation of its 90 % interval's ``half_width(name)`` (coordinate units) around the
+    answer's point: ``s_N`` from the backlash (``C_F``'s own scatter, a few %, left out),
+    ``w_e T_Ei`` from ``f_e``, ``r_osc ~ V_J / (J_sigma f_e)`` from all three. They sum to 1."""
+    sd = {n: half_width(n) / Z_90 for n in ("backlash", "f_e", "V_J", "J_sigma")}
+    r, u = inputs.rule, inputs.coordinate("backlash", inputs.points["backlash"])
+    no_gap = _below(inputs.coordinate("backlash", r["backlash_low"]) - u, sd["backlash"])  # s_N < 0.1
+    large_gap = _below(u - inputs.coordinate("backlash", r["backlash_high"]), sd["backlash"])  # s_N >= 1
+    gap = max(1.0 - no_gap - large_gap, 0.0)
+    soft = _below(-r["ln_w_e_T_Ei"], sd["f_e"])
+    visible = _below(r["ln_r_osc"], math.sqrt(sd["V_J"] ** 2 + sd["f_e"] ** 2 + sd["J_sigma"] ** 2))
+    return {"stiff": no_gap * (1.0 - soft * visible), "elastic": no_gap * soft * visible,
+            "elastic_backlash": soft * gap, "stiff_backlash": large_gap + (1.0 - soft) * gap}
+
+
+def _below(x: float, sd: float) -> float:
+    """P(a normal of standard deviation ``sd`` lies below ``x``) (a step at 0 where ``sd`` is 0; 1/2
+    where it is infinite)."""
+    if sd > 0:
+        return 0.5 * math.erfc(-x / (sd * math.sqrt(2.0))) if math.isfinite(sd) else 0.5
+    return 1.0 if x > 0 else 0.0 if x < 0 else 0.5
 
 
 # -- the calibration ---------------------------------------------------------------------------
@@ -190,12 +237,27 @@ class LinearModel:
                 "intercept": self.intercept}
 
     @classmethod
-    def from_dict(cls, d: Mapping[str, Any]) -> "LinearModel":
+    def from_dict(cls, d: Mapping[str, Any], n: int = len(FEATURE_NAMES)) -> "LinearModel":
+        """The model of ``d`` over ``n`` features."""
         arrays = [np.asarray(d[k], dtype=np.float64) for k in ("mean", "std", "coef")]
-        if any(a.shape != (len(FEATURE_NAMES),) for a in arrays):
-            raise ValueError(f"confidence model: expected {len(FEATURE_NAMES)} features, received "
-                             f"{[a.shape for a in arrays]}")
+        if any(a.shape != (n,) for a in arrays):
+            raise ValueError(f"confidence model: expected {n} features, received {[a.shape for a in arrays]}")
         return cls(*arrays, float(d["intercept"]))
+
+
+def half_width(scale: Mapping[str, LinearModel], quantile: Mapping[str, Mapping[str, float]],
+               inputs: ConfidenceInputs, name: str) -> float:
+    """The 90 % interval's half-width of parameter ``name`` in its coordinate: the conformal quantile
+    of the answer's class (``"*"``: all classes) times the record's scale."""
+    q = quantile[name].get(inputs.structure, quantile[name]["*"])
+    return q * math.exp(float(scale[name](inputs.features)))
+
+
+def model_features(inputs: ConfidenceInputs, rule: Mapping[str, float]) -> np.ndarray:
+    """``(F + 1,)``: the features and the log-odds of ``rule`` (:func:`rule_probabilities`) for the
+    reported class (:data:`MODEL_FEATURE_NAMES`)."""
+    p = min(max(rule[inputs.structure], 1e-6), 1.0 - 1e-6)
+    return np.append(inputs.features, math.log(p / (1.0 - p)))
 
 
 @dataclass(frozen=True)
@@ -203,8 +265,9 @@ class Calibration:
     """The calibration of :mod:`this module <training.identification._confidence>`: per parameter
     the log-scale model and the conformal quantile per reported class (``"*"``: all classes, used
     for a class with too few calibration records); the logistic models of P(class right) and
-    P(answer right) (their ``y`` is the log-odds); the answer probability below which an answer is
-    warned; and where it came from (``provenance``: seeds, counts, the maps' digests)."""
+    P(answer right) over :data:`MODEL_FEATURE_NAMES` (their ``y`` is the log-odds); the answer
+    probability below which an answer is warned; and where it came from (``provenance``: seeds,
+    counts, the maps' digests)."""
 
     scale: dict[str, LinearModel]
     quantile: dict[str, dict[str, float]]
@@ -217,21 +280,32 @@ class Calibration:
         """The answer's 90 % intervals."""
         out = {}
         for name in INTERVAL_NAMES:
-            q = self.quantile[name].get(inputs.structure, self.quantile[name]["*"])
-            half = q * math.exp(float(self.scale[name](inputs.features)))
+            half = half_width(self.scale, self.quantile, inputs, name)
             centre = inputs.coordinate(name, inputs.points[name])
             out[name] = (inputs.value(name, centre - half), inputs.value(name, centre + half))
         return Intervals(**out)
 
+    def rule_probabilities(self, inputs: ConfidenceInputs) -> dict[str, float]:
+        """:func:`rule_probabilities` with this calibration's intervals."""
+        return rule_probabilities(inputs, lambda name: half_width(self.scale, self.quantile, inputs, name))
+
     def probabilities(self, inputs: ConfidenceInputs, map_probabilities: Mapping[str, float]) -> dict[str, float]:
-        """The four classes' probabilities: P(class right) for the answer's, the rest shared by
-        the structure map's weights, none above the answer's (they sum to 1)."""
-        p = max(_sigmoid(float(self.class_right(inputs.features))), 1.0 / len(STRUCTURE_CLASSES))
-        return share_rest(inputs.structure, p, map_probabilities)
+        """The four classes' probabilities: P(class right) for the answer's, the rest shared by the
+        mean of the class rule's probabilities and the structure map's weights (each normalized over
+        the other classes), none above the answer's (they sum to 1)."""
+        rule = self.rule_probabilities(inputs)
+        p = max(_sigmoid(float(self.class_right(model_features(inputs, rule)))), 1.0 / len(STRUCTURE_CLASSES))
+        others = [c for c in STRUCTURE_CLASSES if c != inputs.structure]
+        weights = {c: 0.0 for c in STRUCTURE_CLASSES}
+        for source in (rule, map_probabilities):
+            total = sum(max(float(source.get(c, 0.0)), 0.0) for c in others)
+            for c in others if total > 0 else ():
+                weights[c] += max(float(source.get(c, 0.0)), 0.0) / total
+        return share_rest(inputs.structure, p, weights)
 
     def answer_probability(self, inputs: ConfidenceInputs) -> float:
         """P(the answer is right: class, ``E_30`` of an elastic answer, ``J_sigma`` within 30 %)."""
-        return _sigmoid(float(self.answer_right(inputs.features)))
+        return _sigmoid(float(self.answer_right(model_features(inputs, self.rule_probabilities(inputs)))))
 
     def to_dict(self) -> dict[str, Any]:
         return {"version": CONFIDENCE_VERSION, "features": list(FEATURE_NAMES), "coverage": COVERAGE,
@@ -249,7 +323,8 @@ class Calibration:
             raise ValueError(f"confidence calibration: parameters missing: {missing}")
         return cls({n: LinearModel.from_dict(d["scale"][n]) for n in INTERVAL_NAMES},
                    {n: {k: float(v) for k, v in d["quantile"][n].items()} for n in INTERVAL_NAMES},
-                   LinearModel.from_dict(d["class_right"]), LinearModel.from_dict(d["answer_right"]),
+                   LinearModel.from_dict(d["class_right"], len(MODEL_FEATURE_NAMES)),
+                   LinearModel.from_dict(d["answer_right"], len(MODEL_FEATURE_NAMES)),
                    float(d["warn_below"]), dict(d.get("provenance", {})))
 
     @classmethod

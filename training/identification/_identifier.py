@@ -35,7 +35,7 @@ from training.identification._envelope import Envelope, trained_envelope
 from training.identification._maps import (CHECKPOINT_FILES, MAP_SPECS, MapMetadata, TrainedMap, from_correction,
                                             load_map, recall_targets)
 from training.identification._policy import (IdentificationPolicy, MapsAnswer, angle_checked_when, held_torque, refined_when,
-                                             s_N_on_record, spec_class)
+                                             s_N_on_record, second_f_e_start, spec_class)
 from training.identification._refine import (RefineConfig, RefineProblem, Refined, find_hidden_gap, refine,
                                              torque_reference)
 from training.identification._result import IdentificationFailure, IdentificationResult, Outcome
@@ -226,16 +226,24 @@ class Identifier:
         recalled = {name: recall_targets(trained, features[:, feature_columns(trained.spec.features)],
                                          self.map_metadata[name].interpolate)
                     for name, trained in self.maps.items()}
+        f_e_map = self.maps["f_e"]
+        if f_e_map.som.local is not None:  # the units' own weights too: the refinement explores around both
+            recalled["f_e_flat"] = recall_targets(f_e_map, features[:, feature_columns(f_e_map.spec.features)],
+                                                  self.map_metadata["f_e"].interpolate, local=False)
         return [self._maps_answer(analysis, {name: {target: float(values[i]) for target, values in targets.items()}
                                              for name, targets in recalled.items()})
                 for i, analysis in enumerate(analyses)]
 
     def _maps_answer(self, analysis: Analysis, recalled: dict[str, dict[str, float]]) -> MapsAnswer:
-        """One record's :class:`MapsAnswer` from each map's read-out ``recalled[map][target]``."""
+        """One record's :class:`MapsAnswer` from each map's read-out ``recalled[map][target]``
+        (``"f_e_flat"``: the ``f_e`` map's units' own weights, where it has a local read-out)."""
         # the maps store corrections to the eq.-1 fit (training.identification._maps.TARGETS)
-        f_e, V_J = (from_correction(name, lambda component, read=recalled[name]:
-                                    read[component] if component in read else analysis.feature(component))
-                    for name in ("f_e", "V_J"))
+        def read(param: str, source: str) -> float:
+            return from_correction(param, lambda component: recalled[source][component]
+                                   if component in recalled[source] else analysis.feature(component))
+
+        f_e, V_J = read("f_e", "f_e"), read("V_J", "V_J")
+        f_e_flat = read("f_e", "f_e_flat") if "f_e_flat" in recalled else None
         d = min(max(recalled["f_e"]["d"], 0.0), self.policy.damping_cap)
         s_N = s_N_on_record(analysis, recalled["structure"]["log10_s_star"])
         probabilities = {c: recalled["structure"][f"p_{c}"] for c in STRUCTURE_CLASSES}
@@ -246,11 +254,12 @@ class Identifier:
             structure = max((c for c in STRUCTURE_CLASSES if c != "stiff"), key=probabilities.get)
         ratio = {name: recalled[name]["distance"] / self.map_metadata[name].distance_unit for name in self.maps}
         return MapsAnswer(structure, probabilities, f_e, V_J, d, s_N,
-                          s_N_on_record(analysis, recalled["backlash"]["log10_s_star"]), ratio)
+                          s_N_on_record(analysis, recalled["backlash"]["log10_s_star"]), ratio, f_e_flat)
 
     def _problem(self, analysis: Analysis, answer: MapsAnswer) -> RefineProblem:
         """The refinement of one maps' answer: the record's replayed test signal, STEP 2's
-        one-mass values, and the maps' ``f_e``, ``V_J``, ``d``, ``s_N`` as the start."""
+        one-mass values, and the maps' ``f_e``, ``V_J``, ``d``, ``s_N`` as the start (and
+        :func:`._policy.second_f_e_start`)."""
         bounds, fit = analysis.sections.bounds, analysis.fit
         start, level = torque_reference(bounds, analysis.M_star, analysis.drive.M_hold)
         segments = np.concatenate([bounds, [[bounds[5, 1], len(fit.speed)]]])  # the six sections and the tail
@@ -258,6 +267,6 @@ class Identifier:
         return RefineProblem(speed=fit.speed, start=start, level=level, segments=segments, J_sigma=fit.J_sigma,
                              M_FC=max(fit.M_FC, 0.0), mu_F=max(fit.mu_F, 0.0), T_s=analysis.T_s, T_Ei=analysis.T_Ei,
                              encoder_counts=analysis.encoder_counts, M_N=analysis.M_N, free_one_mass=bool(fit.warnings),
-                             M_L0=held_torque(analysis, self.policy),
+                             M_L0=held_torque(analysis, self.policy), f_e_other=second_f_e_start(answer),
                              theta=np.array([math.log10(answer.f_e), math.log10(answer.V_J), answer.d,
                                              math.log10(max(answer.s_N, self.policy.start_s_N_floor))]))

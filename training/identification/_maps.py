@@ -231,11 +231,13 @@ class TrainedMap:
     metadata: dict[str, Any] = field(default_factory=dict)
 
 
-def recall_targets(trained: TrainedMap, features: np.ndarray, interpolate: int) -> dict[str, np.ndarray]:
+def recall_targets(trained: TrainedMap, features: np.ndarray, interpolate: int,
+                   local: bool = True) -> dict[str, np.ndarray]:
     """Median over the ensemble of the interpolated read-out of each target (``M`` per target),
-    plus ``"distance"``: the median best-match distance (``M``)."""
+    plus ``"distance"``: the median best-match distance (``M``); ``local=False``: the units' own
+    weights, not their local linear read-out (:func:`som_torch.recall`)."""
     feats = torch.as_tensor(np.asarray(features, dtype=np.float64), dtype=torch.float32)  # M x n_active
-    r = st.recall(trained.som, feats, interpolate=interpolate)  # values: E x M x C
+    r = st.recall(trained.som, feats, interpolate=interpolate, local=local)  # values: E x M x C
     out = {t: r.values[..., trained.spec.components.index(t)].median(0).values.double().numpy()
            for t in trained.spec.targets}
     out["distance"] = r.distance.median(0).values.double().numpy()

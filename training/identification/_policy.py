@@ -66,8 +66,9 @@ class IdentificationPolicy:
 class MapsAnswer:
     """What the maps say about one record, before the refinement: the structure and its
     probabilities, ``f_e`` [Hz], ``V_J``, ``d``, the structure map's and the backlash map's
-    ``s_N`` (on the record's own ``M_N``: :func:`s_N_on_record`), and each map's recall distance
-    over its training 99 % quantile."""
+    ``s_N`` (on the record's own ``M_N``: :func:`s_N_on_record`), each map's recall distance
+    over its training 99 % quantile, and ``f_e_flat`` [Hz]: the ``f_e`` map's units' own weights
+    where its local linear read-out gives ``f_e`` (the refinement explores around both)."""
 
     structure: str
     probabilities: dict[str, float]
@@ -77,6 +78,7 @@ class MapsAnswer:
     s_N: float
     s_N_backlash: float
     distance_ratio: dict[str, float]
+    f_e_flat: float | None = None
 
     @property
     def used(self) -> tuple[str, ...]:
@@ -87,6 +89,17 @@ class MapsAnswer:
     @property
     def outside_training(self) -> bool:
         return any(self.distance_ratio[name] > 1.0 for name in self.used)
+
+
+def second_f_e_start(answer: MapsAnswer) -> float | None:
+    """The ``f_e`` [Hz] the refinement's exploration also starts from (:attr:`RefineProblem.f_e_other`):
+    the ``f_e`` map's units' own weights, unless the maps answer ``stiff_backlash``. On the 1 ms,
+    2^13-count drive the map's local read-out put one in eight elastic records 1.3-2.5x too high
+    (some of them then answered ``stiff``), beyond the exploring grid, where the units' weights
+    did not. Where the maps answer ``stiff_backlash`` the gap hides ``f_e``, the windows barely
+    tell it, and a second start let models at a third of the true ``f_e`` win (the reference
+    population's 202 ``stiff_backlash`` systems: ``E_30`` 76 -> 72 %, ``E_50`` 94 -> 88 %)."""
+    return None if answer.structure == "stiff_backlash" else answer.f_e_flat
 
 
 # -- which answers are refined ------------------------------------------------------------------

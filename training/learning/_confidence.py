@@ -24,7 +24,7 @@ from sim import REAL_AXIS_NAMES, DriveConfig, TestSignalConfig, TwoMassParams, i
 from training.evaluation import DRIVES, answer_wrong, envelope_cases, relative_error, threshold_margin
 from training.identification import CONFIDENCE_COVERAGE as COVERAGE
 from training.identification import (CONFIDENCE_VERSION, INTERVAL_NAMES, NOTE_CODES, Calibration, ConfidenceInputs,
-                                     Identifier, LinearModel, ASINH)
+                                     Identifier, LinearModel, ASINH, half_width, model_features, rule_probabilities)
 
 #: The seeds of the calibration's three sets: the drive matrix, the envelope drives, the reference
 #: drive's default population.
@@ -66,13 +66,14 @@ class CalibrationSample:
 
     def to_dict(self) -> dict[str, Any]:
         return {"features": self.inputs.features.tolist(), "points": self.inputs.points, "scales": self.inputs.scales,
-                "structure": self.inputs.structure, "truth": self.truth, "true_class": self.true_class,
+                "structure": self.inputs.structure, "rule": self.inputs.rule, "truth": self.truth, "true_class": self.true_class,
                 "errors": self.errors, "kept_warnings": list(self.kept_warnings), "group": self.group,
                 "margin": self.margin}
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> "CalibrationSample":
-        inputs = ConfidenceInputs(np.asarray(d["features"], dtype=np.float64), d["points"], d["scales"], d["structure"])
+        inputs = ConfidenceInputs(np.asarray(d["features"], dtype=np.float64), d["points"], d["scales"], d["structure"],
+                                  d["rule"])
         return cls(inputs, d["truth"], d["true_class"], d["errors"], tuple(d["kept_warnings"]), d["group"],
                    float(d.get("margin", math.inf)))
 
@@ -168,10 +169,39 @@ def fit_calibration(samples: Sequence[CalibrationSample], provenance: dict[str, 
     if len(samples) < 200:
         raise ValueError(f"fit_calibration: expected at least 200 calibration answers, received {len(samples)}")
     X = np.stack([s.inputs.features for s in samples])  # N x F
-    mean, std = X.mean(axis=0), X.std(axis=0)
-    std = np.where(std > 1e-9, std, 1.0)
-    Z = (X - mean) / std  # N x F, standardized
     classes = np.array([s.inputs.structure for s in samples])
+    scale, quantile = _fit_intervals(samples, X, classes)
+    # the logistic models read the class rule's log-odds too, from the intervals just fitted
+    X = np.stack([model_features(s.inputs, rule_probabilities(
+        s.inputs, lambda name, s=s: half_width(scale, quantile, s.inputs, name))) for s in samples])  # N x (F + 1)
+    mean, std = _standardization(X)
+    Z = (X - mean) / std  # N x (F + 1), standardized
+    class_right = np.array([s.inputs.structure == s.true_class for s in samples])
+    right = answer_right(samples)
+    class_model = LinearModel(mean, std, *_logistic(Z, class_right, RIDGE_LOGISTIC))
+    answer_model = LinearModel(mean, std, *_logistic(Z, right, RIDGE_LOGISTIC))
+    warned = np.array([bool(s.kept_warnings) for s in samples])
+    p_out_of_fold = _out_of_fold_probability(Z, right)
+    warn_below = warn_threshold(p_out_of_fold[~right & ~warned], int((~right).sum()), SILENT_WRONG_SHARE)
+    counts = {str(c): int((classes == c).sum()) for c in np.unique(classes)}
+    provenance = {**provenance, "n": len(samples), "classes": counts, "version": CONFIDENCE_VERSION,
+                  "right": float(right.mean()), "right_warned_out_of_fold": float(
+                      ((p_out_of_fold < warn_below) | warned)[right].mean())}
+    return Calibration(scale, quantile, class_model, answer_model, warn_below, provenance)
+
+
+def _standardization(X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The columns' mean and standard deviation (1 where a column is constant)."""
+    std = X.std(axis=0)
+    return X.mean(axis=0), np.where(std > 1e-9, std, 1.0)
+
+
+def _fit_intervals(samples: Sequence[CalibrationSample], X: np.ndarray,
+                   classes: np.ndarray) -> tuple[dict[str, LinearModel], dict[str, dict[str, float]]]:
+    """Per parameter the ridge model of the log error's scale on the features ``X`` (``N x F``) and
+    the conformal quantiles of the normalized errors, pooled (``"*"``) and per reported class."""
+    mean, std = _standardization(X)
+    Z = (X - mean) / std  # N x F, standardized
     scale, quantile = {}, {}
     real_axis = np.array([s.group.startswith(REAL_AXIS_GROUP) for s in samples])
     for name in INTERVAL_NAMES:
@@ -187,18 +217,7 @@ def fit_calibration(samples: Sequence[CalibrationSample], provenance: dict[str, 
         for c in np.unique(classes[on]):
             if (classes[on] == c).sum() >= MIN_CLASS_SAMPLES:
                 quantile[name][str(c)] = conformal_quantile(scores[classes[on] == c], COVERAGE)
-    class_right = np.array([s.inputs.structure == s.true_class for s in samples])
-    right = answer_right(samples)
-    class_model = LinearModel(mean, std, *_logistic(Z, class_right, RIDGE_LOGISTIC))
-    answer_model = LinearModel(mean, std, *_logistic(Z, right, RIDGE_LOGISTIC))
-    warned = np.array([bool(s.kept_warnings) for s in samples])
-    p_out_of_fold = _out_of_fold_probability(Z, right)
-    warn_below = warn_threshold(p_out_of_fold[~right & ~warned], int((~right).sum()), SILENT_WRONG_SHARE)
-    counts = {str(c): int((classes == c).sum()) for c in np.unique(classes)}
-    provenance = {**provenance, "n": len(samples), "classes": counts, "version": CONFIDENCE_VERSION,
-                  "right": float(right.mean()), "right_warned_out_of_fold": float(
-                      ((p_out_of_fold < warn_below) | warned)[right].mean())}
-    return Calibration(scale, quantile, class_model, answer_model, warn_below, provenance)
+    return scale, quantile
 
 
 def conformal_quantile(scores: np.ndarray, coverage: float) -> float:

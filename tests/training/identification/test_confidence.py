@@ -5,10 +5,12 @@ from __future__ import annotations
 import json
 import math
 
+import numpy as np
 import pytest
 
 from sim import STRUCTURE_CLASSES
-from training.identification._confidence import Calibration, class_margins, share_rest
+from training.identification._confidence import (FEATURE_NAMES, Calibration, ConfidenceInputs, class_margins,
+                                                 rule_probabilities, share_rest)
 
 
 def test_share_rest_hand_computed() -> None:
@@ -33,6 +35,29 @@ def test_class_margins_are_the_nearest_thresholds_log_distances() -> None:
     assert m["s_N"] == pytest.approx(math.log(1.2))  # thresholds 0.1 and 1: the nearer
     assert m["r_osc"] == 3.0  # missing
     assert class_margins({"r_osc": float("nan")})["r_osc"] == 3.0
+
+
+def _inputs(structure: str, backlash: float, ln_w_e_T_Ei: float, ln_r_osc: float) -> ConfidenceInputs:
+    """An answer with the backlash thresholds at 1 and 10 mrad (asinh scale 1 mrad)."""
+    rule = {"backlash_low": 1e-3, "backlash_high": 1e-2, "ln_w_e_T_Ei": ln_w_e_T_Ei, "ln_r_osc": ln_r_osc}
+    return ConfidenceInputs(np.zeros(len(FEATURE_NAMES)), {"backlash": backlash}, {"backlash": 1e-3}, structure, rule)
+
+
+def test_the_class_rules_probabilities_hand_computed() -> None:
+    half = {"backlash": 0.0, "f_e": 1.6448536269514722 * 0.5, "V_J": 0.0, "J_sigma": 0.0}  # f_e: sd 0.5 in ln
+    # no gap for sure, w_e T_Ei one sd below 1 (soft with P = Phi(1) = 0.8413), r_osc far above 1 (visible)
+    p = rule_probabilities(_inputs("elastic", 0.0, -0.5, 5.0), half.get)
+    assert p["elastic"] == pytest.approx(0.841345, abs=1e-6) and p["stiff"] == pytest.approx(0.158655, abs=1e-6)
+    assert p["elastic_backlash"] == p["stiff_backlash"] == 0.0
+    # a gap between the thresholds (5 mrad): elastic_backlash where soft, stiff_backlash where not
+    p = rule_probabilities(_inputs("elastic_backlash", 5e-3, -0.5, 5.0), half.get)
+    assert p["elastic_backlash"] == pytest.approx(0.841345, abs=1e-6)
+    assert p["stiff_backlash"] == pytest.approx(0.158655, abs=1e-6)
+    # a soft shaft's backlash on its upper threshold with a scatter: half above, nearly all the rest
+    # between the thresholds (asinh(1) lies 3.48 sd below asinh(10): Phi(-3.48) = 0.00025 below)
+    p = rule_probabilities(_inputs("stiff_backlash", 1e-2, -5.0, 5.0), {**half, "backlash": 1.0}.get)
+    assert p["stiff_backlash"] == pytest.approx(0.5, abs=1e-9) and p["elastic"] == pytest.approx(2.5e-4, abs=1e-5)
+    assert sum(p.values()) == pytest.approx(1.0)
 
 
 def test_calibration_of_another_version_is_refused(tmp_path) -> None:

@@ -52,7 +52,8 @@ def _samples(n: int, seed: int) -> list[CalibrationSample]:
         sigma = 0.1 if x[5] else 0.01
         truth = {k: 1.0 for k in INTERVAL_NAMES}
         points = {k: math.exp(rng.normal(0.0, sigma if k == "f_e" else 0.02)) for k in INTERVAL_NAMES}
-        inputs = ConfidenceInputs(x, points, {k: 1.0 for k in ASINH}, "stiff")
+        rule = {"backlash_low": 100.0, "backlash_high": 1000.0, "ln_w_e_T_Ei": 2.0, "ln_r_osc": -2.0}  # stiff, no gap
+        inputs = ConfidenceInputs(x, points, {k: 1.0 for k in ASINH}, "stiff", rule)
         errors = {"f_e": 0.0, "V_J": 0.0, "J_sigma": 0.0}
         out.append(CalibrationSample(inputs, truth, "stiff" if i % 10 else "elastic", errors, (), "synthetic"))
     return out

@@ -43,7 +43,7 @@ from training.identification._refine._angle import HiddenGap, hidden_gap
 from training.identification._refine._choose import Choice, choose
 from training.identification._refine._climb import climb, climbs
 from training.identification._refine._config import RefineConfig
-from training.identification._refine._explore import explore, explore_windows
+from training.identification._refine._explore import explore, explore_windows, starts
 from training.identification._refine._free import free_one_mass, frees, one_mass_values
 from training.identification._refine._polish import polish as polish_lanes
 from training.identification._refine._polish import polished
@@ -103,7 +103,8 @@ def _window_stages(problems: list[RefineProblem], windows: list[ScoreWindows], c
     plain, led = (functools.partial(score_windows, problems, windows, tag, config.explore.gain_range, config.batch)
                   for tag in (False, True))
     theta0 = {i: np.clip(np.asarray(p.theta, dtype=np.float64), LOW, HIGH) for i, p in enumerate(problems)}
-    explored = explore(theta0, config.explore, config.search, dict(enumerate(rngs)), plain)
+    explored = explore({i: starts(p, config.explore) for i, p in enumerate(problems)}, config.explore, config.search,
+                       dict(enumerate(rngs)), plain)
     state = {i: _Leading(found, (), len(found.cost)) for i, found in explored.items()}
     asked = {i: theta0[i] for i, lead in state.items()
              if rescues(problems[i], windows[i], float(lead.winner.cost.min()), config.rescue)}

@@ -19,7 +19,9 @@ class RefineProblem:
     ``encoder_counts``, ``M_N`` for ``s_N``); the start ``theta`` over :data:`COORDINATES`
     (``s_N`` of 1e-3 or less stands for no backlash); SPEC 1.1's parts: the constant load torque
     ``M_L0`` [Nm] (STEP 2's offset; the model starts at rest held by it) and the motor's Coulomb
-    friction ``M_FCM`` [Nm] (``M_FC`` is then the load's: :meth:`with_motor_share` splits STEP 2's)."""
+    friction ``M_FCM`` [Nm] (``M_FC`` is then the load's: :meth:`with_motor_share` splits STEP 2's);
+    ``f_e_other`` [Hz]: another read-out of the maps' ``f_e`` the exploration also starts from
+    (``None``: only ``theta``'s)."""
 
     speed: np.ndarray
     start: np.ndarray
@@ -36,6 +38,7 @@ class RefineProblem:
     free_one_mass: bool = False
     M_L0: float = 0.0
     M_FCM: float = 0.0
+    f_e_other: float | None = None
 
     @property
     def M_star(self) -> float:
