@@ -66,9 +66,9 @@ class CalibrationSample:
 
     def to_dict(self) -> dict[str, Any]:
         return {"features": self.inputs.features.tolist(), "points": self.inputs.points, "scales": self.inputs.scales,
-                "structure": self.inputs.structure, "rule": self.inputs.rule, "truth": self.truth, "true_class": self.true_class,
-                "errors": self.errors, "kept_warnings": list(self.kept_warnings), "group": self.group,
-                "margin": self.margin}
+                "structure": self.inputs.structure, "rule": self.inputs.rule, "truth": self.truth,
+                "true_class": self.true_class, "errors": self.errors, "kept_warnings": list(self.kept_warnings),
+                "group": self.group, "margin": self.margin}
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> "CalibrationSample":
