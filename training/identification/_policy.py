@@ -93,12 +93,11 @@ class MapsAnswer:
 
 def second_f_e_start(answer: MapsAnswer) -> float | None:
     """The ``f_e`` [Hz] the refinement's exploration also starts from (:attr:`RefineProblem.f_e_other`):
-    the ``f_e`` map's units' own weights, unless the maps answer ``stiff_backlash``. On the 1 ms,
-    2^13-count drive the map's local read-out put one in eight elastic records 1.3-2.5x too high
-    (some of them then answered ``stiff``), beyond the exploring grid, where the units' weights
-    did not. Where the maps answer ``stiff_backlash`` the gap hides ``f_e``, the windows barely
-    tell it, and a second start let models at a third of the true ``f_e`` win (the reference
-    population's 202 ``stiff_backlash`` systems: ``E_30`` 76 -> 72 %, ``E_50`` 94 -> 88 %)."""
+    the ``f_e`` map's units' own weights, unless the maps answer ``stiff_backlash``. On a coarse,
+    slowly sampled drive the map's local read-out can put an elastic record's ``f_e`` 1.3-2.5x too
+    high (beyond the exploring grid) where the units' weights do not. Where the maps answer
+    ``stiff_backlash`` the gap hides ``f_e``, the windows barely tell it, and a second start lets
+    models far below the true ``f_e`` win (``docs/identification.md``, "Explore")."""
     return None if answer.structure == "stiff_backlash" else answer.f_e_flat
 
 
