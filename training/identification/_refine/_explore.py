@@ -55,8 +55,8 @@ class ExploreSettings:
 
 
 def starts(p: RefineProblem, settings: ExploreSettings) -> np.ndarray:
-    """The exploration's starts ``S x 4``: ``p.theta``, and it with the maps' other ``f_e`` where
-    that lies more than ``other_apart`` decades away."""
+    """The exploration's starts ``S x 4``: ``p.theta`` (clipped to the search space) first, and it
+    with the maps' other ``f_e`` where that lies more than ``other_apart`` decades away."""
     theta = np.clip(np.asarray(p.theta, dtype=np.float64), LOW, HIGH)
     if p.f_e_other is None or not abs(math.log10(p.f_e_other) - theta[0]) > settings.other_apart:
         return theta[None]

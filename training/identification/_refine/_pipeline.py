@@ -53,7 +53,6 @@ from training.identification._refine._replay import detrended_cost, quantization
 from training.identification._refine._rescue import rescues, survey
 from training.identification._refine._retry import retry
 from training.identification._refine._search import Scored
-from training.identification._refine._space import HIGH, LOW
 from training.identification._refine._split import motor_share, splits
 from training.identification._refine._stage import Stage
 from training.identification._refine._windows import ScoreWindows, score_windows
@@ -102,9 +101,9 @@ def _window_stages(problems: list[RefineProblem], windows: list[ScoreWindows], c
     exploration's too where the rescue led; the rattle's best where it ran."""
     plain, led = (functools.partial(score_windows, problems, windows, tag, config.explore.gain_range, config.batch)
                   for tag in (False, True))
-    theta0 = {i: np.clip(np.asarray(p.theta, dtype=np.float64), LOW, HIGH) for i, p in enumerate(problems)}
-    explored = explore({i: starts(p, config.explore) for i, p in enumerate(problems)}, config.explore, config.search,
-                       dict(enumerate(rngs)), plain)
+    begins = {i: starts(p, config.explore) for i, p in enumerate(problems)}  # S x 4 each, the maps' answer first
+    theta0 = {i: b[0] for i, b in begins.items()}
+    explored = explore(begins, config.explore, config.search, dict(enumerate(rngs)), plain)
     state = {i: _Leading(found, (), len(found.cost)) for i, found in explored.items()}
     asked = {i: theta0[i] for i, lead in state.items()
              if rescues(problems[i], windows[i], float(lead.winner.cost.min()), config.rescue)}
