@@ -65,6 +65,7 @@ def _terminate(pool: ProcessPoolExecutor) -> None:
     """Cancel ``pool``'s queued tasks and end its workers now (SIGTERM), waiting until they have.
     Python 3.14 has ``terminate_workers``; before it the executor's process table is the only handle."""
     workers = list((getattr(pool, "_processes", None) or {}).values())  # to wait for them
+    manager = getattr(pool, "_executor_manager_thread", None)  # shutdown() forgets it
     # Before Python 3.12 the pool's manager thread, seeing its workers gone, joins the thread that
     # feeds their task pipe; that thread can sit in a write to the full pipe forever, and the process
     # never exits (seen with tasks queued at the signal). Nothing will read the pipe: do not wait for
@@ -80,6 +81,11 @@ def _terminate(pool: ProcessPoolExecutor) -> None:
             p.terminate()
     for p in workers:
         p.join()
+    # Before Python 3.12 the manager thread closes its wake-up pipe while the interpreter's exit hook
+    # may still write to it ("OSError: [Errno 9] Bad file descriptor" after the command's last line):
+    # let it finish first (bounded: a manager that hangs must not hold the exit).
+    if manager is not None:
+        manager.join(timeout=5.0)
 
 
 @contextmanager
