@@ -69,8 +69,8 @@ class MechanicsBounds:
     """The ranges ``(low, high)`` an :class:`UncertaintySet` spans around the identified mechanic:
     ``J_sigma`` [kg m^2], ``V_J`` [-], ``f_e`` [Hz], ``d`` [-] and ``J_M`` [kg m^2] (the motor alone:
     a backlash plant's decoupled motor). Built from the identification's calibrated 90 % intervals
-    (:meth:`from_intervals`, SPEC 4.1 and 8.2); ``widened`` says what rule R7c added to them (empty:
-    the intervals as they are). Checked on construction: finite, ``0 <= low <= high``, and a
+    (:meth:`from_intervals`, SPEC 4.1 and 8.2); ``widened`` says what rule R7c (:meth:`widen`) and a
+    measured resonance (:meth:`placed`) made of them (empty: the intervals as they are). Checked on construction: finite, ``0 <= low <= high``, and a
     positive low end of ``J_sigma``, ``f_e`` and ``J_M``."""
 
     J_sigma: tuple[float, float]
@@ -102,6 +102,16 @@ class MechanicsBounds:
         except (KeyError, TypeError) as err:
             raise ValueError(f"intervals: expected (low, high) for each of {list(BOUNDED_PARAMETERS)}: {err}") from None
 
+    def placed(self, f_peak: float, spread: float) -> MechanicsBounds:
+        """``f_e`` narrowed to the measured resonance ``f_peak`` [Hz] x(1 -+ ``spread``) where that
+        lies inside the bounds (the frequency response places a resonance to a line's spacing; the
+        test run's fit, to its calibrated interval); the bounds as they are where it does not."""
+        low, high = max(self.f_e[0], f_peak * (1 - spread)), min(self.f_e[1], f_peak * (1 + spread))
+        if not self.f_e[0] <= f_peak <= self.f_e[1] or (low, high) == self.f_e:
+            return self
+        note = f"f_e placed by the measured resonance at {f_peak:.4g} Hz (+-{spread:.0%})"
+        return replace(self, f_e=(low, high), widened="; ".join(filter(None, (self.widened, note))))
+
     def widen(self, mechanics: Mechanics, spread: float, damping: float, why: str) -> MechanicsBounds:
         """Rule R7c on calibrated bounds: ``f_e`` and ``V_J`` span at least the identified value
         x(1 -+ ``spread``), ``d`` reaches down to at least the identified ``d`` x ``damping``; ``why``
@@ -121,6 +131,7 @@ def trusted_response(measured: MeasuredResponse, min_coherence: float) -> Measur
         return None
     return MeasuredResponse(w=np.asarray(measured.w)[keep], G=np.asarray(measured.G)[keep],
                             coherence=np.asarray(measured.coherence)[keep], T_s=float(measured.T_s),
+                            model=None if measured.model is None else np.asarray(measured.model)[keep],
                             resonances=measured.resonances)
 
 
@@ -133,6 +144,10 @@ def measured_peaks(measured: MeasuredResponse, J_sigma: float, *, min_ratio: flo
     inner = np.nonzero((ratio[1:-1] > ratio[:-2]) & (ratio[1:-1] >= ratio[2:]) & (ratio[1:-1] >= min_ratio))[0] + 1
     top = sorted(inner, key=lambda i: -ratio[i])[:most]
     return tuple(float(w[i] / (2 * math.pi)) for i in sorted(top))
+
+
+#: How far [share] a resonance the measured frequency response places may lie from the line it peaks on.
+MEASURED_F_SPREAD = 0.05
 
 
 class Member(NamedTuple):
@@ -169,6 +184,10 @@ class UncertaintySet:
     lacks) stays in the set at the same worst cases (each ``V_J`` of ``hidden``, ``hidden_d``) at
     its measured frequency x(1 -+ ``measured_f_spread``): the measurement places it, but its height
     and phase are not to be trusted (friction makes a small-signal measurement lead the plant).
+    Its ratio of inertias is: where the measurement reaches above it, the measured over the
+    one-mass model's magnitude there (:meth:`MeasuredResponse.inertia_ratio` over ``inertia_band``
+    x the resonance: ``1 + V_J``) bounds the worst cases' ``V_J`` to ``inertia_factor`` x that
+    ratio, less 1 (:meth:`measured_V_Js`).
     """
 
     mechanics: Mechanics
@@ -183,7 +202,9 @@ class UncertaintySet:
     hidden_points_per_decade: float = 8.0
     hidden_min_points: int = 5
     measured: MeasuredResponse | None = None
-    measured_f_spread: float = 0.05
+    measured_f_spread: float = MEASURED_F_SPREAD
+    inertia_band: tuple[float, float] = (1.4, 2.5)
+    inertia_factor: float = 1.5
     doubts: tuple[str, ...] = ()
     bounds: MechanicsBounds | None = None
     gap_open_margins: tuple[float, float] = GAP_OPEN_MARGINS
@@ -241,9 +262,23 @@ class UncertaintySet:
             out += [Member(Mechanics(m.J_sigma, V_J=v, f_e=w / (2 * math.pi) * scale, d=self.hidden_d),
                            f"measured resonance's worst case f_e {w / (2 * math.pi) * scale:.4g} Hz, V_J {v:g}, d {self.hidden_d:g}",
                            hidden=True)
-                    for w in self.measured.resonances for v in self.hidden
+                    for w in self.measured.resonances for v in self.measured_V_Js(w)
                     for scale in (1 - self.measured_f_spread, 1.0, 1 + self.measured_f_spread)]
         return out
+
+    def measured_V_Js(self, w_r: float) -> tuple[float, ...]:
+        """The worst cases' ``V_J`` of a resonance the measurement found at ``w_r`` [rad/s]: those of
+        :attr:`hidden`, each at most ``inertia_factor`` x the measured ``1 + V_J``, less 1 (all of them
+        where the measurement does not reach above the resonance, or where the identified mechanic
+        has a resonance of its own: the measured over the model's magnitude then does not show the
+        one it lacks)."""
+        V_Js = tuple(self.hidden or ())
+        one_mass = self.measured is not None and not self.mechanics.two_mass
+        ratio = self.measured.inertia_ratio(w_r, self.inertia_band, 0.0) if one_mass else None
+        if ratio is None:
+            return V_Js
+        cap = self.inertia_factor * max(ratio, 1.0) - 1.0
+        return tuple(sorted({min(v, cap) for v in V_Js}))
 
     def models(self, drive: Any) -> ModelSet:
         """The :class:`ModelSet`: the identified mechanic as it is first (the design's nominal
@@ -290,7 +325,8 @@ class UncertaintySet:
             parts.append(f"the measured response at {len(self.measured.w)} frequencies")
             if self.hidden and self.measured.resonances:
                 found = ", ".join(f"{w / (2 * math.pi):.4g}" for w in self.measured.resonances)
-                parts.append(f"the measured resonances ({found} Hz) at V_J {', '.join(f'{v:g}' for v in self.hidden)}, "
+                V_Js = sorted({v for w in self.measured.resonances for v in self.measured_V_Js(w)})
+                parts.append(f"the measured resonances ({found} Hz) at V_J {', '.join(f'{v:.3g}' for v in V_Js)}, "
                              f"d {self.hidden_d:g}, f +-{self.measured_f_spread:.0%}")
         parts.append(f"each with a 2nd-order current loop (D {self.current_loop_damping:.3g}) +{self.extra_delay} sample delay")
         return "; ".join(parts)

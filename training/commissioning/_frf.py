@@ -115,6 +115,20 @@ class MeasuredResponse:
         near = (self.w >= w_c / 3) & (self.w <= 3 * w_c) & (self.coherence >= min_coherence)
         return float(np.median(np.abs(self.G[near] / self.model[near]))) if near.any() else None
 
+    def inertia_ratio(self, w_r: float, band: tuple[float, float], min_coherence: float, min_lines: int = 3) -> float | None:
+        """``1 + V_J`` (``J_sigma / J_M``) of a resonance at ``w_r`` [rad/s] that a one-mass model
+        lacks, read above it: the median over the lines of coherence at least ``min_coherence``
+        within ``band`` x ``w_r`` of ``(r (x^2 - 1) + 1) / x^2``, ``r = |G / model|``, ``x = w / w_r``
+        (the undamped two-mass over the one-mass response there; its damping hardly matters above
+        ``1.4 w_r``). None: no model, or fewer than ``min_lines`` such lines."""
+        if self.model is None:
+            return None
+        near = (self.w >= band[0] * w_r) & (self.w <= band[1] * w_r) & (self.coherence >= min_coherence)
+        if near.sum() < min_lines:
+            return None
+        x2 = (self.w[near] / w_r) ** 2
+        return float(np.median((np.abs(self.G[near] / self.model[near]) * (x2 - 1.0) + 1.0) / x2))
+
     def to_csv(self, path: str | Path) -> Path:
         """Write the response as CSV: ``f_Hz, magnitude_dB, phase_deg, coherence`` and, where the
         model is given, ``model_magnitude_dB, model_phase_deg``. Returns the path."""

@@ -23,8 +23,8 @@ import sim
 from training._settings import NON_NEGATIVE, POSITIVE, Constraint, InstanceOf, Interval, Pair, Values, check_settings
 from training.errors import CommissioningError
 
-from ._design import (GAP_OPEN_MARGINS, SEARCH, DesignSearch, MechanicsBounds, OptimizedLoop, UncertaintySet, measured_peaks, optimize_loop,
-                      trusted_response)
+from ._design import (GAP_OPEN_MARGINS, MEASURED_F_SPREAD, SEARCH, DesignSearch, MechanicsBounds, OptimizedLoop, UncertaintySet,
+                      measured_peaks, optimize_loop, trusted_response)
 from ._frf import MeasuredResponse
 from ._law import NotchSpec, PISpeedLaw
 from ._loop import Margins, Mechanics, ModelSet, Notches, drive_value, loop_figures, mechanics_from
@@ -191,7 +191,8 @@ def uncertainty_set(mechanics: Any, spec: ControllerSpec, *, structure: str = "s
     ``spec``'s interim spread; ``spread`` and ``damping`` (rule R7c) widen ``f_e`` and ``V_J`` to at
     least that relative half-width and the damping's low end to at most ``damping`` x the identified
     ``d`` (on either); a backlash ``structure`` adds the decoupled motor (R6); ``hidden`` (R7b)
-    unless ``measured`` (its trusted part, coherence >= ``spec.min_coherence``)."""
+    unless ``measured`` (its trusted part, coherence >= ``spec.min_coherence``); a measured
+    resonance inside the bounds' ``f_e`` places them (:meth:`MechanicsBounds.placed`)."""
     m = mechanics_from(mechanics)
     trusted = trusted_response(measured, spec.min_coherence) if measured is not None else None
     wide = 0.0 if spread is None else spread
@@ -199,6 +200,9 @@ def uncertainty_set(mechanics: Any, spec: ControllerSpec, *, structure: str = "s
     if bounds is not None and (spread is not None or damping is not None):
         bounds = bounds.widen(m, wide, 1.0 if damping is None else damping,
                               f"R7c widened to f_e, V_J +-{wide:.0%} and d from x{1.0 if damping is None else damping:g} at least")
+    if bounds is not None and trusted is not None and m.two_mass:
+        peak = measured_peaks(trusted, m.J_sigma, min_ratio=spec.peak_ratio, most=1)
+        bounds = bounds.placed(peak[0], MEASURED_F_SPREAD) if peak else bounds
     return UncertaintySet(m, f_e_spread=max(spec.f_e_spread, wide), V_J_spread=max(spec.V_J_spread, wide),
                           d_scale=(d_low, spec.d_scale[1]), bounds=bounds,
                           current_loop_damping=spec.current_loop_damping, extra_delay=spec.extra_delay,

@@ -7,14 +7,18 @@ from __future__ import annotations
 
 import math
 import sys
+from dataclasses import replace
 from pathlib import Path
 from types import SimpleNamespace
 
+import numpy as np
 import pytest
 
 sim = pytest.importorskip("sim")
 
-from training.commissioning import CommissioningConfig, ControllerSpec, may_propose_controller, uncertainty_set  # noqa: E402
+from training.commissioning import (CommissioningConfig, ControllerSpec, mechanics_from, may_propose_controller,  # noqa: E402
+                                    propose_controller, uncertainty_set)
+from training.commissioning._frf import MeasuredResponse  # noqa: E402
 from training.commissioning._chain import ChainState, _propose  # noqa: E402
 from training.commissioning._design import MechanicsBounds, UncertaintySet  # noqa: E402
 from training.commissioning._loop import Mechanics  # noqa: E402
@@ -161,3 +165,64 @@ def test_an_undetermined_oscillation_keeps_its_hidden_resonances_as_a_note(code)
     determined still adds the resonances the test cannot exclude (R7b), without R7c."""
     noted = _propose(_run(identification_result("elastic", ELASTIC, intervals=NARROW, notes=((code, WARNING_CODES[code]),))))
     assert any(r.startswith("R7b") for r in noted.rules) and not any(r.startswith("R7c") for r in noted.rules)
+
+
+def _response(true: Mechanics, model: Mechanics) -> MeasuredResponse:
+    """``true``'s response measured on a 2 Hz grid up to 0.49 / T_s (coherent below 0.45 / T_s), beside ``model``'s."""
+    from training.commissioning import linear_plant
+
+    w = 2 * math.pi * np.arange(2.0, 0.49 / DRIVE.T_s, 2.0)
+    z = np.exp(1j * w * DRIVE.T_s)
+    return MeasuredResponse(w=w, G=linear_plant(true, DRIVE).speed_response(z), coherence=np.where(w < 0.9 * math.pi / DRIVE.T_s, 0.95, 0.5),
+                            T_s=DRIVE.T_s, model=linear_plant(model, DRIVE).speed_response(z))
+
+
+def test_a_measured_resonance_places_the_sets_f_e_and_the_loop_gains():
+    """An elastic answer at 300 Hz with a wide f_e interval (200..450 Hz) on a plant whose response,
+    measured, peaks at 320 Hz: the set's f_e spans the measured peak +-5 % inside the interval, the
+    R7 line says so, the loop is faster than on the interval alone and keeps PM >= 45 deg, GM >= 6 dB
+    on the true plant. A peak outside the interval leaves the interval as it is."""
+    from training.commissioning import linear_plant, margins
+
+    answer = dict(ELASTIC, f_e=300.0, V_J=1.0, d=0.02)
+    true = Mechanics(0.05, V_J=1.0, f_e=320.0, d=0.02)
+    iv = _intervals(f_e=(200.0, 450.0), V_J=(0.8, 1.25), d=(0.01, 0.04))
+    spec, bounds = ControllerSpec(), MechanicsBounds.from_intervals(iv)
+    measured = _response(true, mechanics_from(answer))
+    placed = uncertainty_set(answer, spec, structure="elastic", bounds=bounds, measured=measured)
+    f_es, _, _ = placed.spans()
+    assert 0.95 * 320.0 - 2.0 <= f_es[0] < f_es[-1] <= 1.05 * 320.0 + 2.0 and "measured resonance at" in placed.describe()
+    far = uncertainty_set(answer, spec, structure="elastic", bounds=MechanicsBounds.from_intervals(
+        _intervals(f_e=(200.0, 280.0), V_J=(0.8, 1.25), d=(0.01, 0.04))), measured=measured)
+    assert far.spans()[0][0] == 200.0 and far.spans()[0][-1] == 280.0
+    wide = propose_controller("elastic", answer, DRIVE, spec, uncertainty=uncertainty_set(answer, spec, structure="elastic", bounds=bounds))
+    fast = propose_controller("elastic", answer, DRIVE, spec, uncertainty=placed)
+    assert fast.figures["w_c"] > 1.2 * wide.figures["w_c"]
+    assert margins(linear_plant(true, DRIVE), fast.Kp, fast.Ti, fast.T_f, fast.notch).meets(45.0 - 1.0, 6.0 - 0.2)
+
+
+@pytest.mark.parametrize("true_V_J, measured_V_J", [(0.5, 0.5), (2.0, 1.0)])
+def test_a_measured_plateau_bounds_the_worst_cases_of_a_resonance_a_stiff_answer_lacks(true_V_J, measured_V_J):
+    """A stiff answer whose plant has a 400 Hz mode the measurement found: above it the measured over
+    the one-mass model's magnitude is the plateau 1 + V_J, and the worst cases' V_J reach at most 1.5
+    x that, less 1 (not the class's 5), so the loop is faster than with the class's worst cases; it
+    keeps PM >= 45 deg and GM >= 6 dB on the true plant (lightly damped, d 0.005) also where the
+    measurement understates the plateau by a third (V_J 2 measured as 1)."""
+    from training.commissioning import linear_plant, margins
+
+    J, spec = 0.05, ControllerSpec()
+    bands = {v: (5.0, 0.45 / DRIVE.T_s) for v in spec.class_V_J}
+    measured = replace(_response(Mechanics(J, V_J=measured_V_J, f_e=400.0, d=0.005), Mechanics(J)),
+                       resonances=(2 * math.pi * 400.0,))
+    capped = uncertainty_set({"J_sigma": J}, spec, hidden=bands, measured=measured)
+    cap = 1.5 * (1 + measured_V_J) - 1
+    assert max(capped.measured_V_Js(2 * math.pi * 400.0)) == pytest.approx(cap, rel=0.1)
+    assert min(capped.measured_V_Js(2 * math.pi * 400.0)) == 0.2
+    blind = replace(measured, model=None)  # no model to compare with: the class's worst cases
+    assert uncertainty_set({"J_sigma": J}, spec, hidden=bands, measured=blind).measured_V_Js(2 * math.pi * 400.0) == spec.class_V_J
+    fast = propose_controller("stiff", {"J_sigma": J}, DRIVE, spec, uncertainty=capped)
+    slow = propose_controller("stiff", {"J_sigma": J}, DRIVE, spec, uncertainty=uncertainty_set(
+        {"J_sigma": J}, spec, hidden=bands, measured=blind))
+    assert fast.figures["w_c"] > slow.figures["w_c"]
+    true = linear_plant(Mechanics(J, V_J=true_V_J, f_e=400.0, d=0.005), DRIVE)
+    assert margins(true, fast.Kp, fast.Ti, fast.T_f, fast.notch).meets(45.0 - 1.0, 6.0 - 0.2)
