@@ -70,7 +70,8 @@ class MechanicsBounds:
     ``J_sigma`` [kg m^2], ``V_J`` [-], ``f_e`` [Hz], ``d`` [-] and ``J_M`` [kg m^2] (the motor alone:
     a backlash plant's decoupled motor). Built from the identification's calibrated 90 % intervals
     (:meth:`from_intervals`, SPEC 4.1 and 8.2); ``widened`` says what rule R7c (:meth:`widen`) and a
-    measured resonance (:meth:`placed`) made of them (empty: the intervals as they are). Checked on construction: finite, ``0 <= low <= high``, and a
+    measured resonance (:meth:`placed`) made of them (empty: the intervals as they are). Checked on
+    construction: finite, ``0 <= low <= high``, and a
     positive low end of ``J_sigma``, ``f_e`` and ``J_M``."""
 
     J_sigma: tuple[float, float]
