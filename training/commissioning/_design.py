@@ -71,8 +71,8 @@ class MechanicsBounds:
     a backlash plant's decoupled motor). Built from the identification's calibrated 90 % intervals
     (:meth:`from_intervals`, SPEC 4.1 and 8.2); ``widened`` says what rule R7c (:meth:`widen`) and a
     measured resonance (:meth:`placed`) made of them (empty: the intervals as they are). Checked on
-    construction: finite, ``0 <= low <= high``, and a
-    positive low end of ``J_sigma``, ``f_e`` and ``J_M``."""
+    construction: finite, ``0 <= low <= high``, and a positive low end of ``J_sigma``, ``f_e`` and
+    ``J_M``."""
 
     J_sigma: tuple[float, float]
     V_J: tuple[float, float]
