@@ -308,3 +308,8 @@ def test_not_worse_compares_what_a_linear_loop_does_not_scale():
     assert _not_worse(run(0.05, 0.4), plan(4.0), run(0.1, 0.2), plan(1.0)) == ""  # dip 0.1 vs 0.2 rad/s per Nm
     assert "settles" in _not_worse(run(0.2, 0.1), plan(1.0), run(0.1, 0.1), plan(1.0))
     assert "dip" in _not_worse(run(0.05, 0.4), plan(1.0), run(0.1, 0.2), plan(1.0))
+    # a tolerance of 10 %: 9 % slower (a settling time moves by half a residual period) is not worse, 11 % is
+    assert _not_worse(run(0.109, 0.1), plan(1.0), run(0.1, 0.1), plan(1.0), 0.1) == ""
+    assert "settles in 0.111 s" in _not_worse(run(0.111, 0.1), plan(1.0), run(0.1, 0.1), plan(1.0), 0.1)
+    assert _not_worse(run(0.1, 0.218), plan(2.0), run(0.1, 0.1), plan(1.0), 0.1) == ""  # 0.109 vs 0.1 rad/s per Nm
+    assert "dip" in _not_worse(run(0.1, 0.222), plan(2.0), run(0.1, 0.1), plan(1.0), 0.1)
