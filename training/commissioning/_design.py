@@ -103,14 +103,16 @@ class MechanicsBounds:
         except (KeyError, TypeError) as err:
             raise ValueError(f"intervals: expected (low, high) for each of {list(BOUNDED_PARAMETERS)}: {err}") from None
 
-    def placed(self, f_peak: float, spread: float) -> MechanicsBounds:
+    def placed(self, f_peak: float, spread: float, *, gap: bool = False) -> MechanicsBounds:
         """``f_e`` narrowed to the measured resonance ``f_peak`` [Hz] x(1 -+ ``spread``) where that
         lies inside the bounds (the frequency response places a resonance to a line's spacing; the
-        test run's fit, to its calibrated interval); the bounds as they are where it does not."""
-        low, high = max(self.f_e[0], f_peak * (1 - spread)), min(self.f_e[1], f_peak * (1 + spread))
+        test run's fit, to its calibrated interval); the bounds as they are where it does not. On a
+        backlash plant (``gap``) from below only: the small-signal measurement sees the shaft
+        softened by the gap (a resonance that falls with the amplitude), the closed gap's is higher."""
+        low, high = max(self.f_e[0], f_peak * (1 - spread)), self.f_e[1] if gap else min(self.f_e[1], f_peak * (1 + spread))
         if not self.f_e[0] <= f_peak <= self.f_e[1] or (low, high) == self.f_e:
             return self
-        note = f"f_e placed by the measured resonance at {f_peak:.4g} Hz (+-{spread:.0%})"
+        note = f"f_e {'bounded from below' if gap else 'placed'} by the measured resonance at {f_peak:.4g} Hz (+-{spread:.0%})"
         return replace(self, f_e=(low, high), widened="; ".join(filter(None, (self.widened, note))))
 
     def widen(self, mechanics: Mechanics, spread: float, damping: float, why: str) -> MechanicsBounds:
@@ -150,6 +152,12 @@ def measured_peaks(measured: MeasuredResponse, J_sigma: float, *, min_ratio: flo
 #: How far [share] a resonance the measured frequency response places may lie from the line it peaks on.
 MEASURED_F_SPREAD = 0.05
 
+#: The measured response tells the current-loop variants apart where the pessimistic one lags the
+#: nominal by at least this much [deg] (a few hundred Hz at 4 kHz: well above friction's lead) ...
+VARIANT_CHECK_LAG_DEG = 30.0
+#: ... on at least this many coherent lines.
+VARIANT_CHECK_LINES = 5
+
 
 class Member(NamedTuple):
     """One mechanic of an :class:`UncertaintySet`: its ``mechanics``, ``label``, whether it is a
@@ -188,7 +196,10 @@ class UncertaintySet:
     Its ratio of inertias is: where the measurement reaches above it, the measured over the
     one-mass model's magnitude there (:meth:`MeasuredResponse.inertia_ratio` over ``inertia_band``
     x the resonance: ``1 + V_J``) bounds the worst cases' ``V_J`` to ``inertia_factor`` x that
-    ratio, less 1 (:meth:`measured_V_Js`).
+    ratio, less 1 (:meth:`measured_V_Js`). ``variant_lag_share``: where the measured response
+    shows at most this share of the variant's extra phase lag (:meth:`variant_lag`), the drive
+    follows the SPEC's first-order current loop and the members are taken without the variant
+    (None: always with it).
     """
 
     mechanics: Mechanics
@@ -209,6 +220,7 @@ class UncertaintySet:
     doubts: tuple[str, ...] = ()
     bounds: MechanicsBounds | None = None
     gap_open_margins: tuple[float, float] = GAP_OPEN_MARGINS
+    variant_lag_share: float | None = None
 
     def __post_init__(self) -> None:
         if self.bounds is not None and not isinstance(self.bounds, MechanicsBounds):
@@ -286,25 +298,54 @@ class UncertaintySet:
         model), then every member with the second-order current loop and the extra delay (the
         pessimistic variant for the spread), the hidden resonances also as they are (a light
         resonance high up is gain-stabilized less by the first-order loop); the measured response last.
+        Where the measured response shows the drive's loop as the SPEC's (:meth:`follows_nominal`),
+        every member as it is, without the variant.
         The load peak counts on the identified mechanic's members, not on the hidden resonances:
         those sit at the envelope's lowest damping, a worst case for stability; a load held below
         6 dB there would bind any loop to a fiftieth of their anti-resonance, whatever the plant."""
+        nominal = self.follows_nominal(drive)
+        variant = {} if nominal else {"current_loop_damping": self.current_loop_damping, "extra_delay": self.extra_delay}
+        suffix = "" if nominal else f", 2nd-order current loop, +{self.extra_delay} sample delay"
         plants, labels, checked, transient = [linear_plant(self.mechanics, drive)], [_label(self.mechanics)], [True], [False]
-        variant = f", 2nd-order current loop, +{self.extra_delay} sample delay"
         for i, (mech, label, hidden, passing) in enumerate(self.members()):
-            load = not hidden
-            if i and hidden:
-                plants.append(linear_plant(mech, drive))
-                labels.append(label)
-                checked.append(load)
+            loops = [({}, label)] if i and hidden and not nominal else []
+            if i or not nominal:  # the identified mechanic as it is is the first model already
+                loops.append((variant, label + suffix))
+            for loop, name in loops:
+                plants.append(linear_plant(mech, drive, **loop))
+                labels.append(name)
+                checked.append(not hidden)
                 transient.append(passing)
-            plants.append(linear_plant(mech, drive, current_loop_damping=self.current_loop_damping, extra_delay=self.extra_delay))
-            labels.append(label + variant)
-            checked.append(load)
-            transient.append(passing)
         return ModelSet(tuple(plants), tuple(labels), self.measured, tuple(checked), tuple(transient), self.gap_open_margins)
 
-    def describe(self) -> str:
+    def variant_lag(self, drive: Any) -> float | None:
+        """The share of the pessimistic variant's extra phase lag (second-order current loop, extra
+        delay) that the measured response shows over the identified mechanic's nominal response:
+        the median of ``angle(G / G_nominal) / angle(G_variant / G_nominal)`` over the measured lines
+        where the variant lags by at least :data:`VARIANT_CHECK_LAG_DEG` (about 1: the drive lags as
+        the variant does; about 0 or below: as the SPEC's loop). None: no measurement, or fewer than
+        :data:`VARIANT_CHECK_LINES` such lines (the measurement does not reach where they differ)."""
+        if self.measured is None:
+            return None
+        z = np.exp(1j * np.asarray(self.measured.w) * drive_value(drive, "T_s"))
+        G_n = linear_plant(self.mechanics, drive).speed_response(z)
+        G_v = linear_plant(self.mechanics, drive, current_loop_damping=self.current_loop_damping,
+                           extra_delay=self.extra_delay).speed_response(z)
+        lag = np.angle(G_v / G_n)
+        where = lag <= -math.radians(VARIANT_CHECK_LAG_DEG)
+        if where.sum() < VARIANT_CHECK_LINES:
+            return None
+        return float(np.median(np.angle(np.asarray(self.measured.G)[where] / G_n[where]) / lag[where]))
+
+    def follows_nominal(self, drive: Any) -> bool:
+        """Whether the measured response shows the drive's current loop as the SPEC's: at most
+        :attr:`variant_lag_share` of the variant's extra lag (:meth:`variant_lag`)."""
+        if self.variant_lag_share is None:
+            return False
+        share = self.variant_lag(drive)
+        return share is not None and share <= self.variant_lag_share
+
+    def describe(self, drive: Any = None) -> str:
         """One line: what the set holds."""
         m, b, parts = self.mechanics, self.bounds, []
         if b is not None:
@@ -329,7 +370,11 @@ class UncertaintySet:
                 V_Js = sorted({v for w in self.measured.resonances for v in self.measured_V_Js(w)})
                 parts.append(f"the measured resonances ({found} Hz) at V_J {', '.join(f'{v:.3g}' for v in V_Js)}, "
                              f"d {self.hidden_d:g}, f +-{self.measured_f_spread:.0%}")
-        parts.append(f"each with a 2nd-order current loop (D {self.current_loop_damping:.3g}) +{self.extra_delay} sample delay")
+        if drive is not None and self.follows_nominal(drive):
+            parts.append(f"each with the SPEC's first-order current loop alone (the measured response shows {max(self.variant_lag(drive), 0.0):.0%} "
+                         f"of the extra lag of a 2nd-order loop with +{self.extra_delay} sample delay)")
+        else:
+            parts.append(f"each with a 2nd-order current loop (D {self.current_loop_damping:.3g}) +{self.extra_delay} sample delay")
         return "; ".join(parts)
 
 

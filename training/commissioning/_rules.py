@@ -43,7 +43,8 @@ class ControllerSpec:
     (:class:`training.commissioning._design.UncertaintySet`): the identified mechanic and its
     spread (the identification's calibrated intervals where it has them, else the interim
     half-widths ``f_e_spread``, ``V_J_spread`` and damping factors ``d_scale``), each with the SPEC's current loop and with a second-order lag of damping
-    ``current_loop_damping`` plus ``extra_delay`` samples of dead time.
+    ``current_loop_damping`` plus ``extra_delay`` samples of dead time (the latter left out where a
+    measured frequency response shows the SPEC's loop, ``variant_lag_share``).
 
     Fallback F1 (:func:`propose_cautious`): the worst case of the class over ``class_V_J`` and the
     eigenfrequency band the test run allows (inside ``class_f_e``) at damping ``class_d``.
@@ -63,6 +64,10 @@ class ControllerSpec:
     """Damping of the current loop as a second-order lag in the set's pessimistic models."""
     extra_delay: int = 1
     """Samples of dead time the set's pessimistic models add."""
+    variant_lag_share: float = 1 / 3
+    """Where the plant's frequency response was measured and shows at most this share of the
+    pessimistic variant's extra phase lag (median over the coherent lines where that lag reaches
+    30 deg), the drive's current loop is the SPEC's: the set is taken without the variant."""
     min_coherence: float = 0.8
     """A measured frequency response counts where its coherence reaches this."""
     peak_ratio: float = 2.0
@@ -94,6 +99,7 @@ _SPEC_CONSTRAINTS: dict[str, Constraint] = {
     "min_phase_margin": Interval(0.0, 90.0), "min_gain_margin_dB": NON_NEGATIVE,
     "f_e_spread": Interval(0.0, 1.0, open_high=True), "V_J_spread": Interval(0.0, 1.0, open_high=True),
     "d_scale": Pair(POSITIVE), "current_loop_damping": POSITIVE, "extra_delay": Interval(0, integer=True),
+    "variant_lag_share": Interval(0.0, 1.0),
     "min_coherence": Interval(0.0, 1.0), "peak_ratio": POSITIVE, "search": InstanceOf(DesignSearch),
     "class_d": NON_NEGATIVE, "class_points_per_decade": POSITIVE, "class_min_points": Interval(1, integer=True),
     "class_f_e": Pair(POSITIVE), "class_V_J": Values(POSITIVE, empty=False), "gap_open_phase_margin": Interval(0.0, 90.0),
@@ -192,7 +198,8 @@ def uncertainty_set(mechanics: Any, spec: ControllerSpec, *, structure: str = "s
     least that relative half-width and the damping's low end to at most ``damping`` x the identified
     ``d`` (on either); a backlash ``structure`` adds the decoupled motor (R6); ``hidden`` (R7b)
     unless ``measured`` (its trusted part, coherence >= ``spec.min_coherence``); a measured
-    resonance inside the bounds' ``f_e`` places them (:meth:`MechanicsBounds.placed`)."""
+    resonance inside the bounds' ``f_e`` places them (:meth:`MechanicsBounds.placed`; from below
+    only on a backlash plant)."""
     m = mechanics_from(mechanics)
     trusted = trusted_response(measured, spec.min_coherence) if measured is not None else None
     wide = 0.0 if spread is None else spread
@@ -202,13 +209,13 @@ def uncertainty_set(mechanics: Any, spec: ControllerSpec, *, structure: str = "s
                               f"R7c widened to f_e, V_J +-{wide:.0%} and d from x{1.0 if damping is None else damping:g} at least")
     if bounds is not None and trusted is not None and m.two_mass:
         peak = measured_peaks(trusted, m.J_sigma, min_ratio=spec.peak_ratio, most=1)
-        bounds = bounds.placed(peak[0], MEASURED_F_SPREAD) if peak else bounds
+        bounds = bounds.placed(peak[0], MEASURED_F_SPREAD, gap=structure in _BACKLASH) if peak else bounds
     return UncertaintySet(m, f_e_spread=max(spec.f_e_spread, wide), V_J_spread=max(spec.V_J_spread, wide),
                           d_scale=(d_low, spec.d_scale[1]), bounds=bounds,
                           current_loop_damping=spec.current_loop_damping, extra_delay=spec.extra_delay,
                           decoupled_motor=structure in _BACKLASH and m.two_mass, hidden=hidden, hidden_d=spec.class_d,
                           hidden_points_per_decade=spec.class_points_per_decade, hidden_min_points=spec.class_min_points,
-                          measured=trusted, doubts=doubts,
+                          measured=trusted, doubts=doubts, variant_lag_share=spec.variant_lag_share,
                           gap_open_margins=(spec.gap_open_phase_margin, spec.gap_open_gain_margin_dB))
 
 
@@ -286,7 +293,7 @@ def r7_model_set(inputs: DesignInputs, design: Design) -> Design:
     test cannot exclude, or the measured frequency response in their place)."""
     u = inputs.uncertainty
     models = u.models(inputs.drive)
-    design = design.noted(f"R7 the guarantee's set ({len(models.plants) + (models.measured is not None)} models): {u.describe()}",
+    design = design.noted(f"R7 the guarantee's set ({len(models.plants) + (models.measured is not None)} models): {u.describe(inputs.drive)}",
                           models=models)
     if u.hidden and u.measured is None:
         design = design.noted(f"R7b resonances the test cannot exclude in the guarantee: {_bands_text(u.hidden)} (d {u.hidden_d:g})")

@@ -181,7 +181,9 @@ def test_a_measured_resonance_places_the_sets_f_e_and_the_loop_gains():
     """An elastic answer at 300 Hz with a wide f_e interval (200..450 Hz) on a plant whose response,
     measured, peaks at 320 Hz: the set's f_e spans the measured peak +-5 % inside the interval, the
     R7 line says so, the loop is faster than on the interval alone and keeps PM >= 45 deg, GM >= 6 dB
-    on the true plant. A peak outside the interval leaves the interval as it is."""
+    on the true plant. On a backlash plant the peak bounds f_e from below only (the small-signal
+    measurement sees the shaft softened by the gap). A peak outside the interval leaves the interval
+    as it is."""
     from training.commissioning import linear_plant, margins
 
     answer = dict(ELASTIC, f_e=300.0, V_J=1.0, d=0.02)
@@ -192,6 +194,9 @@ def test_a_measured_resonance_places_the_sets_f_e_and_the_loop_gains():
     placed = uncertainty_set(answer, spec, structure="elastic", bounds=bounds, measured=measured)
     f_es, _, _ = placed.spans()
     assert 0.95 * 320.0 - 2.0 <= f_es[0] < f_es[-1] <= 1.05 * 320.0 + 2.0 and "measured resonance at" in placed.describe()
+    gap = uncertainty_set(answer, spec, structure="elastic_backlash", bounds=bounds, measured=measured)
+    assert gap.spans()[0][0] == placed.spans()[0][0] and gap.spans()[0][-1] == 450.0  # the closed gap's shaft may be stiffer
+    assert "bounded from below by the measured resonance" in gap.describe()
     far = uncertainty_set(answer, spec, structure="elastic", bounds=MechanicsBounds.from_intervals(
         _intervals(f_e=(200.0, 280.0), V_J=(0.8, 1.25), d=(0.01, 0.04))), measured=measured)
     assert far.spans()[0][0] == 200.0 and far.spans()[0][-1] == 280.0

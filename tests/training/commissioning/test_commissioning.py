@@ -272,18 +272,21 @@ def test_a_redesign_is_run_and_delivered_only_where_not_worse(stub, monkeypatch)
     from training.commissioning import _chain
 
     first = _chain._propose
-    calls = []
+    calls, designed = [], []
 
     def propose(run):
         calls.append(run.state.measured)
         proposal = first(run)
-        return proposal if run.state.measured is None else proposal.with_gains(
-            run.config, proposal.Kp * 0.9, proposal.Ti * 1.2, proposal.T_f, rule="test: a redesign, a lower gain")
+        if run.state.measured is None:
+            return proposal
+        designed.append(proposal.Kp)
+        return proposal.with_gains(run.config, proposal.Kp * 0.9, proposal.Ti * 1.2, proposal.T_f,
+                                   rule="test: a redesign, a lower gain")
 
     monkeypatch.setattr(_chain, "_propose", propose)
     rep = commission(sim.SimulatedDrive(ELASTIC), LIMITS, identifier=stub("elastic", ELASTIC), config=MEASURING)
     assert calls[0] is None and calls[-1] is rep.measured is not None
-    assert rep.redesign is not None and rep.redesign.Kp == pytest.approx(0.9 * rep.proposal.Kp)
+    assert rep.redesign is not None and rep.redesign.Kp == pytest.approx(0.9 * designed[-1])
     assert len(rep.redesign_runs) >= 1 and rep.redesign_reason
     kinds = [r["kind"] for r in rep.checks["runs"]]
     assert kinds.count("frequency response") == 1 and any(k.startswith("redesign") for k in kinds)

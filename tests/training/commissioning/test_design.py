@@ -20,6 +20,7 @@ from training.commissioning import CommissioningConfig, ControllerSpec, NotchSpe
 from training.commissioning._bands import hidden_bands  # noqa: E402
 from training.commissioning._chain import UNCERTAIN_CODES, ChainState, _propose, _uncertain  # noqa: E402
 from training.commissioning._design import GAP_OPEN_MARGINS, elastic_doubts, optimize_loop  # noqa: E402
+from training.commissioning._rules import uncertainty_set  # noqa: E402
 from training.commissioning._frf import MeasuredResponse  # noqa: E402
 from training.commissioning._loop import Mechanics, ModelSet, load_peak_dB  # noqa: E402
 
@@ -281,3 +282,35 @@ def test_a_placed_resonance_gets_a_narrow_notch_where_the_set_allows_it():
     for plant in models.plants:
         m = margins(plant, narrow.Kp, narrow.Ti, narrow.T_f, narrow.notches)
         assert m.meets(45.0, 6.0) and load_peak_dB(plant, narrow.Kp, narrow.Ti, narrow.T_f, narrow.notches) <= 6.0 + 1e-9
+
+
+@pytest.mark.parametrize("mech", [Mechanics(0.05), Mechanics(0.05, V_J=1.0, f_e=120.0, d=0.03)], ids=["stiff", "elastic"])
+def test_the_measured_phase_tells_the_drives_current_loop(mech):
+    """The set's pessimistic variant (2nd-order current loop, +1 sample delay) stays where the
+    measured response lags as it does and is left out where the response follows the SPEC's
+    first-order loop; a measurement that does not reach where the two differ keeps it. The loop
+    designed without it is faster and keeps its margins on the plant that was measured."""
+    spec = ControllerSpec()
+    nominal_plant = linear_plant(mech, DRIVE)
+    variant_plant = linear_plant(mech, DRIVE, current_loop_damping=spec.current_loop_damping, extra_delay=spec.extra_delay)
+    structure = "elastic" if mech.two_mass else "stiff"
+    params = dataclasses.asdict(mech) if mech.two_mass else {"J_sigma": mech.J_sigma}
+    designs = {}
+    for name, plant in (("nominal", nominal_plant), ("variant", variant_plant)):
+        measured = _measured(plant, 0.01)
+        u = uncertainty_set(params, spec, structure=structure, measured=measured)
+        share = u.variant_lag(DRIVE)
+        assert share == pytest.approx(0.0 if name == "nominal" else 1.0, abs=0.1)
+        assert u.follows_nominal(DRIVE) == (name == "nominal")
+        labels = u.models(DRIVE).labels
+        assert any("2nd-order" in lab for lab in labels) == (name == "variant")
+        prop = propose_controller(structure, params, DRIVE, spec, measured=measured)
+        m = margins(plant, prop.Kp, prop.Ti, prop.T_f, prop.notch)
+        assert m.stable and m.meets(45.0 - 0.5, 6.0 - 0.2)
+        designs[name] = prop.figures["w_c"]
+    assert designs["nominal"] > 1.2 * designs["variant"]  # measured: 632 against 499 rad/s stiff, 300 against 163 elastic
+    low = _measured(nominal_plant, 0.01)
+    keep = low.w < 2 * math.pi * 100.0  # the measurement ends at 100 Hz: the loops hardly differ there
+    low = MeasuredResponse(w=low.w[keep], G=low.G[keep], coherence=low.coherence[keep], T_s=low.T_s)
+    u = uncertainty_set(params, spec, structure=structure, measured=low)
+    assert u.variant_lag(DRIVE) is None and not u.follows_nominal(DRIVE)
