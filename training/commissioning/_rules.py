@@ -66,7 +66,7 @@ class ControllerSpec:
     """Samples of dead time the set's pessimistic models add."""
     variant_lag_share: float = 1 / 3
     """Where the plant's frequency response was measured and shows at most this share of the
-    pessimistic variant's extra phase lag (median over the coherent lines where that lag reaches
+    pessimistic variant's extra phase lag (upper quartile over the coherent lines where that lag reaches
     30 deg), the drive's current loop is the SPEC's: the set is taken without the variant."""
     min_coherence: float = 0.8
     """A measured frequency response counts where its coherence reaches this."""
