@@ -373,13 +373,16 @@ class UncertaintySet:
                 V_Js = sorted({v for w in self.measured.resonances for v in self.measured_V_Js(w)})
                 parts.append(f"the measured resonances ({found} Hz) at V_J {', '.join(f'{v:.3g}' for v in V_Js)}, "
                              f"d {self.hidden_d:g}, f +-{self.measured_f_spread:.0%}")
+        parts.append(self._loops_text(drive))
+        return "; ".join(parts)
+
+    def _loops_text(self, drive: Any) -> str:
+        """What current loop the members carry (:meth:`describe`; ``drive`` None: not checked)."""
         share = None if drive is None or self.variant_lag_share is None else self.variant_lag(drive)
         if share is not None and share <= self.variant_lag_share:  # follows_nominal, the share said
-            parts.append(f"each with the SPEC's first-order current loop alone (the measured response shows {max(share, 0.0):.0%} "
-                         f"of the extra lag of a 2nd-order loop with +{self.extra_delay} sample delay)")
-        else:
-            parts.append(f"each with a 2nd-order current loop (D {self.current_loop_damping:.3g}) +{self.extra_delay} sample delay")
-        return "; ".join(parts)
+            return (f"each with the SPEC's first-order current loop alone (the measured response shows {max(share, 0.0):.0%} "
+                    f"of the extra lag of a 2nd-order loop with +{self.extra_delay} sample delay)")
+        return f"each with a 2nd-order current loop (D {self.current_loop_damping:.3g}) +{self.extra_delay} sample delay"
 
 
 def _label(m: Mechanics) -> str:
