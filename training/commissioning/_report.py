@@ -210,7 +210,8 @@ class CommissioningReport:
             "tuning": None if self.tuning is None else {
                 "model_cost_proposal": self.tuning.cost_proposal, "model_cost_tuned": self.tuning.cost_tuned,
                 "n_evaluations": self.tuning.n_evaluations, "rejected_for_margins": self.tuning.rejected,
-                "rejected_for_load_peak": self.tuning.rejected_load, "changed": self.tuning.changed,
+                "rejected_for_load_peak": self.tuning.rejected_load,
+                "rejected_for_crossover": self.tuning.rejected_crossover, "changed": self.tuning.changed,
                 "gains_before": _gains(self.tuning.proposal), "gains_after": _gains(self.tuning.controller),
                 "load_peak_dB_before": self.tuning.load_peak_proposal, "load_peak_dB_after": self.tuning.load_peak_tuned,
                 "changes": self.tuning.changes(), "warnings": list(self.tuning.warnings)},
@@ -307,7 +308,7 @@ class CommissioningReport:
         if self.tuning is not None:
             t = self.tuning
             L.append(f"6 tuning on the identified model ({t.n_evaluations} evaluations, {t.rejected} rejected for the margins, "
-                     f"{t.rejected_load} for the load peak): {t.changes()}")
+                     f"{t.rejected_load} for the load peak, {t.rejected_crossover} for the crossover): {t.changes()}")
         L += self._runs_lines(self.runs, ("proposal", "tuned", "between"), experiment=not self.redesign_kept)
         return L
 
