@@ -199,7 +199,8 @@ class UncertaintySet:
     ratio, less 1 (:meth:`measured_V_Js`). ``variant_lag_share``: where the measured response
     shows at most this share of the variant's extra phase lag (:meth:`variant_lag`), the drive
     follows the SPEC's first-order current loop and the members are taken without the variant
-    (None: always with it).
+    (None: always with it). ``hidden_kept``: the measured response, coherent on too few of its lines
+    to have shown a resonance where it is not, leaves :attr:`hidden` in the set beside it.
     """
 
     mechanics: Mechanics
@@ -221,6 +222,7 @@ class UncertaintySet:
     bounds: MechanicsBounds | None = None
     gap_open_margins: tuple[float, float] = GAP_OPEN_MARGINS
     variant_lag_share: float | None = None
+    hidden_kept: bool = False
 
     def __post_init__(self) -> None:
         if self.bounds is not None and not isinstance(self.bounds, MechanicsBounds):
@@ -267,7 +269,7 @@ class UncertaintySet:
                     out.append(Member(end, f"J_sigma {J:.4g} kg m^2, " + _label(end) if m.two_mass else _label(end)))
         if m.two_mass and self.decoupled_motor:
             out.append(Member(Mechanics(self.decoupled_J(), mu_F=m.mu_F), "decoupled motor (backlash gap open)", transient=True))
-        if self.hidden and self.measured is None:
+        if self.hidden and (self.measured is None or self.hidden_kept):
             out += [Member(h, f"hidden resonance {_label(h)}", hidden=True)
                     for h in _hidden_mechanics(m.J_sigma, self.hidden, self.hidden_d, self.hidden_points_per_decade,
                                                self.hidden_min_points)]
@@ -364,11 +366,11 @@ class UncertaintySet:
             pm, gm = self.gap_open_margins
             parts.append(f"the decoupled motor {'J_sigma/(1+V_J)' if b is None else 'J_M'} = {self.decoupled_J():.4g} kg m^2 "
                          f"(gap open: PM >= {pm:g} deg, GM >= {gm:g} dB)")
-        if self.hidden and self.measured is None:
+        if self.hidden and (self.measured is None or self.hidden_kept):
             parts.append("hidden resonances " + ", ".join(f"V_J {v:g}: {lo:.3g}..{hi:.3g} Hz" for v, (lo, hi) in self.hidden.items()))
         if self.measured is not None:
             parts.append(f"the measured response at {len(self.measured.w)} frequencies")
-            if self.hidden and self.measured.resonances:
+            if self.hidden and not self.hidden_kept and self.measured.resonances:
                 found = ", ".join(f"{w / (2 * math.pi):.4g}" for w in self.measured.resonances)
                 V_Js = sorted({v for w in self.measured.resonances for v in self.measured_V_Js(w)})
                 parts.append(f"the measured resonances ({found} Hz) at V_J {', '.join(f'{v:.3g}' for v in V_Js)}, "

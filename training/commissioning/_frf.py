@@ -107,6 +107,10 @@ class MeasuredResponse:
     resonances: tuple[float, ...] = ()
     amplitude: float = math.nan
 
+    def coherent_share(self, min_coherence: float) -> float:
+        """The share of the lines whose coherence reaches ``min_coherence`` (0 without lines)."""
+        return float(np.mean(np.asarray(self.coherence) >= min_coherence)) if len(self.coherence) else 0.0
+
     def model_gain_ratio(self, w_c: float, min_coherence: float) -> float | None:
         """The median of ``|G / model|`` over the coherent lines within ``w_c / 3 .. 3 w_c`` [rad/s]
         (None: no model, or no such line)."""

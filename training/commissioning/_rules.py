@@ -70,6 +70,10 @@ class ControllerSpec:
     30 deg), the drive's current loop is the SPEC's: the set is taken without the variant."""
     min_coherence: float = 0.8
     """A measured frequency response counts where its coherence reaches this."""
+    min_coherent_share: float = 0.5
+    """R7b: the measured response replaces the resonances the test cannot exclude only where at least
+    this share of its lines counts (``min_coherence``); below it (a gap rattling at the measurement's
+    small amplitude, friction) it could not have shown them, and they stay in the set beside it."""
     peak_ratio: float = 2.0
     """A measured resonance peak: the response this many times the one-mass inertia's (6 dB); a notch may sit there."""
     search: DesignSearch = SEARCH
@@ -100,7 +104,7 @@ _SPEC_CONSTRAINTS: dict[str, Constraint] = {
     "f_e_spread": Interval(0.0, 1.0, open_high=True), "V_J_spread": Interval(0.0, 1.0, open_high=True),
     "d_scale": Pair(POSITIVE), "current_loop_damping": POSITIVE, "extra_delay": Interval(0, integer=True),
     "variant_lag_share": Interval(0.0, 1.0),
-    "min_coherence": Interval(0.0, 1.0), "peak_ratio": POSITIVE, "search": InstanceOf(DesignSearch),
+    "min_coherence": Interval(0.0, 1.0), "min_coherent_share": Interval(0.0, 1.0), "peak_ratio": POSITIVE, "search": InstanceOf(DesignSearch),
     "class_d": NON_NEGATIVE, "class_points_per_decade": POSITIVE, "class_min_points": Interval(1, integer=True),
     "class_f_e": Pair(POSITIVE), "class_V_J": Values(POSITIVE, empty=False), "gap_open_phase_margin": Interval(0.0, 90.0),
     "gap_open_gain_margin_dB": NON_NEGATIVE,
@@ -202,6 +206,7 @@ def uncertainty_set(mechanics: Any, spec: ControllerSpec, *, structure: str = "s
     only on a backlash plant)."""
     m = mechanics_from(mechanics)
     trusted = trusted_response(measured, spec.min_coherence) if measured is not None else None
+    coherent = 0.0 if measured is None else measured.coherent_share(spec.min_coherence)
     wide = 0.0 if spread is None else spread
     d_low = spec.d_scale[0] if damping is None else min(spec.d_scale[0], damping)
     if bounds is not None and (spread is not None or damping is not None):
@@ -216,7 +221,8 @@ def uncertainty_set(mechanics: Any, spec: ControllerSpec, *, structure: str = "s
                           decoupled_motor=structure in _BACKLASH and m.two_mass, hidden=hidden, hidden_d=spec.class_d,
                           hidden_points_per_decade=spec.class_points_per_decade, hidden_min_points=spec.class_min_points,
                           measured=trusted, doubts=doubts, variant_lag_share=spec.variant_lag_share,
-                          gap_open_margins=(spec.gap_open_phase_margin, spec.gap_open_gain_margin_dB))
+                          gap_open_margins=(spec.gap_open_phase_margin, spec.gap_open_gain_margin_dB),
+                          hidden_kept=bool(hidden) and measured is not None and coherent < spec.min_coherent_share)
 
 
 def robust_models(mechanics: Any, config: Any, spec: ControllerSpec, *,
@@ -295,7 +301,10 @@ def r7_model_set(inputs: DesignInputs, design: Design) -> Design:
     models = u.models(inputs.drive)
     design = design.noted(f"R7 the guarantee's set ({len(models.plants) + (models.measured is not None)} models): {u.describe(inputs.drive)}",
                           models=models)
-    if u.hidden and u.measured is None:
+    if u.hidden and u.measured is not None and u.hidden_kept:
+        design = design.noted(f"R7b the measured frequency response is coherent on too few lines to exclude resonances: those the "
+                              f"test cannot exclude stay in the guarantee: {_bands_text(u.hidden)} (d {u.hidden_d:g})")
+    elif u.hidden and u.measured is None:
         design = design.noted(f"R7b resonances the test cannot exclude in the guarantee: {_bands_text(u.hidden)} (d {u.hidden_d:g})")
     elif u.hidden:
         design = design.noted("R7b the measured frequency response replaces the resonances the test cannot exclude")

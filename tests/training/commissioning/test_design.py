@@ -123,6 +123,28 @@ def test_a_measured_response_replaces_the_hidden_resonances():
     assert m.meets(45.0 - 1.0, 6.0 - 0.2) and meas.figures["w_c"] > hidden.figures["w_c"]
 
 
+def test_a_response_coherent_on_too_few_lines_leaves_the_hidden_resonances_in_the_set():
+    """The same plant measured coherently only below 150 Hz (a gap rattling at the measurement's small
+    amplitude, friction): the response could not have shown the 400 Hz mode, so it does not replace
+    the resonances the test cannot exclude; they stay beside it and the loop keeps its margins on the
+    true plant. Replacing them (the share asked 0) gives a loop that does not."""
+    J = 0.05
+    true = Mechanics(J, V_J=0.5, f_e=400.0, d=0.01)
+    spec = ControllerSpec()
+    bands, _ = hidden_bands({"M_star": 10.0, "osc_quanta": 0.5, "f_osc": 0.0}, J, DRIVE, spec.class_V_J, f_lo=5.0, min_osc_quanta=2.0)
+    full = _measured(linear_plant(true, DRIVE), 0.01)
+    low = replace(full, coherence=np.where(full.w < 2 * math.pi * 150.0, 0.95, 0.5))
+    assert low.coherent_share(spec.min_coherence) < spec.min_coherent_share <= full.coherent_share(spec.min_coherence)
+    kept = propose_controller("stiff", {"J_sigma": J}, DRIVE, spec, hidden=bands, measured=low)
+    assert kept.models.measured is not None and any(lab.startswith("hidden") for lab in kept.models.labels)
+    assert any(r.startswith("R7b the measured frequency response is coherent on too few lines") for r in kept.rules)
+    assert margins(linear_plant(true, DRIVE), kept.Kp, kept.Ti, kept.T_f, kept.notch).meets(45.0 - 1.0, 6.0 - 0.2)
+    trusting = propose_controller("stiff", {"J_sigma": J}, DRIVE, replace(spec, min_coherent_share=0.0), hidden=bands,
+                                  measured=low)
+    assert not any(lab.startswith("hidden") for lab in trusting.models.labels)
+    assert not margins(linear_plant(true, DRIVE), trusting.Kp, trusting.Ti, trusting.T_f, trusting.notch).meets(40.0, 6.0)
+
+
 def test_a_measured_resonance_keeps_its_worst_cases_where_the_measurement_understates_it():
     """The measurement places a resonance but may understate it (friction makes a small-signal
     measurement lead the plant): a stiff answer whose 440 Hz mode (V_J 2, d 0.005) was measured
