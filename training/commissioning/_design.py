@@ -241,6 +241,12 @@ class UncertaintySet:
             d_lo, d_hi = (m.d * s for s in self.d_scale)
         return tuple(dict.fromkeys(f_es)), tuple(dict.fromkeys(V_Js)), (min(d_lo, 0.999), min(d_hi, 0.999))
 
+    @property
+    def keeps_hidden(self) -> bool:
+        """Whether :attr:`hidden` is in the set: nothing measured, or a measurement that could not
+        exclude them (:attr:`hidden_kept`)."""
+        return bool(self.hidden) and (self.measured is None or self.hidden_kept)
+
     def decoupled_J(self) -> float:
         """The decoupled motor's inertia [kg m^2] (rule R6): the identified ``J_sigma / (1 + V_J)``, or
         the low end of :attr:`bounds`' ``J_M`` where that is lower (a lighter motor: more loop gain)."""
@@ -269,7 +275,7 @@ class UncertaintySet:
                     out.append(Member(end, f"J_sigma {J:.4g} kg m^2, " + _label(end) if m.two_mass else _label(end)))
         if m.two_mass and self.decoupled_motor:
             out.append(Member(Mechanics(self.decoupled_J(), mu_F=m.mu_F), "decoupled motor (backlash gap open)", transient=True))
-        if self.hidden and (self.measured is None or self.hidden_kept):
+        if self.keeps_hidden:
             out += [Member(h, f"hidden resonance {_label(h)}", hidden=True)
                     for h in _hidden_mechanics(m.J_sigma, self.hidden, self.hidden_d, self.hidden_points_per_decade,
                                                self.hidden_min_points)]
@@ -366,7 +372,7 @@ class UncertaintySet:
             pm, gm = self.gap_open_margins
             parts.append(f"the decoupled motor {'J_sigma/(1+V_J)' if b is None else 'J_M'} = {self.decoupled_J():.4g} kg m^2 "
                          f"(gap open: PM >= {pm:g} deg, GM >= {gm:g} dB)")
-        if self.hidden and (self.measured is None or self.hidden_kept):
+        if self.keeps_hidden:
             parts.append("hidden resonances " + ", ".join(f"V_J {v:g}: {lo:.3g}..{hi:.3g} Hz" for v, (lo, hi) in self.hidden.items()))
         if self.measured is not None:
             parts.append(f"the measured response at {len(self.measured.w)} frequencies")

@@ -206,7 +206,6 @@ def uncertainty_set(mechanics: Any, spec: ControllerSpec, *, structure: str = "s
     only on a backlash plant)."""
     m = mechanics_from(mechanics)
     trusted = trusted_response(measured, spec.min_coherence) if measured is not None else None
-    coherent = 0.0 if measured is None else measured.coherent_share(spec.min_coherence)
     wide = 0.0 if spread is None else spread
     d_low = spec.d_scale[0] if damping is None else min(spec.d_scale[0], damping)
     if bounds is not None and (spread is not None or damping is not None):
@@ -222,7 +221,7 @@ def uncertainty_set(mechanics: Any, spec: ControllerSpec, *, structure: str = "s
                           hidden_points_per_decade=spec.class_points_per_decade, hidden_min_points=spec.class_min_points,
                           measured=trusted, doubts=doubts, variant_lag_share=spec.variant_lag_share,
                           gap_open_margins=(spec.gap_open_phase_margin, spec.gap_open_gain_margin_dB),
-                          hidden_kept=bool(hidden) and measured is not None and coherent < spec.min_coherent_share)
+                          hidden_kept=measured is not None and measured.coherent_share(spec.min_coherence) < spec.min_coherent_share)
 
 
 def robust_models(mechanics: Any, config: Any, spec: ControllerSpec, *,
@@ -301,11 +300,10 @@ def r7_model_set(inputs: DesignInputs, design: Design) -> Design:
     models = u.models(inputs.drive)
     design = design.noted(f"R7 the guarantee's set ({len(models.plants) + (models.measured is not None)} models): {u.describe(inputs.drive)}",
                           models=models)
-    if u.hidden and u.measured is not None and u.hidden_kept:
-        design = design.noted(f"R7b the measured frequency response is coherent on too few lines to exclude resonances: those the "
-                              f"test cannot exclude stay in the guarantee: {_bands_text(u.hidden)} (d {u.hidden_d:g})")
-    elif u.hidden and u.measured is None:
-        design = design.noted(f"R7b resonances the test cannot exclude in the guarantee: {_bands_text(u.hidden)} (d {u.hidden_d:g})")
+    if u.keeps_hidden:
+        lead = ("R7b resonances the test cannot exclude" if u.measured is None else "R7b the measured frequency response is "
+                "coherent on too few lines to exclude resonances: those the test cannot exclude stay")
+        design = design.noted(f"{lead} in the guarantee: {_bands_text(u.hidden)} (d {u.hidden_d:g})")
     elif u.hidden:
         design = design.noted("R7b the measured frequency response replaces the resonances the test cannot exclude")
     return design

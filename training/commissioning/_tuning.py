@@ -75,8 +75,8 @@ class SearchSettings:
     """A candidate's crossover on the identified model is at least this share of the proposal's (the
     design placed it at the largest the guarantee allows: SPEC 8.2's deliverable); below it, it is not a
     solution. The search shapes the loop within that bandwidth (the integral time, the filter, a higher
-    gain where the margins allow), never by giving it back: on 14 of the bench's 23 model-based plants
-    (reference drive, 20 rad/s) an unbounded search lowered the crossover by 2-22 % for a lower ITAE."""
+    gain where the margins allow), never by giving it back for a lower ITAE (docs/commissioning.md,
+    section 4, measures what that cost)."""
     phase_deficit_per_dB: float = 10.0
     """A candidate that misses the margins pays its phase deficit [deg] over this plus its gain deficit [dB]."""
     unstable_penalty: float = 100.0
