@@ -11,9 +11,9 @@ from collections.abc import Mapping
 from dataclasses import dataclass, fields
 from typing import Any, Protocol
 
-__all__ = ["Constraint", "Interval", "Values", "Pair", "OneOf", "OrNone", "InstanceOf", "POSITIVE", "NON_NEGATIVE", "SHARE",
-           "REAL", "NON_NEGATIVE_OR_INF", "POSITIVE_OR_INF", "REAL_OR_INF", "INTEGER", "COUNT", "AT_LEAST_ONE", "FLAG",
-           "check_settings"]
+__all__ = ["Constraint", "Interval", "Values", "Rows", "Pair", "OneOf", "OrNone", "InstanceOf", "POSITIVE",
+           "NON_NEGATIVE", "SHARE", "REAL", "NON_NEGATIVE_OR_INF", "POSITIVE_OR_INF", "REAL_OR_INF", "INTEGER", "COUNT",
+           "AT_LEAST_ONE", "FLAG", "check_settings"]
 
 
 class Constraint(Protocol):
@@ -117,6 +117,19 @@ class Values:
         count = (f"a tuple of {self.size} values" if self.size is not None
                  else "a tuple" if self.empty else "a non-empty tuple")
         return f"{count}{f' ({self.what})' if self.what else ''}, each {self.each.text()}"
+
+
+@dataclass(frozen=True)
+class Rows:
+    """A non-empty tuple of rows, each a tuple that keeps ``row`` (a :class:`Values`)."""
+
+    row: Values
+
+    def holds(self, value: Any) -> bool:
+        return isinstance(value, tuple) and bool(value) and all(self.row.holds(item) for item in value)
+
+    def text(self) -> str:
+        return f"a non-empty tuple of rows, each {self.row.text()}"
 
 
 @dataclass(frozen=True)

@@ -283,17 +283,20 @@ def refined_parameters(analysis: Analysis, refined: Refined | HiddenGap) -> tupl
     result keeps the one-mass answer. ``J_sigma``, ``M_FC``, ``mu_F``: the whole-record fit's
     where STEP 2's was not trusted; ``M_FC``, ``M_FCM``: STEP 2's Coulomb friction split between
     the load and the motor where the refinement split it (``M_FCM`` 0 where it found no motor share);
+    ``mu_F``, ``mu_FM``: its viscous friction so split where the restart split it (``mu_FM`` None
+    elsewhere: not estimated);
     ``M_L0``: the load torque the refined model carried (the analysis's where none was refined)."""
     fit = analysis.fit
     J_sigma, M_FC, mu_F = ((fit.J_sigma, max(fit.M_FC, 0.0), max(fit.mu_F, 0.0)) if refined.J_sigma is None
                            else (refined.J_sigma, refined.M_FC, refined.mu_F))
-    if refined.M_FCM is not None and refined.J_sigma is None:  # the split stage's load share
+    if refined.M_FCM is not None and refined.J_sigma is None:  # the split's load share
         M_FC = refined.M_FC
+        mu_F = mu_F if refined.mu_FM is None else refined.mu_F
     derived = two_mass_derived(J_sigma, refined.V_J, refined.f_e, refined.d)
     structure = spec_class(analysis, J_sigma, refined.V_J, refined.f_e, refined.d,
                            normalized_backlash(refined.backlash, analysis.M_N, derived.C_F))
     M_L0 = analysis.M_L0 if refined.M_L0 is None else refined.M_L0
-    one_mass = dict(J_sigma=J_sigma, M_FC=M_FC, mu_F=mu_F, M_L0=M_L0, M_FCM=refined.M_FCM or 0.0)
+    one_mass = dict(J_sigma=J_sigma, M_FC=M_FC, mu_F=mu_F, M_L0=M_L0, M_FCM=refined.M_FCM or 0.0, mu_FM=refined.mu_FM)
     if structure == "stiff":
         return structure, Parameters(**one_mass, backlash=0.0)
     # the backlash is measured even where the class calls it negligible (elastic)

@@ -53,7 +53,7 @@ def test_a_scaled_drive_gets_its_own_backlash(ident):
                                    TestSignalConfig(M_star=10 * k), scale=k))
     assert small.structure == ref.structure == "elastic_backlash"
     assert small.parameters.backlash == pytest.approx(PLANT["backlash"], rel=0.3)
-    assert small.parameters.backlash == pytest.approx(ref.parameters.backlash, rel=0.02)
+    assert small.parameters.backlash == pytest.approx(ref.parameters.backlash, rel=0.05)
     assert small.parameters.J_sigma == pytest.approx(k * ref.parameters.J_sigma, rel=1e-3)
     # M_N = 0.05 Nm lies below SPEC 3.1's 0.1 Nm: answered, and said
     assert "outside_envelope" in _codes(small) and "M_N" in small.quality.outside_envelope

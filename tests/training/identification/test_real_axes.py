@@ -40,6 +40,23 @@ def test_motor_friction_is_reported_as_the_motors_not_the_loads():
     assert answer.parameters.M_FC == pytest.approx(0.1, abs=0.01 * M_STAR)
 
 
+#: Stiff shafts with a gap, with the motor's viscous friction (and on the first its Coulomb friction):
+#: refined with all friction on the load, both were answered without their gap (0.4 and 7.5 % of it).
+GAP_AXES = {"both frictions": dict(J_sigma=0.0466, V_J=1.29, f_e=302.6, d=0.073, backlash=0.00078, M_FC=0.142,
+                                   mu_F=0.0003, M_FCM=0.141, mu_FM=0.0012),
+            "viscous only": dict(J_sigma=0.0467, V_J=3.70, f_e=199.1, d=0.057, backlash=0.00331, M_FC=0.199,
+                                 mu_F=0.00015, M_FCM=0.0, mu_FM=0.00085)}
+
+
+@pytest.mark.parametrize("plant", GAP_AXES.values(), ids=GAP_AXES)
+def test_a_gap_is_found_where_the_motor_has_friction_of_its_own(plant):
+    _, answer = _answer(plant)
+    assert answer.structure == "stiff_backlash"
+    assert answer.parameters.backlash == pytest.approx(plant["backlash"], rel=0.3)
+    assert answer.parameters.M_FCM == pytest.approx(plant["M_FCM"], abs=0.01 * M_STAR)
+    assert answer.parameters.mu_FM > 0.0  # the motor's viscous share, reported
+
+
 def test_an_axis_without_real_axis_parts_reports_none_of_them():
     _, answer = _answer({**ELASTIC, "M_FC": 0.2})
     assert answer.parameters.M_L0 == pytest.approx(0.0, abs=0.002 * M_STAR)

@@ -14,6 +14,7 @@ from ._problem import RefineProblem, Refined, torque_reference
 from ._rattle import RattleSettings
 from ._replay import BatchSettings
 from ._rescue import RescueSettings
+from ._restart import RestartSettings
 from ._retry import RetrySettings
 from ._search import SearchSettings
 from ._split import SplitSettings
@@ -21,5 +22,5 @@ from ._stage import Stage
 
 __all__ = ["AngleSettings", "BatchSettings", "ChooseSettings", "ClimbSettings", "ExploreSettings", "FreeSettings",
            "HiddenGap", "PIPELINE", "PolishSettings", "RattleSettings", "RefineConfig", "RefineProblem", "Refined",
-           "RescueSettings", "RetrySettings", "STAGES", "SearchSettings", "SplitSettings", "Stage", "find_hidden_gap", "refine",
+           "RescueSettings", "RestartSettings", "RetrySettings", "STAGES", "SearchSettings", "SplitSettings", "Stage", "find_hidden_gap", "refine",
            "torque_reference"]

@@ -71,9 +71,9 @@ class AngleSettings:
 class HiddenGap:
     """The gap model found in the angle: ``f_e`` [Hz], ``V_J``, ``d``, ``s_N``, ``backlash`` = ``2s``
     [rad]; ``angle_ratio``, its angle error over that of the best model without a gap.
-    ``J_sigma``, ``mu_F``: None (STEP 2's stand); ``M_FC``, ``M_FCM``: the load's and the motor's
-    Coulomb friction of the problem where it split them (else None: STEP 2's stand); ``M_L0``: None
-    (the analysis's stands)."""
+    ``J_sigma``: None (STEP 2's stand); ``M_FC``, ``M_FCM`` and ``mu_F``, ``mu_FM``: the load's and
+    the motor's Coulomb and viscous friction of the problem where it split them (else None: STEP 2's
+    stand); ``M_L0``: None (the analysis's stands)."""
 
     f_e: float
     V_J: float
@@ -83,9 +83,10 @@ class HiddenGap:
     angle_ratio: float
     J_sigma: None = None
     M_FC: float | None = None
-    mu_F: None = None
+    mu_F: float | None = None
     M_FCM: float | None = None
     M_L0: None = None
+    mu_FM: float | None = None
 
 
 def angle_basis(segments: np.ndarray, N: int, stride: int = 1) -> np.ndarray:
@@ -150,7 +151,7 @@ def hidden_gap(p: RefineProblem, settings: AngleSettings, search: SearchSettings
     s_N = float(10.0 ** theta[3])
     if ratio >= settings.win or s_N < settings.s_N_clear * S_N_ELASTIC:
         return None
-    split = {"M_FC": p.M_FC, "M_FCM": p.M_FCM} if p.M_FCM > 0 else {}
+    split = p.friction_split()
     return HiddenGap(**p.answer(theta, s_N), angle_ratio=ratio, **split)
 
 

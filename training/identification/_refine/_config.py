@@ -16,6 +16,7 @@ from training.identification._refine._polish import PolishSettings
 from training.identification._refine._rattle import RattleSettings
 from training.identification._refine._replay import BatchSettings
 from training.identification._refine._rescue import RescueSettings
+from training.identification._refine._restart import RestartSettings
 from training.identification._refine._retry import RetrySettings
 from training.identification._refine._search import SearchSettings
 from training.identification._refine._split import SplitSettings
@@ -40,6 +41,7 @@ class RefineConfig:
     free: FreeSettings = FreeSettings()
     polish: PolishSettings = PolishSettings()
     retry: RetrySettings = RetrySettings()
+    restart: RestartSettings = RestartSettings()
     angle: AngleSettings = AngleSettings()
     search: SearchSettings = SearchSettings()
     batch: BatchSettings = BatchSettings()

@@ -26,6 +26,8 @@ The stages, in order (:data:`PIPELINE`; each a module with its settings, :data:`
 - ``polish``: Levenberg-Marquardt steps on the whole record (:mod:`._polish`);
 - ``retry``: a poor polished fit polished again from a lighter damping and from the maps' answer
   (:mod:`._retry`);
+- ``restart``: a fit that leaves far more than the noise refined once more from the start with the
+  friction shared between the motor and the load, Coulomb and viscous (:mod:`._restart`);
 - ``angle``: the backlash the speed hides, found in the motor's angle; the identifier runs it on
   the records that call for it (:mod:`._angle`).
 """
@@ -38,7 +40,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from training.identification._refine import (_angle, _choose, _climb, _explore, _free, _polish, _rattle, _rescue,
-                                             _retry, _split)
+                                             _restart, _retry, _split)
 from training.identification._refine._angle import HiddenGap, hidden_gap
 from training.identification._refine._choose import Choice, choose
 from training.identification._refine._climb import climb, climbs
@@ -51,6 +53,7 @@ from training.identification._refine._problem import RefineProblem, Refined
 from training.identification._refine._rattle import rattle, rattles
 from training.identification._refine._replay import detrended_cost, quantization_energy, relative_rms, replay_drive
 from training.identification._refine._rescue import rescues, survey
+from training.identification._refine._restart import restart
 from training.identification._refine._retry import retry
 from training.identification._refine._search import Scored
 from training.identification._refine._split import motor_share, splits
@@ -59,10 +62,11 @@ from training.identification._refine._windows import ScoreWindows, score_windows
 
 #: The stages by name, each with its settings class, entry point and when it runs.
 STAGES: dict[str, Stage] = {module.STAGE.name: module.STAGE for module in
-                            (_explore, _rescue, _climb, _rattle, _choose, _split, _free, _polish, _retry, _angle)}
+                            (_explore, _rescue, _climb, _rattle, _choose, _split, _free, _polish, _retry, _restart,
+                             _angle)}
 #: The order the stages run in (``angle`` by the identifier, after the others).
 PIPELINE: tuple[str, ...] = ("explore", "rescue", "climb", "rattle", "choose", "split", "free", "polish", "retry",
-                              "angle")
+                              "restart", "angle")
 
 
 @dataclass(frozen=True)
@@ -139,7 +143,7 @@ def _chosen(p: RefineProblem, choice: Choice, explored: int, config: RefineConfi
         fit = free_one_mass(p, best, config.free, config.search, config.seed, rng, replay_drive(p))
         best, n_sims = fit.theta, n_sims + fit.n_sims
         best_cost = float(detrended_cost(p, best[None], choice.basis, replay_drive(p))[0])
-    split = {"M_FC": p.M_FC, "M_FCM": p.M_FCM} if p.M_FCM > 0 else {}
+    split = p.friction_split()
     return Refined(**p.answer(best, float(10.0 ** best[3])), M_L0=p.M_L0,
                    residual=relative_rms(best_cost, choice.measured),
                    start_residual=relative_rms(float(choice.cost[0]), choice.measured),
@@ -193,24 +197,35 @@ def refine(problems: list[RefineProblem], config: RefineConfig | None = None) ->
     """Refine each problem's ``theta`` through :data:`PIPELINE` (up to the angle); one
     :class:`Refined` per problem, each the same whatever the other problems (every search starts
     from ``config.seed``; records on the same drive and of similar length run packed in one replay).
-    A refined model with motor friction (``M_FCM``) was polished on its problem with that split
-    (:meth:`RefineProblem.with_motor_share`)."""
+    A refined model with motor friction (``M_FCM``, ``mu_FM``) was refined on its problem with that
+    split (:meth:`RefineProblem.with_motor_share`)."""
     config = config or RefineConfig()
+    done, measured, noise = _refine_once(problems, config, split=True)
+    return restart(problems, done, measured, noise, config.restart, config.split, config.seed,
+                   lambda again, seed: _refine_once(again, replace(config, seed=seed), split=False)[0])
+
+
+def _refine_once(problems: list[RefineProblem], config: RefineConfig,
+                 split: bool) -> tuple[list[Refined], list[float], list[float]]:
+    """The stages up to the retry (the split stage where ``split``); with each problem's measured
+    detrended energy and the quantization's expected energy over the same samples."""
     rngs = [np.random.default_rng(config.seed) for _ in problems]
     windows = [explore_windows(p, config.explore) for p in problems]
     explored = _window_stages(problems, windows, config, rngs)
     finalists = [e.finalists for e in explored]
     choices = choose(problems, finalists, config.batch)
-    split = {i: problems[i].with_motor_share(s) for i, s in motor_shares(problems, choices, finalists, config).items()}
-    split_choices = dict(zip(split, choose(list(split.values()), [finalists[i] for i in split], config.batch)))
+    shares = motor_shares(problems, choices, finalists, config) if split else {}
+    shared = {i: problems[i].with_motor_share(s) for i, s in shares.items()}
+    shared_choices = dict(zip(shared, choose(list(shared.values()), [finalists[i] for i in shared], config.batch)))
     lanes = [*zip(problems, choices, explored, rngs),
-             *((split[i], split_choices[i], explored[i], np.random.default_rng(config.seed)) for i in split)]
+             *((shared[i], shared_choices[i], explored[i], np.random.default_rng(config.seed)) for i in shared)]
     lanes = [(_trusted_load(p, c, config), c, e, rng) for p, c, e, rng in lanes]
     chosen = [_chosen(p, c, e.n_sims, config, rng) for p, c, e, rng in lanes]
     done = polish([p for p, *_ in lanes], chosen, [c.measured for _, c, *_ in lanes], config)
     out = done[:len(problems)]
-    for k, i in enumerate(split, start=len(problems)):  # the split wins only by evidence (:class:`SplitSettings`)
+    noise = [noise_energy(p, c) for p, c in zip(problems, choices)]
+    for k, i in enumerate(shared, start=len(problems)):  # the split wins only by evidence (:class:`SplitSettings`)
         gain = (out[i].residual ** 2 - done[k].residual ** 2) * choices[i].measured
-        if gain > config.split.evidence * noise_energy(problems[i], choices[i]):
+        if gain > config.split.evidence * noise[i]:
             out[i] = done[k]
-    return out
+    return out, [c.measured for c in choices], noise

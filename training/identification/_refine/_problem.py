@@ -19,9 +19,9 @@ class RefineProblem:
     ``encoder_counts``, ``M_N`` for ``s_N``); the start ``theta`` over :data:`COORDINATES`
     (``s_N`` of 1e-3 or less stands for no backlash); SPEC 1.1's parts: the constant load torque
     ``M_L0`` [Nm] (STEP 2's offset; the model starts at rest held by it) and the motor's Coulomb
-    friction ``M_FCM`` [Nm] (``M_FC`` is then the load's: :meth:`with_motor_share` splits STEP 2's);
-    ``f_e_other`` [Hz]: another read-out of the maps' ``f_e`` the exploration also starts from
-    (``None``: only ``theta``'s)."""
+    and viscous friction ``M_FCM`` [Nm], ``mu_FM`` [Nm s/rad] (``M_FC``, ``mu_F`` are then the
+    load's: :meth:`with_motor_share` splits STEP 2's); ``f_e_other`` [Hz]: another read-out of the
+    maps' ``f_e`` the exploration also starts from (``None``: only ``theta``'s)."""
 
     speed: np.ndarray
     start: np.ndarray
@@ -39,6 +39,7 @@ class RefineProblem:
     M_L0: float = 0.0
     M_FCM: float = 0.0
     f_e_other: float | None = None
+    mu_FM: float = 0.0
 
     @property
     def M_star(self) -> float:
@@ -50,14 +51,30 @@ class RefineProblem:
         """The Coulomb friction of motor and load together [Nm] (STEP 2's ``M_FC``)."""
         return self.M_FC + self.M_FCM
 
-    def with_motor_share(self, share: float) -> RefineProblem:
-        """This problem with the share ``share`` (0..1) of :attr:`coulomb` on the motor, the rest on the load."""
-        return replace(self, M_FC=(1.0 - share) * self.coulomb, M_FCM=share * self.coulomb)
+    @property
+    def viscous(self) -> float:
+        """The viscous friction of motor and load together [Nm s/rad] (STEP 2's ``mu_F``)."""
+        return self.mu_F + self.mu_FM
+
+    def with_motor_share(self, share: float, viscous_share: float = 0.0) -> RefineProblem:
+        """This problem with the share ``share`` (0..1) of :attr:`coulomb` and ``viscous_share`` of
+        :attr:`viscous` on the motor, the rest on the load."""
+        return replace(self, M_FC=(1.0 - share) * self.coulomb, M_FCM=share * self.coulomb,
+                       mu_F=(1.0 - viscous_share) * self.viscous, mu_FM=viscous_share * self.viscous)
+
+    def friction_split(self) -> dict[str, float]:
+        """The load's and the motor's friction where this problem splits it (``M_FC``, ``M_FCM``,
+        and ``mu_F``, ``mu_FM`` where the viscous part is split too; empty: all on the load)."""
+        split = {"M_FC": self.M_FC, "M_FCM": self.M_FCM} if self.M_FCM > 0 or self.mu_FM > 0 else {}
+        return {**split, "mu_F": self.mu_F, "mu_FM": self.mu_FM} if self.mu_FM > 0 else split
 
     def with_friction_of(self, refined: Refined) -> RefineProblem:
-        """This problem with the motor's share of the Coulomb friction that ``refined`` found (itself
-        where it found none)."""
-        return self.with_motor_share(refined.M_FCM / self.coulomb) if refined.M_FCM else self
+        """This problem with the motor's shares of the Coulomb and viscous friction that ``refined``
+        found (itself where it found none)."""
+        if not (refined.M_FCM or refined.mu_FM):
+            return self
+        return self.with_motor_share((refined.M_FCM or 0.0) / self.coulomb if self.coulomb > 0 else 0.0,
+                                     (refined.mu_FM or 0.0) / self.viscous if self.viscous > 0 else 0.0)
 
     def J_sigma_of(self, theta: np.ndarray) -> np.ndarray:
         """``J_sigma`` [kg m^2] of ``theta`` ``*batch x 4`` (STEP 2's) or ``x 7`` (its own)."""
@@ -83,7 +100,8 @@ class Refined:
     taken over less the trends removed; ``n_sims`` simulated models; ``J_sigma``, ``M_FC``,
     ``mu_F``: refined one-mass values where the free stage won (else None: STEP 2's stand);
     ``M_FC``, ``M_FCM``: the load's and the motor's Coulomb friction where the split stage ran;
-    ``M_L0``: the load torque the model carried."""
+    ``M_L0``: the load torque the model carried; ``mu_F``, ``mu_FM``: the load's and the motor's
+    viscous friction where the restart split it (:mod:`._restart`)."""
 
     f_e: float
     V_J: float
@@ -99,6 +117,7 @@ class Refined:
     mu_F: float | None = None
     M_FCM: float | None = None
     M_L0: float | None = None
+    mu_FM: float | None = None
 
     @property
     def evidence(self) -> float:

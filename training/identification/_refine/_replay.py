@@ -97,13 +97,13 @@ def finite(E: np.ndarray) -> np.ndarray:
 
 def model_values(p: RefineProblem, theta: np.ndarray) -> dict[str, np.ndarray]:
     """The :data:`sim.ALL_PARAM_NAMES` values ``C`` of the candidates ``theta`` ``C x 4`` or ``C x 7``
-    (backlash ``2s = 2 s_N M_N / C_F``; the problem's ``M_L0`` and ``M_FCM``, no motor viscous friction)."""
+    (backlash ``2s = 2 s_N M_N / C_F``; the problem's ``M_L0``, ``M_FCM`` and ``mu_FM``)."""
     C = theta.shape[0]
     return {"J_sigma": p.J_sigma_of(theta), "V_J": 10.0 ** theta[:, 1], "f_e": 10.0 ** theta[:, 0], "d": theta[:, 2],
             "backlash": sim.gap_width(10.0 ** theta[:, 3], p.M_N, p.C_F(theta)),
             "M_FC": theta[:, 5] if theta.shape[1] > 4 else np.full(C, max(p.M_FC, 0.0)),
             "mu_F": theta[:, 6] if theta.shape[1] > 4 else np.full(C, max(p.mu_F, 0.0)),
-            "M_L0": np.full(C, p.M_L0), "M_FCM": np.full(C, max(p.M_FCM, 0.0)), "mu_FM": np.zeros(C)}
+            "M_L0": np.full(C, p.M_L0), "M_FCM": np.full(C, max(p.M_FCM, 0.0)), "mu_FM": np.full(C, max(p.mu_FM, 0.0))}
 
 
 def sim_params(values: dict[str, np.ndarray]) -> sim.TwoMassParams:
