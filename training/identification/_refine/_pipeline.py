@@ -163,13 +163,14 @@ def _trusted_load(p: RefineProblem, choice: Choice, config: RefineConfig) -> Ref
 
 
 def motor_shares(problems: list[RefineProblem], choices: list[Choice], finalists: list[np.ndarray],
-                 config: RefineConfig) -> dict[int, float]:
-    """The split stage's scan (:func:`._split.motor_share`) over each problem's ``finalists``: the
-    problems whose friction it would put partly on the motor, with that share."""
+                 noise: list[float], config: RefineConfig) -> dict[int, float]:
+    """The split stage's scan (:func:`._split.motor_share`) over each problem's ``finalists``
+    (``noise[i]``: :func:`noise_energy` of problem ``i``): the problems whose friction it would put
+    partly on the motor, with that share."""
     best = {i: np.argsort(c.cost)[:config.split.finalists] for i, c in enumerate(choices)}
     asked = {i: finalists[i][best[i]] for i, p in enumerate(problems) if splits(p, config.split)}
-    noise = {i: noise_energy(problems[i], choices[i]) for i in asked}
-    return {i: s for i, s in motor_share(problems, asked, config.split, config.batch, noise).items() if s > 0}
+    shares = motor_share(problems, asked, config.split, config.batch, {i: noise[i] for i in asked})
+    return {i: s for i, s in shares.items() if s > 0}
 
 
 def noise_energy(p: RefineProblem, choice: Choice) -> float:
@@ -214,7 +215,8 @@ def _refine_once(problems: list[RefineProblem], config: RefineConfig,
     explored = _window_stages(problems, windows, config, rngs)
     finalists = [e.finalists for e in explored]
     choices = choose(problems, finalists, config.batch)
-    shares = motor_shares(problems, choices, finalists, config) if split else {}
+    noise = [noise_energy(p, c) for p, c in zip(problems, choices)]
+    shares = motor_shares(problems, choices, finalists, noise, config) if split else {}
     shared = {i: problems[i].with_motor_share(s) for i, s in shares.items()}
     shared_choices = dict(zip(shared, choose(list(shared.values()), [finalists[i] for i in shared], config.batch)))
     lanes = [*zip(problems, choices, explored, rngs),
@@ -223,7 +225,6 @@ def _refine_once(problems: list[RefineProblem], config: RefineConfig,
     chosen = [_chosen(p, c, e.n_sims, config, rng) for p, c, e, rng in lanes]
     done = polish([p for p, *_ in lanes], chosen, [c.measured for _, c, *_ in lanes], config)
     out = done[:len(problems)]
-    noise = [noise_energy(p, c) for p, c in zip(problems, choices)]
     for k, i in enumerate(shared, start=len(problems)):  # the split wins only by evidence (:class:`SplitSettings`)
         gain = (out[i].residual ** 2 - done[k].residual ** 2) * choices[i].measured
         if gain > config.split.evidence * noise[i]:
