@@ -7,7 +7,7 @@ from ._envelope import FILE_NAME as ENVELOPE_FILE, SPEC_ENVELOPE, Envelope, insi
 from ._batch import CHUNK, ReadRecord
 from ._confidence import COVERAGE as CONFIDENCE_COVERAGE
 from ._confidence import (ASINH, CONFIDENCE_VERSION, ZERO_CAPABLE, Calibration, ConfidenceInputs, LinearModel,
-                          half_width, maps_digests, model_features, rule_probabilities)
+                          REAL_AXIS_CELL, half_width, maps_digests, model_features, rule_probabilities)
 from ._confidence import FILE_NAME as CONFIDENCE_FILE
 from ._features import eigenfrequency_features, extra_features, structure_and_peaks, structure_features
 from ._identifier import Identifier
@@ -27,7 +27,7 @@ from ._interval_text import MAY_BE_ZERO, interval_text
 
 __all__ = [
     "Identifier", "IdentificationPolicy", "Calibration", "ConfidenceInputs", "CONFIDENCE_FILE", "CONFIDENCE_VERSION",
-    "CONFIDENCE_COVERAGE", "LinearModel", "maps_digests", "half_width", "model_features", "rule_probabilities", "ZERO_CAPABLE", "ASINH", "ReadRecord", "CHUNK", "IdentificationResult", "IdentificationFailure", "Outcome", "Parameters", "Quality",
+    "CONFIDENCE_COVERAGE", "LinearModel", "maps_digests", "half_width", "REAL_AXIS_CELL", "model_features", "rule_probabilities", "ZERO_CAPABLE", "ASINH", "ReadRecord", "CHUNK", "IdentificationResult", "IdentificationFailure", "Outcome", "Parameters", "Quality",
     "IdentWarning", "WARNING_CODES", "NOTE_CODES", "PARAMETER_NAMES", "PARAMETER_UNITS", "INTERVAL_NAMES", "Intervals",
     "interval_text", "MAY_BE_ZERO",
     "analyze", "Analysis", "FEATURE_NAMES", "FEATURE_VERSION", "REFERENCE_DRIVE", "DriveValues",

@@ -33,7 +33,7 @@ from training.identification._envelope import Envelope, Finding, envelope_warnin
 from training.identification._limits import (backlash_negligible, backlash_resolution, implausible, impossible,
                                              travel)
 from training.identification._policy import (BACKLASH_CLASSES, ClassModel, IdentificationPolicy, MapsAnswer,
-                                             class_quantities, refinement_stands, spec_class)
+                                             class_quantities, load_torque_threshold, refinement_stands, spec_class)
 from training.identification._refine import HiddenGap, Refined
 from training.identification._result import (NOTE_CODES, IdentificationResult, IdentWarning, Intervals, Parameters,
                                               Quality)
@@ -235,7 +235,11 @@ def state_confidence(evidence: RecordEvidence, draft: Draft, judge: Judge) -> Dr
                                                   f"are warned from {1.0 - calibration.warn_below:.1%}): check it, or "
                                                   "test again with a larger M* or a finer encoder"
                                                   + (f" ({why})" if why else "")),)
-    return replace(draft, warnings=warnings, notes=notes, confidence=inputs, intervals=calibration.intervals(inputs),
+    intervals = calibration.intervals(inputs)
+    if not draft.parameters.M_L0:  # not detected: as wide as the detection's threshold at least
+        floor = load_torque_threshold(evidence.analysis, judge.policy)
+        intervals = replace(intervals, M_L0=(min(intervals.M_L0[0], -floor), max(intervals.M_L0[1], floor)))
+    return replace(draft, warnings=warnings, notes=notes, confidence=inputs, intervals=intervals,
                    probabilities=probabilities, answer_probability=p_right)
 
 

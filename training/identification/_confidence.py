@@ -47,7 +47,7 @@ from training.identification._policy import class_quantities
 from training.identification._result import INTERVAL_NAMES, WARNING_CODES, Intervals, Parameters
 
 #: Version of the features and of the calibration file's layout.
-CONFIDENCE_VERSION = "twomass-confidence-v3"
+CONFIDENCE_VERSION = "twomass-confidence-v4"
 #: The calibration's file in a checkpoints folder.
 FILE_NAME = "confidence.json"
 #: The intervals' coverage (SPEC 4.1).
@@ -61,6 +61,9 @@ SIGNED = ("M_L0",)
 ASINH = ZERO_CAPABLE + SIGNED
 #: The largest coordinate an interval's end takes (``exp``/``sinh`` of it stay finite: 1e86).
 COORDINATE_BOUND = 200.0
+#: The prefix of the conformal quantiles of the answers more likely from a real axis (SPEC 1.1) than
+#: not (:attr:`Calibration.real_axis`): a second Mondrian cell beside each class's.
+REAL_AXIS_CELL = "real_axis:"
 #: The remarks whose presence is a feature (every code but the calibration's own).
 REMARK_CODES = tuple(c for c in WARNING_CODES if c != "likely_wrong")
 
@@ -246,10 +249,12 @@ class LinearModel:
 
 
 def half_width(scale: Mapping[str, LinearModel], quantile: Mapping[str, Mapping[str, float]],
-               inputs: ConfidenceInputs, name: str) -> float:
+               inputs: ConfidenceInputs, name: str, real_axis: bool) -> float:
     """The 90 % interval's half-width of parameter ``name`` in its coordinate: the conformal quantile
-    of the answer's class (``"*"``: all classes) times the record's scale."""
-    q = quantile[name].get(inputs.structure, quantile[name]["*"])
+    of the answer's cell (its class, among the answers likely from a ``real_axis`` or among the others;
+    ``"*"``: all classes of the cell) times the record's scale."""
+    cell = REAL_AXIS_CELL if real_axis else ""
+    q = quantile[name].get(cell + inputs.structure, quantile[name][cell + "*"])
     return q * math.exp(float(scale[name](inputs.features)))
 
 
@@ -263,31 +268,41 @@ def model_features(inputs: ConfidenceInputs, rule: Mapping[str, float]) -> np.nd
 @dataclass(frozen=True)
 class Calibration:
     """The calibration of :mod:`this module <training.identification._confidence>`: per parameter
-    the log-scale model and the conformal quantile per reported class (``"*"``: all classes, used
-    for a class with too few calibration records); the logistic models of P(class right) and
-    P(answer right) over :data:`MODEL_FEATURE_NAMES` (their ``y`` is the log-odds); the answer
-    probability below which an answer is warned; and where it came from (``provenance``: seeds,
-    counts, the maps' digests)."""
+    the log-scale model and the conformal quantile per cell: the reported class among the answers
+    more likely from a real axis than not (keys :data:`REAL_AXIS_CELL` + class) or among the others
+    (the class), ``"*"`` for a class with too few calibration records; the logistic models of
+    P(a real axis) over :data:`FEATURE_NAMES`, of P(class right) and P(answer right) over
+    :data:`MODEL_FEATURE_NAMES` (their ``y`` is the log-odds); the answer probability below which
+    an answer is warned; and where it came from (``provenance``: seeds, counts, the maps' digests)."""
 
     scale: dict[str, LinearModel]
     quantile: dict[str, dict[str, float]]
+    real_axis: LinearModel
     class_right: LinearModel
     answer_right: LinearModel
     warn_below: float
     provenance: dict[str, Any]
 
+    def is_real_axis(self, inputs: ConfidenceInputs) -> bool:
+        """The answer is more likely from a real axis (SPEC 1.1: a load torque, motor friction) than not."""
+        return float(self.real_axis(inputs.features)) > 0.0
+
+    def half_width(self, inputs: ConfidenceInputs, name: str) -> float:
+        """:func:`half_width` in the answer's cell."""
+        return half_width(self.scale, self.quantile, inputs, name, self.is_real_axis(inputs))
+
     def intervals(self, inputs: ConfidenceInputs) -> Intervals:
         """The answer's 90 % intervals."""
         out = {}
         for name in INTERVAL_NAMES:
-            half = half_width(self.scale, self.quantile, inputs, name)
+            half = self.half_width(inputs, name)
             centre = inputs.coordinate(name, inputs.points[name])
             out[name] = (inputs.value(name, centre - half), inputs.value(name, centre + half))
         return Intervals(**out)
 
     def rule_probabilities(self, inputs: ConfidenceInputs) -> dict[str, float]:
         """:func:`rule_probabilities` with this calibration's intervals."""
-        return rule_probabilities(inputs, lambda name: half_width(self.scale, self.quantile, inputs, name))
+        return rule_probabilities(inputs, lambda name: self.half_width(inputs, name))
 
     def probabilities(self, inputs: ConfidenceInputs, map_probabilities: Mapping[str, float]) -> dict[str, float]:
         """The four classes' probabilities: P(class right) for the answer's, the rest shared by the
@@ -310,6 +325,7 @@ class Calibration:
     def to_dict(self) -> dict[str, Any]:
         return {"version": CONFIDENCE_VERSION, "features": list(FEATURE_NAMES), "coverage": COVERAGE,
                 "scale": {n: m.to_dict() for n, m in self.scale.items()}, "quantile": self.quantile,
+                "real_axis": self.real_axis.to_dict(),
                 "class_right": self.class_right.to_dict(), "answer_right": self.answer_right.to_dict(),
                 "warn_below": self.warn_below, "provenance": self.provenance}
 
@@ -318,11 +334,13 @@ class Calibration:
         if d.get("version") != CONFIDENCE_VERSION or list(d.get("features", ())) != list(FEATURE_NAMES):
             raise ValueError(f"confidence calibration: version {d.get('version')!r} does not match this toolkit's "
                              f"{CONFIDENCE_VERSION!r}: rerun `twomass calibrate`")
-        missing = [n for n in INTERVAL_NAMES if n not in d["scale"] or "*" not in d["quantile"].get(n, {})]
+        missing = [n for n in INTERVAL_NAMES if n not in d["scale"]
+                   or not {"*", REAL_AXIS_CELL + "*"} <= set(d["quantile"].get(n, {}))]
         if missing:
             raise ValueError(f"confidence calibration: parameters missing: {missing}")
         return cls({n: LinearModel.from_dict(d["scale"][n]) for n in INTERVAL_NAMES},
                    {n: {k: float(v) for k, v in d["quantile"][n].items()} for n in INTERVAL_NAMES},
+                   LinearModel.from_dict(d["real_axis"]),
                    LinearModel.from_dict(d["class_right"], len(MODEL_FEATURE_NAMES)),
                    LinearModel.from_dict(d["answer_right"], len(MODEL_FEATURE_NAMES)),
                    float(d["warn_below"]), dict(d.get("provenance", {})))

@@ -214,6 +214,10 @@ def held_torque(analysis: Analysis, policy: IdentificationPolicy) -> float:
     0.3-0.9 Nm on axes without any, which cost ``J_sigma`` 25-75 % where the model carried it)."""
     if analysis.drive.M_hold != 0.0:
         return analysis.M_L0
-    M_0, std = analysis.fit.M_0, analysis.fit.std[3]
-    significant = abs(M_0) > max(policy.load_torque_floor * analysis.M_star, policy.load_torque_sigmas * std)
+    significant = abs(analysis.fit.M_0) > load_torque_threshold(analysis, policy)
     return analysis.M_L0 if significant and not analysis.fit.warnings else 0.0
+
+
+def load_torque_threshold(analysis: Analysis, policy: IdentificationPolicy) -> float:
+    """[Nm] the smallest constant torque of STEP 2's fit that :func:`held_torque` carries."""
+    return max(policy.load_torque_floor * analysis.M_star, policy.load_torque_sigmas * analysis.fit.std[3])

@@ -114,7 +114,8 @@ class Intervals:
     """The 90 % interval ``(low, high)`` [SI] of every parameter of :data:`INTERVAL_NAMES` (SPEC 4.1),
     calibrated on held-out simulated records (``docs/identification.md``, "Confidence"). A
     parameter the record cannot show has the interval it can support (a backlash below the
-    resolution: ``(0, bound)``; a stiff answer's ``f_e``: from the class's lower bound up)."""
+    resolution: ``(0, bound)``; a stiff answer's ``f_e``: from the class's lower bound up; a load
+    torque not detected: at least +- the detection's threshold, ``_policy.load_torque_threshold``)."""
 
     J_sigma: tuple[float, float]
     V_J: tuple[float, float]

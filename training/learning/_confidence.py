@@ -1,7 +1,9 @@
 """The confidence calibration (SPEC 4.1; :mod:`training.identification._confidence`): held-out
 simulated records of the drive matrix, drives drawn over the envelope and the reference drive's
-default population, identified without a calibration; then per parameter a log-scale model and
-split-conformal quantiles, and the logistic models of P(class right) and P(answer right).
+default population, identified without a calibration; then the logistic model of P(a real axis),
+per parameter a log-scale model and split-conformal quantiles in two cells (the answers more
+likely from a real axis than not, the others), and the logistic models of P(class right) and
+P(answer right).
 
 The calibration's seeds (:data:`CALIBRATION_SEEDS`) are used nowhere else: not by the maps'
 training (``twomass generate``, seed 0 and up) nor by ``twomass evaluate`` (seeds 5, 6 and the
@@ -23,8 +25,9 @@ import numpy as np
 from sim import REAL_AXIS_NAMES, DriveConfig, TestSignalConfig, TwoMassParams, iter_records, sample_population
 from training.evaluation import DRIVES, answer_wrong, envelope_cases, relative_error, threshold_margin
 from training.identification import CONFIDENCE_COVERAGE as COVERAGE
-from training.identification import (CONFIDENCE_VERSION, INTERVAL_NAMES, NOTE_CODES, Calibration, ConfidenceInputs,
-                                     Identifier, LinearModel, ASINH, half_width, model_features, rule_probabilities)
+from training.identification import (CONFIDENCE_VERSION, INTERVAL_NAMES, NOTE_CODES, REAL_AXIS_CELL, Calibration,
+                                     ConfidenceInputs, Identifier, LinearModel, ASINH, half_width, model_features,
+                                     rule_probabilities)
 
 #: The seeds of the calibration's three sets: the drive matrix, the envelope drives, the reference
 #: drive's default population.
@@ -36,6 +39,8 @@ REAL_AXIS_DRIVES = {"reference": 2, "low_res_1ms": 1, "servo_200w": 1}
 #: intervals are calibrated (:data:`sim.REAL_AXIS_NAMES`: elsewhere they are 0, answered 0, and would
 #: make the intervals of real axes 0 wide: on the first calibration ``M_L0`` covered 67 %, ``M_FCM`` 63 %).
 REAL_AXIS_GROUP = "real_axis"
+#: The log-odds of a real axis where the calibration has no real-axis records (P ~ 1e-13).
+NO_REAL_AXIS_LOG_ODDS = 30.0
 #: The fewest calibration answers of a class for a class's own conformal quantile (else the pooled one).
 MIN_CLASS_SAMPLES = 80
 #: The share of wrong answers the ``likely_wrong`` threshold may leave unwarned on the calibration
@@ -170,10 +175,13 @@ def fit_calibration(samples: Sequence[CalibrationSample], provenance: dict[str, 
         raise ValueError(f"fit_calibration: expected at least 200 calibration answers, received {len(samples)}")
     X = np.stack([s.inputs.features for s in samples])  # N x F
     classes = np.array([s.inputs.structure for s in samples])
-    scale, quantile = _fit_intervals(samples, X, classes)
+    real_axis_model = _real_axis_model(samples, X)
+    like = real_axis_model(X) > 0.0  # N: more likely from a real axis than not
+    scale, quantile = _fit_intervals(samples, X, classes, like)
     # the logistic models read the class rule's log-odds too, from the intervals just fitted
     X = np.stack([model_features(s.inputs, rule_probabilities(
-        s.inputs, lambda name, s=s: half_width(scale, quantile, s.inputs, name))) for s in samples])  # N x (F + 1)
+        s.inputs, lambda name, s=s, r=r: half_width(scale, quantile, s.inputs, name, r)))
+        for s, r in zip(samples, like)])  # N x (F + 1)
     mean, std = _standardization(X)
     Z = (X - mean) / std  # N x (F + 1), standardized
     class_right = np.array([s.inputs.structure == s.true_class for s in samples])
@@ -187,7 +195,7 @@ def fit_calibration(samples: Sequence[CalibrationSample], provenance: dict[str, 
     provenance = {**provenance, "n": len(samples), "classes": counts, "version": CONFIDENCE_VERSION,
                   "right": float(right.mean()), "right_warned_out_of_fold": float(
                       ((p_out_of_fold < warn_below) | warned)[right].mean())}
-    return Calibration(scale, quantile, class_model, answer_model, warn_below, provenance)
+    return Calibration(scale, quantile, real_axis_model, class_model, answer_model, warn_below, provenance)
 
 
 def _standardization(X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -196,10 +204,21 @@ def _standardization(X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return X.mean(axis=0), np.where(std > 1e-9, std, 1.0)
 
 
-def _fit_intervals(samples: Sequence[CalibrationSample], X: np.ndarray,
-                   classes: np.ndarray) -> tuple[dict[str, LinearModel], dict[str, dict[str, float]]]:
+def _real_axis_model(samples: Sequence[CalibrationSample], X: np.ndarray) -> LinearModel:
+    """The logistic model of P(the record is from a real axis) (the calibration's real-axis records
+    against the others) on the features ``X`` (``N x F``); without real-axis records, P = 0."""
+    mean, std = _standardization(X)
+    real_axis = np.array([s.group.startswith(REAL_AXIS_GROUP) for s in samples])
+    if not real_axis.any():
+        return LinearModel(mean, std, np.zeros(X.shape[1]), -NO_REAL_AXIS_LOG_ODDS)
+    return LinearModel(mean, std, *_logistic((X - mean) / std, real_axis, RIDGE_LOGISTIC))
+
+
+def _fit_intervals(samples: Sequence[CalibrationSample], X: np.ndarray, classes: np.ndarray,
+                   like: np.ndarray) -> tuple[dict[str, LinearModel], dict[str, dict[str, float]]]:
     """Per parameter the ridge model of the log error's scale on the features ``X`` (``N x F``) and
-    the conformal quantiles of the normalized errors, pooled (``"*"``) and per reported class."""
+    the conformal quantiles of the normalized errors in each cell (:func:`cell_quantiles`; ``like``:
+    ``N`` bool, the answers more likely from a real axis than not)."""
     mean, std = _standardization(X)
     Z = (X - mean) / std  # N x F, standardized
     scale, quantile = {}, {}
@@ -211,13 +230,23 @@ def _fit_intervals(samples: Sequence[CalibrationSample], X: np.ndarray,
         on = real_axis if name in REAL_AXIS_NAMES and real_axis.any() else np.ones(len(samples), dtype=bool)
         coef, intercept = _ridge(Z[on], np.log(e[on] + floor), RIDGE_SCALE)
         model = LinearModel(mean, std, coef, intercept)
-        scores = e[on] / np.exp(model(X[on]))
         scale[name] = model
-        quantile[name] = {"*": conformal_quantile(scores, COVERAGE)}
-        for c in np.unique(classes[on]):
-            if (classes[on] == c).sum() >= MIN_CLASS_SAMPLES:
-                quantile[name][str(c)] = conformal_quantile(scores[classes[on] == c], COVERAGE)
+        quantile[name] = cell_quantiles(e[on] / np.exp(model(X[on])), classes[on], like[on])
     return scale, quantile
+
+
+def cell_quantiles(scores: np.ndarray, classes: np.ndarray, like: np.ndarray) -> dict[str, float]:
+    """The conformal quantiles of ``scores`` (``N``) per Mondrian cell: the answers more likely
+    from a real axis than not (``like``; keys prefixed :data:`REAL_AXIS_CELL`) and the others, in
+    each per reported class where it has :data:`MIN_CLASS_SAMPLES` records, and over all classes
+    (``"*"``; over every record where the cell has too few)."""
+    out = {}
+    for prefix, cell in (("", ~like), (REAL_AXIS_CELL, like)):
+        out[prefix + "*"] = conformal_quantile(scores[cell] if cell.sum() >= MIN_CLASS_SAMPLES else scores, COVERAGE)
+        for c in np.unique(classes[cell]):
+            if (cell & (classes == c)).sum() >= MIN_CLASS_SAMPLES:
+                out[prefix + str(c)] = conformal_quantile(scores[cell & (classes == c)], COVERAGE)
+    return out
 
 
 def conformal_quantile(scores: np.ndarray, coverage: float) -> float:

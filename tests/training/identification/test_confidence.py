@@ -103,6 +103,9 @@ def test_intervals_cover_the_truth_narrow_where_the_record_shows_it(shipped) -> 
     for res in (informative, blind):
         assert all(res.intervals[n][0] <= res.intervals[n][1] for n in ("J_sigma", "f_e", "d", "backlash"))
         assert res.intervals["J_sigma"][0] <= (0.05 if res is informative else 0.2) <= res.intervals["J_sigma"][1]
+        # no load torque detected: the interval spans the detection's threshold (0.5 % of M* = 10 Nm)
+        assert res.parameters.M_L0 == 0.0
+        assert res.intervals["M_L0"][0] <= -0.05 and res.intervals["M_L0"][1] >= 0.05
 
 
 def test_probabilities_sum_to_one_and_the_class_is_their_argmax(shipped, good) -> None:

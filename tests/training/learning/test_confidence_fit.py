@@ -10,14 +10,29 @@ import pytest
 
 from training.identification._confidence import ASINH, FEATURE_NAMES, ConfidenceInputs
 from training.identification._result import INTERVAL_NAMES
-from training.learning._confidence import (CalibrationSample, _logistic, conformal_quantile, fit_calibration,
-                                           warn_threshold)
+from training.learning._confidence import (CalibrationSample, _logistic, cell_quantiles, conformal_quantile,
+                                           fit_calibration, warn_threshold)
 
 
 def test_conformal_quantile_is_the_ceil_n_plus_one_rank() -> None:
     scores = np.arange(1.0, 20.0)  # n = 19: ceil(20 * 0.9) = 18th smallest
     assert conformal_quantile(scores, 0.9) == 18.0
     assert conformal_quantile(np.arange(1.0, 9.0), 0.9) == math.inf  # n = 8: ceil(8.1) = 9 > n
+
+
+def test_cell_quantiles_per_real_axis_cell_and_class() -> None:
+    scores = np.r_[np.arange(1.0, 100.0), 0.1 * np.arange(1.0, 100.0)]  # n = 99 per cell: the 90th smallest
+    like = np.arange(198) < 99
+    classes = np.array(["stiff"] * 198)
+    assert cell_quantiles(scores, classes, like) == pytest.approx(
+        {"*": 9.0, "stiff": 9.0, "real_axis:*": 90.0, "real_axis:stiff": 90.0})
+    # a class below MIN_CLASS_SAMPLES (80) in a cell gets no quantile of its own there; a cell below it
+    # takes its "*" over every record
+    scores = np.r_[np.arange(100.0, 110.0), 0.1 * np.arange(1.0, 100.0)]
+    classes = np.array(["elastic"] * 10 + ["stiff"] * 99)
+    q = cell_quantiles(scores, classes, np.arange(109) < 10)
+    assert q["*"] == q["stiff"] == pytest.approx(9.0)
+    assert q["real_axis:*"] == pytest.approx(9.9) and "real_axis:elastic" not in q  # 99th of 109
 
 
 def test_warn_threshold_leaves_the_allowed_share_unwarned() -> None:
@@ -74,3 +89,25 @@ def test_calibration_learns_the_record_dependent_scale() -> None:
     p = calibration.probabilities(test[0].inputs, {"stiff": 0.6, "elastic": 0.3})
     assert sum(p.values()) == pytest.approx(1.0) and max(p, key=p.get) == "stiff"
     assert p["stiff"] == pytest.approx(0.9, abs=0.03)  # 9 of 10 answers name the right class
+    assert not any(calibration.is_real_axis(s.inputs) for s in test[:50])  # no real axes calibrated: none
+
+
+def test_answers_like_real_axes_get_their_own_cell() -> None:
+    """Real-axis records (feature 6 set; the scale model may not see that their errors have
+    heavier tails) get the quantile of their own cell and their 90 % there."""
+    samples = _samples(4000, 2)
+    rng = np.random.default_rng(3)
+    for k, s in enumerate(samples):
+        if k % 2:
+            s.inputs.features[6] = 1.0
+            heavy = math.exp(rng.normal(0.0, 0.02) * (10.0 if rng.random() < 0.3 else 1.0))
+            samples[k] = CalibrationSample(s.inputs, s.truth, s.true_class, s.errors, (), "real_axis:test")
+            s.inputs.points["M_FC"] = heavy
+    calibration = fit_calibration(samples[:3000], {"maps_sha256": {}})
+    test = samples[3000:]
+    real = np.array([s.group.startswith("real_axis") for s in test])
+    assert [calibration.is_real_axis(s.inputs) for s in test] == real.tolist()
+    q = calibration.quantile["M_FC"]
+    assert q["real_axis:stiff"] > 2.0 * q["stiff"]
+    covered = np.array([(lambda iv: iv[0] <= 1.0 <= iv[1])(calibration.intervals(s.inputs)["M_FC"]) for s in test])
+    assert covered[real].mean() >= 0.85 and covered[~real].mean() >= 0.85
