@@ -175,9 +175,10 @@ def fit_calibration(samples: Sequence[CalibrationSample], provenance: dict[str, 
         raise ValueError(f"fit_calibration: expected at least 200 calibration answers, received {len(samples)}")
     X = np.stack([s.inputs.features for s in samples])  # N x F
     classes = np.array([s.inputs.structure for s in samples])
-    real_axis_model = _real_axis_model(samples, X)
+    real_axis = np.array([s.group.startswith(REAL_AXIS_GROUP) for s in samples])  # N: the real-axis records
+    real_axis_model = _real_axis_model(X, real_axis)
     like = real_axis_model(X) > 0.0  # N: more likely from a real axis than not
-    scale, quantile = _fit_intervals(samples, X, classes, like)
+    scale, quantile = _fit_intervals(samples, X, classes, real_axis, like)
     # the logistic models read the class rule's log-odds too, from the intervals just fitted
     X = np.stack([model_features(s.inputs, rule_probabilities(
         s.inputs, lambda name, s=s, r=r: half_width(scale, quantile, s.inputs, name, r)))
@@ -204,25 +205,24 @@ def _standardization(X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return X.mean(axis=0), np.where(std > 1e-9, std, 1.0)
 
 
-def _real_axis_model(samples: Sequence[CalibrationSample], X: np.ndarray) -> LinearModel:
-    """The logistic model of P(the record is from a real axis) (the calibration's real-axis records
-    against the others) on the features ``X`` (``N x F``); without real-axis records, P = 0."""
+def _real_axis_model(X: np.ndarray, real_axis: np.ndarray) -> LinearModel:
+    """The logistic model of P(the record is from a real axis) (``real_axis``, ``N`` bool: the
+    calibration's real-axis records) on the features ``X`` (``N x F``); without any, P = 0."""
     mean, std = _standardization(X)
-    real_axis = np.array([s.group.startswith(REAL_AXIS_GROUP) for s in samples])
     if not real_axis.any():
         return LinearModel(mean, std, np.zeros(X.shape[1]), -NO_REAL_AXIS_LOG_ODDS)
     return LinearModel(mean, std, *_logistic((X - mean) / std, real_axis, RIDGE_LOGISTIC))
 
 
-def _fit_intervals(samples: Sequence[CalibrationSample], X: np.ndarray, classes: np.ndarray,
+def _fit_intervals(samples: Sequence[CalibrationSample], X: np.ndarray, classes: np.ndarray, real_axis: np.ndarray,
                    like: np.ndarray) -> tuple[dict[str, LinearModel], dict[str, dict[str, float]]]:
     """Per parameter the ridge model of the log error's scale on the features ``X`` (``N x F``) and
-    the conformal quantiles of the normalized errors in each cell (:func:`cell_quantiles`; ``like``:
-    ``N`` bool, the answers more likely from a real axis than not)."""
+    the conformal quantiles of the normalized errors in each cell (:func:`cell_quantiles`;
+    ``real_axis``, ``like``: ``N`` bool, the real-axis records and the answers more likely from a
+    real axis than not)."""
     mean, std = _standardization(X)
     Z = (X - mean) / std  # N x F, standardized
     scale, quantile = {}, {}
-    real_axis = np.array([s.group.startswith(REAL_AXIS_GROUP) for s in samples])
     for name in INTERVAL_NAMES:
         floor = _ERROR_FLOOR["asinh" if name in ASINH else "log"]
         e = coordinate_errors(samples, name)
