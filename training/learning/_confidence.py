@@ -231,8 +231,23 @@ def _fit_intervals(samples: Sequence[CalibrationSample], X: np.ndarray, classes:
         coef, intercept = _ridge(Z[on], np.log(e[on] + floor), RIDGE_SCALE)
         model = LinearModel(mean, std, coef, intercept)
         scale[name] = model
-        quantile[name] = cell_quantiles(e[on] / np.exp(model(X[on])), classes[on], like[on])
+        scores = e[on] / np.exp(model(X[on]))
+        if name in REAL_AXIS_NAMES and real_axis.any():  # calibrated on real axes alone: one cell, in both
+            per_class = class_quantiles(scores, classes[on])
+            quantile[name] = {**per_class, **{REAL_AXIS_CELL + k: q for k, q in per_class.items()}}
+        else:
+            quantile[name] = cell_quantiles(scores, classes[on], like[on])
     return scale, quantile
+
+
+def class_quantiles(scores: np.ndarray, classes: np.ndarray, prefix: str = "") -> dict[str, float]:
+    """The conformal quantiles of ``scores`` (``N``) over all (``"*"``) and per reported class where
+    it has :data:`MIN_CLASS_SAMPLES` records; keys prefixed ``prefix``."""
+    out = {prefix + "*": conformal_quantile(scores, COVERAGE)}
+    for c in np.unique(classes):
+        if (classes == c).sum() >= MIN_CLASS_SAMPLES:
+            out[prefix + str(c)] = conformal_quantile(scores[classes == c], COVERAGE)
+    return out
 
 
 def cell_quantiles(scores: np.ndarray, classes: np.ndarray, like: np.ndarray) -> dict[str, float]:
@@ -242,10 +257,8 @@ def cell_quantiles(scores: np.ndarray, classes: np.ndarray, like: np.ndarray) ->
     (``"*"``; over every record where the cell has too few)."""
     out = {}
     for prefix, cell in (("", ~like), (REAL_AXIS_CELL, like)):
-        out[prefix + "*"] = conformal_quantile(scores[cell] if cell.sum() >= MIN_CLASS_SAMPLES else scores, COVERAGE)
-        for c in np.unique(classes[cell]):
-            if (cell & (classes == c)).sum() >= MIN_CLASS_SAMPLES:
-                out[prefix + str(c)] = conformal_quantile(scores[cell & (classes == c)], COVERAGE)
+        out.update(class_quantiles(scores[cell], classes[cell], prefix) if cell.sum() >= MIN_CLASS_SAMPLES
+                   else {prefix + "*": conformal_quantile(scores, COVERAGE)})
     return out
 
 
