@@ -10,7 +10,8 @@ identifier's protocol, :class:`RecordIdentifier`; the drive's is :class:`sim.Dri
 (refusal rules V1-V6, warning codes), ``_law`` (the PI speed law of SPEC 8.1), ``_loop`` (linear
 loop analysis, margins, load peak, model sets), ``_rules`` (controller rules R6, R7 with R7b and R7c,
 R4, R5 in the order of ``CONTROLLER_RULES``, fallback F1), ``_design`` (the uncertainty set, design
-by optimization), ``_frf`` (the measured frequency response,
+by optimization), ``_narrow`` (R7d: the set narrowed to what the measured response does not
+invalidate), ``_frf`` (the measured frequency response,
 :class:`MeasuredResponse`: the multisine and the estimate), ``_measure`` (its experiment planned
 on the identified model's loop), ``_tuning`` (scenario, cost, Nelder-Mead), ``_report`` (one
 drive's report, the summary over many), ``_rest`` (the rest check before the first test: does the drive hold the axis? SPEC 1.1),

@@ -551,7 +551,8 @@ def _propose(run: ChainRun) -> ControllerProposal:
     r7c = bool(why) and params["f_e"] is not None
     uncertainty = uncertainty_set(params, spec, structure=result.structure, hidden=hidden, measured=run.state.measured,
                                   spread=settings.uncertain_spread if r7c else None,
-                                  damping=settings.uncertain_damping if r7c else None, doubts=tuple(why), bounds=bounds)
+                                  damping=settings.uncertain_damping if r7c else None, doubts=tuple(why), bounds=bounds,
+                                  drive=run.config)
     proposal = propose_controller(result.structure, params, run.config, spec, notch_at=notch_at, uncertainty=uncertainty)
     proposal = replace(proposal, M_hold=_holding_torque(result))
     if run.state.gap_open_cycled:

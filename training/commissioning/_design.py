@@ -159,6 +159,19 @@ VARIANT_CHECK_LAG_DEG = 30.0
 VARIANT_CHECK_LINES = 5
 
 
+class MeasuredMode(NamedTuple):
+    """A resonance the measured response shows and a ``stiff`` answer lacks, fitted (rule R7d,
+    :func:`training.commissioning._narrow.measured_mode`): found at ``w_r`` [rad/s]; the two-mass
+    modes the measurement does not invalidate span ``f_e`` [Hz] (low, high) and the worst cases'
+    ``V_J`` values, down to damping ``d``; from ``lines`` measured lines."""
+
+    w_r: float
+    f_e: tuple[float, float]
+    V_J: tuple[float, ...]
+    d: float
+    lines: int
+
+
 class Member(NamedTuple):
     """One mechanic of an :class:`UncertaintySet`: its ``mechanics``, ``label``, whether it is a
     ``hidden`` resonance (a worst case of what a test cannot exclude, not the identified plant),
@@ -223,6 +236,7 @@ class UncertaintySet:
     gap_open_margins: tuple[float, float] = GAP_OPEN_MARGINS
     variant_lag_share: float | None = None
     hidden_kept: bool = False
+    measured_modes: tuple[MeasuredMode, ...] = ()
 
     def __post_init__(self) -> None:
         if self.bounds is not None and not isinstance(self.bounds, MechanicsBounds):
@@ -280,12 +294,22 @@ class UncertaintySet:
                     for h in _hidden_mechanics(m.J_sigma, self.hidden, self.hidden_d, self.hidden_points_per_decade,
                                                self.hidden_min_points)]
         elif self.hidden:
-            out += [Member(Mechanics(m.J_sigma, V_J=v, f_e=w / (2 * math.pi) * scale, d=self.hidden_d),
-                           f"measured resonance's worst case f_e {w / (2 * math.pi) * scale:.4g} Hz, V_J {v:g}, d {self.hidden_d:g}",
+            out += [Member(Mechanics(m.J_sigma, V_J=v, f_e=f, d=d), f"measured resonance's worst case f_e {f:.4g} Hz, V_J {v:.3g}, d {d:.3g}",
                            hidden=True)
-                    for w in self.measured.resonances for v in self.measured_V_Js(w)
-                    for scale in (1 - self.measured_f_spread, 1.0, 1 + self.measured_f_spread)]
+                    for w in self.measured.resonances for f_es, V_Js, d in [self.measured_worst_cases(w)] for f in f_es for v in V_Js]
         return out
+
+    def measured_worst_cases(self, w_r: float) -> tuple[tuple[float, ...], tuple[float, ...], float]:
+        """The worst cases ``(f_e values [Hz], V_J values, d)`` of a resonance the measurement found
+        at ``w_r`` [rad/s] (and the model lacks): where a mode was fitted to the measurement
+        (:attr:`measured_modes`, rule R7d), the ends of its ``f_e`` and ``V_J`` and its lowest ``d``;
+        else ``w_r`` x(1 -+ :attr:`measured_f_spread`), :meth:`measured_V_Js`, :attr:`hidden_d`."""
+        f_r = w_r / (2 * math.pi)
+        mode = next((mode for mode in self.measured_modes if mode.w_r == w_r), None)
+        if mode is not None:
+            return tuple(dict.fromkeys((mode.f_e[0], f_r, mode.f_e[1]))), mode.V_J, mode.d
+        spread = self.measured_f_spread
+        return (f_r * (1 - spread), f_r, f_r * (1 + spread)), self.measured_V_Js(w_r), self.hidden_d
 
     def measured_V_Js(self, w_r: float) -> tuple[float, ...]:
         """The worst cases' ``V_J`` of a resonance the measurement found at ``w_r`` [rad/s]: those of
@@ -377,10 +401,11 @@ class UncertaintySet:
         if self.measured is not None:
             parts.append(f"the measured response at {len(self.measured.w)} frequencies")
             if self.hidden and not self.hidden_kept and self.measured.resonances:
-                found = ", ".join(f"{w / (2 * math.pi):.4g}" for w in self.measured.resonances)
-                V_Js = sorted({v for w in self.measured.resonances for v in self.measured_V_Js(w)})
-                parts.append(f"the measured resonances ({found} Hz) at V_J {', '.join(f'{v:.3g}' for v in V_Js)}, "
-                             f"d {self.hidden_d:g}, f +-{self.measured_f_spread:.0%}")
+                for w in self.measured.resonances:
+                    f_es, V_Js, d = self.measured_worst_cases(w)
+                    fitted = any(mode.w_r == w for mode in self.measured_modes)
+                    parts.append(f"the measured resonance at {w / (2 * math.pi):.4g} Hz{' fitted (R7d)' if fitted else ''}: "
+                                 f"f_e {min(f_es):.4g}..{max(f_es):.4g} Hz, V_J {', '.join(f'{v:.3g}' for v in V_Js)}, d {d:.3g}")
         parts.append(self._loops_text(drive))
         return "; ".join(parts)
 

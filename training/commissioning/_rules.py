@@ -6,7 +6,7 @@ notches) with the largest crossover that keeps the guarantee on every model of t
 :func:`propose_controller` applies :data:`CONTROLLER_RULES` in order, each a named function over
 the typed inputs (:class:`DesignInputs`) and the design so far (:class:`Design`):
 
-    R6 backlash: the decoupled motor -> R7/R7b/R7c the guarantee's model set -> R4 notch frequencies
+    R6 backlash: the decoupled motor -> R7/R7b/R7c/R7d the guarantee's model set -> R4 notch frequencies
     -> R5 the crossover maximized over the law's parameters
 
 Units SI: torque [Nm], speed [rad/s], ``Kp`` [Nm s/rad], ``Ti``, ``T_f``, ``T_s`` [s].
@@ -28,6 +28,7 @@ from ._design import (GAP_OPEN_MARGINS, MEASURED_F_SPREAD, SEARCH, DesignSearch,
 from ._frf import MeasuredResponse
 from ._law import NotchSpec, PISpeedLaw
 from ._loop import Margins, Mechanics, ModelSet, Notches, drive_value, loop_figures, mechanics_from
+from ._narrow import NARROW_SETTINGS, NarrowSettings, measured_mode, narrowed_bounds
 
 __all__ = ["ControllerSpec", "ControllerProposal", "DesignInputs", "Design", "CONTROLLER_RULES", "propose_controller",
            "propose_cautious", "robust_models", "uncertainty_set"]
@@ -78,6 +79,8 @@ class ControllerSpec:
     """A measured resonance peak: the response this many times the one-mass inertia's (6 dB); a notch may sit there."""
     search: DesignSearch = SEARCH
     """How the design searches the law's parameters (:class:`training.commissioning._design.DesignSearch`)."""
+    narrow: NarrowSettings = NARROW_SETTINGS
+    """R7d: how a measured frequency response narrows the set's intervals (:mod:`training.commissioning._narrow`)."""
     class_f_e: tuple[float, float] = (5.0, 500.0)
     """F1: the class's eigenfrequency band [Hz] (the drive envelope)."""
     class_V_J: tuple[float, ...] = (0.2, 1.0, 5.0)
@@ -105,6 +108,7 @@ _SPEC_CONSTRAINTS: dict[str, Constraint] = {
     "d_scale": Pair(POSITIVE), "current_loop_damping": POSITIVE, "extra_delay": Interval(0, integer=True),
     "variant_lag_share": Interval(0.0, 1.0),
     "min_coherence": Interval(0.0, 1.0), "min_coherent_share": Interval(0.0, 1.0), "peak_ratio": POSITIVE, "search": InstanceOf(DesignSearch),
+    "narrow": InstanceOf(NarrowSettings),
     "class_d": NON_NEGATIVE, "class_points_per_decade": POSITIVE, "class_min_points": Interval(1, integer=True),
     "class_f_e": Pair(POSITIVE), "class_V_J": Values(POSITIVE, empty=False), "gap_open_phase_margin": Interval(0.0, 90.0),
     "gap_open_gain_margin_dB": NON_NEGATIVE,
@@ -195,7 +199,7 @@ def _finite_or_none(x: float) -> float | None:
 def uncertainty_set(mechanics: Any, spec: ControllerSpec, *, structure: str = "stiff",
                     hidden: dict[float, tuple[float, float]] | None = None, measured: MeasuredResponse | None = None,
                     spread: float | None = None, damping: float | None = None, doubts: tuple[str, ...] = (),
-                    bounds: MechanicsBounds | None = None) -> UncertaintySet:
+                    bounds: MechanicsBounds | None = None, drive: Any = None) -> UncertaintySet:
     """The :class:`UncertaintySet` of ``spec`` around ``mechanics``: spanning ``bounds`` (the
     identification's calibrated intervals, :meth:`MechanicsBounds.from_intervals`), or without them
     ``spec``'s interim spread; ``spread`` and ``damping`` (rule R7c) widen ``f_e`` and ``V_J`` to at
@@ -203,7 +207,9 @@ def uncertainty_set(mechanics: Any, spec: ControllerSpec, *, structure: str = "s
     ``d`` (on either); a backlash ``structure`` adds the decoupled motor (R6); ``hidden`` (R7b)
     unless ``measured`` (its trusted part, coherence >= ``spec.min_coherence``); a measured
     resonance inside the bounds' ``f_e`` places them (:meth:`MechanicsBounds.placed`; from below
-    only on a backlash plant)."""
+    only on a backlash plant) and, given the ``drive``'s config, narrows them to the mechanics the
+    measured response does not invalidate (rule R7d, :func:`training.commissioning._narrow.narrowed_bounds`; not a backlash answer's),
+    or fits the resonances it found to a one-mass answer (:func:`training.commissioning._narrow.measured_mode`)."""
     m = mechanics_from(mechanics)
     trusted = trusted_response(measured, spec.min_coherence) if measured is not None else None
     wide = 0.0 if spread is None else spread
@@ -212,16 +218,43 @@ def uncertainty_set(mechanics: Any, spec: ControllerSpec, *, structure: str = "s
         bounds = bounds.widen(m, wide, 1.0 if damping is None else damping,
                               f"R7c widened to f_e, V_J +-{wide:.0%} and d from x{1.0 if damping is None else damping:g} at least")
     if bounds is not None and trusted is not None and m.two_mass:
-        peak = measured_peaks(trusted, m.J_sigma, min_ratio=spec.peak_ratio, most=1)
-        bounds = bounds.placed(peak[0], MEASURED_F_SPREAD, gap=structure in _BACKLASH) if peak else bounds
-    return UncertaintySet(m, f_e_spread=max(spec.f_e_spread, wide), V_J_spread=max(spec.V_J_spread, wide),
-                          d_scale=(d_low, spec.d_scale[1]), bounds=bounds,
-                          current_loop_damping=spec.current_loop_damping, extra_delay=spec.extra_delay,
-                          decoupled_motor=structure in _BACKLASH and m.two_mass, hidden=hidden, hidden_d=spec.class_d,
-                          hidden_points_per_decade=spec.class_points_per_decade, hidden_min_points=spec.class_min_points,
-                          measured=trusted, doubts=doubts, variant_lag_share=spec.variant_lag_share,
-                          gap_open_margins=(spec.gap_open_phase_margin, spec.gap_open_gain_margin_dB),
-                          hidden_kept=measured is not None and measured.coherent_share(spec.min_coherence) < spec.min_coherent_share)
+        bounds = _measured_bounds(bounds, m, trusted, drive, spec, gap=structure in _BACKLASH)
+    u = UncertaintySet(m, f_e_spread=max(spec.f_e_spread, wide), V_J_spread=max(spec.V_J_spread, wide),
+                       d_scale=(d_low, spec.d_scale[1]), bounds=bounds,
+                       current_loop_damping=spec.current_loop_damping, extra_delay=spec.extra_delay,
+                       decoupled_motor=structure in _BACKLASH and m.two_mass, hidden=hidden, hidden_d=spec.class_d,
+                       hidden_points_per_decade=spec.class_points_per_decade, hidden_min_points=spec.class_min_points,
+                       measured=trusted, doubts=doubts, variant_lag_share=spec.variant_lag_share,
+                       gap_open_margins=(spec.gap_open_phase_margin, spec.gap_open_gain_margin_dB),
+                       hidden_kept=measured is not None and measured.coherent_share(spec.min_coherence) < spec.min_coherent_share)
+    return u if drive is None else _fitted_modes(u, drive, spec)
+
+
+def _measured_bounds(bounds: MechanicsBounds, m: Mechanics, trusted: MeasuredResponse, drive: Any, spec: ControllerSpec, *,
+                     gap: bool) -> MechanicsBounds:
+    """A two-mass answer's bounds with the trusted measured response: placed by its highest peak
+    (:meth:`MechanicsBounds.placed`), then, given the ``drive``'s config and without a ``gap``,
+    narrowed to the mechanics it does not invalidate (R7d). A gap's small-signal response is not the
+    plant's: the load sticks, the gap rattles, and the resonance reads anywhere (docs/commissioning.md, 3b)."""
+    peak = measured_peaks(trusted, m.J_sigma, min_ratio=spec.peak_ratio, most=1)
+    bounds = bounds.placed(peak[0], MEASURED_F_SPREAD, gap=gap) if peak else bounds
+    if drive is None or gap:
+        return bounds
+    return narrowed_bounds(bounds, m, trusted, drive, min_coherence=spec.min_coherence, current_loop_damping=spec.current_loop_damping,
+                           extra_delay=spec.extra_delay, settings=spec.narrow)
+
+
+def _fitted_modes(u: UncertaintySet, drive: Any, spec: ControllerSpec) -> UncertaintySet:
+    """R7d for a one-mass answer: the resonances the trusted measurement found, where it replaced
+    the hidden ones, each fitted (:func:`measured_mode`) for the set's worst cases."""
+    m, trusted = u.mechanics, u.measured
+    if trusted is None or m.two_mass or not u.hidden or u.keeps_hidden:
+        return u
+    modes = (measured_mode(w, m, trusted, drive, V_J=(min(V_Js), max(V_Js)), d=(spec.class_d, spec.narrow.mode_damping),
+                           f_spread=MEASURED_F_SPREAD, min_coherence=spec.min_coherence, current_loop_damping=spec.current_loop_damping,
+                           extra_delay=spec.extra_delay, settings=spec.narrow)
+             for w in trusted.resonances for V_Js in [u.measured_V_Js(w)] if V_Js)
+    return replace(u, measured_modes=tuple(mode for mode in modes if mode is not None))
 
 
 def robust_models(mechanics: Any, config: Any, spec: ControllerSpec, *,
