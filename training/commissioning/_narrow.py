@@ -148,10 +148,10 @@ def measured_mode(w_r: float, mechanics: Mechanics, measured: MeasuredResponse |
     region = fit.region(Vs, F, D, settings)
     f_lo, f_hi = _span(F, region.any(axis=(0, 2)), f_r, (F[0], F[-1]))
     V_lo, V_hi = _span(Vs, region.any(axis=(1, 2)), None, (Vs[0], Vs[-1]))
-    d_lo = _span(D, region.any(axis=(0, 1)), d[1], d)[0]
+    d_lo = _span(D, region.any(axis=(0, 1)), None, d)[0]
     k = settings.mode_margin
-    V_worst = min(k * (1.0 + V_hi) - 1.0, max(V_J))
-    return MeasuredMode(w_r, (f_lo, f_hi), tuple(dict.fromkeys((V_lo, max(V_worst, V_hi)))), max(d_lo / k, d[0]), fit.lines)
+    V_worst = min(k * (1.0 + V_hi) - 1.0, max(V_J))  # >= V_hi: k >= 1 and V_hi <= max(V_J)
+    return MeasuredMode(w_r, (f_lo, f_hi), tuple(dict.fromkeys((V_lo, V_worst))), max(d_lo / k, d[0]), fit.lines)
 
 
 @dataclass(frozen=True)
