@@ -52,7 +52,7 @@ from ._permission import (CommissioningWarning, IdentificationFailed, Identifica
 from ._report import CommissioningReport, PlantRun
 from ._rest import REST_SETTINGS, RestCheck, RestSettings, check_rest
 from ._design import MechanicsBounds, elastic_doubts
-from ._rules import ControllerProposal, ControllerSpec, propose_cautious, propose_controller, uncertainty_set
+from ._rules import BACKLASH_CLASSES, ControllerProposal, ControllerSpec, propose_cautious, propose_controller, uncertainty_set
 from ._tuning import (BOUNDED_VERDICTS, applied_torque_gain, Gains, TuningResult, TuningScenario, closed_loop_cost, loop_verdict,
                       model_response, plan_scenario, response_figures, tune_controller)
 from ._validation import OSC_METRICS, VALIDATION_MODES, ValidationResult, validate_model
@@ -448,6 +448,15 @@ def _uncertain(result: Any) -> list[str]:
     return sorted({*elastic_doubts(result, CALIBRATED_UNCERTAIN_CODES), *(["likely_wrong"] if _doubtful(result) else [])})
 
 
+def _gap_probability(result: Any) -> float:
+    """The identification's calibrated probability that the plant has a gap (its backlash classes'
+    share of ``quality.structure_probabilities``; 1 where it gives none: nothing says there is none)."""
+    probabilities = getattr(result.quality, "structure_probabilities", None)
+    if not probabilities:
+        return 1.0
+    return float(sum(p for c, p in probabilities.items() if c in BACKLASH_CLASSES))
+
+
 def _doubtful(result: Any) -> bool:
     """A calibrated answer more likely wrong than right (:data:`DOUBTFUL_ANSWER`; where the result
     gives no answer probability: its ``likely_wrong`` warning)."""
@@ -552,7 +561,7 @@ def _propose(run: ChainRun) -> ControllerProposal:
     uncertainty = uncertainty_set(params, spec, structure=result.structure, hidden=hidden, measured=run.state.measured,
                                   spread=settings.uncertain_spread if r7c else None,
                                   damping=settings.uncertain_damping if r7c else None, doubts=tuple(why), bounds=bounds,
-                                  drive=run.config)
+                                  drive=run.config, gap_probability=_gap_probability(result))
     proposal = propose_controller(result.structure, params, run.config, spec, notch_at=notch_at, uncertainty=uncertainty)
     proposal = replace(proposal, M_hold=_holding_torque(result))
     if run.state.gap_open_cycled:

@@ -199,7 +199,7 @@ def _finite_or_none(x: float) -> float | None:
 def uncertainty_set(mechanics: Any, spec: ControllerSpec, *, structure: str = "stiff",
                     hidden: dict[float, tuple[float, float]] | None = None, measured: MeasuredResponse | None = None,
                     spread: float | None = None, damping: float | None = None, doubts: tuple[str, ...] = (),
-                    bounds: MechanicsBounds | None = None, drive: Any = None) -> UncertaintySet:
+                    bounds: MechanicsBounds | None = None, drive: Any = None, gap_probability: float = 0.0) -> UncertaintySet:
     """The :class:`UncertaintySet` of ``spec`` around ``mechanics``: spanning ``bounds`` (the
     identification's calibrated intervals, :meth:`MechanicsBounds.from_intervals`), or without them
     ``spec``'s interim spread; ``spread`` and ``damping`` (rule R7c) widen ``f_e`` and ``V_J`` to at
@@ -209,20 +209,24 @@ def uncertainty_set(mechanics: Any, spec: ControllerSpec, *, structure: str = "s
     resonance inside the bounds' ``f_e`` places them (:meth:`MechanicsBounds.placed`; from below
     only on a backlash plant) and, given the ``drive``'s config, narrows them to the mechanics the
     measured response does not invalidate (rule R7d, :func:`training.commissioning._narrow.narrowed_bounds`; not a backlash answer's),
-    or fits the resonances it found to a one-mass answer (:func:`training.commissioning._narrow.measured_mode`)."""
+    or fits the resonances it found to a one-mass answer (:func:`training.commissioning._narrow.measured_mode`);
+    R7d only where ``gap_probability`` (the identification's calibrated probability of a backlash
+    class) is below ``spec.narrow.max_gap_probability``."""
     m = mechanics_from(mechanics)
     trusted = trusted_response(measured, spec.min_coherence) if measured is not None else None
+    if gap_probability >= spec.narrow.max_gap_probability:
+        drive = None  # R7d reads the drive's loop from it: without, no narrowing
     wide = 0.0 if spread is None else spread
     d_low = spec.d_scale[0] if damping is None else min(spec.d_scale[0], damping)
     if bounds is not None and (spread is not None or damping is not None):
         bounds = bounds.widen(m, wide, 1.0 if damping is None else damping,
                               f"R7c widened to f_e, V_J +-{wide:.0%} and d from x{1.0 if damping is None else damping:g} at least")
     if bounds is not None and trusted is not None and m.two_mass:
-        bounds = _measured_bounds(bounds, m, trusted, drive, spec, gap=structure in _BACKLASH)
+        bounds = _measured_bounds(bounds, m, trusted, drive, spec, gap=structure in BACKLASH_CLASSES)
     u = UncertaintySet(m, f_e_spread=max(spec.f_e_spread, wide), V_J_spread=max(spec.V_J_spread, wide),
                        d_scale=(d_low, spec.d_scale[1]), bounds=bounds,
                        current_loop_damping=spec.current_loop_damping, extra_delay=spec.extra_delay,
-                       decoupled_motor=structure in _BACKLASH and m.two_mass, hidden=hidden, hidden_d=spec.class_d,
+                       decoupled_motor=structure in BACKLASH_CLASSES and m.two_mass, hidden=hidden, hidden_d=spec.class_d,
                        hidden_points_per_decade=spec.class_points_per_decade, hidden_min_points=spec.class_min_points,
                        measured=trusted, doubts=doubts, variant_lag_share=spec.variant_lag_share,
                        gap_open_margins=(spec.gap_open_phase_margin, spec.gap_open_gain_margin_dB),
@@ -263,7 +267,8 @@ def robust_models(mechanics: Any, config: Any, spec: ControllerSpec, *,
     return uncertainty_set(mechanics, spec, hidden=hidden).models(config)
 
 
-_BACKLASH = ("elastic_backlash", "stiff_backlash")
+#: The structures with a gap (SPEC 1): R6's decoupled motor, R7d's exception.
+BACKLASH_CLASSES: tuple[str, ...] = ("elastic_backlash", "stiff_backlash")
 
 
 @dataclass(frozen=True)
@@ -287,7 +292,7 @@ class DesignInputs:
 
     @property
     def backlash(self) -> bool:
-        return self.structure in _BACKLASH
+        return self.structure in BACKLASH_CLASSES
 
 
 @dataclass(frozen=True)

@@ -80,6 +80,24 @@ def test_a_backlash_answer_is_not_narrowed():
     assert "R7d" not in gap.describe(DRIVE) and gap.bounds.V_J == WIDE.V_J and gap.bounds.d == WIDE.d
 
 
+def test_an_answer_that_may_have_missed_a_gap_is_not_narrowed():
+    """The identification's calibrated probability of a backlash class at the threshold (50 %) or
+    above: no R7d, neither the intervals (the peak still places f_e) nor a stiff answer's measured
+    resonance; below it, R7d."""
+    answer = dict(J_sigma=0.05, V_J=1.3, f_e=290.0, d=0.03, mu_F=0.0)
+    limit = SPEC.narrow.max_gap_probability
+    doubtful = uncertainty_set(answer, SPEC, structure="elastic", bounds=WIDE, measured=_measured(TRUE), drive=DRIVE,
+                               gap_probability=limit)
+    assert "R7d" not in doubtful.describe(DRIVE) and (doubtful.bounds.V_J, doubtful.bounds.d) == (WIDE.V_J, WIDE.d)
+    sure = uncertainty_set(answer, SPEC, structure="elastic", bounds=WIDE, measured=_measured(TRUE), drive=DRIVE,
+                           gap_probability=0.5 * limit)
+    assert "R7d" in sure.describe(DRIVE)
+    measured = replace(_measured(Mechanics(0.05, V_J=0.5, f_e=400.0, d=0.02)), resonances=(2 * math.pi * 400.0,))
+    bands = {v: (5.0, 0.45 / DRIVE.T_s) for v in SPEC.class_V_J}
+    assert uncertainty_set({"J_sigma": 0.05}, SPEC, hidden=bands, measured=measured, drive=DRIVE,
+                           gap_probability=limit).measured_modes == ()
+
+
 def test_without_evidence_the_bounds_stay():
     """No measurement, a one-mass answer, or too few trusted lines in the band: the bounds as they are."""
     assert _narrow(None) is WIDE
