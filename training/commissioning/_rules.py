@@ -214,15 +214,14 @@ def uncertainty_set(mechanics: Any, spec: ControllerSpec, *, structure: str = "s
     class) is below ``spec.narrow.max_gap_probability``."""
     m = mechanics_from(mechanics)
     trusted = trusted_response(measured, spec.min_coherence) if measured is not None else None
-    if gap_probability >= spec.narrow.max_gap_probability:
-        drive = None  # R7d reads the drive's loop from it: without, no narrowing
+    fit_drive = drive if gap_probability < spec.narrow.max_gap_probability else None  # R7d's: None, no R7d
     wide = 0.0 if spread is None else spread
     d_low = spec.d_scale[0] if damping is None else min(spec.d_scale[0], damping)
     if bounds is not None and (spread is not None or damping is not None):
         bounds = bounds.widen(m, wide, 1.0 if damping is None else damping,
                               f"R7c widened to f_e, V_J +-{wide:.0%} and d from x{1.0 if damping is None else damping:g} at least")
     if bounds is not None and trusted is not None and m.two_mass:
-        bounds = _measured_bounds(bounds, m, trusted, drive, spec, gap=structure in BACKLASH_CLASSES)
+        bounds = _measured_bounds(bounds, m, trusted, fit_drive, spec, gap=structure in BACKLASH_CLASSES)
     u = UncertaintySet(m, f_e_spread=max(spec.f_e_spread, wide), V_J_spread=max(spec.V_J_spread, wide),
                        d_scale=(d_low, spec.d_scale[1]), bounds=bounds,
                        current_loop_damping=spec.current_loop_damping, extra_delay=spec.extra_delay,
@@ -231,7 +230,7 @@ def uncertainty_set(mechanics: Any, spec: ControllerSpec, *, structure: str = "s
                        measured=trusted, doubts=doubts, variant_lag_share=spec.variant_lag_share,
                        gap_open_margins=(spec.gap_open_phase_margin, spec.gap_open_gain_margin_dB),
                        hidden_kept=measured is not None and measured.coherent_share(spec.min_coherence) < spec.min_coherent_share)
-    return u if drive is None else _fitted_modes(u, drive, spec)
+    return u if fit_drive is None else _fitted_modes(u, fit_drive, spec)
 
 
 def _measured_bounds(bounds: MechanicsBounds, m: Mechanics, trusted: MeasuredResponse, drive: Any, spec: ControllerSpec, *,
