@@ -8,7 +8,7 @@ import pytest
 from sim import DriveConfig, TestSignalConfig, TwoMassParams, responses_to_records, simulate_test
 from training.identification import Identifier
 from training.identification._refine import RefineConfig, find_hidden_gap
-from training.identification._refine._angle import _angle_energy, angle_basis
+from training.identification._refine._angle import angle_energy, angle_basis
 from training.identification._refine._replay import trend_basis
 
 from _refine_problems import refine_problem
@@ -45,7 +45,7 @@ def test_the_angle_at_every_stride_th_sample_is_the_angle_there():
     assert Q.shape == (N // stride, 10) and np.allclose(Q.T @ Q, np.eye(10), atol=1e-12)
     phi = np.cumsum(E, axis=0)[at] * T_s  # the angle error at those samples, summed in full
     r = phi - Q @ (Q.T @ phi)
-    assert np.allclose(_angle_energy(E, T_s, Q, stride), (r * r).sum(axis=0), rtol=1e-12)
+    assert np.allclose(angle_energy(E, T_s, Q, stride), (r * r).sum(axis=0), rtol=1e-12)
 
 
 @pytest.mark.parametrize(("backlash_deg", "found"), [(0.3, True), (0.0, False)])

@@ -5,7 +5,8 @@ import math
 from _refine_problems import refine_problem
 
 from sim import DriveConfig, TestSignalConfig, TwoMassParams
-from training.identification._refine import ClimbSettings, RattleSettings, RefineConfig, RestartSettings, refine
+from training.identification._refine import (AngleFitSettings, ClimbSettings, RattleSettings, RefineConfig,
+                                             RestartSettings, refine)
 
 # a large industrial axis (500 us, 2^16 counts, current loop 1.5 ms: bandwidth 106 Hz)
 AXIS = DriveConfig(M_N=200.0, M_max=600.0, K_M=2.0, T_s=5e-4, T_Ei=1.5e-3, encoder_counts=2**16, current_noise_std=0.1)
@@ -13,7 +14,8 @@ SIGNAL = TestSignalConfig(M_star=200.0, w_max=150.0)
 # the climb alone (the rattle, test_refine_rattle, finds this width too)
 CLIMB = RefineConfig(rattle=RattleSettings(min_s_N=math.inf))
 NO_CLIMB = RefineConfig(climb=ClimbSettings(after=math.inf), rattle=RattleSettings(min_s_N=math.inf),
-                        restart=RestartSettings(above=math.inf))  # the restart finds it too
+                        restart=RestartSettings(above=math.inf),  # the restart finds it too ...
+                        angle_fit=AngleFitSettings(win=0.0))  # ... and the angle fit
 
 
 def _problem(true: TwoMassParams, theta: list[float]):

@@ -8,8 +8,8 @@ import numpy as np
 from _refine_problems import refine_problem
 
 from sim import DriveConfig, TestSignalConfig, TwoMassParams
-from training.identification._refine import (BatchSettings, ExploreSettings, RattleSettings, RefineConfig,
-                                             RestartSettings, refine)
+from training.identification._refine import (AngleFitSettings, BatchSettings, ExploreSettings, RattleSettings,
+                                             RefineConfig, RestartSettings, refine)
 from training.identification._refine._explore import explore_windows
 from training.identification._refine._windows import window_speeds
 from training.identification._refine._replay import problem_substeps, replay_drive, simulate
@@ -21,7 +21,8 @@ SIGNAL = TestSignalConfig(M_star=200.0, w_max=150.0)
 TRUE = TwoMassParams(J_sigma=0.1424, V_J=1.973, f_e=118.8, d=0.0612, backlash=0.01417, M_FC=2.37, mu_F=0.0186)
 THETA = [math.log10(118.8), math.log10(1.973), 0.0612, math.log10(0.63)]  # the truth's coordinates
 # the restart finds it too
-NO_RATTLE = RefineConfig(rattle=RattleSettings(min_s_N=math.inf), restart=RestartSettings(above=math.inf))
+NO_RATTLE = RefineConfig(rattle=RattleSettings(min_s_N=math.inf), restart=RestartSettings(above=math.inf),
+                         angle_fit=AngleFitSettings(win=0.0))  # the restart and the angle fit find it too
 
 
 def test_a_window_after_a_zero_torque_section_started_at_that_section_replays_the_whole_record():

@@ -5,13 +5,14 @@ import math
 from _refine_problems import refine_problem
 
 from sim import DriveConfig, TestSignalConfig, TwoMassParams
-from training.identification._refine import RefineConfig, RescueSettings, RestartSettings, refine
+from training.identification._refine import AngleFitSettings, RefineConfig, RescueSettings, RestartSettings, refine
 
 # a large industrial axis (500 us, 2^16 counts, current loop 1.5 ms: bandwidth 106 Hz)
 AXIS = DriveConfig(M_N=200.0, M_max=600.0, K_M=2.0, T_s=5e-4, T_Ei=1.5e-3, encoder_counts=2**16, current_noise_std=0.1)
 SIGNAL = TestSignalConfig(M_star=200.0, w_max=150.0)
-NO_RESTART = RestartSettings(above=math.inf)  # the restart finds these too
-NO_RESCUE = RefineConfig(rescue=RescueSettings(above=math.inf), restart=NO_RESTART)
+NO_RESTART = RestartSettings(above=math.inf)  # the restart finds these too ...
+NO_ANGLE_FIT = AngleFitSettings(win=0.0)  # ... and the angle fit
+NO_RESCUE = RefineConfig(rescue=RescueSettings(above=math.inf), restart=NO_RESTART, angle_fit=NO_ANGLE_FIT)
 
 
 def test_a_stiff_shaft_with_a_wide_gap_answered_elastic_at_14_hz_gets_its_width():
@@ -46,7 +47,8 @@ def test_an_answer_that_explains_under_half_of_the_windows_is_rescued():
     true = TwoMassParams(J_sigma=0.046095, V_J=0.67783, f_e=95.434, d=0.016267, backlash=2.8712e-3, M_FC=0.49829,
                          mu_F=3.6057e-3)
     p = refine_problem(true, [math.log10(56.3), math.log10(0.17), 0.044, math.log10(0.071)], noisy, TestSignalConfig())
-    out, late = refine([p])[0], refine([p], RefineConfig(rescue=RescueSettings(above=0.8), restart=NO_RESTART))[0]
+    out, late = refine([p])[0], refine([p], RefineConfig(rescue=RescueSettings(above=0.8), restart=NO_RESTART,
+                                                        angle_fit=NO_ANGLE_FIT))[0]
     assert abs(late.V_J / 0.678 - 1) > 0.3 and abs(late.backlash / 2.87e-3 - 1) > 0.3
     assert abs(out.f_e / 95.43 - 1) < 0.03 and abs(out.V_J / 0.678 - 1) < 0.03
     assert abs(out.backlash / 2.87e-3 - 1) < 0.1

@@ -9,14 +9,14 @@ import textwrap
 
 import pytest
 
-from training.identification._refine import (PIPELINE, STAGES, AngleSettings, BatchSettings, ChooseSettings,
-                                             ClimbSettings, ExploreSettings, FreeSettings, PolishSettings,
-                                             RattleSettings, RefineConfig, RescueSettings, RestartSettings,
+from training.identification._refine import (PIPELINE, STAGES, AngleFitSettings, AngleSettings, BatchSettings,
+                                             ChooseSettings, ClimbSettings, ExploreSettings, FreeSettings,
+                                             PolishSettings, RattleSettings, RefineConfig, RescueSettings, RestartSettings,
                                              RetrySettings, SearchSettings, SplitSettings, Stage)
 
 SETTINGS = (ExploreSettings, RescueSettings, ClimbSettings, RattleSettings, ChooseSettings, SplitSettings,
-            FreeSettings, PolishSettings, RetrySettings, RestartSettings, AngleSettings, SearchSettings,
-            BatchSettings)
+            FreeSettings, PolishSettings, RetrySettings, RestartSettings, AngleFitSettings, AngleSettings,
+            SearchSettings, BatchSettings)
 
 
 def test_every_stage_of_the_pipeline_is_registered_once_with_its_settings_in_the_config():
@@ -51,7 +51,8 @@ def test_settings_are_frozen_dataclasses_whose_fields_say_what_they_are(settings
     (RetrySettings, "damping", 0.0), (RetrySettings, "damping", 1.5), (AngleSettings, "samples", 0),
     (RestartSettings, "above", -1.0), (RestartSettings, "shares", ()), (RestartSettings, "shares", ((0.5,),)),
     (RestartSettings, "shares", ((1.5, 0.0),)), (AngleSettings, "grid_top", 0.0), (BatchSettings, "length_ratio", 0.0),
-    (BatchSettings, "led_lanes", 0),
+    (BatchSettings, "led_lanes", 0), (AngleFitSettings, "grid_s_N", (0.0,)), (AngleFitSettings, "rounds", -1),
+    (AngleFitSettings, "shares", ((0.5, 1.5),)), (AngleFitSettings, "win", -0.1), (AngleFitSettings, "stream", 0),
 ])
 def test_a_bad_setting_is_refused_with_its_name(settings, field, value):
     with pytest.raises(ValueError, match=rf"^{settings.__name__}\.{field}: expected"):

@@ -3,6 +3,7 @@ of :data:`PIPELINE`, registered in :data:`STAGES`) and the backlash found in the
 (:func:`find_hidden_gap`). The settings, stage by stage, and their measured reasons: :class:`RefineConfig`."""
 
 from ._angle import AngleSettings, HiddenGap
+from ._angle_fit import AngleFitSettings
 from ._choose import ChooseSettings
 from ._climb import ClimbSettings
 from ._config import RefineConfig
@@ -20,7 +21,7 @@ from ._search import SearchSettings
 from ._split import SplitSettings
 from ._stage import Stage
 
-__all__ = ["AngleSettings", "BatchSettings", "ChooseSettings", "ClimbSettings", "ExploreSettings", "FreeSettings",
-           "HiddenGap", "PIPELINE", "PolishSettings", "RattleSettings", "RefineConfig", "RefineProblem", "Refined",
-           "RescueSettings", "RestartSettings", "RetrySettings", "STAGES", "SearchSettings", "SplitSettings", "Stage", "find_hidden_gap", "refine",
-           "torque_reference"]
+__all__ = ["AngleFitSettings", "AngleSettings", "BatchSettings", "ChooseSettings", "ClimbSettings",
+           "ExploreSettings", "FreeSettings", "HiddenGap", "PIPELINE", "PolishSettings", "RattleSettings",
+           "RefineConfig", "RefineProblem", "Refined", "RescueSettings", "RestartSettings", "RetrySettings",
+           "STAGES", "SearchSettings", "SplitSettings", "Stage", "find_hidden_gap", "refine", "torque_reference"]

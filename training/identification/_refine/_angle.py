@@ -37,7 +37,7 @@ from training.identification._refine._search import SearchSettings, cem_one, pro
 from training.identification._refine._space import HIGH, LOW
 from training.identification._refine._stage import Stage
 
-__all__ = ["AngleSettings", "HiddenGap", "angle_basis", "hidden_gap"]
+__all__ = ["AngleSettings", "HiddenGap", "angle_basis", "angle_energy", "hidden_gap"]
 
 
 @dataclass(frozen=True)
@@ -107,7 +107,7 @@ def angle_basis(segments: np.ndarray, N: int, stride: int = 1) -> np.ndarray:
     return np.linalg.qr(np.stack(columns, axis=1)[at])[0]  # M x K
 
 
-def _angle_energy(E: np.ndarray, T_s: float, Q: np.ndarray, stride: int) -> np.ndarray:
+def angle_energy(E: np.ndarray, T_s: float, Q: np.ndarray, stride: int) -> np.ndarray:
     """Squared angle error of each column of the speed error ``E`` (``N x C``), at every
     ``stride``-th sample, less its projection on ``Q`` (:func:`angle_basis`) -> ``C`` [rad^2]."""
     M = Q.shape[0]
@@ -127,7 +127,7 @@ def hidden_gap(p: RefineProblem, settings: AngleSettings, search: SearchSettings
         # a chunk at a time: the grid is ordered by f_e, so a chunk's substeps suit its models,
         # and the errors of a long record stay small
         chunks = range(0, len(theta), search.candidates)
-        return np.concatenate([_angle_energy(simulate(p, theta[k:k + search.candidates], drive), p.T_s, Q, stride)
+        return np.concatenate([angle_energy(simulate(p, theta[k:k + search.candidates], drive), p.T_s, Q, stride)
                                for k in chunks]), theta
 
     bandwidth = 1.0 / (2.0 * math.pi * p.T_Ei)

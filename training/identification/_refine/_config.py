@@ -8,6 +8,7 @@ from dataclasses import dataclass, fields
 from training._settings import INTEGER, InstanceOf, check_settings
 
 from training.identification._refine._angle import AngleSettings
+from training.identification._refine._angle_fit import AngleFitSettings
 from training.identification._refine._choose import ChooseSettings
 from training.identification._refine._climb import ClimbSettings
 from training.identification._refine._explore import ExploreSettings
@@ -42,6 +43,7 @@ class RefineConfig:
     polish: PolishSettings = PolishSettings()
     retry: RetrySettings = RetrySettings()
     restart: RestartSettings = RestartSettings()
+    angle_fit: AngleFitSettings = AngleFitSettings()
     angle: AngleSettings = AngleSettings()
     search: SearchSettings = SearchSettings()
     batch: BatchSettings = BatchSettings()

@@ -28,6 +28,8 @@ The stages, in order (:data:`PIPELINE`; each a module with its settings, :data:`
   (:mod:`._retry`);
 - ``restart``: a fit that leaves far more than the noise refined once more from the start with the
   friction shared between the motor and the load, Coulomb and viscous (:mod:`._restart`);
+- ``angle_fit``: an answer with a gap refitted, with the friction's split, on the motor's angle
+  (:mod:`._angle_fit`);
 - ``angle``: the backlash the speed hides, found in the motor's angle; the identifier runs it on
   the records that call for it (:mod:`._angle`).
 """
@@ -39,9 +41,10 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from training.identification._refine import (_angle, _choose, _climb, _explore, _free, _polish, _rattle, _rescue,
-                                             _restart, _retry, _split)
+from training.identification._refine import (_angle, _angle_fit, _choose, _climb, _explore, _free, _polish, _rattle,
+                                             _rescue, _restart, _retry, _split)
 from training.identification._refine._angle import HiddenGap, hidden_gap
+from training.identification._refine._angle_fit import angle_fit
 from training.identification._refine._choose import Choice, choose
 from training.identification._refine._climb import climb, climbs
 from training.identification._refine._config import RefineConfig
@@ -63,10 +66,10 @@ from training.identification._refine._windows import ScoreWindows, score_windows
 #: The stages by name, each with its settings class, entry point and when it runs.
 STAGES: dict[str, Stage] = {module.STAGE.name: module.STAGE for module in
                             (_explore, _rescue, _climb, _rattle, _choose, _split, _free, _polish, _retry, _restart,
-                             _angle)}
+                             _angle_fit, _angle)}
 #: The order the stages run in (``angle`` by the identifier, after the others).
 PIPELINE: tuple[str, ...] = ("explore", "rescue", "climb", "rattle", "choose", "split", "free", "polish", "retry",
-                              "restart", "angle")
+                              "restart", "angle_fit", "angle")
 
 
 @dataclass(frozen=True)
@@ -202,8 +205,10 @@ def refine(problems: list[RefineProblem], config: RefineConfig | None = None) ->
     split (:meth:`RefineProblem.with_motor_share`)."""
     config = config or RefineConfig()
     done, measured, noise = _refine_once(problems, config, split=True)
-    return restart(problems, done, measured, noise, config.restart, config.split, config.seed,
+    done = restart(problems, done, measured, noise, config.restart, config.split, config.seed,
                    lambda again, seed: _refine_once(again, replace(config, seed=seed), split=False)[0])
+    return angle_fit(problems, done, measured, config.angle_fit, config.split, config.angle, config.search,
+                     config.seed)
 
 
 def _refine_once(problems: list[RefineProblem], config: RefineConfig,
