@@ -85,8 +85,8 @@ def _fit(p: RefineProblem, r: Refined, measured: float, settings: AngleFitSettin
     """:func:`angle_fit` of one answer ``r`` with a gap."""
     stride = max(1, len(p.speed) // samples)
     Q, drive = angle_basis(p.segments, len(p.speed), stride), replay_drive(p)
-    own = ((r.M_FCM or 0.0) / p.coulomb if p.coulomb > 0 else 0.0,  # the answer's split
-           (r.mu_FM or 0.0) / p.viscous if p.viscous > 0 else 0.0)
+    answered = p.with_friction_of(r)  # the problem at the answer's own split
+    own = (answered.M_FCM / p.coulomb if p.coulomb > 0 else 0.0, answered.mu_FM / p.viscous if p.viscous > 0 else 0.0)
     theta = np.array([math.log10(r.f_e), math.log10(r.V_J), r.d, math.log10(max(r.s_N, 10.0 ** LOW[3]))])
     grid = np.repeat(theta[None], len(settings.grid_s_N) * len(settings.grid_f_e), axis=0)  # G x 4
     grid[:, 0] += np.tile(np.log10(settings.grid_f_e), len(settings.grid_s_N))
@@ -108,7 +108,7 @@ def _fit(p: RefineProblem, r: Refined, measured: float, settings: AngleFitSettin
     other = min(best[1:], key=lambda b: b[0], default=at_own)
     angle, q, fitted = other if other[0] < settings.win * at_own[0] else at_own
     basis = detrend_basis(p.segments)
-    before = simulate(p.with_motor_share(*own), theta[None], drive)
+    before = simulate(answered, theta[None], drive)
     after = simulate(q, fitted[None], drive)
     speed_before, speed_after = detrended_energy(before, basis)[0], detrended_energy(after, basis)[0]
     if not (angle < settings.win * angle_energy(before, p.T_s, Q, stride)[0]
